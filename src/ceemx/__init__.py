@@ -1,0 +1,44 @@
+"""ceemx: certainty-equivalent EM for partially observed nonlinear dynamical systems, in JAX."""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from . import linalg, systems
+from .data import Trajectories, simulate
+from .models import (
+    AbstractContinuousSystem,
+    AbstractGaussianNoise,
+    AbstractNoise,
+    AbstractSystem,
+    CholeskyGaussian,
+    DiagonalGaussian,
+    GaussianPrior,
+    StudentT,
+)
+from .objective import log_joint, whitened_residuals
+from .smoothing import RESULTS, LMSmoother, SmootherSolution, smooth
+
+try:
+    __version__ = version("ceemx")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0+unknown"
+
+__all__ = [
+    "RESULTS",
+    "AbstractContinuousSystem",
+    "AbstractGaussianNoise",
+    "AbstractNoise",
+    "AbstractSystem",
+    "CholeskyGaussian",
+    "DiagonalGaussian",
+    "GaussianPrior",
+    "LMSmoother",
+    "SmootherSolution",
+    "StudentT",
+    "Trajectories",
+    "linalg",
+    "log_joint",
+    "simulate",
+    "smooth",
+    "systems",
+    "whitened_residuals",
+]

@@ -1,0 +1,207 @@
+"""Batches of observed trajectories, validated on construction, and simulation of systems."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, PRNGKeyArray
+
+from .models.noise import AbstractNoise
+from .models.system import AbstractSystem
+
+__all__ = ["Trajectories", "simulate"]
+
+
+def _is_concrete(a) -> bool:
+    return not isinstance(a, jax.core.Tracer)
+
+
+def _first_bad(bad: np.ndarray) -> tuple[int, ...]:
+    return tuple(int(i) for i in np.argwhere(bad)[0])
+
+
+class Trajectories(eqx.Module):
+    """A batch of B trajectories of T steps: observations y, inputs u and an observation mask.
+
+    Args:
+        y: (B, T, m) observations. Entries where ``mask`` is False are ignored and may be NaN.
+        u: (B, T, p) inputs held constant over each step, or ``None`` (no input; p = 0).
+        mask: ``None`` (everything observed), (B, T) booleans (whole steps observed or not) or
+            (B, T, m) booleans (per dimension). Trajectories of different lengths are padded to a
+            common T and their padding masked: states past the last observation then follow the
+            dynamics and add nothing to the objective at its optimum.
+
+    Raises:
+        ValueError: naming the argument and the first offending index, for wrong ranks,
+            mismatched B or T, NaN/inf in unmasked ``y`` or anywhere in ``u``, an empty batch,
+            T < 2, or a mask of the wrong shape or dtype.
+
+    The stored ``y`` has masked entries replaced by zeros and ``mask`` is always (B, T, m) bool.
+    """
+
+    y: Float[Array, "B T m"]
+    u: Float[Array, "B T p"]
+    mask: Bool[Array, "B T m"]
+
+    def __init__(self, y, u=None, mask=None):
+        concrete = _is_concrete(y) and _is_concrete(u) and _is_concrete(mask)
+        if concrete:
+            y_np = np.asarray(y)
+            if y_np.ndim != 3:
+                raise ValueError(f"`y` must have shape (B, T, m); got rank {y_np.ndim} {y_np.shape}.")
+            B, T, m = y_np.shape
+            if B == 0:
+                raise ValueError("`y` is an empty batch (B = 0).")
+            if T < 2:
+                raise ValueError(f"`y` must have T >= 2 time steps; got T = {T}.")
+            if not np.issubdtype(y_np.dtype, np.floating):
+                raise ValueError(f"`y` must be a floating-point array; got dtype {y_np.dtype}.")
+            if mask is None:
+                mask_np = np.ones((B, T, m), bool)
+            else:
+                mask_np = np.asarray(mask)
+                if mask_np.dtype != np.bool_:
+                    raise ValueError(f"`mask` must be boolean; got dtype {mask_np.dtype}.")
+                if mask_np.shape == (B, T):
+                    mask_np = np.broadcast_to(mask_np[:, :, None], (B, T, m))
+                elif mask_np.shape != (B, T, m):
+                    raise ValueError(
+                        f"`mask` must have shape (B, T) = {(B, T)} or (B, T, m) = {(B, T, m)}; "
+                        f"got {mask_np.shape}."
+                    )
+            bad = mask_np & ~np.isfinite(y_np)
+            if bad.any():
+                b, t, j = _first_bad(bad)
+                raise ValueError(
+                    f"`y` has a non-finite value {y_np[b, t, j]} at unmasked index [{b}, {t}, {j}]; "
+                    "mask it or fix it."
+                )
+            if u is None:
+                u_np = np.zeros((B, T, 0), y_np.dtype)
+            else:
+                u_np = np.asarray(u)
+                if u_np.ndim != 3:
+                    raise ValueError(f"`u` must have shape (B, T, p); got rank {u_np.ndim} {u_np.shape}.")
+                if u_np.shape[0] != B:
+                    raise ValueError(f"`u` has batch size {u_np.shape[0]} but `y` has B = {B}.")
+                if u_np.shape[1] != T:
+                    raise ValueError(f"`u` has {u_np.shape[1]} time steps but `y` has T = {T}.")
+                if not np.all(np.isfinite(u_np)):
+                    b, t, j = _first_bad(~np.isfinite(u_np))
+                    raise ValueError(f"`u` has a non-finite value {u_np[b, t, j]} at index [{b}, {t}, {j}].")
+            dtype = jnp.asarray(y).dtype
+            self.y = jnp.where(jnp.asarray(mask_np), jnp.nan_to_num(jnp.asarray(y)), 0.0).astype(dtype)
+            self.u = jnp.asarray(u_np).astype(dtype)
+            self.mask = jnp.asarray(mask_np)
+        else:  # inside a transformation: trust the caller, only normalise.
+            y = jnp.asarray(y)
+            B, T, m = y.shape
+            self.u = jnp.zeros((B, T, 0), y.dtype) if u is None else jnp.asarray(u)
+            if mask is None:
+                mask = jnp.ones((B, T, m), bool)
+            elif mask.ndim == 2:
+                mask = jnp.broadcast_to(mask[:, :, None], (B, T, m))
+            self.mask = mask
+            self.y = jnp.where(mask, y, 0.0)
+
+    @property
+    def batch_size(self) -> int:
+        """B."""
+        return self.y.shape[0]
+
+    @property
+    def num_steps(self) -> int:
+        """T."""
+        return self.y.shape[1]
+
+    @property
+    def obs_dim(self) -> int:
+        """m."""
+        return self.y.shape[2]
+
+    @property
+    def input_dim(self) -> int:
+        """p."""
+        return self.u.shape[2]
+
+    def __getitem__(self, idx) -> Trajectories:
+        """Select trajectories along the batch axis (the result keeps a batch axis)."""
+        return jax.tree_util.tree_map(lambda a: a[idx] if jnp.ndim(a) else a, self)
+
+
+def _resolve_noise(flag, default: AbstractNoise) -> AbstractNoise | None:
+    if flag is True:
+        return default
+    if flag is False or flag is None:
+        return None
+    return flag
+
+
+def sample_noise(noise: AbstractNoise, key: PRNGKeyArray, shape, dtype) -> Array:
+    """Samples of a Gaussian noise model with the leading ``shape`` (Student-t: scale mixture)."""
+    from .models.noise import AbstractGaussianNoise, StudentT
+
+    if isinstance(noise, AbstractGaussianNoise):
+        L = noise.cholesky().astype(dtype)
+        z = jax.random.normal(key, (*shape, L.shape[0]), dtype)
+        return z @ L.T
+    if isinstance(noise, StudentT):
+        k1, k2 = jax.random.split(key)
+        L = noise._chol(dtype)
+        z = jax.random.normal(k1, (*shape, L.shape[0]), dtype) @ L.T
+        g = jax.random.gamma(k2, 0.5 * noise.df, shape, dtype) / (0.5 * noise.df)
+        return z / jnp.sqrt(g)[..., None]
+    raise TypeError(f"cannot sample from {type(noise).__name__}")
+
+
+def simulate(
+    system: AbstractSystem,
+    key: PRNGKeyArray,
+    x0: Float[Array, "B n"],
+    num_steps: int,
+    u: Float[Array, "B T p"] | None = None,
+    *,
+    process_noise: bool | AbstractNoise = True,
+    obs_noise: bool | AbstractNoise = True,
+) -> tuple[Float[Array, "B T n"], Trajectories]:
+    """Simulate B trajectories of ``num_steps`` steps from initial states ``x0``.
+
+    Args:
+        system: the model to simulate.
+        key: PRNG key; the result is a deterministic function of it.
+        x0: (B, n) initial states x₁.
+        num_steps: T.
+        u: (B, T, p) inputs or ``None``.
+        process_noise, obs_noise: ``True`` to sample the system's own noise model, ``False`` for
+            none (deterministic dynamics / exact observations), or a noise model to sample instead.
+
+    Returns:
+        The true states (B, T, n) and the observations as :class:`Trajectories`.
+    """
+    x0 = jnp.asarray(x0)
+    B, n = x0.shape
+    T = int(num_steps)
+    dtype = x0.dtype
+    u = jnp.zeros((B, T, 0), dtype) if u is None else jnp.asarray(u, dtype)
+    kw, kv = jax.random.split(key)
+    pn = _resolve_noise(process_noise, system.process_noise)
+    on = _resolve_noise(obs_noise, system.obs_noise)
+    w = sample_noise(pn, kw, (B, T - 1), dtype) if pn is not None else jnp.zeros((B, T - 1, n), dtype)
+    ts = jnp.arange(T)
+
+    def roll(x1, ub, wb):
+        def step(x, inp):
+            ut, t, wt = inp
+            nxt = system.dynamics(x, ut, t) + wt
+            return nxt, nxt
+
+        _, xs = jax.lax.scan(step, x1, (ub[:-1], ts[:-1], wb))
+        return jnp.concatenate([x1[None], xs], axis=0)
+
+    xs = jax.vmap(roll)(x0, u, w)
+    y = jax.vmap(jax.vmap(system.observe))(xs, u, jnp.broadcast_to(ts, (B, T)))
+    if on is not None:
+        y = y + sample_noise(on, kv, (B, T), dtype)
+    return xs, Trajectories(y, u if u.shape[-1] else None)

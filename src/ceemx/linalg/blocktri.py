@@ -1,0 +1,260 @@
+"""Symmetric positive-definite block-tridiagonal matrices.
+
+A symmetric block-tridiagonal matrix with ``T`` diagonal blocks of size ``n x n`` is stored by
+its diagonal blocks ``A[t, t]`` and its sub-diagonal blocks ``A[t + 1, t]``; the super-diagonal
+blocks are the transposes of the latter. Its Cholesky factor ``L`` (with ``A = L L^T``) is block
+lower-bidiagonal and is stored the same way.
+
+All routines are pure JAX (jit/vmap-safe), cost ``O(T n^3)`` and never form a dense
+``(T n) x (T n)`` matrix, except :func:`to_dense`, which exists for tests and debugging.
+``T == 1`` is supported (the sub-diagonal arrays then have shape ``(0, n, n)``).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.scipy.linalg import solve_triangular
+from jaxtyping import Array, Bool, Float
+
+__all__ = [
+    "BlockTridiagonal",
+    "BlockTridiagonalCholesky",
+    "matvec",
+    "to_dense",
+    "cholesky",
+    "is_finite",
+    "solve",
+    "cho_solve",
+    "logdet",
+    "selected_inverse",
+]
+
+
+class BlockTridiagonal(eqx.Module):
+    """Symmetric block-tridiagonal matrix.
+
+    Attributes:
+        diagonal: Diagonal blocks ``A[t, t]``, shape ``(T, n, n)``.
+        lower: Sub-diagonal blocks ``A[t + 1, t]``, shape ``(T - 1, n, n)``. The super-diagonal
+            blocks are ``lower[t].T``.
+    """
+
+    diagonal: Float[Array, "T n n"]
+    lower: Float[Array, "Tm1 n n"]
+
+
+class BlockTridiagonalCholesky(eqx.Module):
+    """Block lower-bidiagonal Cholesky factor ``L`` of a :class:`BlockTridiagonal` ``A = L L^T``.
+
+    Attributes:
+        diagonal: Lower-triangular diagonal blocks ``L[t, t]``, shape ``(T, n, n)``.
+        lower: Sub-diagonal blocks ``L[t + 1, t]``, shape ``(T - 1, n, n)``.
+    """
+
+    diagonal: Float[Array, "T n n"]
+    lower: Float[Array, "Tm1 n n"]
+
+
+def _mT(x: Array) -> Array:
+    return jnp.swapaxes(x, -1, -2)
+
+
+def _sym(x: Array) -> Array:
+    return 0.5 * (x + _mT(x))
+
+
+def _as_matrix_rhs(b: Array) -> tuple[Array, bool]:
+    """Return ``b`` as ``(T, n, k)`` and whether it was a vector right-hand side."""
+    if b.ndim == 2:
+        return b[..., None], True
+    if b.ndim == 3:
+        return b, False
+    raise ValueError(f"expected a right-hand side of shape (T, n) or (T, n, k), got {b.shape}")
+
+
+@jax.jit
+def matvec(A: BlockTridiagonal, x: Float[Array, "T n *k"]) -> Float[Array, "T n *k"]:
+    """Multiply a block-tridiagonal matrix by a (block) vector.
+
+    Args:
+        A: The matrix.
+        x: Array of shape ``(T, n)`` or ``(T, n, k)``.
+
+    Returns:
+        ``A @ x`` with the same shape as ``x``.
+    """
+    X, squeeze = _as_matrix_rhs(x)
+    y = jnp.einsum("tij,tjk->tik", A.diagonal, X)
+    # Sub-diagonal contribution: y[t + 1] += A[t + 1, t] x[t].
+    sub = jnp.einsum("tij,tjk->tik", A.lower, X[:-1])
+    # Super-diagonal contribution: y[t] += A[t + 1, t]^T x[t + 1].
+    sup = jnp.einsum("tji,tjk->tik", A.lower, X[1:])
+    y = y.at[1:].add(sub).at[:-1].add(sup)
+    return y[..., 0] if squeeze else y
+
+
+@jax.jit
+def to_dense(A: BlockTridiagonal | BlockTridiagonalCholesky) -> Float[Array, "Tn Tn"]:
+    """Assemble the dense matrix (for tests and debugging only).
+
+    Args:
+        A: A symmetric block-tridiagonal matrix, or a block-bidiagonal Cholesky factor (in which
+            case the result is the dense lower-triangular factor).
+
+    Returns:
+        Dense array of shape ``(T n, T n)``.
+    """
+    T, n, _ = A.diagonal.shape
+    idx = jnp.arange(T)
+    blocks = jnp.zeros((T, T, n, n), A.diagonal.dtype)
+    blocks = blocks.at[idx, idx].set(A.diagonal)
+    blocks = blocks.at[idx[1:], idx[:-1]].set(A.lower)
+    if isinstance(A, BlockTridiagonal):
+        blocks = blocks.at[idx[:-1], idx[1:]].set(_mT(A.lower))
+    return blocks.transpose(0, 2, 1, 3).reshape(T * n, T * n)
+
+
+@jax.jit
+def cholesky(A: BlockTridiagonal) -> BlockTridiagonalCholesky:
+    """Block Cholesky factorisation ``A = L L^T`` by a forward scan over time.
+
+    ``L[0, 0] = chol(A[0, 0])``, ``L[t+1, t] = A[t+1, t] L[t, t]^{-T}`` and
+    ``L[t+1, t+1] = chol(A[t+1, t+1] - L[t+1, t] L[t+1, t]^T)``; each diagonal block is
+    symmetrised before its factorisation. Cost ``O(T n^3)``.
+
+    Args:
+        A: Symmetric positive-definite block-tridiagonal matrix.
+
+    Returns:
+        The factor. If ``A`` is not positive definite the factor contains NaNs; check with
+        :func:`is_finite`.
+    """
+    L0 = jnp.linalg.cholesky(_sym(A.diagonal[0]))
+
+    def step(L_prev, blocks):
+        A_diag, A_low = blocks
+        # L_low = A_low L_prev^{-T}  <=>  L_prev L_low^T = A_low^T.
+        L_low = _mT(solve_triangular(L_prev, _mT(A_low), lower=True))
+        L_diag = jnp.linalg.cholesky(_sym(A_diag - L_low @ _mT(L_low)))
+        return L_diag, (L_diag, L_low)
+
+    _, (diags, lows) = jax.lax.scan(step, L0, (A.diagonal[1:], A.lower))
+    return BlockTridiagonalCholesky(
+        diagonal=jnp.concatenate([L0[None], diags], axis=0), lower=lows
+    )
+
+
+@jax.jit
+def is_finite(L: BlockTridiagonalCholesky) -> Bool[Array, ""]:
+    """Whether a Cholesky factor is entirely finite (i.e. the factorisation succeeded).
+
+    Args:
+        L: The factor returned by :func:`cholesky`.
+
+    Returns:
+        Boolean scalar.
+    """
+    return jnp.all(jnp.isfinite(L.diagonal)) & jnp.all(jnp.isfinite(L.lower))
+
+
+@jax.jit
+def solve(L: BlockTridiagonalCholesky, b: Float[Array, "T n *k"]) -> Float[Array, "T n *k"]:
+    """Solve ``A x = b`` given the block Cholesky factor of ``A``.
+
+    A forward scan solves ``L y = b`` and a backward scan solves ``L^T x = y``.
+
+    Args:
+        L: Factor returned by :func:`cholesky`.
+        b: Right-hand side of shape ``(T, n)`` or ``(T, n, k)`` (``k`` right-hand sides).
+
+    Returns:
+        ``x`` with the same shape as ``b``.
+    """
+    B, squeeze = _as_matrix_rhs(b)
+
+    y0 = solve_triangular(L.diagonal[0], B[0], lower=True)
+
+    def fwd(y_prev, inputs):
+        L_diag, L_low, b_t = inputs
+        y = solve_triangular(L_diag, b_t - L_low @ y_prev, lower=True)
+        return y, y
+
+    _, ys = jax.lax.scan(fwd, y0, (L.diagonal[1:], L.lower, B[1:]))
+    Y = jnp.concatenate([y0[None], ys], axis=0)
+
+    xT = solve_triangular(L.diagonal[-1], Y[-1], lower=True, trans="T")
+
+    def bwd(x_next, inputs):
+        L_diag, L_low, y_t = inputs
+        x = solve_triangular(L_diag, y_t - _mT(L_low) @ x_next, lower=True, trans="T")
+        return x, x
+
+    _, xs = jax.lax.scan(bwd, xT, (L.diagonal[:-1], L.lower, Y[:-1]), reverse=True)
+    X = jnp.concatenate([xs, xT[None]], axis=0)
+    return X[..., 0] if squeeze else X
+
+
+@jax.jit
+def cho_solve(A: BlockTridiagonal, b: Float[Array, "T n *k"]) -> Float[Array, "T n *k"]:
+    """Solve ``A x = b`` by factorising ``A`` (convenience for ``solve(cholesky(A), b)``).
+
+    Args:
+        A: Symmetric positive-definite block-tridiagonal matrix.
+        b: Right-hand side of shape ``(T, n)`` or ``(T, n, k)``.
+
+    Returns:
+        ``x`` with the same shape as ``b``.
+    """
+    return solve(cholesky(A), b)
+
+
+@jax.jit
+def logdet(L: BlockTridiagonalCholesky) -> Float[Array, ""]:
+    """Log-determinant of ``A = L L^T``.
+
+    Args:
+        L: Factor returned by :func:`cholesky`.
+
+    Returns:
+        ``log det A = 2 sum_t sum_i log L[t, t][i, i]`` (scalar).
+    """
+    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(L.diagonal, axis1=-2, axis2=-1)))
+
+
+@jax.jit
+def selected_inverse(L: BlockTridiagonalCholesky) -> BlockTridiagonal:
+    """Diagonal and sub-diagonal blocks of ``A^{-1}`` from the factor ``A = L L^T``.
+
+    With ``S = A^{-1}``, the identity ``S L = L^{-T}`` (block upper triangular with diagonal
+    blocks ``L[t, t]^{-T}``) gives, for ``G_t = L[t+1, t] L[t, t]^{-1}``, the backward
+    (RTS-like) recursion
+
+        ``S[T-1, T-1] = (L[T-1, T-1] L[T-1, T-1]^T)^{-1}``,
+        ``S[t+1, t] = -S[t+1, t+1] G_t``,
+        ``S[t, t] = (L[t, t] L[t, t]^T)^{-1} + G_t^T S[t+1, t+1] G_t``.
+
+    Cost ``O(T n^3)``.
+
+    Args:
+        L: Factor returned by :func:`cholesky`.
+
+    Returns:
+        A :class:`BlockTridiagonal` whose blocks are ``S[t, t]`` and ``S[t+1, t]``.
+    """
+    n = L.diagonal.shape[-1]
+    eye = jnp.eye(n, dtype=L.diagonal.dtype)
+    L_inv = jax.vmap(lambda Ld: solve_triangular(Ld, eye, lower=True))(L.diagonal)
+    local = _sym(_mT(L_inv) @ L_inv)  # (L_tt L_tt^T)^{-1}
+    G = L.lower @ L_inv[:-1]
+
+    def step(S_next, inputs):
+        local_t, G_t = inputs
+        S_low = -S_next @ G_t
+        S_diag = _sym(local_t - _mT(G_t) @ S_low)
+        return S_diag, (S_diag, S_low)
+
+    S_last = local[-1]
+    _, (diags, lows) = jax.lax.scan(step, S_last, (local[:-1], G), reverse=True)
+    return BlockTridiagonal(diagonal=jnp.concatenate([diags, S_last[None]], axis=0), lower=lows)

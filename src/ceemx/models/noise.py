@@ -1,0 +1,258 @@
+"""Noise models: the densities p_w and p_v of Eq. 1 that weight the residuals of Eq. 9.
+
+Every noise model gives, for a residual r ∈ R^d and a boolean mask of the dimensions that are
+present:
+
+- ``nll(r, mask)``: −log p(r_obs), the negative log-density of the present components (their
+  marginal), normaliser included;
+- ``sqrt_curvature(r, mask)``: a d × d matrix S with W = SᵀS a positive semi-definite curvature of
+  ``nll`` at r, and, for Gaussian models, SᵀS r = ∇nll. Second-order solvers build Gauss–Newton
+  blocks JᵀWJ from it: for Gaussian noise S r is the whitened residual; for Student-t noise S is the
+  iteratively-reweighted (Fisher-scoring) weight, always positive definite.
+
+Masked components contribute nothing: for a full covariance the present components keep their
+exact marginal (the covariance is reduced to the present rows and columns).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+__all__ = [
+    "AbstractNoise",
+    "AbstractGaussianNoise",
+    "DiagonalGaussian",
+    "CholeskyGaussian",
+    "StudentT",
+]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def _full_mask(r: Array, mask: Array | None) -> Array:
+    if mask is None:
+        return jnp.ones(r.shape, dtype=bool)
+    return jnp.broadcast_to(mask, r.shape)
+
+
+def _masked_cholesky(chol: Array, mask: Array) -> Array:
+    """Cholesky factor of Σ restricted to the present rows/columns, identity elsewhere.
+
+    With M = diag(mask), Σ' = M Σ M + (I − M) is, after a permutation, block-diagonal with the
+    present block Σ_oo and an identity block, so whitening by chol(Σ') gives the exact marginal
+    density of the present components while masked components (residual set to zero) add nothing.
+    """
+    m = mask.astype(chol.dtype)
+    cov = chol @ chol.T
+    cov = cov * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
+    return jnp.linalg.cholesky(cov)
+
+
+class AbstractNoise(eqx.Module):
+    """A noise density on R^d (generic log-density interface).
+
+    Subclasses implement :meth:`log_prob`. The default :meth:`sqrt_curvature` is the Hessian of the
+    negative log-density projected onto the positive semi-definite cone (eigenvalues clipped at
+    zero), which makes any smooth density usable by the second-order smoother.
+    """
+
+    @abc.abstractmethod
+    def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Array:
+        """Log-density of the present components of the residual ``r``."""
+
+    def nll(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Array:
+        """Negative log-density, −log p(r_present)."""
+        return -self.log_prob(r, mask)
+
+    def sqrt_curvature(
+        self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
+    ) -> Float[Array, "d d"]:
+        """A matrix S with SᵀS a positive semi-definite curvature of ``nll`` at ``r``."""
+        hess = jax.hessian(lambda z: self.nll(z, mask))(r)
+        hess = 0.5 * (hess + hess.T)
+        w, v = jnp.linalg.eigh(hess)
+        return jnp.sqrt(jnp.clip(w, 0.0))[:, None] * v.T
+
+    @property
+    def is_gaussian(self) -> bool:
+        """Whether ``nll`` is exactly ½‖S r‖² plus a constant (Gauss–Newton applies exactly)."""
+        return False
+
+    def check(self, name: str) -> None:
+        """Raise ``ValueError`` naming ``name`` when the parameters are invalid (host-side)."""
+
+
+class AbstractGaussianNoise(AbstractNoise):
+    """Zero-mean Gaussian noise N(0, Σ) with Σ = L Lᵀ."""
+
+    @abc.abstractmethod
+    def cholesky(self) -> Float[Array, "d d"]:
+        """Lower Cholesky factor L of the covariance Σ."""
+
+    @property
+    def is_gaussian(self) -> bool:
+        """Gaussian noise models are exactly quadratic in the residual."""
+        return True
+
+    def sqrt_curvature(self, r, mask=None):
+        """The whitening matrix L⁻¹ of the present components (zero rows for masked ones)."""
+        mask = _full_mask(r, mask)
+        chol = _masked_cholesky(self.cholesky(), mask)
+        eye = jnp.eye(r.shape[-1], dtype=r.dtype)
+        s = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
+        return s * mask[:, None].astype(r.dtype)
+
+    def whiten(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Array:
+        """Whitened residual L⁻¹ r of the present components (zero where masked)."""
+        return self.sqrt_curvature(r, mask) @ r
+
+    def log_prob(self, r, mask=None):
+        """Exact Gaussian log-density of the present components."""
+        mask = _full_mask(r, mask)
+        chol = _masked_cholesky(self.cholesky(), mask)
+        z = jax.scipy.linalg.solve_triangular(chol, jnp.where(mask, r, 0.0), lower=True)
+        k = jnp.sum(mask)
+        return -0.5 * jnp.sum(z**2) - jnp.sum(jnp.log(jnp.abs(jnp.diag(chol)))) - 0.5 * k * _LOG_2PI
+
+
+class DiagonalGaussian(AbstractGaussianNoise):
+    """N(0, diag(scale²)); ``scale`` is a scalar or a length-d vector of standard deviations."""
+
+    scale: Float[Array, "..."]
+    dim: int = eqx.field(static=True)
+
+    def __init__(self, scale, dim: int):
+        self.scale = jnp.asarray(scale)
+        self.dim = int(dim)
+
+    def std(self) -> Array:
+        """Standard deviations as a length-d vector."""
+        return jnp.broadcast_to(self.scale, (self.dim,))
+
+    def cholesky(self):
+        """diag(scale)."""
+        return jnp.diag(self.std())
+
+    # Diagonal fast paths (no d×d Cholesky per step).
+    def sqrt_curvature(self, r, mask=None):
+        """diag(mask / scale)."""
+        mask = _full_mask(r, mask)
+        return jnp.diag(jnp.where(mask, 1.0 / self.std().astype(r.dtype), 0.0))
+
+    def log_prob(self, r, mask=None):
+        """Sum of independent normal log-densities over the present components."""
+        mask = _full_mask(r, mask)
+        s = self.std().astype(r.dtype)
+        terms = -0.5 * (r / s) ** 2 - jnp.log(s) - 0.5 * _LOG_2PI
+        return jnp.sum(jnp.where(mask, terms, 0.0))
+
+    def check(self, name):
+        """Scales must be finite and positive."""
+        _check_positive(name + ".scale", self.scale)
+
+
+class CholeskyGaussian(AbstractGaussianNoise):
+    """N(0, L Lᵀ) with a full lower-triangular Cholesky factor ``chol`` (positive diagonal)."""
+
+    chol: Float[Array, "d d"]
+
+    def __init__(self, chol=None, *, cov=None):
+        if (chol is None) == (cov is None):
+            raise ValueError("CholeskyGaussian: give exactly one of `chol` or `cov`.")
+        if cov is not None:
+            chol = jnp.linalg.cholesky(jnp.asarray(cov))
+        self.chol = jnp.tril(jnp.asarray(chol))
+
+    def cholesky(self):
+        """The stored factor."""
+        return self.chol
+
+    def check(self, name):
+        """The factor must be square with a finite, positive diagonal."""
+        import numpy as np
+
+        c = np.asarray(self.chol)
+        if c.ndim != 2 or c.shape[0] != c.shape[1]:
+            raise ValueError(f"`{name}.chol` must be a square matrix, got shape {c.shape}.")
+        _check_positive(name + ".chol diagonal", np.diag(c))
+
+
+class StudentT(AbstractNoise):
+    """Multivariate Student-t noise with ``df`` degrees of freedom and scale matrix L Lᵀ.
+
+    log p(r) = log Γ((ν+k)/2) − log Γ(ν/2) − (k/2) log(νπ) − log|L| − ((ν+k)/2) log(1 + δ²/ν),
+    δ² = ‖L⁻¹r‖², k the number of present components. The curvature used by the smoother is the
+    Fisher-scoring / IRLS weight ((ν+k)/(ν+δ²)) L⁻ᵀL⁻¹ — positive definite everywhere, and with
+    SᵀS r = ∇nll(r) — so each Gauss–Newton step is a majorise–minimise step.
+    """
+
+    scale: Float[Array, "..."]
+    df: Float[Array, ""]
+    dim: int = eqx.field(static=True)
+
+    def __init__(self, scale, df, dim: int):
+        self.scale = jnp.asarray(scale)
+        self.df = jnp.asarray(df)
+        self.dim = int(dim)
+
+    def _chol(self, dtype):
+        s = jnp.asarray(self.scale, dtype)
+        if s.ndim == 2:
+            return jnp.tril(s)
+        return jnp.diag(jnp.broadcast_to(s, (self.dim,)))
+
+    def _whitened(self, r, mask):
+        chol = _masked_cholesky(self._chol(r.dtype), mask)
+        z = jax.scipy.linalg.solve_triangular(chol, jnp.where(mask, r, 0.0), lower=True)
+        return z, chol
+
+    def log_prob(self, r, mask=None):
+        """Multivariate-t log-density of the present components."""
+        mask = _full_mask(r, mask)
+        z, chol = self._whitened(r, mask)
+        k = jnp.sum(mask).astype(r.dtype)
+        nu = self.df.astype(r.dtype)
+        d2 = jnp.sum(z**2)
+        return (
+            jax.scipy.special.gammaln(0.5 * (nu + k))
+            - jax.scipy.special.gammaln(0.5 * nu)
+            - 0.5 * k * jnp.log(nu * jnp.pi)
+            - jnp.sum(jnp.log(jnp.abs(jnp.diag(chol))))
+            - 0.5 * (nu + k) * jnp.log1p(d2 / nu)
+        )
+
+    def sqrt_curvature(self, r, mask=None):
+        """sqrt((ν+k)/(ν+δ²)) L⁻¹ on the present components."""
+        mask = _full_mask(r, mask)
+        z, chol = self._whitened(r, mask)
+        k = jnp.sum(mask).astype(r.dtype)
+        nu = self.df.astype(r.dtype)
+        w = (nu + k) / (nu + jnp.sum(z**2))
+        eye = jnp.eye(r.shape[-1], dtype=r.dtype)
+        s = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
+        return jnp.sqrt(w) * s * mask[:, None].astype(r.dtype)
+
+    def check(self, name):
+        """Scale and degrees of freedom must be positive."""
+        import numpy as np
+
+        s = np.asarray(self.scale)
+        _check_positive(name + ".scale", np.diag(s) if s.ndim == 2 else s)
+        _check_positive(name + ".df", self.df)
+
+
+def _check_positive(name: str, value) -> None:
+    import numpy as np
+
+    v = np.asarray(value)
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"`{name}` must be finite; got {v}.")
+    if np.any(v <= 0):
+        idx = int(np.argmax(np.ravel(v) <= 0))
+        raise ValueError(f"`{name}` must be positive; entry {idx} is {np.ravel(v)[idx]}.")

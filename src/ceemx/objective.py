@@ -1,0 +1,189 @@
+"""The CE-EM joint objective J(x, θ) (paper Eq. 9), its residuals and their linearisation.
+
+For one trajectory with observation residuals r^v_t = y_t − g_θ(x_t, u_t, t) and dynamics residuals
+r^w_t = x_{t+1} − f_θ(x_t, u_t, t):
+
+    −J(x, θ) = −log p(x₁) + Σ_t −log p_v(r^v_t | mask_t) + Σ_{t<T} −log p_w(r^w_t).
+
+Second-order solvers use, per factor, the noise model's curvature W = SᵀS (see
+:mod:`ceemx.models.noise`): the generalised Gauss–Newton matrix Σ J_rᵀ W J_r is block-tridiagonal
+in x (each factor touches at most x_t and x_{t+1}) and the gradient is Σ J_rᵀ ∇nll(r). For Gaussian
+noise S r are the whitened residuals and this is exactly Gauss–Newton on ½‖S r‖².
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .data import Trajectories
+from .linalg import BlockTridiagonal
+from .models.system import AbstractSystem
+
+__all__ = [
+    "Linearization",
+    "linearize",
+    "log_joint",
+    "neg_log_joint_single",
+    "residuals",
+    "whitened_residuals",
+]
+
+
+def residuals(system: AbstractSystem, x, y, u):
+    """Observation residuals (T, m) and dynamics residuals (T−1, n) of one trajectory."""
+    T = x.shape[0]
+    ts = jnp.arange(T)
+    r_obs = y - jax.vmap(system.observe)(x, u, ts)
+    r_dyn = x[1:] - jax.vmap(system.dynamics)(x[:-1], u[:-1], ts[:-1])
+    return r_obs, r_dyn
+
+
+def neg_log_joint_single(system: AbstractSystem, x, y, u, mask) -> Array:
+    """−J(x, θ) of one trajectory (Eq. 9 with the initial-state prior when the system has one)."""
+    r_obs, r_dyn = residuals(system, x, y, u)
+    total = jnp.sum(jax.vmap(system.obs_noise.nll)(r_obs, mask))
+    total = total + jnp.sum(jax.vmap(system.process_noise.nll)(r_dyn))
+    if system.initial_prior is not None:
+        total = total + system.initial_prior.nll(x[0])
+    return total
+
+
+def log_joint(system: AbstractSystem, x: Float[Array, "B T n"], data: Trajectories) -> Array:
+    """J(x, θ) = log p(x, y | θ) of each trajectory (Eq. 9); shape (B,)."""
+    return -jax.vmap(neg_log_joint_single, in_axes=(None, 0, 0, 0, 0))(
+        system, x, data.y, data.u, data.mask
+    )
+
+
+def _whitened_single(system, x, y, u, mask):
+    for name, noise in (("obs_noise", system.obs_noise), ("process_noise", system.process_noise)):
+        if not noise.is_gaussian:
+            raise TypeError(f"whitened residuals need Gaussian noise; system.{name} is {type(noise).__name__}")
+    r_obs, r_dyn = residuals(system, x, y, u)
+    parts = [
+        jax.vmap(system.obs_noise.whiten)(r_obs, mask).reshape(-1),
+        jax.vmap(system.process_noise.whiten)(r_dyn).reshape(-1),
+    ]
+    if system.initial_prior is not None:
+        parts.append(system.initial_prior.noise.whiten(x[0] - system.initial_prior.mean))
+    return jnp.concatenate(parts)
+
+
+def whitened_residuals(system: AbstractSystem, x: Float[Array, "B T n"], data: Trajectories):
+    """Whitened residuals r̃ (B, R) with −J = ½‖r̃‖² + const for Gaussian noise models.
+
+    Order per trajectory: the T·m observation residuals (zeros where masked), the (T−1)·n dynamics
+    residuals, then the n prior residuals when the system has an initial-state prior.
+    """
+    return jax.vmap(_whitened_single, in_axes=(None, 0, 0, 0, 0))(system, x, data.y, data.u, data.mask)
+
+
+class Linearization(NamedTuple):
+    """Value, gradient and Gauss–Newton curvature of −J for one trajectory.
+
+    ``E``, ``D`` and ``grad_theta`` are present only when linearised with respect to θ too.
+    """
+
+    value: Array  # scalar −J
+    grad_x: Array  # (T, n)
+    hess_x: BlockTridiagonal  # GN blocks in x
+    grad_theta: Array | None = None  # (P,)
+    E: Array | None = None  # (T, n, P) cross blocks J_xᵀ W J_θ
+    D: Array | None = None  # (P, P) J_θᵀ W J_θ
+
+
+def _jac(fun, argnum, in_dim, out_dim):
+    """Jacobian by forward mode when the input is the smaller side, reverse mode otherwise."""
+    return jax.jacfwd(fun, argnums=argnum) if in_dim <= out_dim else jax.jacrev(fun, argnums=argnum)
+
+
+def linearize(
+    build: Callable[[Any], AbstractSystem],
+    theta: Any,
+    x: Float[Array, "T n"],
+    y,
+    u,
+    mask,
+    *,
+    wrt_theta: bool = False,
+) -> Linearization:
+    """Linearise −J of one trajectory around (x, θ).
+
+    Args:
+        build: maps ``theta`` to the system (``lambda s: s`` when θ is the system itself).
+        theta: a flat parameter vector when ``wrt_theta`` is True, otherwise any pytree.
+        x, y, u, mask: one trajectory's states (T, n), observations, inputs and mask.
+        wrt_theta: also return the θ-gradient, the cross blocks E and the θθ block D.
+    """
+    system = build(theta)
+    T, n = x.shape
+    ts = jnp.arange(T)
+    dtype = x.dtype
+
+    def obs_res(xt, th, yt, ut, t):
+        return yt - build(th).observe(xt, ut, t)
+
+    def dyn_res(xt, th, ut, t):
+        return -build(th).dynamics(xt, ut, t)  # + x_{t+1}, whose Jacobian is the identity
+
+    m = y.shape[-1]
+    r_obs, r_dyn = residuals(system, x, y, u)
+    on, pn = system.obs_noise, system.process_noise
+
+    # Per-step Jacobians with respect to x_t.
+    G = jax.vmap(_jac(obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)  # (T,m,n)
+    F = jax.vmap(jax.jacfwd(dyn_res, argnums=0), in_axes=(0, None, 0, 0))(
+        x[:-1], theta, u[:-1], ts[:-1]
+    )  # (T-1,n,n)
+    Sv = jax.vmap(on.sqrt_curvature)(r_obs, mask)  # (T,m,m)
+    Sw = jax.vmap(pn.sqrt_curvature)(r_dyn)  # (T-1,n,n)
+    gv = jax.vmap(jax.grad(on.nll))(r_obs, mask)  # (T,m)
+    gw = jax.vmap(jax.grad(pn.nll))(r_dyn)  # (T-1,n)
+    value = jnp.sum(jax.vmap(on.nll)(r_obs, mask)) + jnp.sum(jax.vmap(pn.nll)(r_dyn))
+
+    SG = Sv @ G
+    SF = Sw @ F
+    mT = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
+    diag = mT(SG) @ SG
+    diag = diag.at[:-1].add(mT(SF) @ SF)
+    diag = diag.at[1:].add(mT(Sw) @ Sw)
+    lower = mT(Sw) @ SF  # block (t+1, t)
+    grad = jnp.einsum("tmn,tm->tn", G, gv)
+    grad = grad.at[:-1].add(jnp.einsum("tkn,tk->tn", F, gw))
+    grad = grad.at[1:].add(gw)
+
+    prior = system.initial_prior
+    if prior is not None:
+        r0 = x[0] - prior.mean
+        S0 = prior.noise.sqrt_curvature(r0)
+        value = value + prior.noise.nll(r0)
+        grad = grad.at[0].add(jax.grad(prior.noise.nll)(r0))
+        diag = diag.at[0].add(S0.T @ S0)
+
+    hess = BlockTridiagonal(diagonal=0.5 * (diag + mT(diag)), lower=lower)
+    if not wrt_theta:
+        return Linearization(value, grad, hess)
+
+    P = theta.shape[0]
+    Gt = jax.vmap(_jac(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)  # (T,m,P)
+    Ft = jax.vmap(_jac(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(x[:-1], theta, u[:-1], ts[:-1])
+    SGt = Sv @ Gt
+    SFt = Sw @ Ft
+    D = jnp.einsum("tmp,tmq->pq", SGt, SGt) + jnp.einsum("tnp,tnq->pq", SFt, SFt)
+    grad_theta = jnp.einsum("tmp,tm->p", Gt, gv) + jnp.einsum("tnp,tn->p", Ft, gw)
+    E = mT(SG) @ SGt
+    E = E.at[:-1].add(mT(SF) @ SFt)
+    E = E.at[1:].add(mT(Sw) @ SFt)
+    if prior is not None:  # a prior whose mean depends on θ
+        def prior_nll(x0, th):
+            pr = build(th).initial_prior
+            return pr.nll(x0)
+
+        gp = jax.grad(prior_nll, argnums=1)(x[0], theta)
+        grad_theta = grad_theta + gp
+    return Linearization(value, grad, hess, grad_theta, E.astype(dtype), 0.5 * (D + D.T))

@@ -1,0 +1,81 @@
+"""Linear-Gaussian state-space model (the exact case of Kalman/RTS smoothing)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ..models.noise import AbstractNoise, DiagonalGaussian
+from ..models.system import AbstractSystem, GaussianPrior
+
+__all__ = ["LinearSystem"]
+
+
+class LinearSystem(AbstractSystem):
+    """x_{t+1} = A x_t + B u_t + w_t,  y_t = C x_t + D u_t + v_t.
+
+    Attributes:
+        A: (n, n) transition; B: (n, p) input; C: (m, n) observation; D: (m, p) feedthrough.
+    """
+
+    A: Float[Array, "n n"]
+    B: Float[Array, "n p"]
+    C: Float[Array, "m n"]
+    D: Float[Array, "m p"]
+    process_noise: AbstractNoise
+    obs_noise: AbstractNoise
+    initial_prior: GaussianPrior | None
+
+    def __init__(
+        self,
+        A,
+        C,
+        B=None,
+        D=None,
+        *,
+        process_noise: AbstractNoise | float = 1.0,
+        obs_noise: AbstractNoise | float = 1.0,
+        initial_prior: GaussianPrior | None = None,
+    ):
+        self.A = jnp.asarray(A)
+        self.C = jnp.asarray(C)
+        n, m = self.A.shape[0], self.C.shape[0]
+        if self.A.shape != (n, n):
+            raise ValueError(f"`A` must be square; got shape {self.A.shape}.")
+        if self.C.shape != (m, n):
+            raise ValueError(f"`C` must have shape (m, {n}); got {self.C.shape}.")
+        self.B = jnp.zeros((n, 0), self.A.dtype) if B is None else jnp.asarray(B)
+        p = self.B.shape[1]
+        self.D = jnp.zeros((m, p), self.A.dtype) if D is None else jnp.asarray(D)
+        if self.B.shape != (n, p) or self.D.shape != (m, p):
+            raise ValueError(f"`B` must be ({n}, p) and `D` ({m}, p); got {self.B.shape}, {self.D.shape}.")
+        if not isinstance(process_noise, AbstractNoise):
+            process_noise = DiagonalGaussian(process_noise, n)
+        if not isinstance(obs_noise, AbstractNoise):
+            obs_noise = DiagonalGaussian(obs_noise, m)
+        self.process_noise = process_noise
+        self.obs_noise = obs_noise
+        self.initial_prior = initial_prior
+
+    @property
+    def state_dim(self) -> int:
+        """n."""
+        return self.A.shape[0]
+
+    @property
+    def obs_dim(self) -> int:
+        """m."""
+        return self.C.shape[0]
+
+    @property
+    def input_dim(self) -> int:
+        """p."""
+        return self.B.shape[1]
+
+    def dynamics(self, x, u, t):
+        """A x + B u."""
+        return self.A @ x + self.B @ u
+
+    def observe(self, x, u, t):
+        """C x + D u."""
+        return self.C @ x + self.D @ u
