@@ -2,7 +2,7 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import linalg, systems
+from . import initialize, linalg, systems
 from .data import Trajectories, simulate
 from .models import (
     AbstractContinuousSystem,
@@ -14,6 +14,16 @@ from .models import (
     GaussianPrior,
     StudentT,
 )
+from .em import EpochInfo, FitResult, fit
+from .learning import (
+    AbstractLearner,
+    LBFGSLearner,
+    LearnInfo,
+    LMLearner,
+    NelderMeadLearner,
+    OptaxLearner,
+    learn,
+)
 from .objective import log_joint, whitened_residuals
 from .smoothing import RESULTS, LMSmoother, SmootherSolution, smooth
 
@@ -24,6 +34,17 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 __all__ = [
     "RESULTS",
+    "AbstractLearner",
+    "EpochInfo",
+    "FitResult",
+    "LBFGSLearner",
+    "LMLearner",
+    "LearnInfo",
+    "NelderMeadLearner",
+    "OptaxLearner",
+    "fit",
+    "initialize",
+    "learn",
     "AbstractContinuousSystem",
     "AbstractGaussianNoise",
     "AbstractNoise",

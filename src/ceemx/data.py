@@ -11,7 +11,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 from .models.noise import AbstractNoise
 from .models.system import AbstractSystem
 
-__all__ = ["Trajectories", "simulate"]
+__all__ = ["Trajectories", "rollout_one", "simulate"]
 
 
 def _is_concrete(a) -> bool:
@@ -156,6 +156,21 @@ def sample_noise(noise: AbstractNoise, key: PRNGKeyArray, shape, dtype) -> Array
     raise TypeError(f"cannot sample from {type(noise).__name__}")
 
 
+def rollout_one(system: AbstractSystem, x1, u, w=None):
+    """States (T, n) of one trajectory: x_{t+1} = f(x_t, u_t, t) + w_t from x₁, T = len(u)."""
+    T = u.shape[0]
+    ts = jnp.arange(T)
+    w = jnp.zeros((T - 1, x1.shape[0]), x1.dtype) if w is None else w
+
+    def step(x, inp):
+        ut, t, wt = inp
+        nxt = system.dynamics(x, ut, t) + wt
+        return nxt, nxt
+
+    _, xs = jax.lax.scan(step, x1, (u[:-1], ts[:-1], w))
+    return jnp.concatenate([x1[None], xs], axis=0)
+
+
 def simulate(
     system: AbstractSystem,
     key: PRNGKeyArray,
@@ -189,18 +204,8 @@ def simulate(
     pn = _resolve_noise(process_noise, system.process_noise)
     on = _resolve_noise(obs_noise, system.obs_noise)
     w = sample_noise(pn, kw, (B, T - 1), dtype) if pn is not None else jnp.zeros((B, T - 1, n), dtype)
+    xs = jax.vmap(lambda a, b, c: rollout_one(system, a, b, c))(x0, u, w)
     ts = jnp.arange(T)
-
-    def roll(x1, ub, wb):
-        def step(x, inp):
-            ut, t, wt = inp
-            nxt = system.dynamics(x, ut, t) + wt
-            return nxt, nxt
-
-        _, xs = jax.lax.scan(step, x1, (ub[:-1], ts[:-1], wb))
-        return jnp.concatenate([x1[None], xs], axis=0)
-
-    xs = jax.vmap(roll)(x0, u, w)
     y = jax.vmap(jax.vmap(system.observe))(xs, u, jnp.broadcast_to(ts, (B, T)))
     if on is not None:
         y = y + sample_noise(on, kv, (B, T), dtype)

@@ -90,8 +90,8 @@ class Linearization(NamedTuple):
     """
 
     value: Array  # scalar −J
-    grad_x: Array  # (T, n)
-    hess_x: BlockTridiagonal  # GN blocks in x
+    grad_x: Array | None  # (T, n)
+    hess_x: BlockTridiagonal | None  # GN blocks in x
     grad_theta: Array | None = None  # (P,)
     E: Array | None = None  # (T, n, P) cross blocks J_xᵀ W J_θ
     D: Array | None = None  # (P, P) J_θᵀ W J_θ
@@ -111,6 +111,7 @@ def linearize(
     mask,
     *,
     wrt_theta: bool = False,
+    wrt_x: bool = True,
 ) -> Linearization:
     """Linearise −J of one trajectory around (x, θ).
 
@@ -119,6 +120,7 @@ def linearize(
         theta: a flat parameter vector when ``wrt_theta`` is True, otherwise any pytree.
         x, y, u, mask: one trajectory's states (T, n), observations, inputs and mask.
         wrt_theta: also return the θ-gradient, the cross blocks E and the θθ block D.
+        wrt_x: compute the x-gradient and x-blocks (and E); ``False`` for a θ-only linearisation.
     """
     system = build(theta)
     T, n = x.shape
@@ -134,38 +136,38 @@ def linearize(
     m = y.shape[-1]
     r_obs, r_dyn = residuals(system, x, y, u)
     on, pn = system.obs_noise, system.process_noise
-
-    # Per-step Jacobians with respect to x_t.
-    G = jax.vmap(_jac(obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)  # (T,m,n)
-    F = jax.vmap(jax.jacfwd(dyn_res, argnums=0), in_axes=(0, None, 0, 0))(
-        x[:-1], theta, u[:-1], ts[:-1]
-    )  # (T-1,n,n)
     Sv = jax.vmap(on.sqrt_curvature)(r_obs, mask)  # (T,m,m)
     Sw = jax.vmap(pn.sqrt_curvature)(r_dyn)  # (T-1,n,n)
     gv = jax.vmap(jax.grad(on.nll))(r_obs, mask)  # (T,m)
     gw = jax.vmap(jax.grad(pn.nll))(r_dyn)  # (T-1,n)
     value = jnp.sum(jax.vmap(on.nll)(r_obs, mask)) + jnp.sum(jax.vmap(pn.nll)(r_dyn))
-
-    SG = Sv @ G
-    SF = Sw @ F
-    mT = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
-    diag = mT(SG) @ SG
-    diag = diag.at[:-1].add(mT(SF) @ SF)
-    diag = diag.at[1:].add(mT(Sw) @ Sw)
-    lower = mT(Sw) @ SF  # block (t+1, t)
-    grad = jnp.einsum("tmn,tm->tn", G, gv)
-    grad = grad.at[:-1].add(jnp.einsum("tkn,tk->tn", F, gw))
-    grad = grad.at[1:].add(gw)
-
     prior = system.initial_prior
     if prior is not None:
         r0 = x[0] - prior.mean
-        S0 = prior.noise.sqrt_curvature(r0)
         value = value + prior.noise.nll(r0)
-        grad = grad.at[0].add(jax.grad(prior.noise.nll)(r0))
-        diag = diag.at[0].add(S0.T @ S0)
+    mT = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
 
-    hess = BlockTridiagonal(diagonal=0.5 * (diag + mT(diag)), lower=lower)
+    grad = hess = None
+    if wrt_x:
+        # Per-step Jacobians with respect to x_t.
+        G = jax.vmap(_jac(obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)
+        F = jax.vmap(jax.jacfwd(dyn_res, argnums=0), in_axes=(0, None, 0, 0))(
+            x[:-1], theta, u[:-1], ts[:-1]
+        )  # (T-1,n,n)
+        SG = Sv @ G
+        SF = Sw @ F
+        diag = mT(SG) @ SG
+        diag = diag.at[:-1].add(mT(SF) @ SF)
+        diag = diag.at[1:].add(mT(Sw) @ Sw)
+        lower = mT(Sw) @ SF  # block (t+1, t)
+        grad = jnp.einsum("tmn,tm->tn", G, gv)
+        grad = grad.at[:-1].add(jnp.einsum("tkn,tk->tn", F, gw))
+        grad = grad.at[1:].add(gw)
+        if prior is not None:
+            S0 = prior.noise.sqrt_curvature(r0)
+            grad = grad.at[0].add(jax.grad(prior.noise.nll)(r0))
+            diag = diag.at[0].add(S0.T @ S0)
+        hess = BlockTridiagonal(diagonal=0.5 * (diag + mT(diag)), lower=lower)
     if not wrt_theta:
         return Linearization(value, grad, hess)
 
@@ -176,9 +178,12 @@ def linearize(
     SFt = Sw @ Ft
     D = jnp.einsum("tmp,tmq->pq", SGt, SGt) + jnp.einsum("tnp,tnq->pq", SFt, SFt)
     grad_theta = jnp.einsum("tmp,tm->p", Gt, gv) + jnp.einsum("tnp,tn->p", Ft, gw)
-    E = mT(SG) @ SGt
-    E = E.at[:-1].add(mT(SF) @ SFt)
-    E = E.at[1:].add(mT(Sw) @ SFt)
+    E = None
+    if wrt_x:
+        E = mT(SG) @ SGt
+        E = E.at[:-1].add(mT(SF) @ SFt)
+        E = E.at[1:].add(mT(Sw) @ SFt)
+        E = E.astype(dtype)
     if prior is not None:  # a prior whose mean depends on θ
         def prior_nll(x0, th):
             pr = build(th).initial_prior
@@ -186,4 +191,4 @@ def linearize(
 
         gp = jax.grad(prior_nll, argnums=1)(x[0], theta)
         grad_theta = grad_theta + gp
-    return Linearization(value, grad, hess, grad_theta, E.astype(dtype), 0.5 * (D + D.T))
+    return Linearization(value, grad, hess, grad_theta, E, 0.5 * (D + D.T))

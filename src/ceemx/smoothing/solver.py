@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import enum
 import warnings
-from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -16,28 +14,10 @@ from .. import linalg
 from ..data import Trajectories
 from ..linalg import BlockTridiagonal
 from ..models.system import AbstractSystem
-from ..objective import linearize, neg_log_joint_single
+from .._lm import RESULTS, levenberg_marquardt, marquardt_scale
+from ..objective import linearize
 
 __all__ = ["RESULTS", "LMSmoother", "SmootherSolution", "smooth", "check_inputs"]
-
-
-class RESULTS(enum.IntEnum):
-    """Per-trajectory status codes of iterative solvers."""
-
-    successful = 0
-    max_steps_reached = 1
-    nonfinite = 2
-    stalled = 3
-
-    @property
-    def message(self) -> str:
-        """Human-readable explanation."""
-        return {
-            0: "converged",
-            1: "reached max_steps before converging",
-            2: "the objective or its derivatives are not finite at the initial point",
-            3: "no step decreases the objective (damping exhausted) before the tolerances were met",
-        }[int(self)]
 
 
 class LMSmoother(eqx.Module):
@@ -98,89 +78,38 @@ class SmootherSolution(eqx.Module):
         return [RESULTS(int(s)).message for s in np.asarray(self.status)]
 
 
-class _LMState(NamedTuple):
-    x: Array
-    f: Array
-    lin: object
-    lam: Array
-    nu: Array
-    step: Array
-    done: Array
-    status: Array
-
-
-def _damped(hess: BlockTridiagonal, lam, extra_diag) -> BlockTridiagonal:
-    n = hess.diagonal.shape[-1]
-    d = jnp.diagonal(hess.diagonal, axis1=-2, axis2=-1) + extra_diag
-    floor = 1e-12 * jnp.maximum(jnp.max(d), 1.0)
-    scale = lam * jnp.maximum(d, floor) + extra_diag
-    return BlockTridiagonal(hess.diagonal + scale[..., None] * jnp.eye(n, dtype=d.dtype), hess.lower)
-
-
-def _quad(hess: BlockTridiagonal, v) -> Array:
-    return jnp.sum(v * linalg.matvec(hess, v))
-
-
 def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
     rho = jnp.asarray(solver.rho_x, x0.dtype)
     ident = lambda s: s  # noqa: E731
 
-    def objective_and_lin(x):
+    def evaluate(x):
         lin = linearize(ident, system, x, y, u, mask)
         dx = x - x0
-        f = lin.value + rho * jnp.sum(dx**2)
-        return f, lin._replace(grad_x=lin.grad_x + 2.0 * rho * dx)
+        return lin.value + rho * jnp.sum(dx**2), lin._replace(grad_x=lin.grad_x + 2.0 * rho * dx)
 
-    f0, lin0 = objective_and_lin(x0)
-    finite0 = jnp.isfinite(f0) & jnp.all(jnp.isfinite(lin0.grad_x)) & jnp.all(
-        jnp.isfinite(lin0.hess_x.diagonal)
+    def solve(lin, lam):
+        h = lin.hess_x
+        n = h.diagonal.shape[-1]
+        d = jnp.diagonal(h.diagonal, axis1=-2, axis2=-1)
+        shift = marquardt_scale(d, lam) + 2.0 * rho
+        L = linalg.cholesky(BlockTridiagonal(h.diagonal + shift[..., None] * jnp.eye(n, dtype=d.dtype), h.lower))
+        return -linalg.solve(L, lin.grad_x), linalg.is_finite(L)
+
+    def quad(lin, delta):
+        return jnp.sum(delta * linalg.matvec(lin.hess_x, delta)) + 2.0 * rho * jnp.sum(delta**2)
+
+    out = levenberg_marquardt(
+        evaluate,
+        lambda lin: lin.grad_x,
+        solve,
+        quad,
+        x0,
+        rtol=solver.rtol,
+        atol=solver.atol,
+        max_steps=solver.max_steps,
+        damping=solver.damping,
     )
-    dtype = x0.dtype
-    state = _LMState(
-        x=x0,
-        f=f0,
-        lin=lin0,
-        lam=jnp.asarray(solver.damping, dtype),
-        nu=jnp.asarray(2.0, dtype),
-        step=jnp.asarray(0),
-        done=~finite0,
-        status=jnp.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite).astype(jnp.int32),
-    )
-    tol = lambda f: solver.rtol * jnp.abs(f) + solver.atol  # noqa: E731
-
-    def cond(s):
-        return (~s.done) & (s.step < solver.max_steps)
-
-    def body(s):
-        A = _damped(s.lin.hess_x, s.lam, 2.0 * rho)
-        L = linalg.cholesky(A)
-        delta = -linalg.solve(L, s.lin.grad_x)
-        ok_solve = linalg.is_finite(L) & jnp.all(jnp.isfinite(delta))
-        delta = jnp.where(ok_solve, delta, 0.0)
-        pred = -(jnp.sum(s.lin.grad_x * delta) + 0.5 * (_quad(s.lin.hess_x, delta) + 2.0 * rho * jnp.sum(delta**2)))
-        x_new = s.x + delta
-        f_new, lin_new = objective_and_lin(x_new)
-        actual = s.f - f_new
-        ratio = actual / jnp.where(pred > 0, pred, 1.0)
-        accept = ok_solve & jnp.isfinite(f_new) & (pred > 0) & (ratio > 1e-4)
-        accept = accept & jnp.all(jnp.isfinite(lin_new.grad_x))
-        # Nielsen's damping update.
-        lam_acc = s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
-        lam = jnp.where(accept, lam_acc, s.lam * s.nu)
-        nu = jnp.where(accept, 2.0, 2.0 * s.nu)
-        x = jnp.where(accept, x_new, s.x)
-        f = jnp.where(accept, f_new, s.f)
-        lin = jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), lin_new, s.lin)
-        small_pred = ok_solve & (pred <= tol(s.f))
-        small_actual = accept & (actual <= tol(s.f))
-        converged = small_pred | small_actual
-        stalled = lam > 1e20
-        status = jnp.where(converged, RESULTS.successful, jnp.where(stalled, RESULTS.stalled, s.status))
-        return _LMState(x, f, lin, lam, nu, s.step + 1, converged | stalled, status.astype(jnp.int32))
-
-    state = jax.lax.while_loop(cond, body, state)
-    value = state.lin.value
-    return state.x, value, state.step, state.status, state.lin.hess_x
+    return out.z, out.lin.value, out.steps, out.status, out.lin.hess_x
 
 
 @eqx.filter_jit

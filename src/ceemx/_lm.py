@@ -1,0 +1,149 @@
+"""A generic, bounded Levenberg–Marquardt driver shared by the smoother, the LM learner and the joint method.
+
+The caller supplies the structure: how to evaluate the objective and its local quadratic model
+(``evaluate``), how to solve the damped normal equations (``solve``) and how to evaluate the
+quadratic form of the model (``quad``). The driver owns the accept/reject logic (actual vs
+predicted decrease), Nielsen's damping update, convergence tests and status codes. It is a pure
+``lax.while_loop``, safe under ``vmap`` (each batch element stops on its own).
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+
+__all__ = ["RESULTS", "LMOutput", "levenberg_marquardt"]
+
+
+class RESULTS(enum.IntEnum):
+    """Status codes of iterative solvers (per trajectory for batched solves)."""
+
+    successful = 0
+    max_steps_reached = 1
+    nonfinite = 2
+    stalled = 3
+
+    @property
+    def message(self) -> str:
+        """Human-readable explanation."""
+        return {
+            0: "converged",
+            1: "reached max_steps before converging",
+            2: "the objective or its derivatives are not finite at the initial point",
+            3: "no step decreases the objective (damping exhausted) before the tolerances were met",
+        }[int(self)]
+
+
+class LMOutput(NamedTuple):
+    """Final iterate, objective, linearisation, iteration count, status and accepted-step count."""
+
+    z: Any
+    value: jax.Array
+    lin: Any
+    steps: jax.Array
+    status: jax.Array
+    accepted: jax.Array
+    damping: jax.Array
+
+
+def _vdot(a, b):
+    return sum(jnp.sum(x * y) for x, y in zip(jtu.tree_leaves(a), jtu.tree_leaves(b)))
+
+
+def _all_finite(tree):
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jtu.tree_leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def levenberg_marquardt(
+    evaluate: Callable[[Any], tuple[jax.Array, Any]],
+    grad_of: Callable[[Any], Any],
+    solve: Callable[[Any, jax.Array], tuple[Any, jax.Array]],
+    quad: Callable[[Any, Any], jax.Array],
+    z0: Any,
+    *,
+    rtol: float,
+    atol: float,
+    max_steps: int,
+    damping: float,
+) -> LMOutput:
+    """Minimise a function by Levenberg–Marquardt.
+
+    Args:
+        evaluate: ``z -> (f, lin)``: objective value and a linearisation object.
+        grad_of: ``lin -> g``, the gradient (a pytree like z).
+        solve: ``(lin, lam) -> (delta, ok)``: solves (H + λ·scaling) δ = −g; ``ok`` False when the
+            factorisation failed.
+        quad: ``(lin, delta) -> δᵀ H δ`` with the undamped model matrix H.
+        z0: starting point.
+        rtol, atol: converged when the predicted or the actual decrease of an iteration is at most
+            ``rtol·|f| + atol``.
+        max_steps: bound on iterations (accepted or rejected).
+        damping: initial λ.
+    """
+    f0, lin0 = evaluate(z0)
+    finite0 = jnp.isfinite(f0) & _all_finite(grad_of(lin0))
+    dtype = jnp.result_type(f0)
+    init = (
+        z0,
+        f0,
+        lin0,
+        jnp.asarray(damping, dtype),
+        jnp.asarray(2.0, dtype),
+        jnp.asarray(0),
+        jnp.asarray(0),
+        ~finite0,
+        jnp.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite).astype(jnp.int32),
+    )
+
+    def tol(f):
+        return rtol * jnp.abs(f) + atol
+
+    def cond(s):
+        return (~s[7]) & (s[5] < max_steps)
+
+    def body(s):
+        z, f, lin, lam, nu, step, acc, _, status = s
+        g = grad_of(lin)
+        delta, ok = solve(lin, lam)
+        ok = ok & _all_finite(delta)
+        delta = jtu.tree_map(lambda d: jnp.where(ok, d, 0.0), delta)
+        pred = -(_vdot(g, delta) + 0.5 * quad(lin, delta))
+        z_new = jtu.tree_map(jnp.add, z, delta)
+        f_new, lin_new = evaluate(z_new)
+        actual = f - f_new
+        ratio = actual / jnp.where(pred > 0, pred, 1.0)
+        accept = ok & jnp.isfinite(f_new) & (pred > 0) & (ratio > 1e-4) & _all_finite(grad_of(lin_new))
+        lam_acc = lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+        lam_new = jnp.where(accept, lam_acc, lam * nu)
+        nu_new = jnp.where(accept, 2.0, 2.0 * nu)
+        pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
+        z = jtu.tree_map(pick, z_new, z)
+        lin = jtu.tree_map(pick, lin_new, lin)
+        converged = (ok & (pred >= 0) & (pred <= tol(f))) | (accept & (actual <= tol(f)))
+        stalled = lam_new > 1e20
+        status = jnp.where(converged, RESULTS.successful, jnp.where(stalled, RESULTS.stalled, status))
+        return (
+            z,
+            jnp.where(accept, f_new, f),
+            lin,
+            lam_new,
+            nu_new,
+            step + 1,
+            acc + accept.astype(jnp.int32),
+            converged | stalled,
+            status.astype(jnp.int32),
+        )
+
+    z, f, lin, lam, _, steps, acc, _, status = jax.lax.while_loop(cond, body, init)
+    return LMOutput(z, f, lin, steps, status, acc, lam)
+
+
+def marquardt_scale(diag: jax.Array, lam: jax.Array) -> jax.Array:
+    """λ·max(diag(H), floor): Marquardt's per-variable damping (scale-invariant), floored for zero curvature."""
+    floor = 1e-12 * jnp.maximum(jnp.max(diag), 1.0)
+    return lam * jnp.maximum(diag, floor)

@@ -1,0 +1,242 @@
+"""Learners for the θ-step (paper Eq. 11): Levenberg–Marquardt, L-BFGS, any Optax transform, Nelder–Mead.
+
+Every learner maps a :class:`~ceemx.learning.problem.LearningProblem`, the current flat θ and its
+own state to a new θ, a new state and a :class:`LearnInfo`. States persist across EM epochs (so an
+Adam learner keeps its moments) and are saved in checkpoints.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .._lm import RESULTS, levenberg_marquardt, marquardt_scale
+from .problem import LearningProblem
+
+__all__ = [
+    "AbstractLearner",
+    "LBFGSLearner",
+    "LMLearner",
+    "LearnInfo",
+    "NelderMeadLearner",
+    "OptaxLearner",
+]
+
+
+class LearnInfo(eqx.Module):
+    """What one learning step did: objective before/after, iterations, status code."""
+
+    value_before: jax.Array
+    value_after: jax.Array
+    steps: jax.Array
+    status: jax.Array
+
+
+class AbstractLearner(eqx.Module):
+    """A θ-step optimiser."""
+
+    #: Whether :meth:`run` is jit-compatible (host learners such as Nelder–Mead are not).
+    jittable: ClassVar[bool] = True
+
+    def init(self, theta: jax.Array, key: jax.Array) -> Any:
+        """The learner's persistent state (default: none)."""
+        return None
+
+    @abc.abstractmethod
+    def run(self, problem: LearningProblem, theta: jax.Array, state: Any):
+        """Minimise ``problem.value`` from ``theta``; returns (θ, state, LearnInfo)."""
+
+
+class LMLearner(AbstractLearner):
+    """Levenberg–Marquardt on the (generalised) Gauss–Newton model of the learning objective.
+
+    A dense θ-Jacobian per step; Marquardt's per-parameter damping makes it invariant to parameter
+    scales. The default for gray-box models with up to a few thousand parameters. The ρ_θ term and
+    the log-prior's Hessian are added to the normal equations; accepted steps always decrease the
+    learning objective.
+
+    Attributes:
+        max_steps: bound on LM iterations per EM epoch.
+        rtol, atol: convergence on the decrease of the objective.
+        damping: initial λ.
+    """
+
+    max_steps: int = eqx.field(default=100, static=True)
+    rtol: float = 1e-12
+    atol: float = 0.0
+    damping: float = 1e-3
+
+    def run(self, problem, theta, state):
+        """LM iterations from θ."""
+
+        def evaluate(th):
+            value, grad, hess = problem.gauss_newton(th)
+            return value, (grad, hess)
+
+        def solve(lin, lam):
+            grad, hess = lin
+            d = jnp.diagonal(hess)
+            A = hess + jnp.diag(marquardt_scale(d, lam))
+            L = jnp.linalg.cholesky(A)
+            delta = -jax.scipy.linalg.cho_solve((L, True), grad)
+            return delta, jnp.all(jnp.isfinite(L))
+
+        out = levenberg_marquardt(
+            evaluate,
+            lambda lin: lin[0],
+            solve,
+            lambda lin, d: d @ lin[1] @ d,
+            theta,
+            rtol=self.rtol,
+            atol=self.atol,
+            max_steps=self.max_steps,
+            damping=self.damping,
+        )
+        v0 = problem.value(theta)
+        return out.z, state, LearnInfo(v0, out.value, out.steps, out.status)
+
+
+class LBFGSLearner(AbstractLearner):
+    """L-BFGS (``optax.lbfgs`` with its zoom line search) on the learning objective.
+
+    Attributes:
+        max_steps: bound on L-BFGS iterations per EM epoch.
+        gtol: stop when the gradient's max-norm falls below ``gtol``.
+        memory_size: number of curvature pairs kept.
+    """
+
+    max_steps: int = eqx.field(default=100, static=True)
+    gtol: float = 1e-9
+    memory_size: int = eqx.field(default=20, static=True)
+
+    def run(self, problem, theta, state):
+        """L-BFGS iterations from θ (fresh curvature memory every epoch)."""
+        opt = optax.lbfgs(memory_size=self.memory_size)
+        fun = problem.value
+        vg = optax.value_and_grad_from_state(fun)
+        v0 = fun(theta)
+
+        def cond(c):
+            th, st, k, g = c
+            return (k < self.max_steps) & (jnp.max(jnp.abs(g)) > self.gtol) & jnp.all(jnp.isfinite(g))
+
+        def body(c):
+            th, st, k, _ = c
+            value, grad = vg(th, state=st)
+            upd, st = opt.update(grad, st, th, value=value, grad=grad, value_fn=fun)
+            th = optax.apply_updates(th, upd)
+            return th, st, k + 1, grad
+
+        g0 = jax.grad(fun)(theta)
+        th, _, k, g = jax.lax.while_loop(cond, body, (theta, opt.init(theta), jnp.asarray(0), g0))
+        v1 = fun(th)
+        ok = jnp.isfinite(v1) & (v1 <= v0)
+        th = jnp.where(ok, th, theta)
+        status = jnp.where(
+            ~ok, RESULTS.nonfinite, jnp.where(k < self.max_steps, RESULTS.successful, RESULTS.max_steps_reached)
+        )
+        return th, state, LearnInfo(v0, jnp.where(ok, v1, v0), k, status.astype(jnp.int32))
+
+
+class OptaxLearner(AbstractLearner):
+    """Any Optax gradient transformation (e.g. ``optax.adam(1e-3)``), optionally on minibatches.
+
+    The optimiser state and the minibatch PRNG key persist across EM epochs. Not monotone: the
+    EM objective may rise when the step size is too large.
+
+    Attributes:
+        transform: the Optax transformation.
+        steps: gradient steps per EM epoch.
+        batch_size: trajectories per minibatch (``None``: the whole batch).
+    """
+
+    transform: optax.GradientTransformation = eqx.field(static=True)
+    steps: int = eqx.field(default=100, static=True)
+    batch_size: int | None = eqx.field(default=None, static=True)
+
+    def init(self, theta, key):
+        """(optimiser state, PRNG key)."""
+        return (self.transform.init(theta), key)
+
+    def run(self, problem, theta, state):
+        """``steps`` gradient steps."""
+        opt_state, key = state
+        B = problem.states.shape[0]
+        v0 = problem.value(theta)
+
+        def body(c, _):
+            th, st, k = c
+            if self.batch_size is None or self.batch_size >= B:
+                grad = jax.grad(problem.value)(th)
+            else:
+                k, sub = jax.random.split(k)
+                idx = jax.random.choice(sub, B, (self.batch_size,), replace=False)
+                grad = jax.grad(problem.minibatch_value)(th, idx)
+            upd, st = self.transform.update(grad, st, th)
+            return (optax.apply_updates(th, upd), st, k), None
+
+        (th, opt_state, key), _ = jax.lax.scan(body, (theta, opt_state, key), None, length=self.steps)
+        v1 = problem.value(th)
+        ok = jnp.isfinite(v1)
+        status = jnp.where(ok, RESULTS.successful, RESULTS.nonfinite).astype(jnp.int32)
+        th = jnp.where(ok, th, theta)
+        return th, (opt_state, key), LearnInfo(v0, jnp.where(ok, v1, v0), jnp.asarray(self.steps), status)
+
+
+class NelderMeadLearner(AbstractLearner):
+    """SciPy's Nelder–Mead simplex on the host (derivative-free; for a handful of parameters).
+
+    Attributes:
+        maxiter: iteration bound per EM epoch (``None``: 200·P, SciPy's default).
+        xatol, fatol: SciPy's absolute tolerances on θ and on the objective.
+        adaptive: dimension-adapted simplex parameters (Gao & Han 2012, as cited by the paper).
+    """
+
+    maxiter: int | None = None
+    xatol: float = 1e-4
+    fatol: float = 1e-4
+    adaptive: bool = True
+    jittable: ClassVar[bool] = False
+
+    def run(self, problem, theta, state):
+        """Nelder–Mead from θ (objective jit-compiled, optimiser on the host)."""
+        import scipy.optimize
+
+        fun = _jitted_value
+        x0 = np.asarray(theta, dtype=np.float64)
+        v0 = float(fun(problem, theta))
+
+        def f(th):
+            v = float(fun(problem, jnp.asarray(th, theta.dtype)))
+            return v if np.isfinite(v) else np.inf
+
+        res = scipy.optimize.minimize(
+            f,
+            x0,
+            method="Nelder-Mead",
+            options={
+                "maxiter": self.maxiter,
+                "xatol": self.xatol,
+                "fatol": self.fatol,
+                "adaptive": self.adaptive,
+            },
+        )
+        ok = np.isfinite(res.fun) and res.fun <= v0
+        th = jnp.asarray(res.x if ok else x0, theta.dtype)
+        status = RESULTS.successful if res.success else RESULTS.max_steps_reached
+        if not ok:
+            status = RESULTS.nonfinite
+        return th, state, LearnInfo(
+            jnp.asarray(v0), jnp.asarray(res.fun if ok else v0), jnp.asarray(res.nit), jnp.asarray(int(status))
+        )
+
+
+@eqx.filter_jit
+def _jitted_value(problem, theta):
+    return problem.value(theta)

@@ -1,0 +1,84 @@
+"""``learn``: one θ-step on fixed states (paper Eq. 11)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..data import Trajectories
+from ..models.system import AbstractSystem
+from .learners import AbstractLearner, LMLearner
+from .problem import LearningProblem, split_system
+
+__all__ = ["learn", "make_problem", "run_learner"]
+
+
+def make_problem(system, states, data, *, trainable=None, rho_theta=0.0, log_prior=None, weights=None):
+    """The :class:`LearningProblem` of ``system`` around its current θ, and that θ."""
+    theta, template, static = split_system(system, trainable)
+    B = states.shape[0]
+    w = jnp.ones((B,), states.dtype) if weights is None else jnp.asarray(weights, states.dtype)
+    problem = LearningProblem(
+        template=template,
+        static=static,
+        states=states,
+        data=data,
+        weights=w,
+        theta_ref=theta,
+        rho_theta=jnp.asarray(rho_theta, states.dtype),
+        log_prior=log_prior,
+    )
+    return problem, theta
+
+
+@eqx.filter_jit
+def _run_jit(learner, problem, theta, state):
+    return learner.run(problem, theta, state)
+
+
+def run_learner(learner: AbstractLearner, problem: LearningProblem, theta, state):
+    """Run a learner, compiled once per problem shape when it is jit-compatible."""
+    if learner.jittable:
+        return _run_jit(learner, problem, theta, state)
+    return learner.run(problem, theta, state)
+
+
+def learn(
+    system: AbstractSystem,
+    states,
+    data: Trajectories,
+    learner: AbstractLearner | None = None,
+    *,
+    trainable=None,
+    rho_theta: float = 0.0,
+    log_prior=None,
+    weights=None,
+    learner_state=None,
+    key=None,
+):
+    """One learning step: θ ← argmin Σ_b −J_b(x_b, θ) + ρ_θ‖θ − θᵏ‖² − log p(θ).
+
+    Args:
+        system: the model at θᵏ.
+        states: (B, T, n) fixed state trajectories (e.g. a smoother's output).
+        data: the observations.
+        learner: the optimiser (default :class:`LMLearner`).
+        trainable: which leaves learn (see :func:`ceemx.learning.trainable_mask`).
+        rho_theta: trust-region weight ρ_θ ≥ 0.
+        log_prior: optional ``system -> log p(θ)``.
+        weights: (B,) 0/1 weights; 0 excludes a trajectory (e.g. one whose smoothing failed).
+        learner_state: state from a previous call (``None``: ``learner.init``).
+        key: PRNG key for stochastic learners.
+
+    Returns:
+        (new system, learner state, :class:`LearnInfo`).
+    """
+    learner = LMLearner() if learner is None else learner
+    problem, theta = make_problem(
+        system, jnp.asarray(states), data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior, weights=weights
+    )
+    if learner_state is None:
+        learner_state = learner.init(theta, jax.random.PRNGKey(0) if key is None else key)
+    theta_new, learner_state, info = run_learner(learner, problem, theta, learner_state)
+    return problem.build(theta_new), learner_state, info
