@@ -70,7 +70,10 @@ def make_problem(T: int, B: int, K: int, seed: int = 0):
     return system, data, jax.block_until_ready(x_init)
 
 
-def time_case(T: int, B: int, K: int, steps: int, repeats: int) -> dict:
+def time_case(T: int, B: int, K: int, steps: int, repeats: int, min_time: float = 0.0,
+              max_repeats: int = 20) -> dict:
+    """Time one case: ``repeats`` steady-state calls at least, more (≤ ``max_repeats``) until
+    they add up to ``min_time`` seconds."""
     system, data, x_init = make_problem(T, B, K)
     solver = ceemx.LMSmoother(max_steps=steps, rtol=0.0, atol=0.0)
 
@@ -88,7 +91,10 @@ def time_case(T: int, B: int, K: int, steps: int, repeats: int) -> dict:
                            f"(status {status.tolist()})")
     if not np.all(np.isfinite(np.asarray(sol.objective))):
         raise RuntimeError(f"T={T} B={B} K={K}: non-finite objective")
-    runs = [call()[0] for _ in range(repeats)]
+    load_before = os.getloadavg()[0]
+    runs: list[float] = []
+    while len(runs) < repeats or (sum(runs) < min_time and len(runs) < max_repeats):
+        runs.append(call()[0])
     steady = statistics.median(runs)
     per_iter = steady / steps
     return {
@@ -101,6 +107,7 @@ def time_case(T: int, B: int, K: int, steps: int, repeats: int) -> dict:
         "per_iter_s": per_iter,
         "per_iter_per_traj_step_s": per_iter / (B * T),
         "per_iter_min_s": min(runs) / steps,
+        "loadavg_1min": [load_before, os.getloadavg()[0]],
     }
 
 
@@ -126,25 +133,31 @@ def main(argv=None) -> dict:
     p.add_argument("--quick", action="store_true", help="small subset (T ≤ 1024, B ≤ 16, K ≤ 10), 1 repeat")
     p.add_argument("--out", type=str, default=None, help="write all numbers as JSON to this path")
     p.add_argument("--steps", type=int, default=5, help="LM iterations per call (default 5)")
-    p.add_argument("--repeats", type=int, default=None, help="steady-state calls per case (default 3; 1 with --quick)")
+    p.add_argument("--repeats", type=int, default=None,
+                   help="minimum steady-state calls per case (default 3; 1 with --quick)")
+    p.add_argument("--min-time", type=float, default=None,
+                   help="keep repeating cheap cases (up to 20 calls) until the steady-state calls add up "
+                        "to this many seconds (default 1.0; 0 with --quick)")
     args = p.parse_args(argv)
 
     grid = QUICK if args.quick else FULL
     repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
+    min_time = args.min_time if args.min_time is not None else (0.0 if args.quick else 1.0)
     cache: dict[tuple[int, int, int], dict] = {}
     sweeps: dict[str, list[dict]] = {}
     slopes: dict[str, float] = {}  # fitted on the median time per iteration
     slopes_min: dict[str, float] = {}  # fitted on the minimum (less sensitive to other load)
     t_start = time.perf_counter()
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPUs; "
-          f"{args.steps} LM iterations per call, median of {repeats} steady-state call(s)\n")
+          f"{args.steps} LM iterations per call, median of ≥{repeats} steady-state call(s) "
+          f"(≥{min_time:g} s per case); 1-min load average {os.getloadavg()[0]:.2f}\n")
     for var in ("T", "B", "K"):
         rows = []
         for value in grid[var]:
             cfg = dict(BASE, **{var: value})
             key = (cfg["T"], cfg["B"], cfg["K"])
             if key not in cache:
-                cache[key] = time_case(*key, steps=args.steps, repeats=repeats)
+                cache[key] = time_case(*key, steps=args.steps, repeats=repeats, min_time=min_time)
             rows.append(cache[key])
         sweeps[var] = rows
         xvar = "n" if var == "K" else var
@@ -158,11 +171,11 @@ def main(argv=None) -> dict:
     total = time.perf_counter() - t_start
     print("Slopes of median time per iteration: " + ", ".join(f"{k}: {v:.2f}" for k, v in slopes.items()))
     print("Slopes of minimum time per iteration: " + ", ".join(f"{k}: {v:.2f}" for k, v in slopes_min.items()))
-    print(f"Total wall time: {total:.1f} s")
+    print(f"Total wall time: {total:.1f} s; 1-min load average at the end {os.getloadavg()[0]:.2f}")
 
     result = {
         "config": {
-            "quick": args.quick, "steps": args.steps, "repeats": repeats, "base": BASE,
+            "quick": args.quick, "steps": args.steps, "repeats": repeats, "min_time_s": min_time, "base": BASE,
             "grid": grid, "perturbation": PERTURBATION, "dtype": "float64",
         },
         "environment": {

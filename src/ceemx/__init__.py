@@ -24,6 +24,7 @@ from .learning import (
     OptaxLearner,
     learn,
 )
+from .joint import JointLM
 from .objective import log_joint, whitened_residuals
 from .smoothing import RESULTS, LMSmoother, SmootherSolution, smooth
 
@@ -37,6 +38,7 @@ __all__ = [
     "AbstractLearner",
     "EpochInfo",
     "FitResult",
+    "JointLM",
     "LBFGSLearner",
     "LMLearner",
     "LearnInfo",

@@ -69,7 +69,8 @@ def levenberg_marquardt(
     rtol: float,
     atol: float,
     max_steps: int,
-    damping: float,
+    damping: float | jax.Array,
+    max_accepted: int | None = None,
 ) -> LMOutput:
     """Minimise a function by Levenberg–Marquardt.
 
@@ -84,6 +85,8 @@ def levenberg_marquardt(
             ``rtol·|f| + atol``.
         max_steps: bound on iterations (accepted or rejected).
         damping: initial λ.
+        max_accepted: also stop after this many accepted steps (``None``: no such bound); with 1,
+            one call is one LM iteration whose final λ (``LMOutput.damping``) seeds the next call.
     """
     f0, lin0 = evaluate(z0)
     finite0 = jnp.isfinite(f0) & _all_finite(grad_of(lin0))
@@ -104,7 +107,10 @@ def levenberg_marquardt(
         return rtol * jnp.abs(f) + atol
 
     def cond(s):
-        return (~s[7]) & (s[5] < max_steps)
+        going = (~s[7]) & (s[5] < max_steps)
+        if max_accepted is not None:
+            going = going & (s[6] < max_accepted)
+        return going
 
     def body(s):
         z, f, lin, lam, nu, step, acc, _, status = s
@@ -144,6 +150,11 @@ def levenberg_marquardt(
 
 
 def marquardt_scale(diag: jax.Array, lam: jax.Array) -> jax.Array:
-    """λ·max(diag(H), floor): Marquardt's per-variable damping (scale-invariant), floored for zero curvature."""
-    floor = 1e-12 * jnp.maximum(jnp.max(diag), 1.0)
-    return lam * jnp.maximum(diag, floor)
+    """λ·diag(H): Marquardt's per-variable damping, invariant to the scale of each variable.
+
+    Variables with (numerically) zero curvature — parameters with no effect on the objective, such
+    as masked entries — get λ·max(diag) instead, so the damped matrix stays well conditioned; their
+    gradient is zero too, so they do not move.
+    """
+    top = jnp.max(diag)
+    return lam * jnp.where(diag > 1e-10 * top, diag, jnp.maximum(top, 1.0))

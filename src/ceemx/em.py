@@ -89,7 +89,7 @@ class _Progress:
 
     def update(self, record):
         if self.bar is not None:
-            self.bar.set_postfix(J=f"{record['J']:.6g}", t=f"{record['smooth_time'] + record['learn_time']:.2f}s")
+            self.bar.set_postfix(J=f"{record['J']:.6g}", t=f"{record['time']:.2f}s")
             self.bar.update(1)
 
     def close(self):
@@ -174,17 +174,12 @@ def fit(
         raise ValueError(f"`rho_theta` must be >= 0; got {rho_theta}.")
 
     states = jnp.asarray(x_init)
+    # Strongly type the arrays, as every later epoch's system is: a weakly typed leaf (e.g. from
+    # jnp.asarray(10.0)) would otherwise make epoch 2 retrace the smoother and the learner.
+    system = jax.tree_util.tree_map(lambda a: a.astype(a.dtype) if eqx.is_inexact_array(a) else a, system)
     problem, theta = make_problem(system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior)
-    learner_state = learner.init(theta, key)
-    history: list[dict] = []
-    status = jnp.zeros((data.batch_size,), jnp.int32)
-    if checkpoint is not None:
-        loaded = ckpt.load(checkpoint, (theta, states, learner_state, status))
-        if loaded is not None:
-            (theta, states, learner_state, status), history = loaded
-            system = problem.build(theta)
     weights = np.ones(data.batch_size)
-    initial_J = history[0]["J_before"] if history else _total_J(system, states, data, weights)[0]
+    initial_J = _total_J(system, states, data, weights)[0]
 
     if method == "joint":
         from .joint import JointLM, joint_fit
@@ -203,9 +198,17 @@ def fit(
             callbacks=callbacks,
             progress=progress,
             checkpoint=checkpoint,
-            history=history,
             initial_J=initial_J,
         )
+
+    learner_state = learner.init(theta, key)
+    history: list[dict] = []
+    status = jnp.zeros((data.batch_size,), jnp.int32)
+    if checkpoint is not None:
+        loaded = ckpt.load(checkpoint, (theta, states, learner_state, status))
+        if loaded is not None:
+            (theta, states, learner_state, status), history = loaded
+            system = problem.build(theta)
 
     show = sys.stderr.isatty() if progress is None else progress
     bar = _Progress(show, max_epochs, len(history))
@@ -252,6 +255,7 @@ def fit(
                 "dx_norm": dx,
                 "smooth_time": t_smooth,
                 "learn_time": t_learn,
+                "time": t_smooth + t_learn,
                 "learner_steps": int(info.steps),
                 "learner_status": int(info.status),
                 "smoother_steps": int(jnp.max(sol.iterations)),

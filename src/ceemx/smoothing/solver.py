@@ -92,7 +92,7 @@ def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
         n = h.diagonal.shape[-1]
         d = jnp.diagonal(h.diagonal, axis1=-2, axis2=-1)
         shift = marquardt_scale(d, lam) + 2.0 * rho
-        L = linalg.cholesky(BlockTridiagonal(h.diagonal + shift[..., None] * jnp.eye(n, dtype=d.dtype), h.lower))
+        L = linalg.cholesky(BlockTridiagonal(h.diagonal + shift[..., None] * jnp.broadcast_to(jnp.eye(n, dtype=d.dtype), h.diagonal.shape), h.lower))
         return -linalg.solve(L, lin.grad_x), linalg.is_finite(L)
 
     def quad(lin, delta):

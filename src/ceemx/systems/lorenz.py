@@ -155,4 +155,4 @@ def random_observation_matrix(key: PRNGKeyArray, K: int, m: int | None = None, d
 def initial_states(key: PRNGKeyArray, B: int, K: int, dtype=jnp.float64) -> Array:
     """(B, 3K) initial states from the paper's distribution N((−6, −6, 24), 2.5²) per attractor."""
     mean = jnp.tile(jnp.asarray(INITIAL_MEAN, dtype), K)
-    return mean + INITIAL_STD * jax.random.normal(key, (B, 3 * K), dtype)
+    return mean[None, :] + INITIAL_STD * jax.random.normal(key, (B, 3 * K), dtype)

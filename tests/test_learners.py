@@ -1,0 +1,265 @@
+"""Tests for the learning step (ceemx.learn, paper Eq. 11) and its four learners.
+
+Oracles: the true Lorenz parameters (on exact, noise-free states the learning objective is
+minimised at θ = (10, 28, 8/3) exactly), a SciPy BFGS minimisation of the very same objective
+(``LearningProblem.value``) polished by dense Newton steps in NumPy, and the closed-form limits of
+the ρ_θ term and of a dominating Gaussian prior. Sizes are tiny: a single Lorenz attractor
+(n = 3, m = 2), T = 64, B = 1 (B = 4 for the minibatch test).
+"""
+
+import types
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+import optax
+import pytest
+import scipy.optimize
+
+import ceemx
+from ceemx.learning.step import make_problem
+from ceemx.systems import CoupledLorenz, initial_states, random_observation_matrix
+
+TRUE = np.array([10.0, 28.0, 8.0 / 3.0])
+START = TRUE * np.array([1.08, 0.93, 1.05])  # every parameter within 10% of the truth
+T = 64
+
+
+def where_theta(s):
+    return (s.sigma, s.rho, s.beta)
+
+
+def theta_of(system):
+    return np.array([system.sigma[0], system.rho[0], system.beta[0]])
+
+
+def lorenz(theta, C, **kw):
+    return CoupledLorenz(
+        jnp.asarray([theta[0]]), jnp.asarray([theta[1]]), jnp.asarray([theta[2]]), C, **kw
+    )
+
+
+@pytest.fixture(scope="module")
+def exact():
+    """Single Lorenz, C ∈ R^{2×3}; the true noise-free states and exact observations (B = 1)."""
+    C = random_observation_matrix(jax.random.PRNGKey(0), 1, m=2)
+    assert C.shape == (2, 3)
+    true = lorenz(TRUE, C)
+    x1 = initial_states(jax.random.PRNGKey(1), 1, 1)
+    states, data = ceemx.simulate(
+        true, jax.random.PRNGKey(2), x1, T, process_noise=False, obs_noise=False
+    )
+    return types.SimpleNamespace(C=C, true=true, start=lorenz(START, C), states=states, data=data)
+
+
+@pytest.fixture(scope="module")
+def noisy(exact):
+    """Same system, noisy observations and perturbed states: the optimum is not the truth."""
+    x1 = initial_states(jax.random.PRNGKey(3), 1, 1)
+    states, data = ceemx.simulate(exact.true, jax.random.PRNGKey(4), x1, T)
+    states = states + 0.05 * jax.random.normal(jax.random.PRNGKey(5), states.shape)
+    return types.SimpleNamespace(C=exact.C, start=exact.start, states=states, data=data)
+
+
+# --------------------------------------------------------------------------------------------------
+# All learners recover θ on exact states
+# --------------------------------------------------------------------------------------------------
+
+LEARNERS = {
+    "lm": (lambda: ceemx.LMLearner(), 1e-6),
+    "lbfgs": (lambda: ceemx.LBFGSLearner(max_steps=500), 1e-6),
+    "nelder_mead": (
+        lambda: ceemx.NelderMeadLearner(xatol=1e-10, fatol=1e-14, maxiter=5000),
+        1e-6,
+    ),
+    "adam": (lambda: ceemx.OptaxLearner(optax.adam(1e-2), steps=3000), 1e-3),
+}
+
+
+@pytest.mark.parametrize("name", list(LEARNERS))
+def test_learners_recover_true_parameters(exact, name):
+    make, rtol = LEARNERS[name]
+    learner = make()
+    system, state, info = ceemx.learn(
+        exact.start, exact.states, exact.data, learner, trainable=where_theta
+    )
+    assert isinstance(info, ceemx.LearnInfo)
+    np.testing.assert_allclose(theta_of(system), TRUE, rtol=rtol)
+    assert float(info.value_after) < float(info.value_before)
+    assert np.isfinite(float(info.value_after))
+    assert int(info.status) in (ceemx.RESULTS.successful, ceemx.RESULTS.max_steps_reached)
+    # The reported value is the learning objective at the returned θ.
+    problem, theta = make_problem(system, exact.states, exact.data, trainable=where_theta)
+    np.testing.assert_allclose(float(info.value_after), float(problem.value(theta)), rtol=1e-10)
+    # Nothing but θ moved.
+    np.testing.assert_array_equal(system.C, exact.start.C)
+    np.testing.assert_array_equal(system.obs_noise.scale, exact.start.obs_noise.scale)
+    if name == "adam":  # the optimiser state persists: (Adam state, PRNG key)
+        opt_state, key = state
+        assert int(opt_state[0].count) == 3000
+    else:
+        assert state is None
+
+
+def test_lm_and_lbfgs_agree_on_noisy_problem(noisy):
+    lm, _, _ = ceemx.learn(noisy.start, noisy.states, noisy.data, trainable=where_theta)
+    lb, _, _ = ceemx.learn(
+        noisy.start, noisy.states, noisy.data, ceemx.LBFGSLearner(max_steps=500),
+        trainable=where_theta,
+    )  # fmt: skip
+    np.testing.assert_allclose(theta_of(lm), theta_of(lb), rtol=1e-6)
+    assert np.max(np.abs(theta_of(lm) / TRUE - 1)) > 1e-4  # a genuinely different optimum
+
+
+# --------------------------------------------------------------------------------------------------
+# ρ_θ and the log-prior
+# --------------------------------------------------------------------------------------------------
+
+
+def dense_minimise(problem, theta0):
+    """SciPy BFGS on problem.value (JAX gradient), polished by dense Newton steps (jax.hessian)."""
+    f = jax.jit(lambda th: problem.value(th))
+    g = jax.jit(jax.grad(lambda th: problem.value(th)))
+    h = jax.jit(jax.hessian(lambda th: problem.value(th)))
+    res = scipy.optimize.minimize(
+        lambda th: float(f(jnp.asarray(th))),
+        np.asarray(theta0),
+        jac=lambda th: np.asarray(g(jnp.asarray(th))),
+        method="BFGS",
+        options={"gtol": 1e-8, "maxiter": 2000},
+    )
+    th = np.asarray(res.x)
+    for _ in range(5):
+        step = np.linalg.solve(np.asarray(h(jnp.asarray(th))), np.asarray(g(jnp.asarray(th))))
+        th = th - step
+    return th
+
+
+def gaussian_log_prior(mean, std):
+    mean, std = jnp.asarray(mean), jnp.asarray(std)
+
+    def log_prior(system):
+        th = jnp.concatenate([system.sigma, system.rho, system.beta])
+        return -0.5 * jnp.sum(((th - mean) / std) ** 2)
+
+    return log_prior
+
+
+def test_huge_rho_theta_keeps_theta_at_start(noisy):
+    system, _, info = ceemx.learn(
+        noisy.start, noisy.states, noisy.data, trainable=where_theta, rho_theta=1e14
+    )
+    np.testing.assert_allclose(theta_of(system), START, rtol=1e-6)
+    assert np.any(theta_of(system) != START)  # it still moved a little, towards the data
+    assert float(info.value_after) <= float(info.value_before)
+
+
+def test_dominant_prior_moves_theta_to_prior_mean(exact):
+    # Data weight tiny: enormous noise scales make −J nearly flat in θ; the prior is sharp.
+    flat = lorenz(START, exact.C, process_noise=1e4, obs_noise=1e4)
+    mean = np.array([9.0, 27.0, 2.5])
+    system, _, _ = ceemx.learn(
+        flat, exact.states, exact.data, trainable=where_theta,
+        log_prior=gaussian_log_prior(mean, 1e-2),
+    )  # fmt: skip
+    np.testing.assert_allclose(theta_of(system), mean, rtol=1e-6)
+
+
+@pytest.mark.parametrize("case", ["rho_theta", "log_prior", "both"])
+def test_lm_matches_dense_minimisation_with_regularisers(noisy, case):
+    kw = {}
+    if case in ("rho_theta", "both"):
+        kw["rho_theta"] = 3e3
+    if case in ("log_prior", "both"):
+        kw["log_prior"] = gaussian_log_prior([9.5, 27.0, 2.7], [0.05, 0.1, 0.01])
+    system, _, info = ceemx.learn(noisy.start, noisy.states, noisy.data, trainable=where_theta, **kw)
+    problem, theta0 = make_problem(noisy.start, noisy.states, noisy.data, trainable=where_theta, **kw)
+    ref = dense_minimise(problem, theta0)
+    np.testing.assert_allclose(theta_of(system), ref, rtol=1e-6)
+    # The regulariser matters: the answer differs from the unregularised one.
+    plain, _, _ = ceemx.learn(noisy.start, noisy.states, noisy.data, trainable=where_theta)
+    assert np.max(np.abs(theta_of(system) / theta_of(plain) - 1)) > 1e-4
+    assert float(info.value_after) <= float(info.value_before)
+
+
+# --------------------------------------------------------------------------------------------------
+# Monotonicity, trainable filters
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("max_steps", [1, 3, 100])
+def test_lm_learner_is_monotone(noisy, max_steps):
+    _, _, info = ceemx.learn(
+        noisy.start, noisy.states, noisy.data, ceemx.LMLearner(max_steps=max_steps),
+        trainable=where_theta,
+    )  # fmt: skip
+    assert float(info.value_after) <= float(info.value_before)
+    assert int(info.steps) <= max_steps
+
+
+def test_trainable_callable_selects_one_leaf(exact):
+    system, _, _ = ceemx.learn(
+        exact.start, exact.states, exact.data, trainable=lambda s: s.sigma
+    )
+    assert float(system.sigma[0]) != START[0]
+    np.testing.assert_array_equal(system.rho, exact.start.rho)
+    np.testing.assert_array_equal(system.beta, exact.start.beta)
+    np.testing.assert_array_equal(system.C, exact.start.C)
+    np.testing.assert_array_equal(system.H, exact.start.H)
+
+
+def test_trainable_boolean_filter_pytree(exact):
+    spec = jtu.tree_map(lambda _: False, exact.start)
+    spec = eqx.tree_at(lambda s: s.rho, spec, replace=True)
+    system, _, info = ceemx.learn(exact.start, exact.states, exact.data, trainable=spec)
+    assert float(system.rho[0]) != START[1]
+    assert float(info.value_after) < float(info.value_before)
+    np.testing.assert_array_equal(system.sigma, exact.start.sigma)
+    np.testing.assert_array_equal(system.beta, exact.start.beta)
+    np.testing.assert_array_equal(system.C, exact.start.C)
+
+
+def test_default_trainable_learns_model_arrays_not_noise(noisy):
+    prior = ceemx.GaussianPrior(jnp.zeros(3), ceemx.DiagonalGaussian(jnp.full(3, 5.0), 3))
+    start = lorenz(START, noisy.C, initial_prior=prior)
+    system, _, info = ceemx.learn(start, noisy.states, noisy.data)
+    assert float(info.value_after) < float(info.value_before)
+    assert np.all(theta_of(system) != START)  # σ, ρ, β learn
+    assert np.any(np.asarray(system.C) != np.asarray(start.C))  # C learns too (a model array)
+    # H has no effect for K = 1 (own block masked): zero gradient, so it stays exactly put.
+    np.testing.assert_array_equal(system.H, start.H)
+    # Noise scales and the initial-state prior are not trained.
+    np.testing.assert_array_equal(system.obs_noise.scale, start.obs_noise.scale)
+    np.testing.assert_array_equal(system.process_noise.scale, start.process_noise.scale)
+    np.testing.assert_array_equal(system.initial_prior.mean, prior.mean)
+    np.testing.assert_array_equal(system.initial_prior.noise.scale, prior.noise.scale)
+
+
+# --------------------------------------------------------------------------------------------------
+# Minibatches
+# --------------------------------------------------------------------------------------------------
+
+
+def test_minibatch_optax_learner_decreases_objective(exact):
+    x1 = initial_states(jax.random.PRNGKey(6), 4, 1)
+    states, data = ceemx.simulate(exact.true, jax.random.PRNGKey(7), x1, T, obs_noise=False)
+    learner = ceemx.OptaxLearner(optax.adam(1e-2), steps=200, batch_size=2)
+    key = jax.random.PRNGKey(8)
+    system, state, info = ceemx.learn(
+        exact.start, states, data, learner, trainable=where_theta, key=key
+    )
+    assert int(info.status) == ceemx.RESULTS.successful
+    assert float(info.value_after) < float(info.value_before)
+    # The reported values are those of the full-batch objective.
+    problem, theta0 = make_problem(exact.start, states, data, trainable=where_theta)
+    np.testing.assert_allclose(float(info.value_before), float(problem.value(theta0)), rtol=1e-12)
+    assert np.max(np.abs(theta_of(system) / TRUE - 1)) < np.max(np.abs(START / TRUE - 1))
+    # The minibatch key advanced and the state carries over to a second call.
+    _, key_after = state
+    assert not np.array_equal(jax.random.key_data(key_after), jax.random.key_data(key))
+    system2, _, info2 = ceemx.learn(
+        system, states, data, learner, trainable=where_theta, learner_state=state
+    )
+    assert float(info2.value_after) < float(info2.value_before)
