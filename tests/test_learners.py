@@ -118,23 +118,25 @@ def test_lm_and_lbfgs_agree_on_noisy_problem(noisy):
 # --------------------------------------------------------------------------------------------------
 
 
+@eqx.filter_jit
+def _value_and_grad(problem, theta):
+    return jax.value_and_grad(problem.value)(theta)
+
+
 def dense_minimise(problem, theta0):
-    """SciPy BFGS on problem.value (JAX gradient), polished by dense Newton steps (jax.hessian)."""
-    f = jax.jit(lambda th: problem.value(th))
-    g = jax.jit(jax.grad(lambda th: problem.value(th)))
-    h = jax.jit(jax.hessian(lambda th: problem.value(th)))
+    """SciPy BFGS on ``problem.value`` with its JAX gradient (compiled once per problem structure)."""
+
+    def fun(th):
+        value, grad = _value_and_grad(problem, jnp.asarray(th))
+        return float(value), np.asarray(grad)
+
     res = scipy.optimize.minimize(
-        lambda th: float(f(jnp.asarray(th))),
-        np.asarray(theta0),
-        jac=lambda th: np.asarray(g(jnp.asarray(th))),
-        method="BFGS",
-        options={"gtol": 1e-8, "maxiter": 2000},
+        fun, np.asarray(theta0), jac=True, method="BFGS", options={"gtol": 1e-8, "maxiter": 2000}
     )
-    th = np.asarray(res.x)
-    for _ in range(5):
-        step = np.linalg.solve(np.asarray(h(jnp.asarray(th))), np.asarray(g(jnp.asarray(th))))
-        th = th - step
-    return th
+    # BFGS stops on "precision loss" near the optimum; require a small gradient relative to the
+    # problem's scale (the objective is ~1e4 with curvature ~1e6 per parameter).
+    assert np.max(np.abs(res.jac)) < 1e-2, res
+    return np.asarray(res.x)
 
 
 def gaussian_log_prior(mean, std):
@@ -145,6 +147,12 @@ def gaussian_log_prior(mean, std):
         return -0.5 * jnp.sum(((th - mean) / std) ** 2)
 
     return log_prior
+
+
+# One log-prior object for every test that uses it: it is a static part of the learning problem,
+# so sharing it shares the compiled learner.
+PRIOR_MEAN = np.array([9.5, 27.0, 2.7])
+PRIOR = gaussian_log_prior(PRIOR_MEAN, [0.05, 0.1, 0.01])
 
 
 def test_huge_rho_theta_keeps_theta_at_start(noisy):
@@ -158,13 +166,11 @@ def test_huge_rho_theta_keeps_theta_at_start(noisy):
 
 def test_dominant_prior_moves_theta_to_prior_mean(exact):
     # Data weight tiny: enormous noise scales make −J nearly flat in θ; the prior is sharp.
-    flat = lorenz(START, exact.C, process_noise=1e4, obs_noise=1e4)
-    mean = np.array([9.0, 27.0, 2.5])
+    flat = lorenz(START, exact.C, process_noise=1e6, obs_noise=1e6)
     system, _, _ = ceemx.learn(
-        flat, exact.states, exact.data, trainable=where_theta,
-        log_prior=gaussian_log_prior(mean, 1e-2),
-    )  # fmt: skip
-    np.testing.assert_allclose(theta_of(system), mean, rtol=1e-6)
+        flat, exact.states, exact.data, trainable=where_theta, log_prior=PRIOR
+    )
+    np.testing.assert_allclose(theta_of(system), PRIOR_MEAN, rtol=1e-6)
 
 
 @pytest.mark.parametrize("case", ["rho_theta", "log_prior", "both"])
@@ -173,7 +179,7 @@ def test_lm_matches_dense_minimisation_with_regularisers(noisy, case):
     if case in ("rho_theta", "both"):
         kw["rho_theta"] = 3e3
     if case in ("log_prior", "both"):
-        kw["log_prior"] = gaussian_log_prior([9.5, 27.0, 2.7], [0.05, 0.1, 0.01])
+        kw["log_prior"] = PRIOR
     system, _, info = ceemx.learn(noisy.start, noisy.states, noisy.data, trainable=where_theta, **kw)
     problem, theta0 = make_problem(noisy.start, noisy.states, noisy.data, trainable=where_theta, **kw)
     ref = dense_minimise(problem, theta0)
@@ -189,7 +195,7 @@ def test_lm_matches_dense_minimisation_with_regularisers(noisy, case):
 # --------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("max_steps", [1, 3, 100])
+@pytest.mark.parametrize("max_steps", [1, 100])
 def test_lm_learner_is_monotone(noisy, max_steps):
     _, _, info = ceemx.learn(
         noisy.start, noisy.states, noisy.data, ceemx.LMLearner(max_steps=max_steps),
@@ -212,11 +218,11 @@ def test_trainable_callable_selects_one_leaf(exact):
 
 def test_trainable_boolean_filter_pytree(exact):
     spec = jtu.tree_map(lambda _: False, exact.start)
-    spec = eqx.tree_at(lambda s: s.rho, spec, replace=True)
+    spec = eqx.tree_at(lambda s: s.sigma, spec, replace=True)
     system, _, info = ceemx.learn(exact.start, exact.states, exact.data, trainable=spec)
-    assert float(system.rho[0]) != START[1]
+    assert float(system.sigma[0]) != START[0]
     assert float(info.value_after) < float(info.value_before)
-    np.testing.assert_array_equal(system.sigma, exact.start.sigma)
+    np.testing.assert_array_equal(system.rho, exact.start.rho)
     np.testing.assert_array_equal(system.beta, exact.start.beta)
     np.testing.assert_array_equal(system.C, exact.start.C)
 

@@ -17,6 +17,7 @@ from . import checkpoint as ckpt
 from ._lm import RESULTS
 from .data import Trajectories
 from .learning.learners import AbstractLearner, LMLearner
+from .learning.problem import trainable_mask
 from .learning.step import make_problem, run_learner
 from .models.system import AbstractSystem
 from .objective import log_joint
@@ -174,9 +175,12 @@ def fit(
         raise ValueError(f"`rho_theta` must be >= 0; got {rho_theta}.")
 
     states = jnp.asarray(x_init)
-    # Strongly type the arrays, as every later epoch's system is: a weakly typed leaf (e.g. from
-    # jnp.asarray(10.0)) would otherwise make epoch 2 retrace the smoother and the learner.
-    system = jax.tree_util.tree_map(lambda a: a.astype(a.dtype) if eqx.is_inexact_array(a) else a, system)
+    # Strongly type the trainable arrays, as every later epoch's system (rebuilt from the learned θ)
+    # has them: a weakly typed leaf (e.g. from jnp.asarray(10.0)) would otherwise make epoch 2
+    # retrace the smoother and the learner.
+    params, rest = eqx.partition(system, trainable_mask(system, trainable))
+    params = jax.tree_util.tree_map(lambda a: a.astype(a.dtype) if eqx.is_array(a) else a, params)
+    system = eqx.combine(params, rest)
     problem, theta = make_problem(system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior)
     weights = np.ones(data.batch_size)
     initial_J = _total_J(system, states, data, weights)[0]

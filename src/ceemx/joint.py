@@ -109,7 +109,7 @@ def _joint_iteration(opts: JointLM, problem, theta, states, lam, rtol):
         g_x, g_th, A, E, D = lin
         dA = jnp.diagonal(A.diagonal, axis1=-2, axis2=-1)
         dD = jnp.diagonal(D)
-        A_d = BlockTridiagonal(A.diagonal + (marquardt_scale(dA, lam) + 2.0 * rho_x)[..., None] * eye_n, A.lower)
+        A_d = linalg.add_to_diagonal(A, marquardt_scale(dA, lam) + 2.0 * rho_x)
         D_d = D + jnp.diag(marquardt_scale(dD, lam) + 2.0 * rho_t)
         sol = linalg.arrowhead_solve(
             A_d,

@@ -100,15 +100,32 @@ class LearningProblem(eqx.Module):
             system, states, data.y, data.u, data.mask
         )
 
+    def _participating(self):
+        """(states, data) with each excluded trajectory replaced by a participating one.
+
+        Excluded trajectories (weight 0, e.g. failed smoothing) can have non-finite terms; masking
+        their values with ``jnp.where`` is not enough under differentiation (0·∞ = NaN in the
+        gradient), so their inputs are swapped for finite ones before evaluation.
+        """
+        ok = self.weights > 0
+        ref = jnp.argmax(ok)
+
+        def pick(a):
+            return jnp.where(ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, a[ref][None])
+
+        return pick(self.states), jtu.tree_map(pick, self.data)
+
     def value(self, theta: Array) -> Array:
         """The learning objective (scalar)."""
-        nll = jnp.sum(jnp.where(self.weights > 0, self.per_trajectory(theta), 0.0))
+        states, data = self._participating()
+        nll = jnp.sum(jnp.where(self.weights > 0, self.per_trajectory(theta, states, data), 0.0))
         return nll + self._regulariser(theta)
 
     def minibatch_value(self, theta: Array, idx: Array) -> Array:
         """Unbiased estimate of :meth:`value` from the trajectories ``idx``."""
-        states = self.states[idx]
-        data = self.data[idx]
+        states, data = self._participating()
+        states = states[idx]
+        data = data[idx]
         w = self.weights[idx]
         nll = jnp.sum(jnp.where(w > 0, self.per_trajectory(theta, states, data), 0.0))
         scale = jnp.sum(self.weights) / jnp.maximum(jnp.sum(w), 1.0)

@@ -258,3 +258,10 @@ def selected_inverse(L: BlockTridiagonalCholesky) -> BlockTridiagonal:
     S_last = local[-1]
     _, (diags, lows) = jax.lax.scan(step, S_last, (local[:-1], G), reverse=True)
     return BlockTridiagonal(diagonal=jnp.concatenate([diags, S_last[None]], axis=0), lower=lows)
+
+
+def add_to_diagonal(A: BlockTridiagonal, d: Float[Array, "*B T n"]) -> BlockTridiagonal:
+    """A + diag(d): adds ``d[..., t, i]`` to entry (i, i) of diagonal block t (batched leaves work)."""
+    n = A.diagonal.shape[-1]
+    i = jnp.arange(n)
+    return BlockTridiagonal(A.diagonal.at[..., i, i].add(d), A.lower)

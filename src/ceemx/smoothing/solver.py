@@ -12,7 +12,6 @@ from jaxtyping import Array, Float, Int
 
 from .. import linalg
 from ..data import Trajectories
-from ..linalg import BlockTridiagonal
 from ..models.system import AbstractSystem
 from .._lm import RESULTS, levenberg_marquardt, marquardt_scale
 from ..objective import linearize
@@ -89,10 +88,8 @@ def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
 
     def solve(lin, lam):
         h = lin.hess_x
-        n = h.diagonal.shape[-1]
         d = jnp.diagonal(h.diagonal, axis1=-2, axis2=-1)
-        shift = marquardt_scale(d, lam) + 2.0 * rho
-        L = linalg.cholesky(BlockTridiagonal(h.diagonal + shift[..., None] * jnp.broadcast_to(jnp.eye(n, dtype=d.dtype), h.diagonal.shape), h.lower))
+        L = linalg.cholesky(linalg.add_to_diagonal(h, marquardt_scale(d, lam) + 2.0 * rho))
         return -linalg.solve(L, lin.grad_x), linalg.is_finite(L)
 
     def quad(lin, delta):

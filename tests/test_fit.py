@@ -1,0 +1,476 @@
+"""Tests for ceemx.fit (CE-EM, paper Algorithm 1): convergence, history, callbacks, compile-once,
+failed trajectories, kill-and-resume from a checkpoint, state initialisation and input validation.
+
+The shared problem is a single Lorenz attractor (n = 3) observed through a random C ∈ R^{2×3} with
+σ_v = 0.01, simulated with tiny process noise (σ_w = 1e-3; the model assumes 0.01), T = 64, B = 2,
+θ guesses within 10% of (10, 28, 8/3) and initial states = truth + N(0, 0.5²). Most tests reuse the
+one compiled (smoother, learner) pair of this configuration.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import types
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import ceemx
+import ceemx.em
+import ceemx.learning.step
+from ceemx.systems import CoupledLorenz, LinearSystem, initial_states, random_observation_matrix
+
+RESULTS = ceemx.RESULTS
+TRUE = np.array([10.0, 28.0, 8.0 / 3.0])
+START = TRUE * np.array([1.08, 0.93, 1.05])
+T, B = 64, 2
+
+
+def where_theta(s):
+    return (s.sigma, s.rho, s.beta)
+
+
+def theta_of(system):
+    return np.array([system.sigma[0], system.rho[0], system.beta[0]])
+
+
+def lorenz(theta, C, dtype=jnp.float64):
+    return CoupledLorenz(
+        jnp.asarray([theta[0]], dtype), jnp.asarray([theta[1]], dtype), jnp.asarray([theta[2]], dtype),
+        jnp.asarray(C, dtype), process_noise=0.01, obs_noise=0.01,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module", autouse=True)
+def traces():
+    """Route ``fit``'s two compiled entry points through fresh jit wrappers that record each trace.
+
+    A wrapper's Python body runs only while tracing. Every configuration (learner type, batch shape,
+    dtype) must be traced once per module: a second trace of the same one raises, whichever test
+    causes it. The wrappers call the library's own compiled functions, so results are unchanged.
+    """
+    log = []
+    smooth, learn = ceemx.em._smooth_batch, ceemx.learning.step._run_jit
+
+    def record(kind, key):
+        if (kind, key) in log:
+            raise AssertionError(f"{kind} retraced for an already compiled configuration {key}")
+        log.append((kind, key))
+
+    @eqx.filter_jit
+    def smooth_traced(solver, system, states, data, covariance):
+        record("smooth", (states.shape, str(states.dtype)))
+        return smooth(solver, system, states, data, covariance)
+
+    @eqx.filter_jit
+    def learn_traced(learner, problem, theta, state):
+        record("learn", (type(learner).__name__, problem.states.shape, str(theta.dtype)))
+        return learn(learner, problem, theta, state)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ceemx.em, "_smooth_batch", smooth_traced)
+        mp.setattr(ceemx.learning.step, "_run_jit", learn_traced)
+        yield log
+
+
+@pytest.fixture(scope="module")
+def prob():
+    keys = jax.random.split(jax.random.PRNGKey(42), 5)
+    C = random_observation_matrix(keys[0], 1, m=2)
+    true = lorenz(TRUE, C)
+    x1 = initial_states(keys[1], B, 1)
+    states, data = ceemx.simulate(
+        true, keys[2], x1, T, process_noise=ceemx.DiagonalGaussian(1e-3, 3)
+    )
+    x_init = states + 0.5 * jax.random.normal(keys[3], states.shape)
+    return types.SimpleNamespace(
+        C=C, true=true, start=lorenz(START, C), states=states, data=data, x_init=x_init, x1=x1,
+        keys=keys,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def fitted(prob):
+    """The reference fit: default LM smoother and LM learner, run to convergence."""
+    return ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=100, tol=1e-8)
+
+
+# --------------------------------------------------------------------------------------------------
+# Convergence and history
+# --------------------------------------------------------------------------------------------------
+
+
+def test_fit_recovers_lorenz_parameters(fitted):
+    assert fitted.converged, fitted.history[-1]
+    assert fitted.method == "alternate"
+    assert fitted.epochs == len(fitted.history) < 100
+    np.testing.assert_allclose(theta_of(fitted.system), TRUE, rtol=1e-2)
+    assert np.all(np.asarray(fitted.status) == RESULTS.successful), fitted.messages()
+    assert fitted.states.shape == (B, T, 3)
+    print(f"fit: {fitted.epochs} epochs, θ = {theta_of(fitted.system)}")
+
+
+def test_fit_history_is_monotone_and_complete(prob, fitted):
+    keys = {"J", "dtheta_norm", "dx_norm", "smooth_time", "learn_time", "learner_steps", "smoother_steps"}
+    for i, rec in enumerate(fitted.history, start=1):
+        assert keys <= set(rec), keys - set(rec)
+        assert rec["epoch"] == i
+        assert len(rec["J_per_trajectory"]) == B
+        np.testing.assert_allclose(sum(rec["J_per_trajectory"]), rec["J"], rtol=1e-12)
+        assert rec["smooth_time"] >= 0 and rec["learn_time"] >= 0
+        assert rec["learner_steps"] >= 0 and rec["smoother_steps"] >= 0
+        assert rec["dtheta_norm"] >= 0 and rec["dx_norm"] >= 0
+    J = fitted.history_array("J")
+    assert np.all(np.isfinite(J))
+    assert np.all(np.diff(J) >= -1e-9 * np.abs(J[1:])), np.diff(J)
+    assert J[0] >= fitted.initial_J
+    np.testing.assert_allclose(
+        fitted.initial_J, float(np.sum(ceemx.log_joint(prob.start, prob.x_init, prob.data))), rtol=1e-12
+    )
+    # J of the last record is J at the returned (x, θ).
+    np.testing.assert_allclose(
+        J[-1], float(np.sum(ceemx.log_joint(fitted.system, fitted.states, prob.data))), rtol=1e-12
+    )
+    assert fitted.history[-1]["converged"] and not any(h["converged"] for h in fitted.history[:-1])
+    # dθ shrinks as EM converges.
+    assert fitted.history[-1]["dtheta_norm"] < 1e-2 * fitted.history[0]["dtheta_norm"]
+
+
+def test_loose_tolerance_converges_early(prob, fitted):
+    res = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=100, tol=1e-3)
+    assert res.converged
+    assert res.epochs < fitted.epochs
+    # Same iterates as the tight run, just fewer of them.
+    np.testing.assert_allclose(res.history_array("J"), fitted.history_array("J")[: res.epochs], rtol=1e-12)
+
+
+def test_max_epochs_bounds_the_fit(prob):
+    res = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=2)
+    assert res.epochs == 2 and not res.converged
+    res0 = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=0)
+    assert res0.epochs == 0
+    np.testing.assert_array_equal(theta_of(res0.system), START)
+    np.testing.assert_array_equal(res0.states, prob.x_init)
+
+
+# --------------------------------------------------------------------------------------------------
+# Compile once
+# --------------------------------------------------------------------------------------------------
+
+
+def test_no_retrace_across_epochs_or_new_data(prob, traces):
+    """The smoother and the learner are traced at most once for a fit, and not again for new data.
+
+    See the ``traces`` fixture: a retrace of a configuration fails whichever test causes it; here a
+    fit from a weakly typed θ (Python floats) must not retrace at epoch 2, when θ comes back from the
+    learner strongly typed, and a fit on new data of the same shape must not trace at all.
+    """
+    start = CoupledLorenz(*map(float, START), prob.C, process_noise=0.01, obs_noise=0.01)
+    assert jax.typeof(start.sigma).weak_type
+    counts = []
+    res = ceemx.fit(
+        start, prob.data, prob.x_init, trainable=where_theta, max_epochs=6, tol=0.0, atol=-np.inf,
+        callbacks=[lambda info: counts.append(len(traces))],
+    )  # fmt: skip
+    assert res.epochs == 6
+    assert counts == [counts[0]] * 6
+    assert {("smooth", ((B, T, 3), "float64")), ("learn", ("LMLearner", (B, T, 3), "float64"))} <= set(traces)
+    # New data of the same shape, started from the result: no new trace.
+    x1 = initial_states(prob.keys[4], B, 1)
+    states2, data2 = ceemx.simulate(prob.true, prob.keys[4], x1, T)
+    res2 = ceemx.fit(res.system, data2, states2 + 0.1, trainable=where_theta, max_epochs=3)
+    assert res2.epochs >= 1
+    assert len(traces) == counts[0]
+
+
+# --------------------------------------------------------------------------------------------------
+# Callbacks
+# --------------------------------------------------------------------------------------------------
+
+
+def test_callbacks_merge_records_and_stop(prob):
+    seen = []
+
+    def record(info):
+        assert isinstance(info, ceemx.EpochInfo)
+        assert info.states.shape == (B, T, 3)
+        assert isinstance(info.system, CoupledLorenz)
+        seen.append((info.epoch, theta_of(info.system)))
+        return {"eps": float(np.max(np.abs(theta_of(info.system) / TRUE - 1))), "epoch_sq": info.epoch**2}
+
+    def nothing(info):
+        return None
+
+    def stop_at_3(info):
+        return False if info.epoch == 3 else True
+
+    res = ceemx.fit(
+        prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=50,
+        callbacks=[record, nothing, stop_at_3],
+    )  # fmt: skip
+    assert res.epochs == 3
+    assert not res.converged
+    assert [e for e, _ in seen] == [1, 2, 3]
+    for (epoch, th), rec in zip(seen, res.history):
+        assert rec["epoch_sq"] == epoch**2
+        assert rec["eps"] == float(np.max(np.abs(th / TRUE - 1)))
+    assert res.history[-1]["stop"] and not res.history[0]["stop"]
+    np.testing.assert_array_equal(seen[-1][1], theta_of(res.system))
+    assert res.history_array("eps").shape == (3,)
+
+
+# --------------------------------------------------------------------------------------------------
+# A trajectory whose smoothing fails
+# --------------------------------------------------------------------------------------------------
+
+
+def test_failed_trajectory_is_excluded_and_reported(prob):
+    # Trajectory 2 starts at 1e200: the dynamics overflow, its objective is not finite.
+    y = jnp.concatenate([prob.data.y, prob.data.y[:1]])
+    data3 = ceemx.Trajectories(y)
+    x_bad = jnp.concatenate([prob.x_init, jnp.full((1, T, 3), 1e200)])
+    with pytest.warns(UserWarning, match=r"smoothing failed.*\[2\]"):
+        res = ceemx.fit(prob.start, data3, x_bad, trainable=where_theta, max_epochs=10)
+    status = np.asarray(res.status)
+    assert status[2] == RESULTS.nonfinite
+    assert np.all(status[:2] != RESULTS.nonfinite)
+    assert "not finite" in res.messages()[2]
+    assert all(h["failed_trajectories"] == [2] for h in res.history)
+    np.testing.assert_array_equal(res.states[2], x_bad[2])  # left at its initial states
+    # Learned from the good trajectories as if the bad one were absent.
+    good = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=10)
+    assert good.epochs == res.epochs
+    np.testing.assert_allclose(theta_of(res.system), theta_of(good.system), rtol=1e-9)
+    np.testing.assert_allclose(res.states[:2], good.states, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(res.history_array("J"), good.history_array("J"), rtol=1e-9)
+    assert np.all(np.abs(theta_of(res.system) / START - 1) > 1e-3)  # θ really moved
+
+
+@pytest.mark.parametrize(
+    "learner",
+    [
+        pytest.param(ceemx.LBFGSLearner(max_steps=50), marks=pytest.mark.slow),
+        ceemx.OptaxLearner(optax.adam(1e-2), steps=50),
+    ],
+    ids=["lbfgs", "adam"],
+)
+def test_failed_trajectory_does_not_poison_gradient_learners(prob, learner):
+    """Gradient-based learners differentiate the objective: the excluded trajectory's non-finite
+    terms must not leak into the gradient (0 · ∞ = NaN through ``jnp.where``)."""
+    y = jnp.concatenate([prob.data.y, prob.data.y[:1]])
+    data3 = ceemx.Trajectories(y)
+    x_bad = jnp.concatenate([prob.x_init, jnp.full((1, T, 3), 1e200)])
+    with pytest.warns(UserWarning, match="smoothing failed"):
+        res = ceemx.fit(prob.start, data3, x_bad, trainable=where_theta, learner=learner, max_epochs=2)
+    assert all(h["learner_status"] != RESULTS.nonfinite for h in res.history), res.history
+    assert np.all(np.isfinite(theta_of(res.system)))
+    assert np.all(theta_of(res.system) != START)  # it learned
+
+
+# --------------------------------------------------------------------------------------------------
+# Kill and resume
+# --------------------------------------------------------------------------------------------------
+
+_SCRIPT = textwrap.dedent(
+    """
+    import os, signal, sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+    import ceemx
+    from ceemx.systems import CoupledLorenz
+
+    arrays = np.load(sys.argv[1])
+    th = arrays["start"]
+    start = CoupledLorenz(
+        jnp.asarray(th[:1]), jnp.asarray(th[1:2]), jnp.asarray(th[2:]), jnp.asarray(arrays["C"]),
+        process_noise=0.01, obs_noise=0.01,
+    )
+    data = ceemx.Trajectories(jnp.asarray(arrays["y"]))
+
+    def callback(info):
+        print(f"EPOCH {info.epoch}", flush=True)
+        if info.epoch == 4:  # epoch 4 is computed but its checkpoint is not yet written
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    ceemx.fit(
+        start, data, jnp.asarray(arrays["x_init"]), trainable=lambda s: (s.sigma, s.rho, s.beta),
+        max_epochs=8, checkpoint=sys.argv[2], callbacks=[callback], progress=False,
+    )
+    print("FINISHED", flush=True)
+    """
+)
+
+
+def _strict_json(path):
+    def reject(name):
+        raise ValueError(f"{path} is not valid JSON: it contains {name}")
+
+    with open(path) as f:
+        return json.load(f, parse_constant=reject)
+
+
+def test_kill_and_resume_matches_uninterrupted_run(prob, tmp_path):
+    np.savez(
+        tmp_path / "problem.npz", start=START, C=np.asarray(prob.C), y=np.asarray(prob.data.y),
+        x_init=np.asarray(prob.x_init),
+    )  # fmt: skip
+    (tmp_path / "run.py").write_text(_SCRIPT)
+    ckpt = tmp_path / "ckpt"
+    proc = subprocess.run(
+        [sys.executable, str(tmp_path / "run.py"), str(tmp_path / "problem.npz"), str(ckpt)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-3000:]
+    assert proc.stdout.split() == ["EPOCH", "1", "EPOCH", "2", "EPOCH", "3", "EPOCH", "4"], proc.stdout
+    # The killed run left the checkpoint of epoch 3, and nothing else.
+    assert sorted(os.listdir(ckpt)) == ["latest.json", "state-3.eqx"]
+    meta = _strict_json(ckpt / "latest.json")
+    assert meta["epoch"] == 3 and meta["state"] == "state-3.eqx" and len(meta["history"]) == 3
+
+    # Resume in this process with the same call.
+    resumed = ceemx.fit(
+        prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=8, checkpoint=str(ckpt)
+    )
+    full = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=8)
+    assert resumed.epochs == full.epochs == 8
+    assert [h["epoch"] for h in resumed.history] == list(range(1, 9))
+    np.testing.assert_allclose(theta_of(resumed.system), theta_of(full.system), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(resumed.states, full.states, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(resumed.history_array("J"), full.history_array("J"), rtol=1e-12)
+    np.testing.assert_allclose(resumed.initial_J, full.initial_J, rtol=1e-12)
+    assert resumed.converged == full.converged
+    # The epochs run by the killed process are those of the uninterrupted run.
+    np.testing.assert_allclose([h["J"] for h in meta["history"]], full.history_array("J")[:3], rtol=1e-12)
+
+    assert sorted(os.listdir(ckpt)) == ["latest.json", "state-8.eqx"]
+    meta = _strict_json(ckpt / "latest.json")
+    assert meta["epoch"] == 8 and len(meta["history"]) == 8
+
+    # Resuming a finished run returns it without further epochs.
+    again = ceemx.fit(
+        prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=8, checkpoint=str(ckpt)
+    )
+    assert again.epochs == 8
+    np.testing.assert_array_equal(theta_of(again.system), theta_of(resumed.system))
+    np.testing.assert_array_equal(again.states, resumed.states)
+
+
+# --------------------------------------------------------------------------------------------------
+# Initial states
+# --------------------------------------------------------------------------------------------------
+
+
+def test_from_observations_inverts_a_full_rank_observation():
+    rng = np.random.default_rng(0)
+    n = 3
+    A = rng.standard_normal((n, n))
+    A *= 0.95 / np.max(np.abs(np.linalg.eigvals(A)))
+    C = rng.standard_normal((n, n))
+    system = LinearSystem(jnp.asarray(A), jnp.asarray(C), process_noise=0.1, obs_noise=0.2)
+    x1 = jnp.asarray(rng.standard_normal((2, n)))
+    xs, data = ceemx.simulate(
+        system, jax.random.PRNGKey(0), x1, 20, process_noise=True, obs_noise=False
+    )
+    x_exact = ceemx.initialize.from_observations(system, data, ridge=0.0)
+    np.testing.assert_allclose(x_exact, xs, rtol=1e-10, atol=1e-10)
+    # The default ridge is tiny: still very close.
+    x_ridge = ceemx.initialize.from_observations(system, data)
+    np.testing.assert_allclose(x_ridge, xs, rtol=1e-3, atol=1e-3 * float(np.max(np.abs(xs))))
+
+
+def test_rollout_equals_noise_free_simulation(prob):
+    xs, data = ceemx.simulate(
+        prob.true, jax.random.PRNGKey(1), prob.x1, T, process_noise=False, obs_noise=False
+    )
+    x = ceemx.initialize.rollout(prob.true, data, prob.x1)
+    np.testing.assert_allclose(x, xs, rtol=1e-14, atol=1e-14)
+    np.testing.assert_array_equal(x[:, 0], prob.x1)
+
+
+def test_fit_without_initial_states(prob):
+    res = ceemx.fit(prob.start, prob.data, trainable=where_theta, max_epochs=3)
+    x0 = ceemx.initialize.from_observations(prob.start, prob.data)
+    assert res.epochs == 3
+    np.testing.assert_allclose(
+        res.initial_J, float(np.sum(ceemx.log_joint(prob.start, x0, prob.data))), rtol=1e-12
+    )
+    J = res.history_array("J")
+    assert np.all(np.isfinite(J)) and J[0] > res.initial_J and np.all(np.diff(J) >= -1e-9 * np.abs(J[1:]))
+
+
+# --------------------------------------------------------------------------------------------------
+# Precision and input validation
+# --------------------------------------------------------------------------------------------------
+
+
+def _float32_problem(prob):
+    start = CoupledLorenz(
+        jnp.asarray(START[:1], jnp.float32), jnp.asarray(START[1:2], jnp.float32),
+        jnp.asarray(START[2:], jnp.float32), jnp.asarray(prob.C, jnp.float32),
+        process_noise=ceemx.DiagonalGaussian(np.float32(0.01), 3),
+        obs_noise=ceemx.DiagonalGaussian(np.float32(0.01), 2),
+    )  # fmt: skip
+    data = ceemx.Trajectories(prob.data.y.astype(jnp.float32))
+    return start, data, prob.x_init.astype(jnp.float32)
+
+
+def test_float32_fit_warns(prob):
+    start, data, x_init = _float32_problem(prob)
+    with pytest.warns(UserWarning, match="float32") as record:
+        res = ceemx.fit(start, data, x_init, trainable=where_theta, max_epochs=0)
+    # The warning points at the caller, not into ceemx.
+    assert any(w.filename == __file__ for w in record if "float32" in str(w.message)), [
+        w.filename for w in record
+    ]
+    assert res.states.dtype == jnp.float32
+
+
+@pytest.mark.slow
+def test_float32_fit_runs_in_float32(prob):
+    start, data, x_init = _float32_problem(prob)
+    with pytest.warns(UserWarning, match="float32"):
+        res = ceemx.fit(start, data, x_init, trainable=where_theta, max_epochs=1)
+    assert res.epochs == 1
+    assert res.states.dtype == jnp.float32
+    assert res.system.sigma.dtype == jnp.float32
+    assert np.isfinite(res.history[0]["J"])
+
+
+def test_float64_fit_does_not_warn(prob):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"x_init": "short"}, "x_init"),
+        ({"x_init": "nan"}, "x_init"),
+        ({"rho_theta": -1.0}, "rho_theta"),
+        ({"method": "newton"}, "method"),
+        ({"max_epochs": -1}, "max_epochs"),
+    ],
+    ids=["x_init_shape", "x_init_nan", "rho_theta", "method", "max_epochs"],
+)
+def test_bad_inputs_raise_value_error(prob, kwargs, match):
+    kwargs = dict(kwargs)
+    x_init = prob.x_init
+    if kwargs.get("x_init") == "short":
+        kwargs["x_init"] = x_init[:, :-1]
+    elif kwargs.get("x_init") == "nan":
+        kwargs["x_init"] = x_init.at[1, 5, 2].set(jnp.nan)
+    else:
+        kwargs["x_init"] = x_init
+    with pytest.raises(ValueError, match=match):
+        ceemx.fit(prob.start, prob.data, trainable=where_theta, **kwargs)
