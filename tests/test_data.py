@@ -158,11 +158,6 @@ def test_getitem_keeps_batch_axis():
     np.testing.assert_array_equal(sub.y[0], data.y[1])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="Trajectories.__getitem__ documents 'the result keeps a batch axis' but an integer "
-    "index drops it (data[0].y has shape (T, m))",
-)
 def test_getitem_integer_keeps_batch_axis():
     assert ceemx.Trajectories(y_ok())[0].y.shape == (1, T, M)
 

@@ -123,14 +123,18 @@ def levenberg_marquardt(
         f_new, lin_new = evaluate(z_new)
         actual = f - f_new
         ratio = actual / jnp.where(pred > 0, pred, 1.0)
-        accept = ok & jnp.isfinite(f_new) & (pred > 0) & (ratio > 1e-4) & _all_finite(grad_of(lin_new))
+        finite_new = jnp.isfinite(f_new) & _all_finite(grad_of(lin_new))
+        small_pred = ok & (pred >= 0) & (pred <= tol(f))
+        # A step whose predicted decrease is below tolerance is at round-off level: keep it unless
+        # it makes things worse by more than the tolerance (the ratio test is noise there).
+        accept = finite_new & ok & (((pred > 0) & (ratio > 1e-4)) | (small_pred & (f_new <= f + tol(f))))
         lam_acc = lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
         lam_new = jnp.where(accept, lam_acc, lam * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
         pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
         z = jtu.tree_map(pick, z_new, z)
         lin = jtu.tree_map(pick, lin_new, lin)
-        converged = (ok & (pred >= 0) & (pred <= tol(f))) | (accept & (actual <= tol(f)))
+        converged = small_pred | (accept & (actual <= tol(f)))
         stalled = lam_new > 1e20
         status = jnp.where(converged, RESULTS.successful, jnp.where(stalled, RESULTS.stalled, status))
         return (

@@ -128,6 +128,8 @@ class Trajectories(eqx.Module):
 
     def __getitem__(self, idx) -> Trajectories:
         """Select trajectories along the batch axis (the result keeps a batch axis)."""
+        if isinstance(idx, (int, np.integer)):
+            idx = slice(idx, idx + 1) if idx != -1 else slice(-1, None)
         return jax.tree_util.tree_map(lambda a: a[idx] if jnp.ndim(a) else a, self)
 
 

@@ -1,0 +1,23 @@
+"""The paper's experiments and the README demo, each a ``run(*, smoke=False, out=..., ...) -> dict``.
+
+- :mod:`~ceemx.experiments.table1` — Table 1: bias on a single Lorenz system (§4.1.1).
+- :mod:`~ceemx.experiments.figure3` — Figure 3: convergence on six coupled Lorenz attractors (§4.1.3).
+- :mod:`~ceemx.experiments.demo` — the README demo.
+
+Each writes ``results.json``, a Markdown ``table.md`` (the paper's numbers beside ours) and a PNG
+figure to its output folder. They enable float64 (``jax_enable_x64``) when run. Run them from the
+command line with ``ceemx experiment NAME [--smoke]`` or ``ceemx demo``.
+"""
+
+from importlib import import_module
+
+EXPERIMENTS = ("table1", "figure3")
+
+__all__ = ["EXPERIMENTS", "get"]
+
+
+def get(name: str):
+    """The module of an experiment (``"table1"``, ``"figure3"`` or ``"demo"``)."""
+    if name not in (*EXPERIMENTS, "demo"):
+        raise ValueError(f"unknown experiment {name!r}; choose from {', '.join(EXPERIMENTS)}.")
+    return import_module(f"{__name__}.{name}")

@@ -39,6 +39,7 @@ __all__ = [
     "save_json",
     "save_text",
     "true_lorenz",
+    "warm_start",
     "with_noise",
 ]
 
@@ -151,6 +152,23 @@ def lorenz_problem(
     xs, data = simulate(true_system, k_sim, x1, T, process_noise=pn, obs_noise=on)
     init = perturb_lorenz(k_theta, true_system, coupling=coupling)
     return LorenzProblem(true_system, xs, data, x1, init)
+
+
+def warm_start(system: CoupledLorenz, data: Trajectories, *, process_noise: float = 1.0) -> jax.Array:
+    """Start states without knowing the true ones.
+
+    :func:`ceemx.initialize.from_observations` (least squares through the observation map; the
+    directions it does not see are left at 0), then one smoothing pass of ``system`` at its current
+    θ with the process noise replaced by ``process_noise`` (weak dynamics weights), which fills in
+    the unobserved directions from the dynamics. Smoothing with stiff dynamics weights directly
+    from the least-squares states often converges to a wrong basin on chaotic systems.
+    """
+    from ..initialize import from_observations
+    from ..smoothing import smooth
+
+    x0 = from_observations(system, data)
+    soft = eqx.tree_at(lambda s: s.process_noise, system, DiagonalGaussian(jnp.asarray(process_noise, x0.dtype), system.state_dim))
+    return smooth(soft, data, x0).states
 
 
 # --------------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ Weightings of the objective (the noise scales of the system being fitted):
 
 Start states: :func:`ceemx.initialize.from_observations` (least squares through C; the direction C
 does not see is left at 0) followed by one smoothing pass at the initial θ with weak, unit-scale
-dynamics weights (:func:`warm_start`), which fills in the unobserved direction. (The authors
+dynamics weights (:func:`ceemx.experiments.common.warm_start`), which fills in the unobserved direction. (The authors
 started from zeros.) Without it, smoothing with the likelihood weights (dynamics 100× stiffer than
 the observations) from the min-norm states often lands in a wrong basin.
 
@@ -64,22 +64,11 @@ def fit_noise(weighting: str, sigma_w: float, sigma_v: float) -> tuple[float, fl
     raise ValueError(f"unknown weighting {weighting!r}; use 'likelihood' or 'paper'.")
 
 
-def warm_start(system, data, *, process_noise: float = 1.0):
-    """Start states: :func:`~ceemx.initialize.from_observations`, then one smoothing pass of
-    ``system`` with its process noise replaced by ``process_noise`` (weak dynamics weights)."""
-    from ..initialize import from_observations
-    from ..smoothing import smooth
-
-    x0 = from_observations(system, data)
-    soft = common.with_noise(system, process_noise, float(np.asarray(system.obs_noise.scale)))
-    return smooth(soft, data, x0).states
-
-
 def fit_one(problem, weighting, sigma_w, sigma_v, *, method, max_epochs, tol, rho_x):
     """One CE-EM identification; returns a JSON-able record."""
     pn, on = fit_noise(weighting, sigma_w, sigma_v)
     system = common.with_noise(problem.init_system, pn, on)
-    x_init = warm_start(system, problem.data)
+    x_init = common.warm_start(system, problem.data)
     t0 = time.perf_counter()
     res = fit(
         system,

@@ -133,6 +133,7 @@ def check_inputs(system: AbstractSystem, data: Trajectories, x=None, *, name: st
     if data.input_dim != system.input_dim:
         raise ValueError(f"`data.u` has p = {data.input_dim} but the system takes p = {system.input_dim} inputs.")
     if x is not None:
+        x = np.asarray(x) if not hasattr(x, "shape") else x
         shape = (data.batch_size, data.num_steps, system.state_dim)
         if tuple(x.shape) != shape:
             raise ValueError(f"`{name}` must have shape (B, T, n) = {shape}; got {tuple(x.shape)}.")
