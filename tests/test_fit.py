@@ -44,8 +44,8 @@ def theta_of(system):
 
 def lorenz(theta, C, dtype=jnp.float64):
     return CoupledLorenz(
-        jnp.asarray([theta[0]], dtype), jnp.asarray([theta[1]], dtype), jnp.asarray([theta[2]], dtype),
-        jnp.asarray(C, dtype), process_noise=0.01, obs_noise=0.01,
+        *(jnp.asarray([v], dtype) for v in theta), jnp.asarray(C, dtype),
+        process_noise=0.01, obs_noise=0.01,
     )  # fmt: skip
 
 
@@ -97,10 +97,15 @@ def prob():
     )  # fmt: skip
 
 
+def fit_a(prob, **kwargs):
+    """``fit`` on the shared problem from its θ guesses and initial states, learning (σ, ρ, β)."""
+    return ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, **kwargs)
+
+
 @pytest.fixture(scope="module")
 def fitted(prob):
     """The reference fit: default LM smoother and LM learner, run to convergence."""
-    return ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=100, tol=1e-8)
+    return fit_a(prob, max_epochs=100, tol=1e-8)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -119,7 +124,8 @@ def test_fit_recovers_lorenz_parameters(fitted):
 
 
 def test_fit_history_is_monotone_and_complete(prob, fitted):
-    keys = {"J", "dtheta_norm", "dx_norm", "smooth_time", "learn_time", "learner_steps", "smoother_steps"}
+    keys = {"J", "dtheta_norm", "dx_norm", "smooth_time", "learn_time"}
+    keys |= {"learner_steps", "smoother_steps"}
     for i, rec in enumerate(fitted.history, start=1):
         assert keys <= set(rec), keys - set(rec)
         assert rec["epoch"] == i
@@ -132,9 +138,8 @@ def test_fit_history_is_monotone_and_complete(prob, fitted):
     assert np.all(np.isfinite(J))
     assert np.all(np.diff(J) >= -1e-9 * np.abs(J[1:])), np.diff(J)
     assert J[0] >= fitted.initial_J
-    np.testing.assert_allclose(
-        fitted.initial_J, float(np.sum(ceemx.log_joint(prob.start, prob.x_init, prob.data))), rtol=1e-12
-    )
+    J0 = float(np.sum(ceemx.log_joint(prob.start, prob.x_init, prob.data)))
+    np.testing.assert_allclose(fitted.initial_J, J0, rtol=1e-12)
     # J of the last record is J at the returned (x, θ).
     np.testing.assert_allclose(
         J[-1], float(np.sum(ceemx.log_joint(fitted.system, fitted.states, prob.data))), rtol=1e-12
@@ -145,17 +150,18 @@ def test_fit_history_is_monotone_and_complete(prob, fitted):
 
 
 def test_loose_tolerance_converges_early(prob, fitted):
-    res = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=100, tol=1e-3)
+    res = fit_a(prob, max_epochs=100, tol=1e-3)
     assert res.converged
     assert res.epochs < fitted.epochs
     # Same iterates as the tight run, just fewer of them.
-    np.testing.assert_allclose(res.history_array("J"), fitted.history_array("J")[: res.epochs], rtol=1e-12)
+    J_tight = fitted.history_array("J")[: res.epochs]
+    np.testing.assert_allclose(res.history_array("J"), J_tight, rtol=1e-12)
 
 
 def test_max_epochs_bounds_the_fit(prob):
-    res = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=2)
+    res = fit_a(prob, max_epochs=2)
     assert res.epochs == 2 and not res.converged
-    res0 = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=0)
+    res0 = fit_a(prob, max_epochs=0)
     assert res0.epochs == 0
     np.testing.assert_array_equal(theta_of(res0.system), START)
     np.testing.assert_array_equal(res0.states, prob.x_init)
@@ -170,8 +176,8 @@ def test_no_retrace_across_epochs_or_new_data(prob, traces):
     """The smoother and the learner are traced at most once for a fit, and not again for new data.
 
     See the ``traces`` fixture: a retrace of a configuration fails whichever test causes it; here a
-    fit from a weakly typed θ (Python floats) must not retrace at epoch 2, when θ comes back from the
-    learner strongly typed, and a fit on new data of the same shape must not trace at all.
+    fit from a weakly typed θ (Python floats) must not retrace at epoch 2, when θ comes back from
+    the learner strongly typed, and a fit on new data of the same shape must not trace at all.
     """
     start = CoupledLorenz(*map(float, START), prob.C, process_noise=0.01, obs_noise=0.01)
     assert jax.typeof(start.sigma).weak_type
@@ -182,7 +188,8 @@ def test_no_retrace_across_epochs_or_new_data(prob, traces):
     )  # fmt: skip
     assert res.epochs == 6
     assert counts == [counts[0]] * 6
-    assert {("smooth", ((B, T, 3), "float64")), ("learn", ("LMLearner", (B, T, 3), "float64"))} <= set(traces)
+    assert ("smooth", ((B, T, 3), "float64")) in traces
+    assert ("learn", ("LMLearner", (B, T, 3), "float64")) in traces
     # New data of the same shape, started from the result: no new trace.
     x1 = initial_states(prob.keys[4], B, 1)
     states2, data2 = ceemx.simulate(prob.true, prob.keys[4], x1, T)
@@ -204,7 +211,8 @@ def test_callbacks_merge_records_and_stop(prob):
         assert info.states.shape == (B, T, 3)
         assert isinstance(info.system, CoupledLorenz)
         seen.append((info.epoch, theta_of(info.system)))
-        return {"eps": float(np.max(np.abs(theta_of(info.system) / TRUE - 1))), "epoch_sq": info.epoch**2}
+        eps = float(np.max(np.abs(theta_of(info.system) / TRUE - 1)))
+        return {"eps": eps, "epoch_sq": info.epoch**2}
 
     def nothing(info):
         return None
@@ -246,7 +254,7 @@ def test_failed_trajectory_is_excluded_and_reported(prob):
     assert all(h["failed_trajectories"] == [2] for h in res.history)
     np.testing.assert_array_equal(res.states[2], x_bad[2])  # left at its initial states
     # Learned from the good trajectories as if the bad one were absent.
-    good = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=10)
+    good = fit_a(prob, max_epochs=10)
     assert good.epochs == res.epochs
     np.testing.assert_allclose(theta_of(res.system), theta_of(good.system), rtol=1e-9)
     np.testing.assert_allclose(res.states[:2], good.states, rtol=1e-9, atol=1e-9)
@@ -269,7 +277,9 @@ def test_failed_trajectory_does_not_poison_gradient_learners(prob, learner):
     data3 = ceemx.Trajectories(y)
     x_bad = jnp.concatenate([prob.x_init, jnp.full((1, T, 3), 1e200)])
     with pytest.warns(UserWarning, match="smoothing failed"):
-        res = ceemx.fit(prob.start, data3, x_bad, trainable=where_theta, learner=learner, max_epochs=2)
+        res = ceemx.fit(
+            prob.start, data3, x_bad, trainable=where_theta, learner=learner, max_epochs=2
+        )
     assert all(h["learner_status"] != RESULTS.nonfinite for h in res.history), res.history
     assert np.all(np.isfinite(theta_of(res.system)))
     assert np.all(theta_of(res.system) != START)  # it learned
@@ -331,17 +341,15 @@ def test_kill_and_resume_matches_uninterrupted_run(prob, tmp_path):
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert proc.returncode == -signal.SIGKILL, proc.stderr[-3000:]
-    assert proc.stdout.split() == ["EPOCH", "1", "EPOCH", "2", "EPOCH", "3", "EPOCH", "4"], proc.stdout
+    assert proc.stdout.splitlines() == [f"EPOCH {k}" for k in (1, 2, 3, 4)], proc.stdout
     # The killed run left the checkpoint of epoch 3, and nothing else.
     assert sorted(os.listdir(ckpt)) == ["latest.json", "state-3.eqx"]
     meta = _strict_json(ckpt / "latest.json")
     assert meta["epoch"] == 3 and meta["state"] == "state-3.eqx" and len(meta["history"]) == 3
 
     # Resume in this process with the same call.
-    resumed = ceemx.fit(
-        prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=8, checkpoint=str(ckpt)
-    )
-    full = ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=8)
+    resumed = fit_a(prob, max_epochs=8, checkpoint=str(ckpt))
+    full = fit_a(prob, max_epochs=8)
     assert resumed.epochs == full.epochs == 8
     assert [h["epoch"] for h in resumed.history] == list(range(1, 9))
     np.testing.assert_allclose(theta_of(resumed.system), theta_of(full.system), rtol=1e-12, atol=0)
@@ -350,16 +358,15 @@ def test_kill_and_resume_matches_uninterrupted_run(prob, tmp_path):
     np.testing.assert_allclose(resumed.initial_J, full.initial_J, rtol=1e-12)
     assert resumed.converged == full.converged
     # The epochs run by the killed process are those of the uninterrupted run.
-    np.testing.assert_allclose([h["J"] for h in meta["history"]], full.history_array("J")[:3], rtol=1e-12)
+    J_killed = [h["J"] for h in meta["history"]]
+    np.testing.assert_allclose(J_killed, full.history_array("J")[:3], rtol=1e-12)
 
     assert sorted(os.listdir(ckpt)) == ["latest.json", "state-8.eqx"]
     meta = _strict_json(ckpt / "latest.json")
     assert meta["epoch"] == 8 and len(meta["history"]) == 8
 
     # Resuming a finished run returns it without further epochs.
-    again = ceemx.fit(
-        prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=8, checkpoint=str(ckpt)
-    )
+    again = fit_a(prob, max_epochs=8, checkpoint=str(ckpt))
     assert again.epochs == 8
     np.testing.assert_array_equal(theta_of(again.system), theta_of(resumed.system))
     np.testing.assert_array_equal(again.states, resumed.states)
@@ -405,7 +412,8 @@ def test_fit_without_initial_states(prob):
         res.initial_J, float(np.sum(ceemx.log_joint(prob.start, x0, prob.data))), rtol=1e-12
     )
     J = res.history_array("J")
-    assert np.all(np.isfinite(J)) and J[0] > res.initial_J and np.all(np.diff(J) >= -1e-9 * np.abs(J[1:]))
+    assert np.all(np.isfinite(J)) and J[0] > res.initial_J
+    assert np.all(np.diff(J) >= -1e-9 * np.abs(J[1:]))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -449,7 +457,7 @@ def test_float32_fit_runs_in_float32(prob):
 def test_float64_fit_does_not_warn(prob):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        ceemx.fit(prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=0)
+        fit_a(prob, max_epochs=0)
 
 
 @pytest.mark.parametrize(

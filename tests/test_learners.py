@@ -124,7 +124,7 @@ def _value_and_grad(problem, theta):
 
 
 def dense_minimise(problem, theta0):
-    """SciPy BFGS on ``problem.value`` with its JAX gradient (compiled once per problem structure)."""
+    """SciPy BFGS on ``problem.value`` with its JAX gradient (compiled once per structure)."""
 
     def fun(th):
         value, grad = _value_and_grad(problem, jnp.asarray(th))
@@ -180,8 +180,9 @@ def test_lm_matches_dense_minimisation_with_regularisers(noisy, case):
         kw["rho_theta"] = 3e3
     if case in ("log_prior", "both"):
         kw["log_prior"] = PRIOR
-    system, _, info = ceemx.learn(noisy.start, noisy.states, noisy.data, trainable=where_theta, **kw)
-    problem, theta0 = make_problem(noisy.start, noisy.states, noisy.data, trainable=where_theta, **kw)
+    args = (noisy.start, noisy.states, noisy.data)
+    system, _, info = ceemx.learn(*args, trainable=where_theta, **kw)
+    problem, theta0 = make_problem(*args, trainable=where_theta, **kw)
     ref = dense_minimise(problem, theta0)
     np.testing.assert_allclose(theta_of(system), ref, rtol=1e-6)
     # The regulariser matters: the answer differs from the unregularised one.

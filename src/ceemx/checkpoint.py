@@ -42,10 +42,20 @@ def save(folder: str, tree, history: list[dict]) -> None:
     name = f"state-{epoch}.eqx"
     _atomic_write(os.path.join(folder, name), lambda f: eqx.tree_serialise_leaves(f, tree))
     meta = {"epoch": epoch, "state": name, "history": history}
-    _atomic_write(os.path.join(folder, _LATEST), lambda f: f.write(json.dumps(meta).encode()))
+    text = json.dumps(meta, default=_to_builtin)
+    _atomic_write(os.path.join(folder, _LATEST), lambda f: f.write(text.encode()))
     for other in os.listdir(folder):
-        if other.startswith("state-") and other != name:
+        # Older states, and temporaries of a write that was killed half-way.
+        if (other.startswith("state-") and other != name) or other.startswith(".tmp-"):
             os.remove(os.path.join(folder, other))
+
+
+def _to_builtin(value):
+    """JSON fallback for NumPy/JAX scalars and arrays that callbacks may put in the history."""
+    import numpy as np
+
+    arr = np.asarray(value)
+    return arr.item() if arr.ndim == 0 else arr.tolist()
 
 
 def load(folder: str, template):

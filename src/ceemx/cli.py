@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 __all__ = ["main"]
 
@@ -27,27 +27,33 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for documentation and tests)."""
     parser = argparse.ArgumentParser(
         prog="ceemx",
-        description="Certainty-equivalent EM system identification in JAX: demo and paper experiments.",
+        description="Certainty-equivalent EM system identification in JAX.",
     )
     parser.add_argument("--version", action="version", version=f"ceemx {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    demo = sub.add_parser("demo", help="identify six coupled Lorenz attractors; writes a figure and tables")
+    demo = sub.add_parser(
+        "demo", help="identify six coupled Lorenz attractors; writes a figure and tables"
+    )
     demo.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
     demo.add_argument("--out", default="ceemx-demo", help="output folder (default: ./ceemx-demo)")
-    demo.add_argument("--method", choices=("joint", "alternate"), default=None, help="default: joint")
+    demo.add_argument(
+        "--method", choices=("joint", "alternate"), default=None, help="default: joint"
+    )
     demo.add_argument("--max-epochs", type=int, default=None, help="bound on iterations")
 
     exp = sub.add_parser("experiment", help="run a paper experiment (table1, figure3)")
     exp.add_argument("name", choices=("table1", "figure3"), help="which experiment")
     exp.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
-    exp.add_argument("--seeds", type=int, default=None, help="number of seeds (default: the paper's)")
+    exp.add_argument(
+        "--seeds", type=int, default=None, help="number of seeds (default: the paper's)"
+    )
     exp.add_argument("--out", default=None, help="output folder (default: ./results/NAME)")
     exp.add_argument(
         "--method",
         choices=("joint", "alternate"),
         default=None,
-        help="joint (x, θ) Levenberg–Marquardt or Algorithm 1 (default: table1 alternate, figure3 joint)",
+        help="joint (x, θ) LM or Algorithm 1 (default: table1 alternate, figure3 joint)",
     )
     exp.add_argument(
         "--weighting",
@@ -55,8 +61,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="noise weights of the fitted system (default: table1 both, figure3 paper)",
     )
-    exp.add_argument("--max-epochs", type=int, default=None, help="epochs (or joint iterations) per fit")
-    exp.add_argument("--learner", choices=("lm", "lbfgs"), default="lm", help="figure3, alternate: θ-step optimiser")
+    exp.add_argument(
+        "--max-epochs", type=int, default=None, help="epochs (or joint iterations) per fit"
+    )
+    exp.add_argument(
+        "--learner",
+        choices=("lm", "lbfgs"),
+        default="lm",
+        help="figure3, alternate: θ-step optimiser",
+    )
     return parser
 
 
@@ -81,7 +94,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .experiments import get
 
     module = get(args.name)
-    kwargs = dict(smoke=args.smoke, seeds=args.seeds, out=args.out, method=args.method, max_epochs=args.max_epochs)
+    kwargs = dict(
+        smoke=args.smoke,
+        seeds=args.seeds,
+        out=args.out,
+        method=args.method,
+        max_epochs=args.max_epochs,
+    )
     if args.weighting is not None:
         kwargs["weighting"] = args.weighting
     if args.name == "figure3":

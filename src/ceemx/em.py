@@ -98,8 +98,11 @@ class _Progress:
             self.bar.close()
 
 
+_log_joint_jit = eqx.filter_jit(log_joint)
+
+
 def _total_J(system, states, data, weights):
-    J = np.asarray(log_joint(system, states, data))
+    J = np.asarray(_log_joint_jit(system, states, data))
     return float(np.sum(np.where(weights > 0, J, 0.0))), J
 
 
@@ -163,16 +166,16 @@ def fit(
     smoother = LMSmoother() if smoother is None else smoother
     learner = LMLearner() if learner is None else learner
     key = jax.random.PRNGKey(0) if key is None else key
-    if x_init is None:
-        check_inputs(system, data)
-        x_init = from_observations(system, data)
-    check_inputs(system, data, x_init)
     if method not in ("alternate", "joint"):
         raise ValueError(f"`method` must be 'alternate' or 'joint'; got {method!r}.")
     if max_epochs < 0:
         raise ValueError(f"`max_epochs` must be >= 0; got {max_epochs}.")
     if rho_theta < 0:
         raise ValueError(f"`rho_theta` must be >= 0; got {rho_theta}.")
+    if x_init is None:
+        check_inputs(system, data)
+        x_init = from_observations(system, data)
+    check_inputs(system, data, x_init)
 
     states = jnp.asarray(x_init)
     # Strongly type the trainable arrays, as every later epoch's system (rebuilt from the learned θ)
@@ -213,6 +216,7 @@ def fit(
         if loaded is not None:
             (theta, states, learner_state, status), history = loaded
             system = problem.build(theta)
+            weights = np.where(np.asarray(status) == RESULTS.nonfinite, 0.0, 1.0)
 
     show = sys.stderr.isatty() if progress is None else progress
     bar = _Progress(show, max_epochs, len(history))

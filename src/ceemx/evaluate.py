@@ -10,7 +10,8 @@
 
 from __future__ import annotations
 
-from typing import Mapping, NamedTuple, Sequence
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -106,12 +107,14 @@ def dynamics_error(
         ValueError: when ``mean`` is needed but not given, or has the wrong shape.
 
     Compiled once per system structure and ``num``; safe to call every epoch.
+
     """
     if mean is None:
         mean = default_state_mean(true_system)
         if mean is None:
             raise ValueError(
-                f"`mean` is required for {type(true_system).__name__} (no default sampling distribution)."
+                f"`mean` is required for {type(true_system).__name__} "
+                "(no default sampling distribution)."
             )
     dtype = _float_dtype(true_system)
     mean = jnp.asarray(mean, dtype)
@@ -133,6 +136,7 @@ class SimulationRMSE(NamedTuple):
         per_trajectory: (B,) RMSE over each trajectory's observed entries.
         overall: RMSE over all observed entries of the batch.
         predictions: (B, T, m) predicted observations.
+
     """
 
     per_trajectory: Array
@@ -150,7 +154,9 @@ def _simulate_obs(system, x1, u):
     return jax.vmap(one)(x1, u)
 
 
-def simulation_rmse(system: AbstractSystem, data: Trajectories, x1: Float[Array, "B n"]) -> SimulationRMSE:
+def simulation_rmse(
+    system: AbstractSystem, data: Trajectories, x1: Float[Array, "B n"]
+) -> SimulationRMSE:
     """Open-loop (noise-free) rollouts from ``x1`` compared with ``data.y`` over observed entries.
 
     Args:
@@ -160,10 +166,13 @@ def simulation_rmse(system: AbstractSystem, data: Trajectories, x1: Float[Array,
 
     Returns:
         A :class:`SimulationRMSE` (per trajectory, overall, and the predictions).
+
     """
     x1 = jnp.asarray(x1, data.y.dtype)
     if x1.shape != (data.batch_size, system.state_dim):
-        raise ValueError(f"`x1` must have shape (B, n) = {(data.batch_size, system.state_dim)}; got {x1.shape}.")
+        raise ValueError(
+            f"`x1` must have shape (B, n) = {(data.batch_size, system.state_dim)}; got {x1.shape}."
+        )
     pred = _simulate_obs(system, x1, data.u)
     mask = data.mask
     sq = jnp.where(mask, (pred - data.y) ** 2, 0.0)
@@ -179,7 +188,7 @@ def simulation_rmse(system: AbstractSystem, data: Trajectories, x1: Float[Array,
 
 
 class Estimate(NamedTuple):
-    """Mean and standard error (sample std with ddof=1 over √n, as the authors' tables) of n values."""
+    """Mean and standard error (sample std, ddof=1, over √n, as the authors' tables) of n values."""
 
     mean: float
     se: float
@@ -199,7 +208,9 @@ def mean_se(values) -> Estimate:
     return Estimate(float(np.mean(v)), se, int(v.size))
 
 
-def format_estimate(est: Estimate, truth: float | None = None, *, digits: int = 3, k: float = 2.0) -> str:
+def format_estimate(
+    est: Estimate, truth: float | None = None, *, digits: int = 3, k: float = 2.0
+) -> str:
     """``"10.011 (0.012)"``; bold with a ``†`` when ``truth`` is given and is not within k SE."""
     s = f"{est.mean:.{digits}f} ({est.se:.{digits}f})"
     if truth is not None and not est.within(truth, k):
@@ -232,6 +243,7 @@ def parameter_table(
 
     Returns:
         The table (a line "† not within k SE of the truth" is appended when any cell is flagged).
+
     """
     if not rows:
         return ""

@@ -1,7 +1,7 @@
-"""The paper's experiments and the README demo, each a ``run(*, smoke=False, out=..., ...) -> dict``.
+"""The paper's experiments and the README demo, each ``run(*, smoke=False, out=..., ...) -> dict``.
 
 - :mod:`~ceemx.experiments.table1` — Table 1: bias on a single Lorenz system (§4.1.1).
-- :mod:`~ceemx.experiments.figure3` — Figure 3: convergence on six coupled Lorenz attractors (§4.1.3).
+- :mod:`~ceemx.experiments.figure3` — Figure 3: convergence on six coupled Lorenz (§4.1.3).
 - :mod:`~ceemx.experiments.demo` — the README demo.
 
 Each writes ``results.json``, a Markdown ``table.md`` (the paper's numbers beside ours) and a PNG

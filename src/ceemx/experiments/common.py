@@ -1,4 +1,4 @@
-"""Shared pieces of the experiments: x64, seeded coupled-Lorenz problems, θ perturbation, output files."""
+"""Shared pieces of the experiments: x64, seeded coupled-Lorenz problems, θ perturbation, output."""
 
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -66,9 +67,12 @@ def true_lorenz(
     process_noise: float = 0.01,
     obs_noise: float = 0.01,
 ) -> CoupledLorenz:
-    """θ_true of paper §4.1: (σ, ρ, β) = (10, 28, 8/3) per attractor, C standard normal (full row
-    rank, m = 3K − 2 by default), H standard normal off the own-attractor blocks with Frobenius
-    norm 5 (``coupling=False``: H = 0). C and H are drawn from ``key`` (default ``PRNGKey(4)``)."""
+    """θ_true of paper §4.1, with C and H drawn from ``key`` (default ``PRNGKey(4)``).
+
+    (σ, ρ, β) = (10, 28, 8/3) per attractor, C standard normal (full row rank, m = 3K − 2 by
+    default), H standard normal off the own-attractor blocks with Frobenius norm 5
+    (``coupling=False``: H = 0).
+    """
     key = jax.random.PRNGKey(4) if key is None else key
     kc, kh = jax.random.split(key)
     C = random_observation_matrix(kc, K, m)
@@ -87,7 +91,7 @@ def true_lorenz(
 
 
 def with_noise(system: CoupledLorenz, process_noise: float, obs_noise: float) -> CoupledLorenz:
-    """The same system with diagonal Gaussian noise models of the given scales (the fit's weights)."""
+    """The same system with diagonal Gaussian noise of the given scales (the fit's weights)."""
     dtype = system.sigma.dtype
     pn = DiagonalGaussian(jnp.asarray(process_noise, dtype), system.state_dim)
     on = DiagonalGaussian(jnp.asarray(obs_noise, dtype), system.obs_dim)
@@ -95,16 +99,20 @@ def with_noise(system: CoupledLorenz, process_noise: float, obs_noise: float) ->
 
 
 def perturb(key, tree, frac: float = 0.1, where: Callable | None = None):
-    """θ·(1 + U(−frac, frac)) elementwise on the floating-point leaves of ``tree`` (or of the
-    sub-trees ``where(tree)`` returns, e.g. ``lambda s: (s.sigma, s.rho, s.beta, s.H)``).
+    """θ·(1 + U(−frac, frac)) elementwise on the floating-point leaves of ``tree``.
 
-    Zeros stay zero (the authors' perturbation is multiplicative)."""
+    With ``where``, only on the sub-trees ``where(tree)`` returns, e.g.
+    ``lambda s: (s.sigma, s.rho, s.beta, s.H)``. Zeros stay zero (the authors' perturbation is
+    multiplicative).
+    """
     target = tree if where is None else where(tree)
     leaves, treedef = jtu.tree_flatten(target)
     keys = jax.random.split(key, max(len(leaves), 1))
     out = [
-        leaf * (1.0 + jax.random.uniform(k, leaf.shape, leaf.dtype, -frac, frac)) if eqx.is_inexact_array(leaf) else leaf
-        for k, leaf in zip(keys, leaves)
+        leaf * (1.0 + jax.random.uniform(k, leaf.shape, leaf.dtype, -frac, frac))
+        if eqx.is_inexact_array(leaf)
+        else leaf
+        for k, leaf in zip(keys, leaves, strict=False)
     ]
     new = jtu.tree_unflatten(treedef, out)
     return new if where is None else eqx.tree_at(where, tree, new)
@@ -114,7 +122,9 @@ LORENZ_PARAMS = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
 LORENZ_PARAMS_H = lambda s: (s.sigma, s.rho, s.beta, s.H)  # noqa: E731
 
 
-def perturb_lorenz(key, system: CoupledLorenz, *, coupling: bool = True, frac: float = 0.1) -> CoupledLorenz:
+def perturb_lorenz(
+    key, system: CoupledLorenz, *, coupling: bool = True, frac: float = 0.1
+) -> CoupledLorenz:
     """Initial guess θ·(1 + U(−frac, frac)) of (σ, ρ, β) and, with ``coupling``, of H."""
     return perturb(key, system, frac, LORENZ_PARAMS_H if coupling else LORENZ_PARAMS)
 
@@ -143,7 +153,8 @@ def lorenz_problem(
 
     From ``PRNGKey(seed)``: x₁ ~ N((−6, −6, 24), 2.5²) per attractor, process noise N(0, σ_w²)
     (none when σ_w = 0), observation noise N(0, σ_v²), and the initial guess
-    θ·(1 + U(−0.1, 0.1)) (of H too when ``coupling``)."""
+    θ·(1 + U(−0.1, 0.1)) (of H too when ``coupling``).
+    """
     k_x1, k_sim, k_theta = jax.random.split(jax.random.PRNGKey(seed), 3)
     K = true_system.K
     x1 = initial_states(k_x1, B, K)
@@ -154,7 +165,9 @@ def lorenz_problem(
     return LorenzProblem(true_system, xs, data, x1, init)
 
 
-def warm_start(system: CoupledLorenz, data: Trajectories, *, process_noise: float = 1.0) -> jax.Array:
+def warm_start(
+    system: CoupledLorenz, data: Trajectories, *, process_noise: float = 1.0
+) -> jax.Array:
     """Start states without knowing the true ones.
 
     :func:`ceemx.initialize.from_observations` (least squares through the observation map; the
@@ -167,7 +180,11 @@ def warm_start(system: CoupledLorenz, data: Trajectories, *, process_noise: floa
     from ..smoothing import smooth
 
     x0 = from_observations(system, data)
-    soft = eqx.tree_at(lambda s: s.process_noise, system, DiagonalGaussian(jnp.asarray(process_noise, x0.dtype), system.state_dim))
+    soft = eqx.tree_at(
+        lambda s: s.process_noise,
+        system,
+        DiagonalGaussian(jnp.asarray(process_noise, x0.dtype), system.state_dim),
+    )
     return smooth(soft, data, x0).states
 
 
@@ -179,14 +196,16 @@ def warm_start(system: CoupledLorenz, data: Trajectories, *, process_noise: floa
 def is_monotone(initial_J: float, history: Sequence[dict], rtol: float = 1e-9) -> bool:
     """Whether J never decreased over the epochs (up to ``rtol·|J|`` of float round-off)."""
     Js = [initial_J] + [h["J"] for h in history]
-    return all(b >= a - rtol * max(abs(a), abs(b), 1.0) for a, b in zip(Js[:-1], Js[1:]))
+    pairs = zip(Js[:-1], Js[1:], strict=True)
+    return all(b >= a - rtol * max(abs(a), abs(b), 1.0) for a, b in pairs)
 
 
 class fit_timer:
     """A fit callback recording the wall time at the end of every epoch (``wall`` in the history).
 
     Call :meth:`start` just before ``fit``; ``per_epoch()`` returns the epoch durations (the first
-    includes JIT compilation)."""
+    includes JIT compilation).
+    """
 
     def __init__(self):
         self.t0 = time.perf_counter()
@@ -199,6 +218,7 @@ class fit_timer:
         return self
 
     def __call__(self, info) -> dict:
+        """Record the time; the returned dict is merged into the epoch's history record."""
         now = time.perf_counter()
         self.stamps.append(now)
         return {"wall": now - self.t0}
@@ -206,7 +226,7 @@ class fit_timer:
     def per_epoch(self) -> list[float]:
         """Durations of the epochs so far."""
         t = [self.t0, *self.stamps]
-        return [b - a for a, b in zip(t[:-1], t[1:])]
+        return [b - a for a, b in zip(t[:-1], t[1:], strict=False)]
 
 
 # --------------------------------------------------------------------------------------------
@@ -224,16 +244,16 @@ def output_dir(out: str | os.PathLike | None, default: str) -> Path:
 def _jsonable(obj: Any):
     if isinstance(obj, dict):
         return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
+    if isinstance(obj, list | tuple):
         return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.ndarray, jax.Array)):
+    if isinstance(obj, np.ndarray | jax.Array):
         return _jsonable(np.asarray(obj).tolist())
-    if isinstance(obj, (np.floating, float)):
+    if isinstance(obj, np.floating | float):
         f = float(obj)
         return f if math.isfinite(f) else str(f)
-    if isinstance(obj, (np.integer,)):
+    if isinstance(obj, np.integer):
         return int(obj)
-    if isinstance(obj, (np.bool_,)):
+    if isinstance(obj, np.bool_):
         return bool(obj)
     return obj
 

@@ -57,6 +57,7 @@ def run(
 
     Returns:
         A summary dict (ε per iteration, parameters, timings).
+
     """
     common.enable_x64()
     method = "joint" if method is None else method
@@ -72,15 +73,22 @@ def run(
     # Fit with the observation noise σ_v = 0.01 and a small process noise (the data are
     # deterministic; a zero process noise has no density).
     system = common.with_noise(problem.init_system, 0.01, 0.01)
-    say(f"{K} coupled Lorenz attractors: n = {true.state_dim}, m = {true.obs_dim}, B = {B}, T = {T}, "
-        f"{3 * K + (3 * K) ** 2} parameters (σ, ρ, β per attractor and H)")
+    say(
+        f"{K} coupled Lorenz attractors: n = {true.state_dim}, m = {true.obs_dim}, B = {B}, "
+        f"T = {T}, "
+        f"{3 * K + (3 * K) ** 2} parameters (σ, ρ, β per attractor and H)"
+    )
     x_init = common.warm_start(system, problem.data)
     eps0 = float(ev.dynamics_error(system, true))
-    say(f"start: ε(θ) = {eps0:.6g}, state RMSE {float(jnp.sqrt(jnp.mean((x_init - problem.states) ** 2))):.4g}")
+    rmse0 = float(jnp.sqrt(jnp.mean((x_init - problem.states) ** 2)))
+    say(f"start: ε(θ) = {eps0:.6g}, state RMSE {rmse0:.4g}")
 
     def report(info):
         eps = float(ev.dynamics_error(info.system, true))
-        say(f"  iteration {info.epoch:3d}   ε(θ) = {eps:.6g}   J = {info.record['J']:.10g}", flush=True)
+        say(
+            f"  iteration {info.epoch:3d}   ε(θ) = {eps:.6g}   J = {info.record['J']:.10g}",
+            flush=True,
+        )
         return {"eps": eps}
 
     timer = common.fit_timer().start()
@@ -96,20 +104,34 @@ def run(
         progress=False,
     )
     fit_s = sum(timer.per_epoch())
+    first_s = timer.per_epoch()[0] if res.epochs else 0.0
     learned = res.system
     eps = [eps0] + [h["eps"] for h in res.history]
-    H0 = float(jnp.linalg.norm(problem.init_system.effective_coupling() - true.effective_coupling()))
+    H0 = float(
+        jnp.linalg.norm(problem.init_system.effective_coupling() - true.effective_coupling())
+    )
     H1 = float(jnp.linalg.norm(learned.effective_coupling() - true.effective_coupling()))
     state_rmse = float(jnp.sqrt(jnp.mean((res.states - problem.states) ** 2)))
 
-    header = ["k", "σ true", "σ init", "σ learned", "ρ true", "ρ init", "ρ learned", "β true", "β init", "β learned"]
+    header = [
+        "k",
+        "σ true",
+        "σ init",
+        "σ learned",
+        "ρ true",
+        "ρ init",
+        "ρ learned",
+        "β true",
+        "β init",
+        "β learned",
+    ]
     table = ev.markdown_table(header, parameter_rows(true, problem.init_system, learned))
     table += (
         f"\n‖H − H_true‖_F: initial {H0:.4g}, learned {H1:.4g} (‖H_true‖_F = "
         f"{float(jnp.linalg.norm(true.effective_coupling())):.4g}).\n"
-        f"ε(θ): initial {eps0:.4g}, learned {eps[-1]:.4g} after {res.epochs} iterations ({method}); "
-        f"smoothed-state RMSE {state_rmse:.4g}; fit {fit_s:.1f} s "
-        f"(first iteration, with JIT compilation, {timer.per_epoch()[0] if res.epochs else 0.0:.1f} s).\n"
+        f"ε(θ): initial {eps0:.4g}, learned {eps[-1]:.4g} after {res.epochs} iterations "
+        f"({method}); smoothed-state RMSE {state_rmse:.4g}; fit {fit_s:.1f} s "
+        f"(first iteration, with JIT compilation, {first_s:.1f} s).\n"
     )
     say(table)
 
@@ -121,10 +143,18 @@ def run(
     axes[0].set_title("error in the estimated dynamics")
     axes[0].grid(True, which="both", alpha=0.3)
     t = np.arange(T) * true.dt
-    for j, c in zip(range(3), ("tab:blue", "tab:orange", "tab:green")):
-        axes[1].plot(t, np.asarray(problem.states[0, :, j]), color=c, lw=2.5, alpha=0.35,
-                     label=f"x{j + 1},1 true")
-        axes[1].plot(t, np.asarray(res.states[0, :, j]), color=c, lw=1, ls="--", label=f"x{j + 1},1 smoothed")
+    for j, c in zip(range(3), ("tab:blue", "tab:orange", "tab:green"), strict=False):
+        axes[1].plot(
+            t,
+            np.asarray(problem.states[0, :, j]),
+            color=c,
+            lw=2.5,
+            alpha=0.35,
+            label=f"x{j + 1},1 true",
+        )
+        axes[1].plot(
+            t, np.asarray(res.states[0, :, j]), color=c, lw=1, ls="--", label=f"x{j + 1},1 smoothed"
+        )
     axes[1].set_xlabel("time [s]")
     axes[1].set_title("attractor 1, trajectory 1: true vs smoothed")
     axes[1].legend(fontsize=7, ncol=3)
@@ -144,7 +174,9 @@ def run(
         "H_error": {"initial": H0, "learned": H1},
         "state_rmse": state_rmse,
         "true": {p: np.asarray(getattr(true, p)) for p in ("sigma", "rho", "beta")},
-        "initial": {p: np.asarray(getattr(problem.init_system, p)) for p in ("sigma", "rho", "beta")},
+        "initial": {
+            p: np.asarray(getattr(problem.init_system, p)) for p in ("sigma", "rho", "beta")
+        },
         "learned": {p: np.asarray(getattr(learned, p)) for p in ("sigma", "rho", "beta")},
         "epoch_s": timer.per_epoch(),
         "wall_s": time.perf_counter() - t_start,
@@ -152,6 +184,8 @@ def run(
     }
     common.save_json(outdir / "results.json", summary)
     common.save_text(outdir / "table.md", table)
-    say(f"wrote {outdir / 'demo.png'}, {outdir / 'table.md'}, {outdir / 'results.json'} "
-        f"({summary['wall_s']:.1f} s in all)")
+    say(
+        f"wrote {outdir / 'demo.png'}, {outdir / 'table.md'}, {outdir / 'results.json'} "
+        f"({summary['wall_s']:.1f} s in all)"
+    )
     return summary

@@ -27,7 +27,7 @@ Reference (authors' code, measured on a 2-core CPU): ε ≈ 102 → 6.4 after 18
 from __future__ import annotations
 
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -66,7 +66,9 @@ def make_learner(name: str):
 
 def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, tol, verbose):
     """One identification; returns a JSON-able record with ε per epoch and timings."""
-    problem = common.lorenz_problem(seed, true, B=B, T=T, sigma_w=0.0, sigma_v=SIGMA_V, coupling=True)
+    problem = common.lorenz_problem(
+        seed, true, B=B, T=T, sigma_w=0.0, sigma_v=SIGMA_V, coupling=True
+    )
     pn, on, rho_x = fit_setup(weighting)
     system = common.with_noise(problem.init_system, pn, on)
     k_x = jax.random.fold_in(jax.random.PRNGKey(seed), 1)
@@ -77,7 +79,11 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, tol, ve
     def record_eps(info):
         eps = float(ev.dynamics_error(info.system, true))
         if verbose:
-            print(f"  [B={B} seed={seed}] epoch {info.epoch:4d}  ε = {eps:.6g}  J = {info.record['J']:.8g}", flush=True)
+            print(
+                f"  [B={B} seed={seed}] epoch {info.epoch:4d}  ε = {eps:.6g}  "
+                f"J = {info.record['J']:.8g}",
+                flush=True,
+            )
         return {"eps": eps}
 
     timer.start()
@@ -117,7 +123,7 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, tol, ve
 
 
 def make_table(runs: Sequence[dict], header_note: str) -> str:
-    """Markdown: per run, initial and final ε, epochs, monotonicity and timings; the authors' reference."""
+    """Markdown: per run, initial/final ε, epochs, monotonicity, timings; the authors' reference."""
     rows = [
         [
             r["B"],
@@ -132,26 +138,47 @@ def make_table(runs: Sequence[dict], header_note: str) -> str:
         ]
         for r in runs
     ]
-    header = ["B", "seed", "ε initial", "ε final", "epochs", "J monotone", "1st epoch s (JIT)", "s / epoch", "total s"]
+    header = [
+        "B",
+        "seed",
+        "ε initial",
+        "ε final",
+        "epochs",
+        "J monotone",
+        "1st epoch s (JIT)",
+        "s / epoch",
+        "total s",
+    ]
     per_B = []
     for B in sorted({r["B"] for r in runs}):
         finals = [r["eps"][-1] for r in runs if r["B"] == B]
-        per_B.append([B, len(finals), f"{np.median(finals):.4g}", f"{min(finals):.4g}", f"{max(finals):.4g}"])
+        per_B.append(
+            [B, len(finals), f"{np.median(finals):.4g}", f"{min(finals):.4g}", f"{max(finals):.4g}"]
+        )
     summary = ev.markdown_table(["B", "seeds", "median ε final", "min", "max"], per_B)
-    return f"{header_note}\n\n{ev.markdown_table(header, rows)}\n{summary}\nReference — {REFERENCE}.\n"
+    return (
+        f"{header_note}\n\n{ev.markdown_table(header, rows)}\n{summary}\nReference — {REFERENCE}.\n"
+    )
 
 
 def plot(runs: Sequence[dict], path, title: str) -> None:
     """ε(θ) against epoch on a log scale: one colour per B, one line per seed (paper Figure 3)."""
     plt = common.plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    colours = dict(zip(BATCH_SIZES, ("tab:blue", "tab:orange", "tab:green")))
+    colours = dict(zip(BATCH_SIZES, ("tab:blue", "tab:orange", "tab:green"), strict=False))
     seen = set()
     for r in runs:
         c = colours.get(r["B"], None)
         label = f"B = {r['B']}" if r["B"] not in seen else None
         seen.add(r["B"])
-        ax.semilogy(np.arange(len(r["eps"])), np.maximum(r["eps"], 1e-300), color=c, lw=1.2, alpha=0.85, label=label)
+        ax.semilogy(
+            np.arange(len(r["eps"])),
+            np.maximum(r["eps"], 1e-300),
+            color=c,
+            lw=1.2,
+            alpha=0.85,
+            label=label,
+        )
     ax.set_xlabel("epoch")
     ax.set_ylabel("ε(θ)")
     ax.set_title(title, fontsize=9)
@@ -186,18 +213,30 @@ def run(
         learner: ``"lm"`` or ``"lbfgs"`` (alternate only).
         max_epochs: epochs (or joint iterations) per run (default 200; smoke 3).
         batch_sizes: B values (default 2, 4, 8).
-        K, T: attractors and steps (default 6 and 128).
+        K: number of attractors (default 6; smoke 2).
+        T: time steps per trajectory (default 128; smoke 32).
         tol: relative stopping tolerance on J (default 0: run all epochs unless J stops improving).
         verbose: print ε per epoch and the table.
 
     Returns:
         The results (also in ``results.json``), with the Markdown table under ``"table"``.
+
     """
     common.enable_x64()
     if weighting == "both":
         base = common.output_dir(out, "results/figure3")
-        kw = dict(smoke=smoke, seeds=seeds, method=method, learner=learner, max_epochs=max_epochs,
-                  batch_sizes=batch_sizes, K=K, T=T, tol=tol, verbose=verbose)
+        kw = dict(
+            smoke=smoke,
+            seeds=seeds,
+            method=method,
+            learner=learner,
+            max_epochs=max_epochs,
+            batch_sizes=batch_sizes,
+            K=K,
+            T=T,
+            tol=tol,
+            verbose=verbose,
+        )
         return {w: run(out=base / w, weighting=w, **kw) for w in ("paper", "likelihood")}
     method = "joint" if method is None else method
     if seeds is None:
@@ -214,19 +253,31 @@ def run(
     runs = []
     for B in batch_sizes:
         for seed in seeds:
-            r = run_one(true, seed, B, T=T, method=method, weighting=weighting, learner=learner,
-                        max_epochs=max_epochs, tol=tol, verbose=verbose)
+            r = run_one(
+                true,
+                seed,
+                B,
+                T=T,
+                method=method,
+                weighting=weighting,
+                learner=learner,
+                max_epochs=max_epochs,
+                tol=tol,
+                verbose=verbose,
+            )
             runs.append(r)
             if verbose:
                 print(
-                    f"[B={B} seed={seed}] ε {r['eps'][0]:.4g} → {r['eps'][-1]:.4g} after {r['epochs']} epochs; "
+                    f"[B={B} seed={seed}] ε {r['eps'][0]:.4g} → {r['eps'][-1]:.4g} "
+                    f"after {r['epochs']} epochs; "
                     f"J monotone: {r['monotone']}; first epoch {r['first_epoch_s']:.2f}s, then "
                     f"{r['per_epoch_s']:.3f}s/epoch; ‖H − H_true‖ = {r['H_error']:.4g}",
                     flush=True,
                 )
     total = time.perf_counter() - t_start
     note = (
-        f"## Figure 3 — {K} coupled Lorenz (n = {3 * K}), T = {T}, σ_v = {SIGMA_V}, method = {method}"
+        f"## Figure 3 — {K} coupled Lorenz (n = {3 * K}), T = {T}, σ_v = {SIGMA_V}, "
+        f"method = {method}"
         + (f" (learner {learner})" if method == "alternate" else "")
         + f", weighting = {weighting}, max_epochs = {max_epochs}; total wall time {total:.1f} s"
     )
@@ -249,7 +300,9 @@ def run(
     }
     common.save_json(outdir / "results.json", summary)
     common.save_text(outdir / "table.md", table)
-    plot(runs, outdir / "figure3.png", f"{K} coupled Lorenz: ε(θ) per epoch ({method}, {weighting})")
+    plot(
+        runs, outdir / "figure3.png", f"{K} coupled Lorenz: ε(θ) per epoch ({method}, {weighting})"
+    )
     if verbose:
         print(table)
     return summary

@@ -1,4 +1,4 @@
-"""Paper Table 1 (§4.1.1): bias of CE-EM on a single Lorenz system as process/observation noise vary.
+"""Paper Table 1 (§4.1.1): bias of CE-EM on a single Lorenz system as the noise levels vary.
 
 Setup (paper §4.1.1): one Lorenz attractor (K = 1, H = 0), y = C x + v with a known C ∈ R^{2×3}
 drawn standard normal from a fixed key (frozen), T = 128 steps of dt = 0.04 (RK4), one trajectory
@@ -15,20 +15,21 @@ Weightings of the objective (the noise scales of the system being fitted):
 
 Start states: :func:`ceemx.initialize.from_observations` (least squares through C; the direction C
 does not see is left at 0) followed by one smoothing pass at the initial θ with weak, unit-scale
-dynamics weights (:func:`ceemx.experiments.common.warm_start`), which fills in the unobserved direction. (The authors
-started from zeros.) Without it, smoothing with the likelihood weights (dynamics 100× stiffer than
-the observations) from the min-norm states often lands in a wrong basin.
+dynamics weights (:func:`ceemx.experiments.common.warm_start`), which fills in the unobserved
+direction. (The authors started from zeros.) Without it, smoothing with the likelihood weights
+(dynamics 100× stiffer than the observations) from the min-norm states often lands in a wrong
+basin.
 
 ``method="alternate"`` is the paper's Algorithm 1; ``method="joint"`` minimises the same objective
 jointly in (x, θ). Alternation converges slowly here: J is very flat along a valley in which the
 states absorb parameter errors, so with a finite epoch budget the estimates of some seeds are still
-far from the optimum (``max_epochs`` matters); the joint method reaches the optimum in ~10 iterations.
+far from the optimum (``max_epochs`` matters); the joint method gets there in ~10 iterations.
 """
 
 from __future__ import annotations
 
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -43,7 +44,7 @@ from . import common
 NAME = "table1"
 SETTINGS = ((0.001, 0.01), (0.01, 0.01), (0.1, 0.01), (0.001, 0.05), (0.001, 0.1))
 PARAMS = ("sigma", "rho", "beta")
-TRUTH = dict(zip(PARAMS, common.TRUE_PARAMS))
+TRUTH = dict(zip(PARAMS, common.TRUE_PARAMS, strict=False))
 #: The paper's Table 1: mean (SE) of σ, ρ, β over 10 seeds; † = flagged (not within 2 SE).
 PAPER = {
     (0.001, 0.01): ("10.011 (0.012)", "28.000 (0.001)", "2.667 (0.000)"),
@@ -111,11 +112,11 @@ def _weightings(weighting: str) -> list[str]:
 
 
 def make_table(results: dict, weightings: Sequence[str]) -> str:
-    """Markdown: ours (mean (SE), † when the mean is not within 2 SE of the truth) beside the paper."""
+    """Markdown: ours (mean (SE), † if not within 2 SE of the truth) beside the paper's."""
     out = []
     for w in weightings:
         rows = []
-        for key, runs in results[w].items():
+        for runs in results[w].values():
             sw, sv = runs["sigma_w"], runs["sigma_v"]
             fits = runs["fits"]
             cells = [f"{sw:g}", f"{sv:g}"]
@@ -125,7 +126,18 @@ def make_table(results: dict, weightings: Sequence[str]) -> str:
             cells.append(f"{np.mean([f['epochs'] for f in fits]):.1f}")
             cells.append(f"{sum(f['monotone'] for f in fits)}/{len(fits)}")
             rows.append(cells)
-        header = ["σ_w", "σ_v", "σ ours", "σ paper", "ρ ours", "ρ paper", "β ours", "β paper", "epochs", "J monotone"]
+        header = [
+            "σ_w",
+            "σ_v",
+            "σ ours",
+            "σ paper",
+            "ρ ours",
+            "ρ paper",
+            "β ours",
+            "β paper",
+            "epochs",
+            "J monotone",
+        ]
         out.append(f"### weighting = {w}\n\n" + ev.markdown_table(header, rows))
     out.append(
         "Mean (standard error) over seeds; truth σ = 10, ρ = 28, β = 8/3 ≈ 2.667. "
@@ -147,13 +159,28 @@ def plot(results: dict, weightings: Sequence[str], path) -> None:
                 est = ev.mean_se(vals)
                 x = k + (j - 0.5 * (len(weightings) - 1)) * 0.25
                 ax.scatter(np.full(vals.shape, x), vals, s=6, color=colours[w], alpha=0.35)
-                ax.errorbar(x, est.mean, yerr=2 * est.se, fmt="o", color=colours[w], capsize=3,
-                            label=w if k == 0 else None)
+                ax.errorbar(
+                    x,
+                    est.mean,
+                    yerr=2 * est.se,
+                    fmt="o",
+                    color=colours[w],
+                    capsize=3,
+                    label=w if k == 0 else None,
+                )
                 paper = PAPER.get((runs["sigma_w"], runs["sigma_v"]))
                 if paper is not None and j == 0:
                     m, se = paper[i].rstrip("†").replace("(", "").replace(")", "").split()
-                    ax.errorbar(k + 0.4, float(m), yerr=2 * float(se), fmt="s", color="k", capsize=3,
-                                ms=4, label="paper" if k == 0 else None)
+                    ax.errorbar(
+                        k + 0.4,
+                        float(m),
+                        yerr=2 * float(se),
+                        fmt="s",
+                        color="k",
+                        capsize=3,
+                        ms=4,
+                        label="paper" if k == 0 else None,
+                    )
         labels = [f"{r['sigma_w']:g}/{r['sigma_v']:g}" for r in results[weightings[0]].values()]
         ax.set_xticks(range(len(labels)), labels, rotation=30, fontsize=8)
         ax.axhline(TRUTH[p], color="k", lw=0.8, ls="--")
@@ -194,6 +221,7 @@ def run(
 
     Returns:
         The results (also in ``results.json``), with the Markdown table under ``"table"``.
+
     """
     common.enable_x64()
     method = "alternate" if method is None else method
@@ -209,13 +237,18 @@ def run(
         for sw, sv in settings:
             fits = []
             for seed in seeds:
-                problem = common.lorenz_problem(seed, true, B=1, T=128, sigma_w=sw, sigma_v=sv, coupling=False)
-                rec = fit_one(problem, w, sw, sv, method=method, max_epochs=max_epochs, tol=tol, rho_x=rho_x)
+                problem = common.lorenz_problem(
+                    seed, true, B=1, T=128, sigma_w=sw, sigma_v=sv, coupling=False
+                )
+                rec = fit_one(
+                    problem, w, sw, sv, method=method, max_epochs=max_epochs, tol=tol, rho_x=rho_x
+                )
                 fits.append({"seed": seed, **rec})
                 if verbose:
                     print(
-                        f"[{w} σ_w={sw:g} σ_v={sv:g} seed={seed}] σ={rec['sigma']:.4f} ρ={rec['rho']:.4f} "
-                        f"β={rec['beta']:.4f} epochs={rec['epochs']} {rec['wall_s']:.2f}s",
+                        f"[{w} σ_w={sw:g} σ_v={sv:g} seed={seed}] σ={rec['sigma']:.4f} "
+                        f"ρ={rec['rho']:.4f} β={rec['beta']:.4f} epochs={rec['epochs']} "
+                        f"{rec['wall_s']:.2f}s",
                         flush=True,
                     )
             results[w][f"{sw:g}/{sv:g}"] = {"sigma_w": sw, "sigma_v": sv, "fits": fits}

@@ -58,8 +58,8 @@ class LMLearner(AbstractLearner):
 
     A dense θ-Jacobian per step; Marquardt's per-parameter damping makes it invariant to parameter
     scales. The default for gray-box models with up to a few thousand parameters. The ρ_θ term and
-    the log-prior's Hessian are added to the normal equations; accepted steps always decrease the
-    learning objective.
+    the log-prior's Hessian are added to the normal equations; accepted steps decrease the learning
+    objective (up to round-off once the predicted decrease is below tolerance).
 
     Attributes:
         max_steps: bound on LM iterations per EM epoch.

@@ -71,9 +71,11 @@ class CoupledLorenz(AbstractContinuousSystem):
         obs_noise: AbstractNoise | float = 0.01,
         initial_prior: GaussianPrior | None = None,
     ):
-        self.sigma = jnp.atleast_1d(jnp.asarray(sigma))
-        self.rho = jnp.atleast_1d(jnp.asarray(rho))
-        self.beta = jnp.atleast_1d(jnp.asarray(beta))
+        # Integers would silently be untrainable (filters learn inexact arrays): promote them.
+        as_float = lambda a: jnp.atleast_1d(jnp.asarray(a, dtype=jnp.result_type(float, a)))  # noqa: E731
+        self.sigma = as_float(sigma)
+        self.rho = as_float(rho)
+        self.beta = as_float(beta)
         K = self.sigma.shape[0]
         if self.rho.shape != (K,) or self.beta.shape != (K,):
             raise ValueError(
