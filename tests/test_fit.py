@@ -180,6 +180,8 @@ def test_no_retrace_across_epochs_or_new_data(prob, traces):
     the learner strongly typed, and a fit on new data of the same shape must not trace at all.
     """
     start = CoupledLorenz(*map(float, START), prob.C, process_noise=0.01, obs_noise=0.01)
+    weak = jnp.atleast_1d(jnp.asarray(float(START[0])))  # a weakly typed leaf, as users may build
+    start = eqx.tree_at(lambda s: s.sigma, start, weak)
     assert jax.typeof(start.sigma).weak_type
     counts = []
     res = ceemx.fit(
