@@ -71,6 +71,7 @@ def levenberg_marquardt(
     max_steps: int,
     damping: float | jax.Array,
     max_accepted: int | None = None,
+    init: tuple[jax.Array, Any] | None = None,
 ) -> LMOutput:
     """Minimise a function by Levenberg–Marquardt.
 

@@ -63,16 +63,12 @@ def _mask_tree(ok, tree):
     )
 
 
-@eqx.filter_jit
-def _joint_iteration(opts: JointLM, problem, theta, states, lam, rtol):
-    """One accepted LM step on (x, θ). Returns (θ, x, λ, status, accepted, trials, value, value_before)."""
+def _joint_evaluate(problem, states):
+    """``evaluate(z)`` for the LM driver: −J summed over participating trajectories (+ −log prior),
+    and the arrowhead's pieces (g_x, g_θ, A, E, D)."""
     data = problem.data
     ok_b = problem.weights > 0  # trajectories taking part
-    rho_x = jnp.asarray(opts.rho_x, states.dtype)
-    rho_t = problem.rho_theta
-    P = theta.shape[0]
-    n = states.shape[-1]
-    eye_n = jnp.eye(n, dtype=states.dtype)
+    eye_n = jnp.eye(states.shape[-1], dtype=states.dtype)
 
     def evaluate(z):
         x, th = z
@@ -101,6 +97,26 @@ def _joint_iteration(opts: JointLM, problem, theta, states, lam, rtol):
             h = jax.hessian(neg_lp)(th)
             D = D + 0.5 * (h + h.T)
         return value, (lin.grad_x, g_th, lin.hess_x, lin.E, D)
+
+    return evaluate
+
+
+@eqx.filter_jit
+def _joint_linearize(problem, theta, states):
+    """(value, linearisation) at (x, θ): seeds the first iteration; later ones reuse the last."""
+    return _joint_evaluate(problem, states)((states, theta))
+
+
+@eqx.filter_jit
+def _joint_iteration(opts: JointLM, problem, theta, states, lam, rtol, current):
+    """One accepted LM step on (x, θ) from the linearisation ``current`` = (value, lin) at (x, θ).
+
+    Returns (θ, x, λ, status, accepted, trials, (value, lin) at the new point).
+    """
+    ok_b = problem.weights > 0
+    rho_x = jnp.asarray(opts.rho_x, states.dtype)
+    rho_t = problem.rho_theta
+    evaluate = _joint_evaluate(problem, states)
 
     def grad_of(lin):
         return (lin[0], lin[1])
@@ -143,10 +159,10 @@ def _joint_iteration(opts: JointLM, problem, theta, states, lam, rtol):
         max_steps=opts.max_trials,
         damping=lam,
         max_accepted=1,
+        init=current,
     )
     x, th = out.z
-    value0 = evaluate((states, theta))[0]
-    return th, x, out.damping, out.status, out.accepted, out.steps, out.value, value0
+    return th, x, out.damping, out.status, out.accepted, out.steps, (out.value, out.lin)
 
 
 def joint_fit(
@@ -193,6 +209,7 @@ def joint_fit(
     bar = _Progress(show, max_iterations, len(history))
     converged = bool(history and history[-1].get("converged", False))
     stopped = bool(history and history[-1].get("stop", False))
+    current = None  # (value, linearisation) at the current (x, θ), carried between iterations
     try:
         while len(history) < max_iterations and not (converged or stopped):
             it = len(history) + 1
@@ -200,9 +217,13 @@ def joint_fit(
                 system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior, weights=weights
             )
             t0 = time.perf_counter()
-            th, x, lam, code, n_acc, trials, value, value0 = _joint_iteration(
-                opts, problem, theta, states, lam, jnp.asarray(tol, states.dtype)
+            if current is None:
+                current = _joint_linearize(problem, theta, states)
+            value0 = current[0]
+            th, x, lam, code, n_acc, trials, current = _joint_iteration(
+                opts, problem, theta, states, lam, jnp.asarray(tol, states.dtype), current
             )
+            value = current[0]
             th.block_until_ready()
             dt = time.perf_counter() - t0
             code, accepted = int(code), int(n_acc) > 0
