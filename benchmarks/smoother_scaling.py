@@ -9,7 +9,9 @@ independently
 * K ∈ {1, 2, 5, 10, 20}      (T = 128, B = 8; n = 3K, m = 3K − 2),
 
 and fits log–log slopes of the time per iteration against T, B and n. The solver runs exactly
-``--steps`` iterations (``rtol = atol = 0``); this is checked from ``sol.iterations``.
+``--steps`` iterations (``rtol = atol = 0``); this is checked from ``sol.iterations``. Each case
+runs in a fresh Python process by default (``--no-isolate`` to share one): after large cases, later
+small ones were seen to run several times slower in the same process.
 
 Usage::
 
@@ -25,6 +27,8 @@ import json
 import os
 import platform
 import statistics
+import subprocess
+import sys
 import time
 
 import jax
@@ -111,6 +115,14 @@ def time_case(T: int, B: int, K: int, steps: int, repeats: int, min_time: float 
     }
 
 
+def time_case_isolated(T: int, B: int, K: int, steps: int, repeats: int, min_time: float) -> dict:
+    """:func:`time_case` in a fresh Python process (no allocator or cache state from earlier cases)."""
+    cmd = [sys.executable, os.path.abspath(__file__), "--case", str(T), str(B), str(K),
+           "--steps", str(steps), "--repeats", str(repeats), "--min-time", str(min_time)]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def slope(xs, ys) -> float:
     return float(np.polyfit(np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float)), 1)[0])
 
@@ -138,11 +150,18 @@ def main(argv=None) -> dict:
     p.add_argument("--min-time", type=float, default=None,
                    help="keep repeating cheap cases (up to 20 calls) until the steady-state calls add up "
                         "to this many seconds (default 1.0; 0 with --quick)")
+    p.add_argument("--no-isolate", action="store_true",
+                   help="time all cases in this process instead of one fresh process per case")
+    p.add_argument("--case", type=int, nargs=3, metavar=("T", "B", "K"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
 
     grid = QUICK if args.quick else FULL
     repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
     min_time = args.min_time if args.min_time is not None else (0.0 if args.quick else 1.0)
+    if args.case:  # worker mode of time_case_isolated: one case, JSON on the last line of stdout
+        print(json.dumps(time_case(*args.case, steps=args.steps, repeats=repeats, min_time=min_time)))
+        return {}
+    timer = time_case if args.no_isolate else time_case_isolated
     cache: dict[tuple[int, int, int], dict] = {}
     sweeps: dict[str, list[dict]] = {}
     slopes: dict[str, float] = {}  # fitted on the median time per iteration
@@ -150,14 +169,15 @@ def main(argv=None) -> dict:
     t_start = time.perf_counter()
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPUs; "
           f"{args.steps} LM iterations per call, median of ≥{repeats} steady-state call(s) "
-          f"(≥{min_time:g} s per case); 1-min load average {os.getloadavg()[0]:.2f}\n")
+          f"(≥{min_time:g} s per case), {'one process' if args.no_isolate else 'a fresh process per case'}; "
+          f"1-min load average {os.getloadavg()[0]:.2f}\n")
     for var in ("T", "B", "K"):
         rows = []
         for value in grid[var]:
             cfg = dict(BASE, **{var: value})
             key = (cfg["T"], cfg["B"], cfg["K"])
             if key not in cache:
-                cache[key] = time_case(*key, steps=args.steps, repeats=repeats, min_time=min_time)
+                cache[key] = timer(*key, steps=args.steps, repeats=repeats, min_time=min_time)
             rows.append(cache[key])
         sweeps[var] = rows
         xvar = "n" if var == "K" else var
@@ -175,7 +195,7 @@ def main(argv=None) -> dict:
 
     result = {
         "config": {
-            "quick": args.quick, "steps": args.steps, "repeats": repeats, "min_time_s": min_time, "base": BASE,
+            "quick": args.quick, "steps": args.steps, "repeats": repeats, "isolated": not args.no_isolate, "min_time_s": min_time, "base": BASE,
             "grid": grid, "perturbation": PERTURBATION, "dtype": "float64",
         },
         "environment": {
