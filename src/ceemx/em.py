@@ -20,7 +20,7 @@ from .learning.learners import AbstractLearner, LMLearner
 from .learning.problem import trainable_mask
 from .learning.step import make_problem, run_learner
 from .models.system import AbstractSystem
-from .objective import log_joint
+from .objective import log_joint, nll_offset
 from .smoothing.solver import LMSmoother, _smooth_batch, check_inputs
 
 __all__ = ["EpochInfo", "FitResult", "fit"]
@@ -101,9 +101,17 @@ class _Progress:
 _log_joint_jit = eqx.filter_jit(log_joint)
 
 
+_offset_jit = eqx.filter_jit(nll_offset)
+
+
 def _total_J(system, states, data, weights):
     J = np.asarray(_log_joint_jit(system, states, data))
     return float(np.sum(np.where(weights > 0, J, 0.0))), J
+
+
+def _total_offset(system, data, weights) -> float:
+    """Σ of −J's x-independent constants: J + offset is the scale of the relative tolerance."""
+    return float(np.sum(np.where(weights > 0, np.asarray(_offset_jit(system, data)), 0.0)))
 
 
 def fit(
@@ -146,7 +154,9 @@ def fit(
         rho_theta: ρ_θ of Eq. 11.
         log_prior: optional ``system -> log p(θ)``.
         max_epochs: bound on epochs.
-        tol, atol: stopping rule on the improvement of J (relative, absolute).
+        tol, atol: stopping rule on the improvement of J per epoch: at most ``tol·|J + c| + atol``,
+            c the noise models' normalising constants (so |J + c| = ½‖whitened residuals‖² for
+            Gaussian noise, whatever the noise scales).
         callbacks: called with an :class:`EpochInfo` after every epoch; a dict returned by a
             callback is merged into that epoch's history record; returning ``False`` stops.
         progress: show a progress bar (``None``: only when stderr is a terminal).
@@ -270,7 +280,8 @@ def fit(
                 "failed_trajectories": np.flatnonzero(failed).tolist(),
             }
             improvement = J_after - J_before
-            converged = bool(np.isfinite(J_after) and improvement <= tol * abs(J_after) + atol)
+            scale = abs(J_after + _total_offset(system, data, weights))  # J less its constants
+            converged = bool(np.isfinite(J_after) and improvement <= tol * scale + atol)
             stopped = _run_callbacks(callbacks, EpochInfo(epoch, system, states, record))
             record["converged"] = converged
             record["stop"] = converged or stopped

@@ -69,6 +69,8 @@ def _joint_evaluate(problem, states):
     data = problem.data
     ok_b = problem.weights > 0  # trajectories taking part
     eye_n = jnp.eye(states.shape[-1], dtype=states.dtype)
+    # Values are −J less its x-independent constants, the scale of the relative tolerances.
+    offset = problem.offset(problem.theta_ref)
 
     def evaluate(z):
         x, th = z
@@ -87,7 +89,7 @@ def _joint_evaluate(problem, states):
                 _mask_tree(ok_b, lin.hess_x.lower),
             ),
         )
-        value = jnp.sum(lin.value)
+        value = jnp.sum(lin.value) - offset
         g_th = jnp.sum(lin.grad_theta, axis=0)
         D = jnp.sum(lin.D, axis=0)
         if problem.log_prior is not None:
@@ -219,11 +221,12 @@ def joint_fit(
             t0 = time.perf_counter()
             if current is None:
                 current = _joint_linearize(problem, theta, states)
-            value0 = current[0]
+            offset = float(problem.offset(theta))
+            value0 = current[0] + offset
             th, x, lam, code, n_acc, trials, current = _joint_iteration(
                 opts, problem, theta, states, lam, jnp.asarray(tol, states.dtype), current
             )
-            value = current[0]
+            value = current[0] + offset
             th.block_until_ready()
             dt = time.perf_counter() - t0
             code, accepted = int(code), int(n_acc) > 0
@@ -251,7 +254,9 @@ def joint_fit(
             if accepted:
                 # Converged when J stops improving (the same rule as Algorithm 1) or the model
                 # predicts no further decrease.
-                converged = code == RESULTS.successful or bool(J_after - J_before <= tol * abs(J_after) + atol)
+                converged = code == RESULTS.successful or bool(
+                    J_after - J_before <= tol * abs(J_after + offset) + atol
+                )
                 run_status = RESULTS.successful
             else:
                 converged = code == RESULTS.successful  # predicted decrease below tolerance

@@ -29,6 +29,8 @@ __all__ = [
     "linearize",
     "log_joint",
     "neg_log_joint_single",
+    "nll_offset",
+    "nll_offset_single",
     "residuals",
     "whitened_residuals",
 ]
@@ -51,6 +53,28 @@ def neg_log_joint_single(system: AbstractSystem, x, y, u, mask) -> Array:
     if system.initial_prior is not None:
         total = total + system.initial_prior.nll(x[0])
     return total
+
+
+def nll_offset_single(system: AbstractSystem, mask, T: int, dtype) -> Array:
+    """The part of −J that does not depend on x: Σ of each factor's −log p at zero residual.
+
+    −J − offset is ½‖whitened residuals‖² for Gaussian noise; solvers use it as the scale of their
+    relative tolerances (the normalising constants can dwarf the fit, e.g. with unit weights).
+    """
+    m = mask.shape[-1]
+    n = system.state_dim
+    zeros_m = jnp.zeros((m,), dtype)
+    total = jnp.sum(jax.vmap(lambda mk: system.obs_noise.nll(zeros_m, mk))(mask))
+    total = total + (T - 1) * system.process_noise.nll(jnp.zeros((n,), dtype))
+    if system.initial_prior is not None:
+        total = total + system.initial_prior.noise.nll(jnp.zeros((n,), dtype))
+    return total
+
+
+def nll_offset(system: AbstractSystem, data: Trajectories) -> Array:
+    """(B,) :func:`nll_offset_single` of each trajectory."""
+    T = data.num_steps
+    return jax.vmap(lambda mk: nll_offset_single(system, mk, T, data.y.dtype))(data.mask)
 
 
 def log_joint(system: AbstractSystem, x: Float[Array, "B T n"], data: Trajectories) -> Array:

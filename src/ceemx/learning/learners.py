@@ -75,9 +75,11 @@ class LMLearner(AbstractLearner):
     def run(self, problem, theta, state):
         """LM iterations from θ."""
 
+        offset = problem.offset(theta)  # tolerances are relative to the objective less its constants
+
         def evaluate(th):
             value, grad, hess = problem.gauss_newton(th)
-            return value, (grad, hess)
+            return value - offset, (grad, hess)
 
         def solve(lin, lam):
             grad, hess = lin
@@ -99,7 +101,7 @@ class LMLearner(AbstractLearner):
             damping=self.damping,
         )
         v0 = problem.value(theta)
-        return out.z, state, LearnInfo(v0, out.value, out.steps, out.status)
+        return out.z, state, LearnInfo(v0, out.value + offset, out.steps, out.status)
 
 
 class LBFGSLearner(AbstractLearner):

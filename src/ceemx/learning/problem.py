@@ -13,7 +13,7 @@ from jaxtyping import Array, Float
 
 from ..data import Trajectories
 from ..models.system import AbstractSystem
-from ..objective import linearize, neg_log_joint_single
+from ..objective import linearize, neg_log_joint_single, nll_offset
 
 __all__ = ["LearningProblem", "trainable_mask", "split_system"]
 
@@ -130,6 +130,11 @@ class LearningProblem(eqx.Module):
         nll = jnp.sum(jnp.where(w > 0, self.per_trajectory(theta, states, data), 0.0))
         scale = jnp.sum(self.weights) / jnp.maximum(jnp.sum(w), 1.0)
         return scale * nll + self._regulariser(theta)
+
+    def offset(self, theta: Array) -> Array:
+        """The x-independent constants of the objective (see :func:`ceemx.objective.nll_offset`)."""
+        off = nll_offset(self.build(theta), self.data)
+        return jnp.sum(jnp.where(self.weights > 0, off, 0.0))
 
     def gauss_newton(self, theta: Array):
         """(value, gradient, Gauss–Newton matrix) of the objective at θ."""

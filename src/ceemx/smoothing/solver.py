@@ -14,7 +14,7 @@ from .. import linalg
 from ..data import Trajectories
 from ..models.system import AbstractSystem
 from .._lm import RESULTS, levenberg_marquardt, marquardt_scale
-from ..objective import linearize
+from ..objective import linearize, nll_offset_single
 
 __all__ = ["RESULTS", "LMSmoother", "SmootherSolution", "smooth", "check_inputs"]
 
@@ -81,10 +81,12 @@ def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
     rho = jnp.asarray(solver.rho_x, x0.dtype)
     ident = lambda s: s  # noqa: E731
 
+    offset = nll_offset_single(system, mask, x0.shape[0], x0.dtype)  # tolerances are relative to −J − offset
+
     def evaluate(x):
         lin = linearize(ident, system, x, y, u, mask)
         dx = x - x0
-        return lin.value + rho * jnp.sum(dx**2), lin._replace(grad_x=lin.grad_x + 2.0 * rho * dx)
+        return lin.value - offset + rho * jnp.sum(dx**2), lin._replace(grad_x=lin.grad_x + 2.0 * rho * dx)
 
     def solve(lin, lam):
         h = lin.hess_x
