@@ -282,16 +282,25 @@ def fit(
             improvement = J_after - J_before
             scale = abs(J_after + _total_offset(system, data, weights))  # J less its constants
             converged = bool(np.isfinite(J_after) and improvement <= tol * scale + atol)
-            stopped = _run_callbacks(callbacks, EpochInfo(epoch, system, states, record))
-            record["converged"] = converged
-            record["stop"] = converged or stopped
-            history.append(record)
-            bar.update(record)
-            if checkpoint is not None:
-                ckpt.save(checkpoint, (theta_new, states, learner_state, status), history)
+            stopped = _close_epoch(
+                history, record, EpochInfo(epoch, system, states, record), callbacks, bar,
+                checkpoint, (theta_new, states, learner_state, status), converged,
+            )  # fmt: skip
     finally:
         bar.close()
     return FitResult(system, states, status, history, converged, "alternate", initial_J)
+
+
+def _close_epoch(history, record, info, callbacks, bar, checkpoint, tree, converged, halt=False) -> bool:
+    """Run callbacks, append the record, update the progress bar, checkpoint; returns "stop"."""
+    stopped = _run_callbacks(callbacks, info) or halt
+    record["converged"] = converged
+    record["stop"] = converged or stopped
+    history.append(record)
+    bar.update(record)
+    if checkpoint is not None:
+        ckpt.save(checkpoint, tree, history)
+    return stopped
 
 
 def _run_callbacks(callbacks, info: EpochInfo) -> bool:

@@ -185,7 +185,7 @@ def joint_fit(
     initial_J,
 ):
     """The joint method's outer loop (called by :func:`ceemx.fit`; same history, callbacks, checkpoints)."""
-    from .em import EpochInfo, FitResult, _Progress, _run_callbacks, _total_J
+    from .em import EpochInfo, FitResult, _close_epoch, _Progress, _total_J
 
     B = data.batch_size
     history: list[dict] = []
@@ -262,14 +262,11 @@ def joint_fit(
                 converged = code == RESULTS.successful  # predicted decrease below tolerance
                 run_status = code
             status = jnp.where(failed_status > 0, failed_status, jnp.int32(run_status))
-            stopped = _run_callbacks(callbacks, EpochInfo(it, system, states, record))
-            record["converged"] = converged
-            stopped = stopped or (not accepted and not converged)  # non-finite or damping exhausted
-            record["stop"] = converged or stopped
-            history.append(record)
-            bar.update(record)
-            if checkpoint is not None:
-                ckpt.save(checkpoint, (th, states, lam, status), history)
+            stopped = _close_epoch(
+                history, record, EpochInfo(it, system, states, record), callbacks, bar, checkpoint,
+                (th, states, lam, status), converged,
+                halt=not accepted and not converged,  # non-finite, or damping exhausted
+            )  # fmt: skip
     finally:
         bar.close()
     return FitResult(system, states, status, history, converged, "joint", initial_J)

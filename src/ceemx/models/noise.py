@@ -30,6 +30,7 @@ __all__ = [
     "DiagonalGaussian",
     "CholeskyGaussian",
     "StudentT",
+    "as_noise",
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -245,6 +246,11 @@ class StudentT(AbstractNoise):
         s = np.asarray(self.scale)
         _check_positive(name + ".scale", np.diag(s) if s.ndim == 2 else s)
         _check_positive(name + ".df", self.df)
+
+
+def as_noise(value: AbstractNoise | float | Array, dim: int) -> AbstractNoise:
+    """A noise model as given, or ``DiagonalGaussian(value, dim)`` for a scale (scalar or vector)."""
+    return value if isinstance(value, AbstractNoise) else DiagonalGaussian(value, dim)
 
 
 def _check_positive(name: str, value) -> None:

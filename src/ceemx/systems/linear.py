@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..models.noise import AbstractNoise, DiagonalGaussian
+from ..models.noise import AbstractNoise, as_noise
 from ..models.system import AbstractSystem, GaussianPrior
 
 __all__ = ["LinearSystem"]
@@ -49,12 +49,8 @@ class LinearSystem(AbstractSystem):
         self.D = jnp.zeros((m, p), self.A.dtype) if D is None else jnp.asarray(D)
         if self.B.shape != (n, p) or self.D.shape != (m, p):
             raise ValueError(f"`B` must be ({n}, p) and `D` ({m}, p); got {self.B.shape}, {self.D.shape}.")
-        if not isinstance(process_noise, AbstractNoise):
-            process_noise = DiagonalGaussian(process_noise, n)
-        if not isinstance(obs_noise, AbstractNoise):
-            obs_noise = DiagonalGaussian(obs_noise, m)
-        self.process_noise = process_noise
-        self.obs_noise = obs_noise
+        self.process_noise = as_noise(process_noise, n)
+        self.obs_noise = as_noise(obs_noise, m)
         self.initial_prior = initial_prior
 
     @property

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ..models.noise import AbstractNoise, DiagonalGaussian
+from ..models.noise import AbstractNoise, as_noise
 from ..models.system import AbstractContinuousSystem, GaussianPrior
 
 __all__ = [
@@ -91,12 +91,8 @@ class CoupledLorenz(AbstractContinuousSystem):
             raise ValueError(f"`H` must have shape ({n}, {n}); got {self.H.shape}.")
         m = self.C.shape[0]
         self.dt = float(dt)
-        if not isinstance(process_noise, AbstractNoise):
-            process_noise = DiagonalGaussian(process_noise, n)
-        if not isinstance(obs_noise, AbstractNoise):
-            obs_noise = DiagonalGaussian(obs_noise, m)
-        self.process_noise = process_noise
-        self.obs_noise = obs_noise
+        self.process_noise = as_noise(process_noise, n)
+        self.obs_noise = as_noise(obs_noise, m)
         self.initial_prior = initial_prior
 
     @property
