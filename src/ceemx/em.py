@@ -264,21 +264,10 @@ def fit(
             states = new_states
 
             J_after, J_traj = _total_J(system, states, data, weights)
-            record = {
-                "epoch": epoch,
-                "J_before": J_before,
-                "J": J_after,
-                "J_per_trajectory": J_traj.tolist(),
-                "dtheta_norm": float(jnp.linalg.norm(theta_new - theta)),
-                "dx_norm": dx,
-                "smooth_time": t_smooth,
-                "learn_time": t_learn,
-                "time": t_smooth + t_learn,
-                "learner_steps": int(info.steps),
-                "learner_status": int(info.status),
-                "smoother_steps": int(jnp.max(sol.iterations)),
-                "failed_trajectories": np.flatnonzero(failed).tolist(),
-            }
+            record = epoch_record(
+                epoch, J_before, J_after, J_traj, theta_new - theta, dx, t_smooth, t_learn,
+                info.steps, info.status, jnp.max(sol.iterations), failed,
+            )  # fmt: skip
             improvement = J_after - J_before
             scale = abs(J_after + _total_offset(system, data, weights))  # J less its constants
             converged = bool(np.isfinite(J_after) and improvement <= tol * scale + atol)
@@ -289,6 +278,29 @@ def fit(
     finally:
         bar.close()
     return FitResult(system, states, status, history, converged, "alternate", initial_J)
+
+
+def epoch_record(
+    epoch, J_before, J_after, J_traj, dtheta, dx_norm, smooth_time, learn_time,
+    learner_steps, learner_status, smoother_steps, failed, **extra,
+) -> dict:  # fmt: skip
+    """One history record (the keys :class:`FitResult` documents), as JSON-able Python values."""
+    return {
+        "epoch": epoch,
+        "J_before": float(J_before),
+        "J": float(J_after),
+        "J_per_trajectory": np.asarray(J_traj).tolist(),
+        "dtheta_norm": float(jnp.linalg.norm(dtheta)),
+        "dx_norm": float(dx_norm),
+        "smooth_time": smooth_time,
+        "learn_time": learn_time,
+        "time": smooth_time + learn_time,
+        "learner_steps": int(learner_steps),
+        "learner_status": int(learner_status),
+        "smoother_steps": int(smoother_steps),
+        "failed_trajectories": np.flatnonzero(failed).tolist(),
+        **extra,
+    }
 
 
 def _close_epoch(history, record, info, callbacks, bar, checkpoint, tree, converged, halt=False) -> bool:

@@ -185,7 +185,7 @@ def joint_fit(
     initial_J,
 ):
     """The joint method's outer loop (called by :func:`ceemx.fit`; same history, callbacks, checkpoints)."""
-    from .em import EpochInfo, FitResult, _close_epoch, _Progress, _total_J
+    from .em import EpochInfo, FitResult, _close_epoch, _Progress, _total_J, epoch_record
 
     B = data.batch_size
     history: list[dict] = []
@@ -234,22 +234,10 @@ def joint_fit(
             J_before = -float(value0)
             J_after = -float(value)
             _, J_traj = _total_J(new_system, x, data, weights)
-            record = {
-                "epoch": it,
-                "J_before": J_before,
-                "J": J_after,
-                "J_per_trajectory": J_traj.tolist(),
-                "dtheta_norm": float(jnp.linalg.norm(th - theta)),
-                "dx_norm": float(jnp.linalg.norm(x - states)),
-                "smooth_time": 0.0,
-                "learn_time": dt,
-                "time": dt,
-                "learner_steps": int(trials),
-                "learner_status": code,
-                "smoother_steps": 0,
-                "damping": float(lam),
-                "failed_trajectories": np.flatnonzero(weights == 0).tolist(),
-            }
+            record = epoch_record(
+                it, J_before, J_after, J_traj, th - theta, jnp.linalg.norm(x - states), 0.0, dt,
+                trials, code, 0, weights == 0, damping=float(lam),
+            )  # fmt: skip
             system, states = new_system, x
             if accepted:
                 # Converged when J stops improving (the same rule as Algorithm 1) or the model
