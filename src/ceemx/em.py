@@ -196,7 +196,7 @@ def fit(
     system = eqx.combine(params, rest)
     problem, theta = make_problem(system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior)
     weights = np.ones(data.batch_size)
-    initial_J = _total_J(system, states, data, weights)[0]
+    initial_J, J_traj = _total_J(system, states, data, weights)
 
     if method == "joint":
         from .joint import JointLM, joint_fit
@@ -227,6 +227,7 @@ def fit(
             (theta, states, learner_state, status), history = loaded
             system = problem.build(theta)
             weights = np.where(np.asarray(status) == RESULTS.nonfinite, 0.0, 1.0)
+            J_traj = np.asarray(history[-1]["J_per_trajectory"])
 
     show = sys.stderr.isatty() if progress is None else progress
     bar = _Progress(show, max_epochs, len(history))
@@ -235,7 +236,8 @@ def fit(
     try:
         while len(history) < max_epochs and not (converged or stopped):
             epoch = len(history) + 1
-            J_before, _ = _total_J(system, states, data, weights)
+            # J at the current (x, θ): the previous epoch's per-trajectory values, no recompute.
+            J_before = float(np.sum(np.where(weights > 0, J_traj, 0.0)))
 
             t0 = time.perf_counter()
             sol = _smooth_batch(smoother, system, states, data, False)

@@ -141,11 +141,10 @@ class LearningProblem(eqx.Module):
         lin = jax.vmap(
             lambda x, y, u, m: linearize(self.build, theta, x, y, u, m, wrt_theta=True, wrt_x=False)
         )(self.states, self.data.y, self.data.u, self.data.mask)
-        w = (self.weights > 0).astype(theta.dtype)
         ok = self.weights > 0
         value = jnp.sum(jnp.where(ok, lin.value, 0.0))
         grad = jnp.sum(jnp.where(ok[:, None], lin.grad_theta, 0.0), axis=0)
-        hess = jnp.einsum("b,bpq->pq", w, jnp.where(ok[:, None, None], lin.D, 0.0))
+        hess = jnp.sum(jnp.where(ok[:, None, None], lin.D, 0.0), axis=0)
         reg, reg_grad = jax.value_and_grad(self._regulariser)(theta)
         value = value + reg
         grad = grad + reg_grad
