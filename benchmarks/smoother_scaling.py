@@ -66,16 +66,18 @@ def make_problem(T: int, B: int, K: int, seed: int = 0):
     H = random_coupling(kH, K)
     C = random_observation_matrix(kC, K)
     ones = jnp.ones(K, jnp.float64)
-    system = CoupledLorenz(10.0 * ones, 28.0 * ones, (8.0 / 3.0) * ones, C, H=H,
-                           process_noise=0.01, obs_noise=0.01)
+    system = CoupledLorenz(
+        10.0 * ones, 28.0 * ones, (8.0 / 3.0) * ones, C, H=H, process_noise=0.01, obs_noise=0.01
+    )
     x0 = initial_states(kx0, B, K)
     truth, data = ceemx.simulate(system, ksim, x0, T, process_noise=False)
     x_init = truth + PERTURBATION * jax.random.normal(kpert, truth.shape, truth.dtype)
     return system, data, jax.block_until_ready(x_init)
 
 
-def time_case(T: int, B: int, K: int, steps: int, repeats: int, min_time: float = 0.0,
-              max_repeats: int = 20) -> dict:
+def time_case(
+    T: int, B: int, K: int, steps: int, repeats: int, min_time: float = 0.0, max_repeats: int = 20
+) -> dict:
     """Time one case: ``repeats`` steady-state calls at least, more (≤ ``max_repeats``) until
     they add up to ``min_time`` seconds."""
     system, data, x_init = make_problem(T, B, K)
@@ -91,8 +93,10 @@ def time_case(T: int, B: int, K: int, steps: int, repeats: int, min_time: float 
     iters = np.asarray(sol.iterations)
     status = np.asarray(sol.status)
     if not np.all(iters == steps):
-        raise RuntimeError(f"T={T} B={B} K={K}: expected {steps} iterations, got {iters.tolist()} "
-                           f"(status {status.tolist()})")
+        raise RuntimeError(
+            f"T={T} B={B} K={K}: expected {steps} iterations, got {iters.tolist()} "
+            f"(status {status.tolist()})"
+        )
     if not np.all(np.isfinite(np.asarray(sol.objective))):
         raise RuntimeError(f"T={T} B={B} K={K}: non-finite objective")
     load_before = os.getloadavg()[0]
@@ -102,7 +106,11 @@ def time_case(T: int, B: int, K: int, steps: int, repeats: int, min_time: float 
     steady = statistics.median(runs)
     per_iter = steady / steps
     return {
-        "T": T, "B": B, "K": K, "n": 3 * K, "m": 3 * K - 2,
+        "T": T,
+        "B": B,
+        "K": K,
+        "n": 3 * K,
+        "m": 3 * K - 2,
         "iterations": steps,
         "first_call_s": first,
         "steady_call_s": steady,
@@ -117,8 +125,20 @@ def time_case(T: int, B: int, K: int, steps: int, repeats: int, min_time: float 
 
 def time_case_isolated(T: int, B: int, K: int, steps: int, repeats: int, min_time: float) -> dict:
     """:func:`time_case` in a fresh Python process (no allocator or cache state from earlier cases)."""
-    cmd = [sys.executable, os.path.abspath(__file__), "--case", str(T), str(B), str(K),
-           "--steps", str(steps), "--repeats", str(repeats), "--min-time", str(min_time)]
+    cmd = [
+        sys.executable,
+        os.path.abspath(__file__),
+        "--case",
+        str(T),
+        str(B),
+        str(K),
+        "--steps",
+        str(steps),
+        "--repeats",
+        str(repeats),
+        "--min-time",
+        str(min_time),
+    ]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -128,8 +148,10 @@ def slope(xs, ys) -> float:
 
 
 def markdown_table(rows: list[dict]) -> str:
-    head = ("| T | B | K | n | m | compile (s) | steady call, median (s) | per iteration, median (ms) "
-            "| per iteration, min (ms) | per iteration per trajectory-step (µs) |")
+    head = (
+        "| T | B | K | n | m | compile (s) | steady call, median (s) | per iteration, median (ms) "
+        "| per iteration, min (ms) | per iteration per trajectory-step (µs) |"
+    )
     lines = [head, "|" + "---:|" * 10]
     for r in rows:
         lines.append(
@@ -142,16 +164,29 @@ def markdown_table(rows: list[dict]) -> str:
 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="small subset (T ≤ 1024, B ≤ 16, K ≤ 10), 1 repeat")
+    p.add_argument(
+        "--quick", action="store_true", help="small subset (T ≤ 1024, B ≤ 16, K ≤ 10), 1 repeat"
+    )
     p.add_argument("--out", type=str, default=None, help="write all numbers as JSON to this path")
     p.add_argument("--steps", type=int, default=5, help="LM iterations per call (default 5)")
-    p.add_argument("--repeats", type=int, default=None,
-                   help="minimum steady-state calls per case (default 3; 1 with --quick)")
-    p.add_argument("--min-time", type=float, default=None,
-                   help="keep repeating cheap cases (up to 20 calls) until the steady-state calls add up "
-                        "to this many seconds (default 1.0; 0 with --quick)")
-    p.add_argument("--no-isolate", action="store_true",
-                   help="time all cases in this process instead of one fresh process per case")
+    p.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="minimum steady-state calls per case (default 3; 1 with --quick)",
+    )
+    p.add_argument(
+        "--min-time",
+        type=float,
+        default=None,
+        help="keep repeating cheap cases (up to 20 calls) until the steady-state calls add up "
+        "to this many seconds (default 1.0; 0 with --quick)",
+    )
+    p.add_argument(
+        "--no-isolate",
+        action="store_true",
+        help="time all cases in this process instead of one fresh process per case",
+    )
     p.add_argument("--case", type=int, nargs=3, metavar=("T", "B", "K"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
 
@@ -159,7 +194,9 @@ def main(argv=None) -> dict:
     repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
     min_time = args.min_time if args.min_time is not None else (0.0 if args.quick else 1.0)
     if args.case:  # worker mode of time_case_isolated: one case, JSON on the last line of stdout
-        print(json.dumps(time_case(*args.case, steps=args.steps, repeats=repeats, min_time=min_time)))
+        print(
+            json.dumps(time_case(*args.case, steps=args.steps, repeats=repeats, min_time=min_time))
+        )
         return {}
     timer = time_case if args.no_isolate else time_case_isolated
     cache: dict[tuple[int, int, int], dict] = {}
@@ -167,10 +204,12 @@ def main(argv=None) -> dict:
     slopes: dict[str, float] = {}  # fitted on the median time per iteration
     slopes_min: dict[str, float] = {}  # fitted on the minimum (less sensitive to other load)
     t_start = time.perf_counter()
-    print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPUs; "
-          f"{args.steps} LM iterations per call, median of ≥{repeats} steady-state call(s) "
-          f"(≥{min_time:g} s per case), {'one process' if args.no_isolate else 'a fresh process per case'}; "
-          f"1-min load average {os.getloadavg()[0]:.2f}\n")
+    print(
+        f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPUs; "
+        f"{args.steps} LM iterations per call, median of ≥{repeats} steady-state call(s) "
+        f"(≥{min_time:g} s per case), {'one process' if args.no_isolate else 'a fresh process per case'}; "
+        f"1-min load average {os.getloadavg()[0]:.2f}\n"
+    )
     for var in ("T", "B", "K"):
         rows = []
         for value in grid[var]:
@@ -186,21 +225,41 @@ def main(argv=None) -> dict:
         fixed = ", ".join(f"{k}={v}" for k, v in BASE.items() if k != var)
         print(f"### Sweep over {var} ({fixed})\n")
         print(markdown_table(rows))
-        print(f"\nlog–log slope of time per iteration vs {xvar}: {slopes[xvar]:.2f} "
-              f"(median; {slopes_min[xvar]:.2f} from the minimum)\n", flush=True)
+        print(
+            f"\nlog–log slope of time per iteration vs {xvar}: {slopes[xvar]:.2f} "
+            f"(median; {slopes_min[xvar]:.2f} from the minimum)\n",
+            flush=True,
+        )
     total = time.perf_counter() - t_start
-    print("Slopes of median time per iteration: " + ", ".join(f"{k}: {v:.2f}" for k, v in slopes.items()))
-    print("Slopes of minimum time per iteration: " + ", ".join(f"{k}: {v:.2f}" for k, v in slopes_min.items()))
+    print(
+        "Slopes of median time per iteration: "
+        + ", ".join(f"{k}: {v:.2f}" for k, v in slopes.items())
+    )
+    print(
+        "Slopes of minimum time per iteration: "
+        + ", ".join(f"{k}: {v:.2f}" for k, v in slopes_min.items())
+    )
     print(f"Total wall time: {total:.1f} s; 1-min load average at the end {os.getloadavg()[0]:.2f}")
 
     result = {
         "config": {
-            "quick": args.quick, "steps": args.steps, "repeats": repeats, "isolated": not args.no_isolate, "min_time_s": min_time, "base": BASE,
-            "grid": grid, "perturbation": PERTURBATION, "dtype": "float64",
+            "quick": args.quick,
+            "steps": args.steps,
+            "repeats": repeats,
+            "isolated": not args.no_isolate,
+            "min_time_s": min_time,
+            "base": BASE,
+            "grid": grid,
+            "perturbation": PERTURBATION,
+            "dtype": "float64",
         },
         "environment": {
-            "jax": jax.__version__, "ceemx": ceemx.__version__, "backend": jax.devices()[0].platform,
-            "device": str(jax.devices()[0]), "cpu_count": os.cpu_count(), "python": platform.python_version(),
+            "jax": jax.__version__,
+            "ceemx": ceemx.__version__,
+            "backend": jax.devices()[0].platform,
+            "device": str(jax.devices()[0]),
+            "cpu_count": os.cpu_count(),
+            "python": platform.python_version(),
             "machine": platform.machine(),
         },
         "sweeps": sweeps,

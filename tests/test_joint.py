@@ -19,7 +19,15 @@ def _coupled(K=2, T=6, B=2, seed=0, pn=0.3, on=0.1):
     k1, k2, k3, k4, k5 = jax.random.split(jax.random.PRNGKey(seed), 5)
     H = random_coupling(k1, K)
     C = random_observation_matrix(k2, K)
-    system = CoupledLorenz(jnp.full(K, 10.0), jnp.full(K, 28.0), jnp.full(K, 8 / 3), C, H=H, process_noise=pn, obs_noise=on)
+    system = CoupledLorenz(
+        jnp.full(K, 10.0),
+        jnp.full(K, 28.0),
+        jnp.full(K, 8 / 3),
+        C,
+        H=H,
+        process_noise=pn,
+        obs_noise=on,
+    )
     xs, data = ceemx.simulate(system, k4, initial_states(k3, B, K), T)
     x = xs + 0.1 * jax.random.normal(k5, xs.shape)
     return system, data, x, xs
@@ -53,8 +61,12 @@ def test_joint_step_equals_dense_gauss_newton():
     g = np.concatenate([Jx.T @ rv, Jt.T @ rv])
     step = -np.linalg.solve(H + np.diag(np.concatenate([np.ravel(sA), np.asarray(sD)])), g)
     assert bool(sol.ok)
-    np.testing.assert_allclose(np.ravel(sol.dx), step[: B * T * n], rtol=1e-9, atol=1e-9 * np.abs(step).max())
-    np.testing.assert_allclose(sol.dtheta, step[B * T * n :], rtol=1e-9, atol=1e-9 * np.abs(step).max())
+    np.testing.assert_allclose(
+        np.ravel(sol.dx), step[: B * T * n], rtol=1e-9, atol=1e-9 * np.abs(step).max()
+    )
+    np.testing.assert_allclose(
+        sol.dtheta, step[B * T * n :], rtol=1e-9, atol=1e-9 * np.abs(step).max()
+    )
 
 
 def _single_lorenz(B=2, T=64, seed=3, sigma_w=0.01, sigma_v=0.05, C=None):
@@ -74,7 +86,13 @@ def test_joint_and_alternate_reach_the_same_optimum():
     tr = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
     joint = ceemx.fit(guess, data, x0, method="joint", trainable=tr, max_epochs=40, tol=1e-13)
     alt = ceemx.fit(
-        guess, data, x0, method="alternate", trainable=tr, max_epochs=400, tol=1e-13,
+        guess,
+        data,
+        x0,
+        method="alternate",
+        trainable=tr,
+        max_epochs=400,
+        tol=1e-13,
         smoother=ceemx.LMSmoother(rtol=1e-14),
     )
     assert joint.converged
@@ -109,7 +127,14 @@ def test_joint_excludes_nonfinite_trajectory_with_status():
     assert status[1] == ceemx.RESULTS.nonfinite
     assert np.all(status[[0, 2]] == ceemx.RESULTS.successful)
     assert np.all(np.isfinite(np.asarray(res.system.sigma)))
-    ref = ceemx.fit(guess, data[np.array([0, 2])], xs[np.array([0, 2])], method="joint", trainable=tr, max_epochs=30)
+    ref = ceemx.fit(
+        guess,
+        data[np.array([0, 2])],
+        xs[np.array([0, 2])],
+        method="joint",
+        trainable=tr,
+        max_epochs=30,
+    )
     np.testing.assert_allclose(res.system.sigma, ref.system.sigma, rtol=1e-8)
 
 
@@ -126,7 +151,9 @@ def test_singular_schur_complement_is_damped_not_nan():
     """A parameter with no effect makes S singular; the step stays finite and the fit converges."""
     true, guess, data, xs = _single_lorenz(B=1, T=32)
     # H of a single attractor is masked out entirely: 9 parameters with zero Jacobian columns.
-    res = ceemx.fit(guess, data, xs, method="joint", trainable=lambda s: (s.sigma, s.H), max_epochs=30)
+    res = ceemx.fit(
+        guess, data, xs, method="joint", trainable=lambda s: (s.sigma, s.H), max_epochs=30
+    )
     assert res.converged
     assert np.all(np.isfinite(np.asarray(res.system.H)))
     np.testing.assert_allclose(res.system.H, guess.H)  # no gradient, no move

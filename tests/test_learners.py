@@ -207,9 +207,7 @@ def test_lm_learner_is_monotone(noisy, max_steps):
 
 
 def test_trainable_callable_selects_one_leaf(exact):
-    system, _, _ = ceemx.learn(
-        exact.start, exact.states, exact.data, trainable=lambda s: s.sigma
-    )
+    system, _, _ = ceemx.learn(exact.start, exact.states, exact.data, trainable=lambda s: s.sigma)
     assert float(system.sigma[0]) != START[0]
     np.testing.assert_array_equal(system.rho, exact.start.rho)
     np.testing.assert_array_equal(system.beta, exact.start.beta)

@@ -177,9 +177,7 @@ def test_arrowhead_cg_matches_dense(precond):
     B, T, n, p = 3, 6, 2, 7
     _, A, E, D, r_x, r_t = arrow_problem(rng, B, T, n, p)
     dense = arrowhead_solve(A, E, D, r_x, r_t, method="dense")
-    cg = arrowhead_solve(
-        A, E, D, r_x, r_t, method="cg", cg_preconditioner=precond, cg_chunk=3
-    )
+    cg = arrowhead_solve(A, E, D, r_x, r_t, method="cg", cg_preconditioner=precond, cg_chunk=3)
     assert cg.method == "cg" and bool(cg.ok) and bool(cg.converged)
     assert 0 < int(cg.cg_steps) <= p
     assert rel_err(cg.dtheta, dense.dtheta) < 1e-6

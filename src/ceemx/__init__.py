@@ -4,6 +4,17 @@ from importlib.metadata import PackageNotFoundError, version
 
 from . import initialize, linalg, systems
 from .data import Trajectories, simulate
+from .em import EpochInfo, FitResult, fit
+from .joint import JointLM
+from .learning import (
+    AbstractLearner,
+    LBFGSLearner,
+    LearnInfo,
+    LMLearner,
+    NelderMeadLearner,
+    OptaxLearner,
+    learn,
+)
 from .models import (
     AbstractContinuousSystem,
     AbstractGaussianNoise,
@@ -14,17 +25,6 @@ from .models import (
     GaussianPrior,
     StudentT,
 )
-from .em import EpochInfo, FitResult, fit
-from .learning import (
-    AbstractLearner,
-    LBFGSLearner,
-    LearnInfo,
-    LMLearner,
-    NelderMeadLearner,
-    OptaxLearner,
-    learn,
-)
-from .joint import JointLM
 from .objective import log_joint, whitened_residuals
 from .smoothing import RESULTS, LMSmoother, SmootherSolution, smooth
 

@@ -10,7 +10,8 @@ predicted decrease), Nielsen's damping update, convergence tests and status code
 from __future__ import annotations
 
 import enum
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -128,7 +129,9 @@ def levenberg_marquardt(
         small_pred = ok & (pred >= 0) & (pred <= tol(f))
         # A step whose predicted decrease is below tolerance is at round-off level: keep it unless
         # it makes things worse by more than the tolerance (the ratio test is noise there).
-        accept = finite_new & ok & (((pred > 0) & (ratio > 1e-4)) | (small_pred & (f_new <= f + tol(f))))
+        accept = (
+            finite_new & ok & (((pred > 0) & (ratio > 1e-4)) | (small_pred & (f_new <= f + tol(f))))
+        )
         lam_acc = lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
         lam_new = jnp.where(accept, lam_acc, lam * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
@@ -137,7 +140,9 @@ def levenberg_marquardt(
         lin = jtu.tree_map(pick, lin_new, lin)
         converged = small_pred | (accept & (actual <= tol(f)))
         stalled = lam_new > 1e20
-        status = jnp.where(converged, RESULTS.successful, jnp.where(stalled, RESULTS.stalled, status))
+        status = jnp.where(
+            converged, RESULTS.successful, jnp.where(stalled, RESULTS.stalled, status)
+        )
         return (
             z,
             jnp.where(accept, f_new, f),

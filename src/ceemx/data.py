@@ -50,7 +50,9 @@ class Trajectories(eqx.Module):
         if concrete:
             y_np = np.asarray(y)
             if y_np.ndim != 3:
-                raise ValueError(f"`y` must have shape (B, T, m); got rank {y_np.ndim} {y_np.shape}.")
+                raise ValueError(
+                    f"`y` must have shape (B, T, m); got rank {y_np.ndim} {y_np.shape}."
+                )
             B, T, m = y_np.shape
             if B == 0:
                 raise ValueError("`y` is an empty batch (B = 0).")
@@ -83,16 +85,22 @@ class Trajectories(eqx.Module):
             else:
                 u_np = np.asarray(u)
                 if u_np.ndim != 3:
-                    raise ValueError(f"`u` must have shape (B, T, p); got rank {u_np.ndim} {u_np.shape}.")
+                    raise ValueError(
+                        f"`u` must have shape (B, T, p); got rank {u_np.ndim} {u_np.shape}."
+                    )
                 if u_np.shape[0] != B:
                     raise ValueError(f"`u` has batch size {u_np.shape[0]} but `y` has B = {B}.")
                 if u_np.shape[1] != T:
                     raise ValueError(f"`u` has {u_np.shape[1]} time steps but `y` has T = {T}.")
                 if not np.all(np.isfinite(u_np)):
                     b, t, j = _first_bad(~np.isfinite(u_np))
-                    raise ValueError(f"`u` has a non-finite value {u_np[b, t, j]} at index [{b}, {t}, {j}].")
+                    raise ValueError(
+                        f"`u` has a non-finite value {u_np[b, t, j]} at index [{b}, {t}, {j}]."
+                    )
             dtype = jnp.asarray(y).dtype
-            self.y = jnp.where(jnp.asarray(mask_np), jnp.nan_to_num(jnp.asarray(y)), 0.0).astype(dtype)
+            self.y = jnp.where(jnp.asarray(mask_np), jnp.nan_to_num(jnp.asarray(y)), 0.0).astype(
+                dtype
+            )
             self.u = jnp.asarray(u_np).astype(dtype)
             self.mask = jnp.asarray(mask_np)
         else:  # inside a transformation: trust the caller, only normalise.
@@ -118,12 +126,12 @@ class Trajectories(eqx.Module):
 
     @property
     def obs_dim(self) -> int:
-        """m."""
+        """M."""
         return self.y.shape[2]
 
     @property
     def input_dim(self) -> int:
-        """p."""
+        """P."""
         return self.u.shape[2]
 
     def __getitem__(self, idx) -> Trajectories:
@@ -205,7 +213,11 @@ def simulate(
     kw, kv = jax.random.split(key)
     pn = _resolve_noise(process_noise, system.process_noise)
     on = _resolve_noise(obs_noise, system.obs_noise)
-    w = sample_noise(pn, kw, (B, T - 1), dtype) if pn is not None else jnp.zeros((B, T - 1, n), dtype)
+    w = (
+        sample_noise(pn, kw, (B, T - 1), dtype)
+        if pn is not None
+        else jnp.zeros((B, T - 1, n), dtype)
+    )
     xs = jax.vmap(lambda a, b, c: rollout_one(system, a, b, c))(x0, u, w)
     ts = jnp.arange(T)
     y = jax.vmap(jax.vmap(system.observe))(xs, u, jnp.broadcast_to(ts, (B, T)))

@@ -6,7 +6,8 @@ import dataclasses
 import sys
 import time
 import warnings
-from typing import Any, Callable, Literal, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -194,7 +195,9 @@ def fit(
     params, rest = eqx.partition(system, trainable_mask(system, trainable))
     params = jax.tree_util.tree_map(lambda a: a.astype(a.dtype) if eqx.is_array(a) else a, params)
     system = eqx.combine(params, rest)
-    problem, theta = make_problem(system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior)
+    problem, theta = make_problem(
+        system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior
+    )
     weights = np.ones(data.batch_size)
     initial_J, J_traj = _total_J(system, states, data, weights)
 
@@ -252,12 +255,20 @@ def fit(
                     stacklevel=2,
                 )
             weights = np.where(failed, 0.0, 1.0)
-            dx = float(jnp.sqrt(jnp.sum(jnp.where(failed[:, None, None], 0.0, sol.states - states) ** 2)))
+            dx = float(
+                jnp.sqrt(jnp.sum(jnp.where(failed[:, None, None], 0.0, sol.states - states) ** 2))
+            )
             new_states = sol.states
 
             t0 = time.perf_counter()
             problem, theta = make_problem(
-                system, new_states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior, weights=weights
+                system,
+                new_states,
+                data,
+                trainable=trainable,
+                rho_theta=rho_theta,
+                log_prior=log_prior,
+                weights=weights,
             )
             theta_new, learner_state, info = run_learner(learner, problem, theta, learner_state)
             theta_new.block_until_ready()
@@ -305,7 +316,9 @@ def epoch_record(
     }
 
 
-def _close_epoch(history, record, info, callbacks, bar, checkpoint, tree, converged, halt=False) -> bool:
+def _close_epoch(
+    history, record, info, callbacks, bar, checkpoint, tree, converged, halt=False
+) -> bool:
     """Run callbacks, append the record, update the progress bar, checkpoint; returns "stop"."""
     stopped = _run_callbacks(callbacks, info) or halt
     record["converged"] = converged

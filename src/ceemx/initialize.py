@@ -13,7 +13,9 @@ __all__ = ["from_observations", "rollout"]
 
 
 @eqx.filter_jit
-def from_observations(system: AbstractSystem, data: Trajectories, x_guess=None, ridge: float = 1e-6):
+def from_observations(
+    system: AbstractSystem, data: Trajectories, x_guess=None, ridge: float = 1e-6
+):
     """States by least squares through the observation map linearised at ``x_guess``.
 
     Per step, x_t = x̄ + argmin_δ ‖S(y_t − g(x̄) − G δ)‖² + ridge·‖δ‖² over the observed
@@ -35,7 +37,11 @@ def from_observations(system: AbstractSystem, data: Trajectories, x_guess=None, 
         S = system.obs_noise.sqrt_curvature(y - g0, mask)
         A = S @ G
         b = S @ jnp.where(mask, y - g0, 0.0)
-        lhs = A.T @ A + ridge * jnp.trace(A.T @ A) / n * jnp.eye(n, dtype=dtype) + 1e-30 * jnp.eye(n, dtype=dtype)
+        lhs = (
+            A.T @ A
+            + ridge * jnp.trace(A.T @ A) / n * jnp.eye(n, dtype=dtype)
+            + 1e-30 * jnp.eye(n, dtype=dtype)
+        )
         return xbar + jnp.linalg.solve(lhs, A.T @ b)
 
     ts = jnp.broadcast_to(jnp.arange(T), (B, T))

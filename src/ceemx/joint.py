@@ -27,8 +27,8 @@ import numpy as np
 from . import checkpoint as ckpt
 from . import linalg
 from ._lm import RESULTS, levenberg_marquardt, marquardt_scale
-from .linalg import BlockTridiagonal
 from .learning.step import make_problem
+from .linalg import BlockTridiagonal
 from .objective import linearize
 
 __all__ = ["JointLM", "joint_fit"]
@@ -65,7 +65,8 @@ def _mask_tree(ok, tree):
 
 def _joint_evaluate(problem, states):
     """``evaluate(z)`` for the LM driver: −J summed over participating trajectories (+ −log prior),
-    and the arrowhead's pieces (g_x, g_θ, A, E, D)."""
+    and the arrowhead's pieces (g_x, g_θ, A, E, D).
+    """
     data = problem.data
     ok_b = problem.weights > 0  # trajectories taking part
     eye_n = jnp.eye(states.shape[-1], dtype=states.dtype)
@@ -74,9 +75,9 @@ def _joint_evaluate(problem, states):
 
     def evaluate(z):
         x, th = z
-        lin = jax.vmap(lambda xb, y, u, m: linearize(problem.build, th, xb, y, u, m, wrt_theta=True))(
-            x, data.y, data.u, data.mask
-        )
+        lin = jax.vmap(
+            lambda xb, y, u, m: linearize(problem.build, th, xb, y, u, m, wrt_theta=True)
+        )(x, data.y, data.u, data.mask)
         lin = lin._replace(
             value=jnp.where(ok_b, lin.value, 0.0),
             grad_x=_mask_tree(ok_b, lin.grad_x),
@@ -148,7 +149,13 @@ def _joint_iteration(opts: JointLM, problem, theta, states, lam, rtol, current):
         dx, dth = delta
         xAx = jnp.sum(dx * jax.vmap(linalg.matvec)(A, dx))
         xEt = jnp.einsum("btn,btnp,p->", dx, E, dth)
-        return xAx + 2.0 * xEt + dth @ D @ dth + 2.0 * rho_x * jnp.sum(dx**2) + 2.0 * rho_t * jnp.sum(dth**2)
+        return (
+            xAx
+            + 2.0 * xEt
+            + dth @ D @ dth
+            + 2.0 * rho_x * jnp.sum(dx**2)
+            + 2.0 * rho_t * jnp.sum(dth**2)
+        )
 
     out = levenberg_marquardt(
         evaluate,
@@ -189,7 +196,9 @@ def joint_fit(
 
     B = data.batch_size
     history: list[dict] = []
-    problem, theta = make_problem(system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior)
+    problem, theta = make_problem(
+        system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior
+    )
     lam = jnp.asarray(opts.damping, states.dtype)
     status = jnp.zeros((B,), jnp.int32)
     if checkpoint is not None:
@@ -216,7 +225,13 @@ def joint_fit(
         while len(history) < max_iterations and not (converged or stopped):
             it = len(history) + 1
             problem, theta = make_problem(
-                system, states, data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior, weights=weights
+                system,
+                states,
+                data,
+                trainable=trainable,
+                rho_theta=rho_theta,
+                log_prior=log_prior,
+                weights=weights,
             )
             t0 = time.perf_counter()
             if current is None:

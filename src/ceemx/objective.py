@@ -13,7 +13,8 @@ noise S r are the whitened residuals and this is exactly Gauss–Newton on ½‖
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -86,7 +87,9 @@ def log_joint(system: AbstractSystem, x: Float[Array, "B T n"], data: Trajectori
 def _whitened_single(system, x, y, u, mask):
     for name, noise in (("obs_noise", system.obs_noise), ("process_noise", system.process_noise)):
         if not noise.is_gaussian:
-            raise TypeError(f"whitened residuals need Gaussian noise; system.{name} is {type(noise).__name__}")
+            raise TypeError(
+                f"whitened residuals need Gaussian noise; system.{name} is {type(noise).__name__}"
+            )
     r_obs, r_dyn = residuals(system, x, y, u)
     parts = [
         jax.vmap(system.obs_noise.whiten)(r_obs, mask).reshape(-1),
@@ -103,7 +106,9 @@ def whitened_residuals(system: AbstractSystem, x: Float[Array, "B T n"], data: T
     Order per trajectory: the T·m observation residuals (zeros where masked), the (T−1)·n dynamics
     residuals, then the n prior residuals when the system has an initial-state prior.
     """
-    return jax.vmap(_whitened_single, in_axes=(None, 0, 0, 0, 0))(system, x, data.y, data.u, data.mask)
+    return jax.vmap(_whitened_single, in_axes=(None, 0, 0, 0, 0))(
+        system, x, data.y, data.u, data.mask
+    )
 
 
 class Linearization(NamedTuple):
@@ -208,6 +213,7 @@ def linearize(
         E = E.at[1:].add(mT(Sw) @ SFt)
         E = E.astype(dtype)
     if prior is not None:  # a prior whose mean depends on θ
+
         def prior_nll(x0, th):
             pr = build(th).initial_prior
             return pr.nll(x0)

@@ -74,8 +74,9 @@ class LMLearner(AbstractLearner):
 
     def run(self, problem, theta, state):
         """LM iterations from θ."""
-
-        offset = problem.offset(theta)  # tolerances are relative to the objective less its constants
+        offset = problem.offset(
+            theta
+        )  # tolerances are relative to the objective less its constants
 
         def evaluate(th):
             value, grad, hess = problem.gauss_newton(th)
@@ -126,7 +127,9 @@ class LBFGSLearner(AbstractLearner):
 
         def cond(c):
             th, st, k, g = c
-            return (k < self.max_steps) & (jnp.max(jnp.abs(g)) > self.gtol) & jnp.all(jnp.isfinite(g))
+            return (
+                (k < self.max_steps) & (jnp.max(jnp.abs(g)) > self.gtol) & jnp.all(jnp.isfinite(g))
+            )
 
         def body(c):
             th, st, k, _ = c
@@ -141,7 +144,9 @@ class LBFGSLearner(AbstractLearner):
         ok = jnp.isfinite(v1) & (v1 <= v0)
         th = jnp.where(ok, th, theta)
         status = jnp.where(
-            ~ok, RESULTS.nonfinite, jnp.where(k < self.max_steps, RESULTS.successful, RESULTS.max_steps_reached)
+            ~ok,
+            RESULTS.nonfinite,
+            jnp.where(k < self.max_steps, RESULTS.successful, RESULTS.max_steps_reached),
         )
         return th, state, LearnInfo(v0, jnp.where(ok, v1, v0), k, status.astype(jnp.int32))
 
@@ -183,12 +188,18 @@ class OptaxLearner(AbstractLearner):
             upd, st = self.transform.update(grad, st, th)
             return (optax.apply_updates(th, upd), st, k), None
 
-        (th, opt_state, key), _ = jax.lax.scan(body, (theta, opt_state, key), None, length=self.steps)
+        (th, opt_state, key), _ = jax.lax.scan(
+            body, (theta, opt_state, key), None, length=self.steps
+        )
         v1 = problem.value(th)
         ok = jnp.isfinite(v1)
         status = jnp.where(ok, RESULTS.successful, RESULTS.nonfinite).astype(jnp.int32)
         th = jnp.where(ok, th, theta)
-        return th, (opt_state, key), LearnInfo(v0, jnp.where(ok, v1, v0), jnp.asarray(self.steps), status)
+        return (
+            th,
+            (opt_state, key),
+            LearnInfo(v0, jnp.where(ok, v1, v0), jnp.asarray(self.steps), status),
+        )
 
 
 class NelderMeadLearner(AbstractLearner):
@@ -234,8 +245,15 @@ class NelderMeadLearner(AbstractLearner):
         status = RESULTS.successful if res.success else RESULTS.max_steps_reached
         if not ok:
             status = RESULTS.nonfinite
-        return th, state, LearnInfo(
-            jnp.asarray(v0), jnp.asarray(res.fun if ok else v0), jnp.asarray(res.nit), jnp.asarray(int(status))
+        return (
+            th,
+            state,
+            LearnInfo(
+                jnp.asarray(v0),
+                jnp.asarray(res.fun if ok else v0),
+                jnp.asarray(res.nit),
+                jnp.asarray(int(status)),
+            ),
         )
 
 

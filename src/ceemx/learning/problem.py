@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -30,7 +31,9 @@ def trainable_mask(system: AbstractSystem, trainable=None):
     """
     if trainable is None:
         mask = jtu.tree_map(eqx.is_inexact_array, system)
-        frozen = jtu.tree_map(lambda _: False, (system.process_noise, system.obs_noise, system.initial_prior))
+        frozen = jtu.tree_map(
+            lambda _: False, (system.process_noise, system.obs_noise, system.initial_prior)
+        )
         return eqx.tree_at(
             lambda s: (s.process_noise, s.obs_noise, s.initial_prior),
             mask,

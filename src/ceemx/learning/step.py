@@ -14,7 +14,9 @@ from .problem import LearningProblem, split_system
 __all__ = ["learn", "make_problem", "run_learner"]
 
 
-def make_problem(system, states, data, *, trainable=None, rho_theta=0.0, log_prior=None, weights=None):
+def make_problem(
+    system, states, data, *, trainable=None, rho_theta=0.0, log_prior=None, weights=None
+):
     """The :class:`LearningProblem` of ``system`` around its current θ, and that θ."""
     theta, template, static = split_system(system, trainable)
     B = states.shape[0]
@@ -76,7 +78,13 @@ def learn(
     """
     learner = LMLearner() if learner is None else learner
     problem, theta = make_problem(
-        system, jnp.asarray(states), data, trainable=trainable, rho_theta=rho_theta, log_prior=log_prior, weights=weights
+        system,
+        jnp.asarray(states),
+        data,
+        trainable=trainable,
+        rho_theta=rho_theta,
+        log_prior=log_prior,
+        weights=weights,
     )
     if learner_state is None:
         learner_state = learner.init(theta, jax.random.PRNGKey(0) if key is None else key)

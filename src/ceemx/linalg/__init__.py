@@ -3,8 +3,8 @@
 from ceemx.linalg.arrowhead import ArrowheadSolution as ArrowheadSolution
 from ceemx.linalg.arrowhead import arrowhead_solve as arrowhead_solve
 from ceemx.linalg.blocktri import BlockTridiagonal as BlockTridiagonal
-from ceemx.linalg.blocktri import add_to_diagonal as add_to_diagonal
 from ceemx.linalg.blocktri import BlockTridiagonalCholesky as BlockTridiagonalCholesky
+from ceemx.linalg.blocktri import add_to_diagonal as add_to_diagonal
 from ceemx.linalg.blocktri import cho_solve as cho_solve
 from ceemx.linalg.blocktri import cholesky as cholesky
 from ceemx.linalg.blocktri import is_finite as is_finite

@@ -141,9 +141,7 @@ def cholesky(A: BlockTridiagonal) -> BlockTridiagonalCholesky:
         return L_diag, (L_diag, L_low)
 
     _, (diags, lows) = jax.lax.scan(step, L0, (A.diagonal[1:], A.lower))
-    return BlockTridiagonalCholesky(
-        diagonal=jnp.concatenate([L0[None], diags], axis=0), lower=lows
-    )
+    return BlockTridiagonalCholesky(diagonal=jnp.concatenate([L0[None], diags], axis=0), lower=lows)
 
 
 @jax.jit

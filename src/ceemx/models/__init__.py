@@ -1,6 +1,12 @@
 """System and noise models."""
 
-from .noise import AbstractGaussianNoise, AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT
+from .noise import (
+    AbstractGaussianNoise,
+    AbstractNoise,
+    CholeskyGaussian,
+    DiagonalGaussian,
+    StudentT,
+)
 from .system import AbstractContinuousSystem, AbstractSystem, GaussianPrior, rk4_step
 
 __all__ = [

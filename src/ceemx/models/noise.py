@@ -125,7 +125,7 @@ class AbstractGaussianNoise(AbstractNoise):
 class DiagonalGaussian(AbstractGaussianNoise):
     """N(0, diag(scale²)); ``scale`` is a scalar or a length-d vector of standard deviations."""
 
-    scale: Float[Array, "..."]
+    scale: Float[Array, ...]
     dim: int = eqx.field(static=True)
 
     def __init__(self, scale, dim: int):
@@ -193,7 +193,7 @@ class StudentT(AbstractNoise):
     SᵀS r = ∇nll(r) — so each Gauss–Newton step is a majorise–minimise step.
     """
 
-    scale: Float[Array, "..."]
+    scale: Float[Array, ...]
     df: Float[Array, ""]
     dim: int = eqx.field(static=True)
 

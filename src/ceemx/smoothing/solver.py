@@ -11,9 +11,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .. import linalg
+from .._lm import RESULTS, levenberg_marquardt, marquardt_scale
 from ..data import Trajectories
 from ..models.system import AbstractSystem
-from .._lm import RESULTS, levenberg_marquardt, marquardt_scale
 from ..objective import linearize, nll_offset_single
 
 __all__ = ["RESULTS", "LMSmoother", "SmootherSolution", "smooth", "check_inputs"]
@@ -81,12 +81,16 @@ def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
     rho = jnp.asarray(solver.rho_x, x0.dtype)
     ident = lambda s: s  # noqa: E731
 
-    offset = nll_offset_single(system, mask, x0.shape[0], x0.dtype)  # tolerances are relative to −J − offset
+    offset = nll_offset_single(
+        system, mask, x0.shape[0], x0.dtype
+    )  # tolerances are relative to −J − offset
 
     def evaluate(x):
         lin = linearize(ident, system, x, y, u, mask)
         dx = x - x0
-        return lin.value - offset + rho * jnp.sum(dx**2), lin._replace(grad_x=lin.grad_x + 2.0 * rho * dx)
+        return lin.value - offset + rho * jnp.sum(dx**2), lin._replace(
+            grad_x=lin.grad_x + 2.0 * rho * dx
+        )
 
     def solve(lin, lam):
         h = lin.hess_x
@@ -121,19 +125,27 @@ def _smooth_batch(solver, system, x_init, data, covariance: bool):
         sel = jax.vmap(lambda h: linalg.selected_inverse(linalg.cholesky(h)))(hess)
         cov, cross = sel.diagonal, sel.lower
     if solver.throw:
-        x = eqx.error_if(x, jnp.any(status != RESULTS.successful), "smoothing failed on a trajectory")
+        x = eqx.error_if(
+            x, jnp.any(status != RESULTS.successful), "smoothing failed on a trajectory"
+        )
     return SmootherSolution(x, value, steps, status, cov, cross)
 
 
-def check_inputs(system: AbstractSystem, data: Trajectories, x=None, *, name: str = "x_init") -> None:
+def check_inputs(
+    system: AbstractSystem, data: Trajectories, x=None, *, name: str = "x_init"
+) -> None:
     """Validate shapes, finiteness, noise parameters and dtype before any compute (host-side)."""
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
     system.check()
     if data.obs_dim != system.obs_dim:
-        raise ValueError(f"`data.y` has m = {data.obs_dim} but the system observes m = {system.obs_dim}.")
+        raise ValueError(
+            f"`data.y` has m = {data.obs_dim} but the system observes m = {system.obs_dim}."
+        )
     if data.input_dim != system.input_dim:
-        raise ValueError(f"`data.u` has p = {data.input_dim} but the system takes p = {system.input_dim} inputs.")
+        raise ValueError(
+            f"`data.u` has p = {data.input_dim} but the system takes p = {system.input_dim} inputs."
+        )
     if x is not None:
         x = np.asarray(x) if not hasattr(x, "shape") else x
         shape = (data.batch_size, data.num_steps, system.state_dim)
@@ -144,7 +156,9 @@ def check_inputs(system: AbstractSystem, data: Trajectories, x=None, *, name: st
             b, t, j = (int(i) for i in np.argwhere(~np.isfinite(xa))[0])
             raise ValueError(f"`{name}` has a non-finite value at index [{b}, {t}, {j}].")
         if xa.dtype != np.asarray(data.y).dtype:
-            raise ValueError(f"`{name}` has dtype {xa.dtype} but `data.y` has dtype {data.y.dtype}.")
+            raise ValueError(
+                f"`{name}` has dtype {xa.dtype} but `data.y` has dtype {data.y.dtype}."
+            )
         if xa.dtype == np.float32 or xa.dtype == np.float16:
             warnings.warn(
                 f"identifying in {xa.dtype}: CE-EM's second-order solves lose accuracy in single "

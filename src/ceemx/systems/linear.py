@@ -48,24 +48,26 @@ class LinearSystem(AbstractSystem):
         p = self.B.shape[1]
         self.D = jnp.zeros((m, p), self.A.dtype) if D is None else jnp.asarray(D)
         if self.B.shape != (n, p) or self.D.shape != (m, p):
-            raise ValueError(f"`B` must be ({n}, p) and `D` ({m}, p); got {self.B.shape}, {self.D.shape}.")
+            raise ValueError(
+                f"`B` must be ({n}, p) and `D` ({m}, p); got {self.B.shape}, {self.D.shape}."
+            )
         self.process_noise = as_noise(process_noise, n)
         self.obs_noise = as_noise(obs_noise, m)
         self.initial_prior = initial_prior
 
     @property
     def state_dim(self) -> int:
-        """n."""
+        """N."""
         return self.A.shape[0]
 
     @property
     def obs_dim(self) -> int:
-        """m."""
+        """M."""
         return self.C.shape[0]
 
     @property
     def input_dim(self) -> int:
-        """p."""
+        """P."""
         return self.B.shape[1]
 
     def dynamics(self, x, u, t):

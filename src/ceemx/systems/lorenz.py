@@ -102,12 +102,12 @@ class CoupledLorenz(AbstractContinuousSystem):
 
     @property
     def state_dim(self) -> int:
-        """n = 3K."""
+        """N = 3K."""
         return 3 * self.K
 
     @property
     def obs_dim(self) -> int:
-        """m = rows of C."""
+        """M = rows of C."""
         return self.C.shape[0]
 
     def effective_coupling(self) -> Array:
