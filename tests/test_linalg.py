@@ -1,4 +1,4 @@
-"""Tests for ceemx.linalg (block-tridiagonal and arrowhead solvers) against dense NumPy."""
+"""Tests for ceemx.lib (block-tridiagonal and arrowhead solvers) against dense NumPy."""
 
 import pathlib
 import sys
@@ -16,7 +16,7 @@ except ImportError:  # pragma: no cover
 
 import jax.numpy as jnp  # noqa: E402
 
-from ceemx.linalg import (  # noqa: E402
+from ceemx.lib import (  # noqa: E402
     BlockTridiagonal,
     arrowhead_solve,
     cho_solve,

@@ -1,11 +1,16 @@
-"""ceemx: certainty-equivalent EM for partially observed nonlinear dynamical systems, in JAX."""
+"""ceemx: certainty-equivalent EM for partially observed nonlinear dynamical systems, in JAX.
+
+Two layers: :mod:`ceemx.lib` holds the maths that knows nothing of EM (block-tridiagonal and
+arrowhead solves, the Levenberg–Marquardt driver, status codes); the rest composes it into the
+user-facing layer — systems, data, the objective, smoothers, learners, fit solvers and the one
+:func:`fit` driver.
+"""
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import initialize, linalg, systems
+from . import initialize, lib, systems
 from .data import Trajectories, simulate
-from .em import EpochInfo, FitResult, fit
-from .joint import JointLM
+from .driver import EpochInfo, FitResult, fit
 from .learning import (
     AbstractLearner,
     LBFGSLearner,
@@ -15,6 +20,7 @@ from .learning import (
     OptaxLearner,
     learn,
 )
+from .lib.results import RESULTS
 from .models import (
     AbstractContinuousSystem,
     AbstractGaussianNoise,
@@ -26,7 +32,9 @@ from .models import (
     StudentT,
 )
 from .objective import log_joint, whitened_residuals
-from .smoothing import RESULTS, LMSmoother, SmootherSolution, smooth
+from .problem import FitProblem
+from .smoothing import LMSmoother, SmootherSolution, smooth
+from .solvers import AbstractFitSolver, Alternating, FitState, JointLM
 
 try:
     __version__ = version("ceemx")
@@ -35,30 +43,34 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 
 __all__ = [
     "RESULTS",
+    "AbstractContinuousSystem",
+    "AbstractFitSolver",
+    "AbstractGaussianNoise",
     "AbstractLearner",
+    "AbstractNoise",
+    "AbstractSystem",
+    "Alternating",
+    "CholeskyGaussian",
+    "DiagonalGaussian",
     "EpochInfo",
+    "FitProblem",
     "FitResult",
+    "FitState",
+    "GaussianPrior",
     "JointLM",
     "LBFGSLearner",
     "LMLearner",
+    "LMSmoother",
     "LearnInfo",
     "NelderMeadLearner",
     "OptaxLearner",
-    "fit",
-    "initialize",
-    "learn",
-    "AbstractContinuousSystem",
-    "AbstractGaussianNoise",
-    "AbstractNoise",
-    "AbstractSystem",
-    "CholeskyGaussian",
-    "DiagonalGaussian",
-    "GaussianPrior",
-    "LMSmoother",
     "SmootherSolution",
     "StudentT",
     "Trajectories",
-    "linalg",
+    "fit",
+    "initialize",
+    "learn",
+    "lib",
     "log_joint",
     "simulate",
     "smooth",

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .data import Trajectories
-from .linalg import BlockTridiagonal
+from .lib.blocktri import BlockTridiagonal
 from .models.system import AbstractSystem
 
 __all__ = [

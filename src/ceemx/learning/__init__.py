@@ -1,4 +1,4 @@
-"""The learning step: θ given the smoothed states."""
+"""The learning step: θ given the smoothed states (paper Eq. 11)."""
 
 from .learners import (
     AbstractLearner,
@@ -8,8 +8,8 @@ from .learners import (
     NelderMeadLearner,
     OptaxLearner,
 )
-from .problem import LearningProblem, split_system, trainable_mask
-from .step import learn
+from .problem import LearningProblem, learning_problem, make_problem
+from .step import learn, run_learner
 
 __all__ = [
     "AbstractLearner",
@@ -20,6 +20,7 @@ __all__ = [
     "NelderMeadLearner",
     "OptaxLearner",
     "learn",
-    "split_system",
-    "trainable_mask",
+    "learning_problem",
+    "make_problem",
+    "run_learner",
 ]

@@ -8,15 +8,17 @@ Adam learner keeps its moments) and are saved in checkpoints.
 from __future__ import annotations
 
 import abc
-from typing import Any, ClassVar
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
+import optimistix as optx
 
-from .._lm import RESULTS, levenberg_marquardt, marquardt_scale
+from ..lib.dense import cholesky_solve
+from ..lib.lm import levenberg_marquardt, marquardt_scale
+from ..lib.results import RESULTS
 from .problem import LearningProblem
 
 __all__ = [
@@ -30,19 +32,16 @@ __all__ = [
 
 
 class LearnInfo(eqx.Module):
-    """What one learning step did: objective before/after, iterations, status code."""
+    """What one learning step did: objective before/after, iterations, status."""
 
     value_before: jax.Array
     value_after: jax.Array
     steps: jax.Array
-    status: jax.Array
+    status: RESULTS
 
 
 class AbstractLearner(eqx.Module):
-    """A θ-step optimiser."""
-
-    #: Whether :meth:`run` is jit-compatible (host learners such as Nelder–Mead are not).
-    jittable: ClassVar[bool] = True
+    """A θ-step optimiser (an ``init`` / ``run`` pair; ``run`` is jit-compiled by the caller)."""
 
     def init(self, theta: jax.Array, key: jax.Array) -> Any:
         """The learner's persistent state (default: none)."""
@@ -84,11 +83,9 @@ class LMLearner(AbstractLearner):
 
         def solve(lin, lam):
             grad, hess = lin
-            d = jnp.diagonal(hess)
-            A = hess + jnp.diag(marquardt_scale(d, lam))
-            L = jnp.linalg.cholesky(A)
-            delta = -jax.scipy.linalg.cho_solve((L, True), grad)
-            return delta, jnp.all(jnp.isfinite(L))
+            damped = hess + jnp.diag(marquardt_scale(jnp.diagonal(hess), lam))
+            delta, ok = cholesky_solve(damped, -grad)
+            return delta, ok
 
         out = levenberg_marquardt(
             evaluate,
@@ -143,12 +140,9 @@ class LBFGSLearner(AbstractLearner):
         v1 = fun(th)
         ok = jnp.isfinite(v1) & (v1 <= v0)
         th = jnp.where(ok, th, theta)
-        status = jnp.where(
-            ~ok,
-            RESULTS.nonfinite,
-            jnp.where(k < self.max_steps, RESULTS.successful, RESULTS.max_steps_reached),
-        )
-        return th, state, LearnInfo(v0, jnp.where(ok, v1, v0), k, status.astype(jnp.int32))
+        status = RESULTS.where(k < self.max_steps, RESULTS.successful, RESULTS.max_steps_reached)
+        status = RESULTS.where(ok, status, RESULTS.nonfinite)
+        return th, state, LearnInfo(v0, jnp.where(ok, v1, v0), k, status)
 
 
 class OptaxLearner(AbstractLearner):
@@ -193,7 +187,7 @@ class OptaxLearner(AbstractLearner):
         )
         v1 = problem.value(th)
         ok = jnp.isfinite(v1)
-        status = jnp.where(ok, RESULTS.successful, RESULTS.nonfinite).astype(jnp.int32)
+        status = RESULTS.where(ok, RESULTS.successful, RESULTS.nonfinite)
         th = jnp.where(ok, th, theta)
         return (
             th,
@@ -203,60 +197,42 @@ class OptaxLearner(AbstractLearner):
 
 
 class NelderMeadLearner(AbstractLearner):
-    """SciPy's Nelder–Mead simplex on the host (derivative-free; for a handful of parameters).
+    """Nelder–Mead simplex (``optimistix.NelderMead``), derivative-free, for a handful of parameters.
+
+    Compiled like every other learner (no host round trips). Stops when both the simplex's spread
+    in θ and in the objective (less its normalising constants) are within ``rtol·|·| + atol``.
 
     Attributes:
-        maxiter: iteration bound per EM epoch (``None``: 200·P, SciPy's default).
-        xatol, fatol: SciPy's absolute tolerances on θ and on the objective.
-        adaptive: dimension-adapted simplex parameters (Gao & Han 2012, as cited by the paper).
+        max_steps: iteration bound per EM epoch (``None``: 200·P, SciPy's default).
+        rtol, atol: relative and absolute tolerances on θ and on the objective.
     """
 
-    maxiter: int | None = None
-    xatol: float = 1e-4
-    fatol: float = 1e-4
-    adaptive: bool = True
-    jittable: ClassVar[bool] = False
+    max_steps: int | None = eqx.field(default=None, static=True)
+    rtol: float = 1e-8
+    atol: float = 1e-8
 
     def run(self, problem, theta, state):
-        """Nelder–Mead from θ (objective jit-compiled, optimiser on the host)."""
-        import scipy.optimize
+        """Nelder–Mead from θ."""
+        offset = problem.offset(theta)
+        v0 = problem.value(theta)
 
-        fun = _jitted_value
-        x0 = np.asarray(theta, dtype=np.float64)
-        v0 = float(fun(problem, theta))
+        def fun(th, _):
+            v = problem.value(th) - offset
+            return jnp.where(jnp.isfinite(v), v, jnp.inf)
 
-        def f(th):
-            v = float(fun(problem, jnp.asarray(th, theta.dtype)))
-            return v if np.isfinite(v) else np.inf
-
-        res = scipy.optimize.minimize(
-            f,
-            x0,
-            method="Nelder-Mead",
-            options={
-                "maxiter": self.maxiter,
-                "xatol": self.xatol,
-                "fatol": self.fatol,
-                "adaptive": self.adaptive,
-            },
+        max_steps = 200 * theta.shape[0] if self.max_steps is None else self.max_steps
+        sol = optx.minimise(
+            fun,
+            optx.NelderMead(rtol=self.rtol, atol=self.atol),
+            theta,
+            max_steps=max_steps,
+            throw=False,
         )
-        ok = np.isfinite(res.fun) and res.fun <= v0
-        th = jnp.asarray(res.x if ok else x0, theta.dtype)
-        status = RESULTS.successful if res.success else RESULTS.max_steps_reached
-        if not ok:
-            status = RESULTS.nonfinite
-        return (
-            th,
-            state,
-            LearnInfo(
-                jnp.asarray(v0),
-                jnp.asarray(res.fun if ok else v0),
-                jnp.asarray(res.nit),
-                jnp.asarray(int(status)),
-            ),
+        v1 = problem.value(sol.value)
+        ok = jnp.isfinite(v1) & (v1 <= v0)
+        th = jnp.where(ok, sol.value, theta)
+        status = RESULTS.where(
+            sol.result == optx.RESULTS.successful, RESULTS.successful, RESULTS.max_steps_reached
         )
-
-
-@eqx.filter_jit
-def _jitted_value(problem, theta):
-    return problem.value(theta)
+        status = RESULTS.where(ok, status, RESULTS.nonfinite)
+        return th, state, LearnInfo(v0, jnp.where(ok, v1, v0), sol.stats["num_steps"], status)

@@ -7,42 +7,17 @@ import jax
 import jax.numpy as jnp
 
 from ..data import Trajectories
+from ..lib.tree import trace_numbers
 from ..models.system import AbstractSystem
 from .learners import AbstractLearner, LMLearner
-from .problem import LearningProblem, split_system
+from .problem import LearningProblem, make_problem
 
-__all__ = ["learn", "make_problem", "run_learner"]
-
-
-def make_problem(
-    system, states, data, *, trainable=None, rho_theta=0.0, log_prior=None, weights=None
-):
-    """The :class:`LearningProblem` of ``system`` around its current θ, and that θ."""
-    theta, template, static = split_system(system, trainable)
-    B = states.shape[0]
-    w = jnp.ones((B,), states.dtype) if weights is None else jnp.asarray(weights, states.dtype)
-    problem = LearningProblem(
-        template=template,
-        static=static,
-        states=states,
-        data=data,
-        weights=w,
-        theta_ref=theta,
-        rho_theta=jnp.asarray(rho_theta, states.dtype),
-        log_prior=log_prior,
-    )
-    return problem, theta
+__all__ = ["learn", "run_learner"]
 
 
 @eqx.filter_jit
-def _run_jit(learner, problem, theta, state):
-    return learner.run(problem, theta, state)
-
-
 def run_learner(learner: AbstractLearner, problem: LearningProblem, theta, state):
-    """Run a learner, compiled once per problem shape when it is jit-compatible."""
-    if learner.jittable:
-        return _run_jit(learner, problem, theta, state)
+    """Run a learner, compiled once per learner type, problem shape and dtype."""
     return learner.run(problem, theta, state)
 
 
@@ -66,7 +41,7 @@ def learn(
         states: (B, T, n) fixed state trajectories (e.g. a smoother's output).
         data: the observations.
         learner: the optimiser (default :class:`LMLearner`).
-        trainable: which leaves learn (see :func:`ceemx.learning.trainable_mask`).
+        trainable: which leaves learn (see :func:`ceemx.problem.trainable_mask`).
         rho_theta: trust-region weight ρ_θ ≥ 0.
         log_prior: optional ``system -> log p(θ)``.
         weights: (B,) 0/1 weights; 0 excludes a trajectory (e.g. one whose smoothing failed).
@@ -77,9 +52,11 @@ def learn(
         (new system, learner state, :class:`LearnInfo`).
     """
     learner = LMLearner() if learner is None else learner
+    states = jnp.asarray(states)
+    learner = trace_numbers(learner, states.dtype)
     problem, theta = make_problem(
         system,
-        jnp.asarray(states),
+        states,
         data,
         trainable=trainable,
         rho_theta=rho_theta,

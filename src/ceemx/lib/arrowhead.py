@@ -21,7 +21,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ceemx.linalg.blocktri import (
+from ceemx.lib.dense import cholesky_solve
+from ceemx.lib.blocktri import (
     BlockTridiagonal,
     BlockTridiagonalCholesky,
     cholesky,
@@ -65,15 +66,7 @@ def _dense_schur(L, E, D, rhs):
     """Form and factor ``S``; return ``(dtheta, S_ok)``."""
     Z = _solve_b(L, E)  # (B, T, n, p)
     S = D - jnp.sum(jnp.einsum("btnp,btnq->bpq", E, Z), axis=0)
-    S = 0.5 * (S + S.T)
-    Ls = jnp.linalg.cholesky(S)
-    piv = jnp.diagonal(Ls)
-    p = S.shape[0]
-    # Reject NaN factors and also pivots that are rounding noise (numerically singular S).
-    tol = p * jnp.finfo(S.dtype).eps * jnp.max(jnp.abs(jnp.diagonal(S)))
-    s_ok = jnp.all(jnp.isfinite(Ls)) & jnp.all(piv**2 > tol)
-    dtheta = jax.scipy.linalg.cho_solve((Ls, True), rhs)
-    return dtheta, s_ok
+    return cholesky_solve(S, rhs)
 
 
 def _schur_diag(L, E, chunk: int):
@@ -148,7 +141,7 @@ def arrowhead_solve(
 ) -> ArrowheadSolution:
     """Solve the arrowhead system by the Schur complement on the parameter block.
 
-    Factors every ``A_b`` (vmapped :func:`~ceemx.linalg.blocktri.cholesky`), computes
+    Factors every ``A_b`` (vmapped :func:`~ceemx.lib.blocktri.cholesky`), computes
     ``rhs = r_theta - sum_b E_b^T A_b^{-1} r_b``, solves ``S dtheta = rhs`` with
     ``S = D - sum_b E_b^T A_b^{-1} E_b``, then ``dx_b = A_b^{-1} (r_b - E_b dtheta)``.
 

@@ -17,36 +17,19 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
-__all__ = ["RESULTS", "LMOutput", "levenberg_marquardt"]
+from .results import RESULTS
 
-
-class RESULTS(enum.IntEnum):
-    """Status codes of iterative solvers (per trajectory for batched solves)."""
-
-    successful = 0
-    max_steps_reached = 1
-    nonfinite = 2
-    stalled = 3
-
-    @property
-    def message(self) -> str:
-        """Human-readable explanation."""
-        return {
-            0: "converged",
-            1: "reached max_steps before converging",
-            2: "the objective or its derivatives are not finite at the initial point",
-            3: "no step decreases the objective (damping exhausted) before the tolerances were met",
-        }[int(self)]
+__all__ = ["LMOutput", "levenberg_marquardt", "marquardt_scale"]
 
 
 class LMOutput(NamedTuple):
-    """Final iterate, objective, linearisation, iteration count, status and accepted-step count."""
+    """Final iterate, objective, linearisation, iteration count, status, accepted steps, damping."""
 
     z: Any
     value: jax.Array
     lin: Any
     steps: jax.Array
-    status: jax.Array
+    status: RESULTS
     accepted: jax.Array
     damping: jax.Array
 
@@ -67,8 +50,8 @@ def levenberg_marquardt(
     quad: Callable[[Any, Any], jax.Array],
     z0: Any,
     *,
-    rtol: float,
-    atol: float,
+    rtol: float | jax.Array,
+    atol: float | jax.Array,
     max_steps: int,
     damping: float | jax.Array,
     max_accepted: int | None = None,
@@ -89,11 +72,16 @@ def levenberg_marquardt(
         damping: initial λ.
         max_accepted: also stop after this many accepted steps (``None``: no such bound); with 1,
             one call is one LM iteration whose final λ (``LMOutput.damping``) seeds the next call.
+        init: ``evaluate(z0)`` when the caller already has it (e.g. the linearisation at the point
+            accepted by the previous call); saves one evaluation.
+
+    Returns:
+        An :class:`LMOutput`: the last accepted point with its value and linearisation.
     """
-    f0, lin0 = evaluate(z0)
+    f0, lin0 = evaluate(z0) if init is None else init
     finite0 = jnp.isfinite(f0) & _all_finite(grad_of(lin0))
     dtype = jnp.result_type(f0)
-    init = (
+    carry = (
         z0,
         f0,
         lin0,
@@ -102,7 +90,7 @@ def levenberg_marquardt(
         jnp.asarray(0),
         jnp.asarray(0),
         ~finite0,
-        jnp.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite).astype(jnp.int32),
+        RESULTS.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite),
     )
 
     def tol(f):
@@ -140,9 +128,8 @@ def levenberg_marquardt(
         lin = jtu.tree_map(pick, lin_new, lin)
         converged = small_pred | (accept & (actual <= tol(f)))
         stalled = lam_new > 1e20
-        status = jnp.where(
-            converged, RESULTS.successful, jnp.where(stalled, RESULTS.stalled, status)
-        )
+        status = RESULTS.where(stalled, RESULTS.stalled, status)
+        status = RESULTS.where(converged, RESULTS.successful, status)
         return (
             z,
             jnp.where(accept, f_new, f),
@@ -152,10 +139,10 @@ def levenberg_marquardt(
             step + 1,
             acc + accept.astype(jnp.int32),
             converged | stalled,
-            status.astype(jnp.int32),
+            status,
         )
 
-    z, f, lin, lam, _, steps, acc, _, status = jax.lax.while_loop(cond, body, init)
+    z, f, lin, lam, _, steps, acc, _, status = jax.lax.while_loop(cond, body, carry)
     return LMOutput(z, f, lin, steps, status, acc, lam)
 
 

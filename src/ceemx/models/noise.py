@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from ..lib.dense import masked_cholesky, symmetrize, whitening_matrix
+
 __all__ = [
     "AbstractNoise",
     "AbstractGaussianNoise",
@@ -40,19 +42,6 @@ def _full_mask(r: Array, mask: Array | None) -> Array:
     if mask is None:
         return jnp.ones(r.shape, dtype=bool)
     return jnp.broadcast_to(mask, r.shape)
-
-
-def _masked_cholesky(chol: Array, mask: Array) -> Array:
-    """Cholesky factor of Σ restricted to the present rows/columns, identity elsewhere.
-
-    With M = diag(mask), Σ' = M Σ M + (I − M) is, after a permutation, block-diagonal with the
-    present block Σ_oo and an identity block, so whitening by chol(Σ') gives the exact marginal
-    density of the present components while masked components (residual set to zero) add nothing.
-    """
-    m = mask.astype(chol.dtype)
-    cov = chol @ chol.T
-    cov = cov * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
-    return jnp.linalg.cholesky(cov)
 
 
 class AbstractNoise(eqx.Module):
@@ -76,7 +65,7 @@ class AbstractNoise(eqx.Module):
     ) -> Float[Array, "d d"]:
         """A matrix S with SᵀS a positive semi-definite curvature of ``nll`` at ``r``."""
         hess = jax.hessian(lambda z: self.nll(z, mask))(r)
-        hess = 0.5 * (hess + hess.T)
+        hess = symmetrize(hess)
         w, v = jnp.linalg.eigh(hess)
         return jnp.sqrt(jnp.clip(w, 0.0))[:, None] * v.T
 
@@ -103,11 +92,7 @@ class AbstractGaussianNoise(AbstractNoise):
 
     def sqrt_curvature(self, r, mask=None):
         """The whitening matrix L⁻¹ of the present components (zero rows for masked ones)."""
-        mask = _full_mask(r, mask)
-        chol = _masked_cholesky(self.cholesky(), mask)
-        eye = jnp.eye(r.shape[-1], dtype=r.dtype)
-        s = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
-        return s * mask[:, None].astype(r.dtype)
+        return whitening_matrix(self.cholesky().astype(r.dtype), _full_mask(r, mask))
 
     def whiten(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Array:
         """Whitened residual L⁻¹ r of the present components (zero where masked)."""
@@ -116,7 +101,7 @@ class AbstractGaussianNoise(AbstractNoise):
     def log_prob(self, r, mask=None):
         """Exact Gaussian log-density of the present components."""
         mask = _full_mask(r, mask)
-        chol = _masked_cholesky(self.cholesky(), mask)
+        chol = masked_cholesky(self.cholesky().astype(r.dtype), mask)
         z = jax.scipy.linalg.solve_triangular(chol, jnp.where(mask, r, 0.0), lower=True)
         k = jnp.sum(mask)
         return -0.5 * jnp.sum(z**2) - jnp.sum(jnp.log(jnp.abs(jnp.diag(chol)))) - 0.5 * k * _LOG_2PI
@@ -209,7 +194,7 @@ class StudentT(AbstractNoise):
         return jnp.diag(jnp.broadcast_to(s, (self.dim,)))
 
     def _whitened(self, r, mask):
-        chol = _masked_cholesky(self._chol(r.dtype), mask)
+        chol = masked_cholesky(self._chol(r.dtype), mask)
         z = jax.scipy.linalg.solve_triangular(chol, jnp.where(mask, r, 0.0), lower=True)
         return z, chol
 
@@ -235,9 +220,7 @@ class StudentT(AbstractNoise):
         k = jnp.sum(mask).astype(r.dtype)
         nu = self.df.astype(r.dtype)
         w = (nu + k) / (nu + jnp.sum(z**2))
-        eye = jnp.eye(r.shape[-1], dtype=r.dtype)
-        s = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
-        return jnp.sqrt(w) * s * mask[:, None].astype(r.dtype)
+        return jnp.sqrt(w) * whitening_matrix(self._chol(r.dtype), mask)
 
     def check(self, name):
         """Scale and degrees of freedom must be positive."""

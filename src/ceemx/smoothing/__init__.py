@@ -1,5 +1,5 @@
-"""The smoothing step: MAP state trajectories."""
+"""The smoothing step: MAP state trajectories (paper Eq. 10)."""
 
-from .solver import RESULTS, LMSmoother, SmootherSolution, check_inputs, smooth
+from .solver import LMSmoother, SmootherSolution, check_inputs, smooth, smooth_batch
 
-__all__ = ["RESULTS", "LMSmoother", "SmootherSolution", "check_inputs", "smooth"]
+__all__ = ["LMSmoother", "SmootherSolution", "check_inputs", "smooth", "smooth_batch"]

@@ -10,13 +10,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .. import linalg
-from .._lm import RESULTS, levenberg_marquardt, marquardt_scale
+from .. import lib
 from ..data import Trajectories
+from ..lib.lm import levenberg_marquardt, marquardt_scale
+from ..lib.results import RESULTS, messages
+from ..lib.tree import trace_numbers
 from ..models.system import AbstractSystem
 from ..objective import linearize, nll_offset_single
 
-__all__ = ["RESULTS", "LMSmoother", "SmootherSolution", "smooth", "check_inputs"]
+__all__ = ["LMSmoother", "SmootherSolution", "check_inputs", "smooth", "smooth_batch"]
 
 
 class LMSmoother(eqx.Module):
@@ -63,7 +65,7 @@ class SmootherSolution(eqx.Module):
     states: Float[Array, "B T n"]
     objective: Float[Array, " B"]
     iterations: Int[Array, " B"]
-    status: Int[Array, " B"]
+    status: RESULTS
     covariances: Float[Array, "B T n n"] | None = None
     cross_covariances: Float[Array, "B T-1 n n"] | None = None
 
@@ -74,7 +76,7 @@ class SmootherSolution(eqx.Module):
 
     def messages(self) -> list[str]:
         """One status message per trajectory (host-side)."""
-        return [RESULTS(int(s)).message for s in np.asarray(self.status)]
+        return messages(self.status)
 
 
 def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
@@ -95,11 +97,11 @@ def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
     def solve(lin, lam):
         h = lin.hess_x
         d = jnp.diagonal(h.diagonal, axis1=-2, axis2=-1)
-        L = linalg.cholesky(linalg.add_to_diagonal(h, marquardt_scale(d, lam) + 2.0 * rho))
-        return -linalg.solve(L, lin.grad_x), linalg.is_finite(L)
+        L = lib.cholesky(lib.add_to_diagonal(h, marquardt_scale(d, lam) + 2.0 * rho))
+        return -lib.solve(L, lin.grad_x), lib.is_finite(L)
 
     def quad(lin, delta):
-        return jnp.sum(delta * linalg.matvec(lin.hess_x, delta)) + 2.0 * rho * jnp.sum(delta**2)
+        return jnp.sum(delta * lib.matvec(lin.hess_x, delta)) + 2.0 * rho * jnp.sum(delta**2)
 
     out = levenberg_marquardt(
         evaluate,
@@ -116,13 +118,14 @@ def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
 
 
 @eqx.filter_jit
-def _smooth_batch(solver, system, x_init, data, covariance: bool):
+def smooth_batch(solver: LMSmoother, system, x_init, data, covariance: bool) -> SmootherSolution:
+    """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced)."""
     x, value, steps, status, hess = jax.vmap(_smooth_one, in_axes=(None, None, 0, 0, 0, 0))(
         solver, system, x_init, data.y, data.u, data.mask
     )
     cov = cross = None
     if covariance:
-        sel = jax.vmap(lambda h: linalg.selected_inverse(linalg.cholesky(h)))(hess)
+        sel = jax.vmap(lambda h: lib.selected_inverse(lib.cholesky(h)))(hess)
         cov, cross = sel.diagonal, sel.lower
     if solver.throw:
         x = eqx.error_if(
@@ -192,8 +195,11 @@ def smooth(
     Raises:
         ValueError: on mismatched shapes, non-finite ``x_init`` or invalid noise parameters.
 
-    Trajectories are processed with ``vmap``; compiled once per shape and solver configuration.
+    Trajectories are processed with ``vmap``; compiled once per shape and solver type: the
+    solver's numbers (``rho_x``, ``rtol``, ``atol``, ``damping``) are traced, so changing them does
+    not recompile.
     """
     solver = LMSmoother() if solver is None else solver
     check_inputs(system, data, x_init)
-    return _smooth_batch(solver, system, jnp.asarray(x_init), data, covariance)
+    x_init = jnp.asarray(x_init)
+    return smooth_batch(trace_numbers(solver, x_init.dtype), system, x_init, data, covariance)

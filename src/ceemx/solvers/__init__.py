@@ -1,0 +1,14 @@
+"""Fit solvers: each an ``eqx.Module`` with ``init / step / terminate / postprocess``.
+
+- :class:`Alternating` — the paper's Algorithm 1 (smoothing step, learning step).
+- :class:`JointLM` — Levenberg–Marquardt on (x, θ) through the Schur complement.
+
+To add one, subclass :class:`AbstractFitSolver` (see :mod:`ceemx.solvers.base` and
+``docs/design.md``); :func:`ceemx.fit` runs it with history, callbacks and checkpoints.
+"""
+
+from .alternating import Alternating
+from .base import AbstractFitSolver, FitState
+from .joint import JointLM
+
+__all__ = ["AbstractFitSolver", "Alternating", "FitState", "JointLM"]

@@ -1,0 +1,111 @@
+"""Algorithm 1 of the paper: alternate a smoothing step (Eq. 10) and a learning step (Eq. 11)."""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ..learning import learners as _learners
+from ..learning import step as learning_step
+from ..learning.problem import learning_problem
+from ..lib.results import RESULTS, codes, select
+from ..problem import FitProblem
+from ..smoothing import solver as smoothing_solver
+from .base import AbstractFitSolver, FitState, trajectory_log_likelihood
+
+__all__ = ["Alternating"]
+
+
+class Alternating(AbstractFitSolver):
+    """CE-EM by block coordinate ascent (paper Algorithm 1).
+
+    Each epoch smooths every trajectory at the current θ (``smoother``, Eq. 10, with its trust
+    region ρ_x), then learns θ on the smoothed states (``learner``, Eq. 11, with the trust region
+    ``rho_theta`` and the problem's log-prior). Trajectories whose smoothing fails (non-finite
+    objective) are excluded from learning and reported. Stops when J improves by at most
+    ``rtol·|J + c| + atol`` in an epoch (c: the noise models' normalising constants).
+
+    Attributes:
+        smoother: the smoothing-step solver (:class:`ceemx.LMSmoother`).
+        learner: the learning-step optimiser (:class:`ceemx.LMLearner`, L-BFGS, Optax, Nelder–Mead).
+        rho_theta: ρ_θ ≥ 0 of Eq. 11.
+        rtol, atol: stopping rule on the improvement of J per epoch.
+    """
+
+    smoother: smoothing_solver.LMSmoother = eqx.field(default_factory=smoothing_solver.LMSmoother)
+    learner: _learners.AbstractLearner = eqx.field(default_factory=_learners.LMLearner)
+    rho_theta: float = 0.0
+    rtol: float = 1e-10
+    atol: float = 0.0
+
+    history_keys = {
+        "smooth_time": "seconds in the smoothing step",
+        "learn_time": "seconds in the learning step",
+        "smoother_steps": "most LM iterations any trajectory took in the smoothing step",
+        "learner_steps": "iterations of the learner",
+        "learner_status": "the learner's RESULTS code",
+    }
+
+    def __check_init__(self):
+        if not isinstance(self.smoother, smoothing_solver.LMSmoother):
+            raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {self.smoother!r}.")
+        if not isinstance(self.learner, _learners.AbstractLearner):
+            raise TypeError(f"`learner` must be a ceemx learner; got {self.learner!r}.")
+        if not np.all(np.asarray(self.rho_theta) >= 0):
+            raise ValueError(f"`rho_theta` must be >= 0; got {self.rho_theta}.")
+
+    def init(self, problem: FitProblem, theta, states, key) -> FitState:
+        """θ, x as given; all trajectories take part; the learner's state from ``key``."""
+        B = states.shape[0]
+        return FitState(
+            theta=theta,
+            states=states,
+            J=trajectory_log_likelihood(problem, theta, states),
+            weights=jnp.ones((B,), states.dtype),
+            status=select(jnp.zeros((B,), bool), RESULTS.nonfinite, RESULTS.successful),
+            solver_state=self.learner.init(theta, key),
+        )
+
+    def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict]:
+        """One smoothing step and one learning step."""
+        t0 = time.perf_counter()
+        system = problem.build(state.theta)
+        sol = smoothing_solver.smooth_batch(self.smoother, system, state.states, problem.data, False)
+        sol.states.block_until_ready()
+        t_smooth = time.perf_counter() - t0
+        failed = np.asarray(sol.status == RESULTS.nonfinite)
+        if failed.any():
+            warnings.warn(
+                f"smoothing failed (non-finite objective) on trajectories "
+                f"{np.flatnonzero(failed).tolist()}; they are excluded from learning.",
+                stacklevel=4,
+            )
+        weights = jnp.asarray(np.where(failed, 0.0, 1.0), state.states.dtype)
+
+        t0 = time.perf_counter()
+        lp = learning_problem(problem, state.theta, sol.states, weights, self.rho_theta)
+        theta, learner_state, info = learning_step.run_learner(
+            self.learner, lp, state.theta, state.solver_state
+        )
+        theta.block_until_ready()
+        t_learn = time.perf_counter() - t0
+        new = FitState(
+            theta=theta,
+            states=sol.states,
+            J=trajectory_log_likelihood(problem, theta, sol.states),
+            weights=weights,
+            status=sol.status,
+            solver_state=learner_state,
+        )
+        record = {
+            "smooth_time": t_smooth,
+            "learn_time": t_learn,
+            "smoother_steps": int(jnp.max(sol.iterations)),
+            "learner_steps": int(info.steps),
+            "learner_status": int(codes(info.status)),
+        }
+        return new, record

@@ -1,0 +1,134 @@
+"""The fit-solver interface: ``init / step / terminate / postprocess`` over a :class:`FitState`.
+
+A fit solver is an ``eqx.Module`` holding its options. The one host-side driver
+(:func:`ceemx.fit`) owns everything around it — validation, history, callbacks, progress,
+checkpoints, timing — and calls:
+
+- ``init(problem, theta, states, key) -> FitState`` once (skipped on resume);
+- ``step(problem, state) -> (state, record)`` once per epoch; ``record`` holds the solver's own
+  history entries (documented in its ``history_keys``);
+- ``terminate(problem, before, after, record) -> (stop, converged)`` after every epoch;
+- ``postprocess(problem, state) -> state`` once at the end.
+
+Heavy work inside ``step`` runs in ``eqx.filter_jit``-compiled functions whose arguments keep their
+shapes and dtypes across epochs, so an EM run compiles once. The driver converts the solver's
+Python floats to arrays (:func:`ceemx.lib.trace_numbers`) before ``init``: new tolerances or
+trust-region weights do not recompile either.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PyTree
+
+from ..lib.results import RESULTS
+from ..problem import FitProblem
+
+__all__ = [
+    "AbstractFitSolver",
+    "FitState",
+    "improvement_converged",
+    "total_J",
+    "trajectory_log_likelihood",
+]
+
+
+class FitState(eqx.Module):
+    """The iterate of a fit solver (what checkpoints hold, plus a transient cache).
+
+    Attributes:
+        theta: flat vector of the trainable parameters.
+        states: (B, T, n) state trajectories.
+        J: (B,) J_b(x_b, θ) (Eq. 9) of each trajectory at (``states``, ``theta``).
+        weights: (B,) 1 for trajectories taking part, 0 for excluded (failed) ones.
+        status: (B,) :class:`ceemx.RESULTS` per trajectory.
+        solver_state: the solver's own arrays that persist across epochs (checkpointed).
+        cache: recomputable data carried between epochs (e.g. a linearisation); never
+            checkpointed — a solver must rebuild it when it is ``None``.
+    """
+
+    theta: Float[Array, " theta"]
+    states: Float[Array, "B T n"]
+    J: Float[Array, " B"]
+    weights: Float[Array, " B"]
+    status: RESULTS
+    solver_state: PyTree = None
+    cache: PyTree = None
+
+
+@eqx.filter_jit
+def trajectory_log_likelihood(problem: FitProblem, theta, states) -> Float[Array, " B"]:
+    """(B,) J_b(x_b, θ), compiled once per problem shape."""
+    return -problem.per_trajectory(theta, states)
+
+
+@eqx.filter_jit
+def _offset(problem: FitProblem, theta, weights):
+    return problem.offset(theta, weights)
+
+
+def total_J(state: FitState) -> float:
+    """Σ_b J_b over the trajectories taking part (host-side)."""
+    w = np.asarray(state.weights)
+    return float(np.sum(np.where(w > 0, np.asarray(state.J), 0.0)))
+
+
+def improvement_converged(
+    problem: FitProblem, before: FitState, after: FitState, rtol, atol
+) -> bool:
+    """Algorithm 1's rule, made relative: J improved by at most ``rtol·|J + c| + atol``.
+
+    c is the sum of the noise models' −log p at zero residual, so |J + c| is ½‖whitened
+    residuals‖² for Gaussian noise: the tolerance is measured against the fit, not against
+    normalising constants that can dwarf it.
+    """
+    J_before, J_after = total_J(before), total_J(after)
+    if not np.isfinite(J_after):
+        return False
+    scale = abs(J_after + float(_offset(problem, after.theta, after.weights)))
+    return bool(J_after - J_before <= float(rtol) * scale + float(atol))
+
+
+class AbstractFitSolver(eqx.Module):
+    """A method that maximises the CE-EM objective J(x, θ) epoch by epoch (see module docs).
+
+    Attributes:
+        rtol, atol: tolerances of the stopping rule (see each solver).
+    """
+
+    rtol: eqx.AbstractVar[float]
+    atol: eqx.AbstractVar[float]
+
+    #: The solver's own history entries: name → meaning (the driver adds ``epoch``, ``time``,
+    #: ``J``, ``J_before``, ``J_per_trajectory``, ``dtheta_norm``, ``dx_norm``,
+    #: ``failed_trajectories``, ``converged``, ``stop``).
+    history_keys: ClassVar[Mapping[str, str]] = {}
+
+    @abc.abstractmethod
+    def init(self, problem: FitProblem, theta: Array, states: Array, key: Array) -> FitState:
+        """The initial state at (θ, x)."""
+
+    @abc.abstractmethod
+    def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict[str, Any]]:
+        """One epoch; returns the new state and the solver's history entries (JSON-able)."""
+
+    def terminate(
+        self, problem: FitProblem, before: FitState, after: FitState, record: dict[str, Any]
+    ) -> tuple[bool, bool]:
+        """(stop, converged) after an epoch. Default: :func:`improvement_converged`."""
+        if not np.any(np.asarray(after.weights) > 0):
+            return True, False  # every trajectory failed: nothing left to fit
+        converged = improvement_converged(problem, before, after, self.rtol, self.atol)
+        return converged, converged
+
+    def postprocess(self, problem: FitProblem, state: FitState) -> FitState:
+        """The final state (default: unchanged)."""
+        return state
+

@@ -1,0 +1,261 @@
+"""Joint Levenberg–Marquardt on (x, θ) through the Schur complement (beyond the paper).
+
+The paper minimises −J(x, θ) by alternating blocks (Algorithm 1). Alternation is slow when x and θ
+are strongly coupled; a joint second-order step uses that coupling. Its normal equations are an
+arrowhead: per trajectory b a block-tridiagonal A_b = J_xᵀWJ_x, a shared dense D = Σ_b J_θᵀWJ_θ,
+and the border E_b = J_xᵀWJ_θ. :func:`ceemx.lib.arrowhead_solve` eliminates x through the Schur
+complement S = D − Σ_b E_bᵀA_b⁻¹E_b (P × P) in O(B T (n³ + n² P) + P³) — or matrix-free CG on S
+for P > ``dense_max_p`` — and recovers the x-step by block back-substitution.
+
+Each epoch is one accepted Levenberg–Marquardt step with Marquardt's per-variable damping (scale
+invariance across parameters of different magnitudes), accepted on actual vs predicted decrease.
+ρ_x and ρ_θ are proximal terms centred at the current iterate (they add 2ρ to the curvature of
+their block, as in Eq. 10–11); the log-prior is part of the objective. The linearisation at the
+accepted point is carried to the next epoch, so an epoch whose first trial is accepted costs one
+linearisation and one arrowhead solve.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from .. import lib
+from ..lib.blocktri import BlockTridiagonal
+from ..lib.lm import levenberg_marquardt, marquardt_scale
+from ..lib.results import RESULTS, codes, select
+from ..objective import linearize
+from ..problem import FitProblem
+from .base import AbstractFitSolver, FitState, improvement_converged, trajectory_log_likelihood
+
+__all__ = ["JointLM", "JointLinearization"]
+
+
+class JointLM(AbstractFitSolver):
+    """Levenberg–Marquardt on (x, θ) together, with the arrowhead Schur-complement solve.
+
+    On strongly coupled problems (coupled Lorenz) it reaches in a handful of iterations what
+    Algorithm 1 needs hundreds of epochs for. One epoch is one accepted LM step. Stops when J
+    improves by at most ``rtol·|J + c| + atol`` (Algorithm 1's rule), when the model predicts no
+    further decrease, or when no step is accepted within ``max_trials`` (reported by status).
+    Trajectories whose objective is not finite at the start take no part (status ``nonfinite``).
+
+    Attributes:
+        rho_x: proximal weight on the states (adds 2ρ_x to their curvature every iteration).
+        rho_theta: proximal weight on θ.
+        rtol, atol: stopping rule on the improvement of J (and the LM's predicted decrease).
+        damping: initial Marquardt λ.
+        max_trials: bound on rejected trials within one iteration.
+        linear_solver: ``"auto"`` (dense Schur complement when P ≤ ``dense_max_p``, otherwise
+            matrix-free preconditioned CG on S), ``"dense"`` or ``"cg"``.
+        dense_max_p: threshold of ``"auto"``.
+        cg_rtol: relative residual tolerance of CG.
+        cg_max_steps: CG iteration bound (``None``: P).
+    """
+
+    rho_x: float = 0.0
+    rho_theta: float = 0.0
+    rtol: float = 1e-10
+    atol: float = 0.0
+    damping: float = 1e-3
+    max_trials: int = eqx.field(default=30, static=True)
+    linear_solver: str = eqx.field(default="auto", static=True)
+    dense_max_p: int = eqx.field(default=5000, static=True)
+    cg_rtol: float = 1e-12
+    cg_max_steps: int | None = eqx.field(default=None, static=True)
+
+    history_keys = {
+        "trials": "LM trials in this iteration (accepted and rejected)",
+        "accepted": "whether a step was accepted",
+        "damping": "Marquardt λ after the iteration",
+        "lm_status": "the LM driver's RESULTS code for the iteration",
+    }
+
+    def __check_init__(self):
+        for name in ("rho_x", "rho_theta", "damping"):
+            if not np.all(np.asarray(getattr(self, name)) >= 0):
+                raise ValueError(f"`{name}` must be >= 0; got {getattr(self, name)}.")
+        if self.linear_solver not in ("auto", "dense", "cg"):
+            raise ValueError(
+                f"`linear_solver` must be 'auto', 'dense' or 'cg'; got {self.linear_solver!r}."
+            )
+
+    def init(self, problem: FitProblem, theta, states, key) -> FitState:
+        """θ, x as given; trajectories non-finite at the start are excluded (with a warning)."""
+        J = trajectory_log_likelihood(problem, theta, states)
+        ok = np.isfinite(np.asarray(J))
+        if not ok.all():
+            warnings.warn(
+                f"trajectories {np.flatnonzero(~ok).tolist()} have a non-finite objective at "
+                "the initial states; they are excluded from the joint fit.",
+                stacklevel=4,
+            )
+        return FitState(
+            theta=theta,
+            states=states,
+            J=J,
+            weights=jnp.asarray(ok, states.dtype),
+            status=select(jnp.asarray(ok), RESULTS.successful, RESULTS.nonfinite),
+            solver_state=jnp.asarray(self.damping, states.dtype),
+        )
+
+    def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict]:
+        """One accepted LM step on (x, θ) (or the trials that failed to find one)."""
+        current = state.cache
+        if current is None:
+            current = linearize_joint(problem, state.weights, state.theta, state.states)
+        theta, states, lam, code, n_acc, trials, current = _iteration(
+            self, problem, state.weights, state.theta, state.states, state.solver_state, current
+        )
+        accepted = int(n_acc) > 0
+        ok = state.weights > 0
+        run = RESULTS.successful if accepted else code
+        new = FitState(
+            theta=theta,
+            states=states,
+            J=jnp.where(ok, -current[1].nll, state.J),
+            weights=state.weights,
+            status=select(ok, run, RESULTS.nonfinite),
+            solver_state=lam,
+            cache=current,
+        )
+        record = {
+            "trials": int(trials),
+            "accepted": accepted,
+            "damping": float(lam),
+            "lm_status": int(codes(code)),
+        }
+        return new, record
+
+    def terminate(self, problem, before, after, record):
+        """Converged on Algorithm 1's rule or a negligible predicted decrease; stop if stuck."""
+        if not np.any(np.asarray(after.weights) > 0):
+            return True, False
+        lm_converged = record["lm_status"] == int(codes(RESULTS.successful))
+        if record["accepted"]:
+            converged = lm_converged or improvement_converged(
+                problem, before, after, self.rtol, self.atol
+            )
+            return converged, converged
+        # No accepted step: converged if the model predicted no decrease, else damping exhausted
+        # or non-finite trials — stop either way.
+        return True, lm_converged
+
+
+class JointLinearization(NamedTuple):
+    """The joint Gauss–Newton model at (x, θ), summed over the trajectories taking part."""
+
+    grad_x: Array  # (B, T, n)
+    grad_theta: Array  # (P,)
+    A: BlockTridiagonal  # x-blocks per trajectory
+    E: Array  # (B, T, n, P) border
+    D: Array  # (P, P)
+    nll: Array  # (B,) −J_b (normalising constants included)
+
+
+def _mask_tree(ok, tree):
+    return jax.tree_util.tree_map(
+        lambda a: jnp.where(ok.reshape(ok.shape + (1,) * (a.ndim - 1)), a, jnp.zeros_like(a)), tree
+    )
+
+
+def _evaluator(problem: FitProblem, weights, offset):
+    """``z = (x, θ) -> (value, JointLinearization)``; value = −J − offset − log p(θ)."""
+    data = problem.data
+    ok_b = weights > 0
+
+    def evaluate(z):
+        x, th = z
+        lin = jax.vmap(
+            lambda xb, y, u, m: linearize(problem.build, th, xb, y, u, m, wrt_theta=True)
+        )(x, data.y, data.u, data.mask)
+        eye_n = jnp.eye(x.shape[-1], dtype=x.dtype)
+        # Excluded trajectories get an identity x-block (their states stay put).
+        A = BlockTridiagonal(
+            jnp.where(ok_b[:, None, None, None], lin.hess_x.diagonal, eye_n),
+            _mask_tree(ok_b, lin.hess_x.lower),
+        )
+        prior, prior_grad, prior_hess = problem.prior_terms(th)
+        nll = jnp.where(ok_b, lin.value, 0.0)
+        value = jnp.sum(nll) - offset + prior
+        out = JointLinearization(
+            grad_x=_mask_tree(ok_b, lin.grad_x),
+            grad_theta=jnp.sum(_mask_tree(ok_b, lin.grad_theta), axis=0) + prior_grad,
+            A=A,
+            E=_mask_tree(ok_b, lin.E),
+            D=jnp.sum(_mask_tree(ok_b, lin.D), axis=0) + prior_hess,
+            nll=lin.value,
+        )
+        return value, out
+
+    return evaluate
+
+
+@eqx.filter_jit
+def linearize_joint(problem: FitProblem, weights, theta, states):
+    """(value, :class:`JointLinearization`) at (x, θ): seeds the first iteration."""
+    offset = problem.offset(theta, weights)
+    return _evaluator(problem, weights, offset)((states, theta))
+
+
+@eqx.filter_jit
+def _iteration(opts: JointLM, problem: FitProblem, weights, theta, states, lam, current):
+    """One accepted LM step on (x, θ) from the linearisation ``current`` at (x, θ).
+
+    Returns (θ, x, λ, status, accepted steps, trials, (value, linearisation) at the new point).
+    """
+    ok_b = weights > 0
+    dtype = states.dtype
+    rho_x = jnp.asarray(opts.rho_x, dtype)
+    rho_t = jnp.asarray(opts.rho_theta, dtype)
+    evaluate = _evaluator(problem, weights, problem.offset(theta, weights))
+
+    def grad_of(lin):
+        return (lin.grad_x, lin.grad_theta)
+
+    def solve(lin, lam):
+        dA = jnp.diagonal(lin.A.diagonal, axis1=-2, axis2=-1)
+        A_d = lib.add_to_diagonal(lin.A, marquardt_scale(dA, lam) + 2.0 * rho_x)
+        D_d = lin.D + jnp.diag(marquardt_scale(jnp.diagonal(lin.D), lam) + 2.0 * rho_t)
+        sol = lib.arrowhead_solve(
+            A_d,
+            lin.E,
+            D_d,
+            -lin.grad_x,
+            -lin.grad_theta,
+            method=opts.linear_solver,
+            dense_max_p=opts.dense_max_p,
+            cg_rtol=opts.cg_rtol,
+            cg_max_steps=opts.cg_max_steps,
+        )
+        dx = jnp.where(ok_b[:, None, None], sol.dx, 0.0)
+        return (dx, sol.dtheta), sol.ok
+
+    def quad(lin, delta):
+        dx, dth = delta
+        xAx = jnp.sum(dx * jax.vmap(lib.matvec)(lin.A, dx))
+        xEt = jnp.einsum("btn,btnp,p->", dx, lin.E, dth)
+        prox = rho_x * jnp.sum(dx**2) + rho_t * jnp.sum(dth**2)
+        return xAx + 2.0 * xEt + dth @ lin.D @ dth + 2.0 * prox
+
+    out = levenberg_marquardt(
+        evaluate,
+        grad_of,
+        solve,
+        quad,
+        (states, theta),
+        rtol=opts.rtol,
+        atol=0.0,
+        max_steps=opts.max_trials,
+        damping=lam,
+        max_accepted=1,
+        init=current,
+    )
+    x, th = out.z
+    return th, x, out.damping, out.status, out.accepted, out.steps, (out.value, out.lin)
