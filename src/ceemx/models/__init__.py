@@ -7,7 +7,14 @@ from .noise import (
     DiagonalGaussian,
     StudentT,
 )
-from .system import AbstractContinuousSystem, AbstractSystem, GaussianPrior, rk4_step
+from .system import (
+    AbstractContinuousSystem,
+    AbstractSystem,
+    GaussianPrior,
+    float_dtype,
+    rk4_step,
+    with_noise,
+)
 
 __all__ = [
     "AbstractContinuousSystem",
@@ -18,5 +25,7 @@ __all__ = [
     "DiagonalGaussian",
     "GaussianPrior",
     "StudentT",
+    "float_dtype",
     "rk4_step",
+    "with_noise",
 ]

@@ -3,14 +3,25 @@
 from __future__ import annotations
 
 import abc
+from typing import TypeVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import jax.tree_util as jtu
 from jaxtyping import Array, Float
 
-from .noise import AbstractNoise
+from .noise import AbstractNoise, as_noise
 
-__all__ = ["AbstractSystem", "AbstractContinuousSystem", "GaussianPrior", "rk4_step"]
+__all__ = [
+    "AbstractSystem",
+    "AbstractContinuousSystem",
+    "GaussianPrior",
+    "float_dtype",
+    "rk4_step",
+    "with_noise",
+]
+
+_S = TypeVar("_S", bound="AbstractSystem")
 
 
 class GaussianPrior(eqx.Module):
@@ -71,8 +82,52 @@ class AbstractSystem(eqx.Module):
             self.initial_prior.noise.check("system.initial_prior.noise")
 
 
+def float_dtype(tree) -> jnp.dtype:
+    """The dtype of the first floating-point array of ``tree`` (a system's working precision).
+
+    Noise models and initial-state priors are skipped (for a system: the dtype of its model
+    parameters θ). Falls back to JAX's default float dtype when there is no such array.
+    """
+    skip = lambda x: isinstance(x, AbstractNoise | GaussianPrior)  # noqa: E731
+    for leaf in jtu.tree_leaves(tree, is_leaf=skip):
+        if not skip(leaf) and eqx.is_inexact_array(leaf):
+            return leaf.dtype
+    return jnp.zeros(()).dtype
+
+
+def with_noise(
+    system: _S,
+    process_noise: AbstractNoise | float | Array | None = None,
+    obs_noise: AbstractNoise | float | Array | None = None,
+) -> _S:
+    """The same system with other noise models (the weights of the residuals in J, Eq. 9).
+
+    Args:
+        system: any system.
+        process_noise: the new p_w: a noise model, or a scale (scalar or length-n vector of
+            standard deviations) for ``DiagonalGaussian(scale, n)``; ``None`` keeps the current one.
+        obs_noise: the new p_v, likewise (length-m scales).
+
+    Returns:
+        A copy of ``system``; scales are cast to the system's floating-point dtype
+        (:func:`float_dtype`), noise models are used as given.
+    """
+    dtype = float_dtype(system)
+
+    def make(value, current, dim):
+        if value is None:
+            return current
+        if not isinstance(value, AbstractNoise):
+            value = jnp.asarray(value, dtype)
+        return as_noise(value, dim)
+
+    pn = make(process_noise, system.process_noise, system.state_dim)
+    on = make(obs_noise, system.obs_noise, system.obs_dim)
+    return eqx.tree_at(lambda s: (s.process_noise, s.obs_noise), system, (pn, on))
+
+
 def rk4_step(vector_field, x, u, t, dt):
-    """One classic fourth-order Runge–Kutta step of ẋ = F(x, u, t), u held constant over the step."""
+    """One classic fourth-order Runge–Kutta step of ẋ = F(x, u, t), u constant over the step."""
     k1 = vector_field(x, u, t)
     k2 = vector_field(x + 0.5 * dt * k1, u, t + 0.5 * dt)
     k3 = vector_field(x + 0.5 * dt * k2, u, t + 0.5 * dt)
@@ -92,6 +147,14 @@ class AbstractContinuousSystem(AbstractSystem):
     @abc.abstractmethod
     def vector_field(self, x: Float[Array, " n"], u: Float[Array, " p"], t: Array) -> Array:
         """F_θ(x, u, t), the continuous-time derivative of the state."""
+
+    def default_state_mean(self) -> Float[Array, " n"] | None:
+        """A typical state (n,), or ``None`` (the default) when the system has none.
+
+        :func:`ceemx.evaluate.dynamics_error` compares vector fields at states sampled around it
+        unless given a ``mean``.
+        """
+        return None
 
     def dynamics(self, x, u, t):
         """One RK4 step of length ``dt`` from time t·dt."""

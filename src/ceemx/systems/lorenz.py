@@ -19,7 +19,7 @@ __all__ = [
     "random_observation_matrix",
 ]
 
-#: Mean and standard deviation of the paper's initial-state distribution, per attractor (x₁, x₂, x₃).
+#: Mean and standard deviation of the paper's initial-state distribution per attractor (x₁, x₂, x₃).
 INITIAL_MEAN = (-6.0, -6.0, 24.0)
 INITIAL_STD = 2.5
 TRUE_PARAMS = (10.0, 28.0, 8.0 / 3.0)
@@ -114,6 +114,10 @@ class CoupledLorenz(AbstractContinuousSystem):
         """H with the own-attractor blocks zeroed."""
         return self.H * coupling_mask(self.K, self.H.dtype)
 
+    def default_state_mean(self) -> Array:
+        """The paper's initial-state mean, (−6, −6, 24) per attractor (§4.1)."""
+        return jnp.tile(jnp.asarray(INITIAL_MEAN, self.sigma.dtype), self.K)
+
     def vector_field(self, x, u, t):
         """Eq. 12."""
         z = x.reshape(self.K, 3)
@@ -134,7 +138,7 @@ class CoupledLorenz(AbstractContinuousSystem):
 
 
 def random_coupling(key: PRNGKeyArray, K: int, frobenius: float = 5.0, dtype=jnp.float64) -> Array:
-    """Standard-normal H with the own-attractor blocks zeroed, scaled to the given Frobenius norm."""
+    """Standard-normal H, own-attractor blocks zeroed, scaled to the given Frobenius norm."""
     H = jax.random.normal(key, (3 * K, 3 * K), dtype) * coupling_mask(K, dtype)
     if K == 1:
         return H
