@@ -1,4 +1,4 @@
-"""Tests for ceemx.evaluate: ε(θ) (paper Eq. 14), open-loop simulation RMSE and summary tables.
+"""Tests for ceemx.evaluate: ε(θ) (paper Eq. 14), open-loop simulation RMSE, mean (SE), callbacks.
 
 Oracles: a NumPy implementation of the coupled-Lorenz vector field (Eq. 12) evaluated at the same
 sampled states; exact zeros for identical systems and for noise-free data replayed from the true
@@ -112,6 +112,16 @@ class _Decay(AbstractContinuousSystem):
         return x
 
 
+def test_default_state_mean_is_a_system_hook():
+    np.testing.assert_array_equal(
+        np.asarray(lorenz(2).default_state_mean()), np.tile([-6.0, -6.0, 24.0], 2)
+    )
+    p32 = [jnp.full((1,), v, jnp.float32) for v in (10.0, 28.0, 2.5)]
+    s32 = CoupledLorenz(*p32, jnp.ones((1, 3), jnp.float32))
+    assert s32.default_state_mean().dtype == jnp.float32
+    assert _Decay(1.0).default_state_mean() is None
+
+
 def test_dynamics_error_generic_system_needs_mean():
     s1, s2 = _Decay(1.0), _Decay(2.0)
     with pytest.raises(ValueError, match="mean"):
@@ -153,22 +163,36 @@ def test_simulation_rmse_respects_mask():
     np.testing.assert_allclose(float(out.overall), 2.0 / np.sqrt(n_obs), rtol=1e-9)
 
 
-def test_mean_se_and_formatting():
+def test_mean_se():
     est = ev.mean_se([1.0, 2.0, 3.0, 4.0])
     assert est.mean == 2.5 and est.n == 4
     np.testing.assert_allclose(est.se, np.std([1, 2, 3, 4], ddof=1) / 2.0)
-    assert ev.format_estimate(est, 2.5) == "2.500 (0.645)"
-    assert ev.format_estimate(est, 10.0).endswith("†")
+    assert est.within(2.5) and not est.within(10.0)
     assert ev.mean_se([3.0]).se == 0.0
     with pytest.raises(ValueError):
         ev.mean_se([])
 
 
-def test_parameter_table():
-    table = ev.parameter_table(
-        {"a": {"σ": ([10.0, 10.1, 9.9], 10.0), "ρ": ([27.0, 27.1, 26.9], 28.0)}}, label="setting"
-    )
-    lines = table.splitlines()
-    assert lines[0] == "| setting | σ | ρ |"
-    assert "10.000 (0.058)" in lines[2] and "**27.000 (0.058)**†" in lines[2]
-    assert "not within 2 standard errors" in table
+def test_dynamics_error_callback():
+    true = lorenz(1)
+    est = eqx.tree_at(lambda s: s.sigma, true, jnp.array([11.0]))
+    printed = []
+    cb = ev.DynamicsErrorCallback(true, name="e", printer=lambda info, e: printed.append(e))
+    info = ceemx.EpochInfo(epoch=3, system=est, states=jnp.zeros((1, 2, 3)), record={"J": 0.0})
+    out = cb(info)
+    assert set(out) == {"e"} and isinstance(out["e"], float)
+    assert out["e"] == float(ev.dynamics_error(est, true)) == cb.error(est)
+    assert printed == [out["e"]]
+    # Options of dynamics_error pass through.
+    small = ev.DynamicsErrorCallback(true, num=8, std=1.0)
+    assert small.error(est) == float(ev.dynamics_error(est, true, num=8, std=1.0))
+
+
+def test_fit_timer_and_monotone():
+    timer = ev.FitTimer().start()
+    walls = [timer(None)["wall"] for _ in range(3)]
+    assert walls == sorted(walls) and len(timer.per_epoch()) == 3
+    np.testing.assert_allclose(sum(timer.per_epoch()), walls[-1])
+    assert ev.is_monotone(1.0, [{"J": 2.0}, {"J": 2.0}, {"J": 3.0}])
+    assert not ev.is_monotone(1.0, [{"J": 2.0}, {"J": 1.5}])
+    assert ev.is_monotone(1.0, [])

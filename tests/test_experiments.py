@@ -12,8 +12,9 @@ import sys
 import numpy as np
 import pytest
 
+import ceemx
 from ceemx import cli
-from ceemx.experiments import common, demo, figure3, get, table1
+from ceemx.experiments import common, figure3, get, table1
 
 
 def finite(values) -> bool:
@@ -28,18 +29,27 @@ def check_files(out, figure):
 
 
 def test_table1_smoke(tmp_path):
-    res = table1.run(smoke=True, out=tmp_path, verbose=False)
+    """``ceemx experiment table1 --smoke`` in-process."""
+    assert cli.main(["experiment", "table1", "--smoke", "--out", str(tmp_path)]) == 0
     saved = check_files(tmp_path, "table1.png")
-    assert set(res["results"]) == {"likelihood", "paper"}
+    assert saved["seeds"] == [0, 1]
+    assert set(saved["results"]) == {"likelihood", "paper"}
     for w in ("likelihood", "paper"):
-        for setting in res["results"][w].values():
+        for setting in saved["results"][w].values():
             assert len(setting["fits"]) == 2
             for f in setting["fits"]:
                 assert finite([f["sigma"], f["rho"], f["beta"], f["J"]])
                 assert 1 <= f["epochs"] <= 3
                 assert f["monotone"]
     assert "10.011 (0.012)" in saved["table"]  # the paper's numbers beside ours
+    assert saved["paper"]["0.1/0.01"]["beta"] == {"mean": 2.676, "se": 0.004, "flagged": True}
     assert "σ ours" in (tmp_path / "table.md").read_text()
+
+
+def test_table1_paper_cells():
+    assert table1.paper_cell((0.001, 0.01), 0) == "10.011 (0.012)"
+    assert table1.paper_cell((0.1, 0.01), 2) == "**2.676 (0.004)**†"  # flagged by the paper
+    assert table1.paper_cell((0.5, 0.5), 1) == "–"
 
 
 def test_table1_weightings():
@@ -69,24 +79,47 @@ def test_figure3_setup():
     assert type(figure3.make_learner("lbfgs")).__name__ == "LBFGSLearner"
 
 
-def test_demo_smoke(tmp_path):
-    res = demo.run(smoke=True, out=tmp_path, verbose=False)
-    check_files(tmp_path, "demo.png")
-    assert finite(res["eps"]) and res["eps"][-1] < res["eps"][0]
-    assert finite(res["learned"]["sigma"])
+def test_seeds_one_meaning_everywhere():
+    assert common.parse_seeds("3") == 3
+    assert common.parse_seeds("42,44") == (42, 44)
+    assert common.parse_seeds("42,") == (42,)
+    with pytest.raises(ValueError):
+        common.parse_seeds("-1")
+    # N = the first N of the experiment's sequence; lists and strings as given.
+    assert common.seed_list(None, first=0, default=2) == [0, 1]
+    assert common.seed_list(3, first=42, default=4) == [42, 43, 44]
+    assert common.seed_list("2", first=42, default=4) == [42, 43]
+    assert common.seed_list("42,44", first=0, default=4) == [42, 44]
+    assert common.seed_list([5, 1], first=0, default=4) == [5, 1]
 
 
-def test_cli_demo_smoke(tmp_path):
+def test_make_solver():
+    joint = common.make_solver("joint", rho_x=0.5, rtol=1e-6)
+    assert isinstance(joint, ceemx.JointLM) and (joint.rho_x, joint.rtol) == (0.5, 1e-6)
+    alt = common.make_solver("alternate", rho_x=0.5, learner=ceemx.LBFGSLearner(), rtol=0.0)
+    assert isinstance(alt, ceemx.Alternating)
+    assert alt.smoother.rho_x == 0.5 and alt.rtol == 0.0
+    assert isinstance(alt.learner, ceemx.LBFGSLearner)
+    assert isinstance(common.make_solver("alternate").learner, ceemx.LMLearner)
+    with pytest.raises(ValueError):
+        common.make_solver("other")
+
+
+def test_cli_demo_smoke(tmp_path, capsys):
+    """``ceemx demo --smoke`` in-process (the demo's only smoke run; the slowest test here)."""
     out = tmp_path / "demo"
+    assert cli.main(["demo", "--smoke", "--out", str(out)]) == 0
+    assert "ε(θ)" in capsys.readouterr().out
+    saved = check_files(out, "demo.png")
+    assert finite(saved["eps"]) and saved["eps"][-1] < saved["eps"][0]
+    assert finite(saved["learned"]["sigma"])
+
+
+def test_python_m_ceemx():
     proc = subprocess.run(
-        [sys.executable, "-m", "ceemx", "demo", "--smoke", "--out", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=300,
+        [sys.executable, "-m", "ceemx", "--version"], capture_output=True, text=True, timeout=120
     )
-    assert proc.returncode == 0, proc.stderr
-    assert "ε(θ)" in proc.stdout
-    check_files(out, "demo.png")
+    assert proc.returncode == 0 and proc.stdout.startswith("ceemx "), proc.stderr
 
 
 def test_cli_parser_and_version(capsys):
@@ -96,7 +129,7 @@ def test_cli_parser_and_version(capsys):
             "figure3",
             "--smoke",
             "--seeds",
-            "2",
+            "43,45",
             "--method",
             "alternate",
             "--max-epochs",
@@ -106,10 +139,13 @@ def test_cli_parser_and_version(capsys):
     assert (args.name, args.smoke, args.seeds, args.method, args.max_epochs) == (
         "figure3",
         True,
-        2,
+        (43, 45),
         "alternate",
         5,
     )
+    assert cli.build_parser().parse_args(["experiment", "table1", "--seeds", "3"]).seeds == 3
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["experiment", "table1", "--seeds", "x"])
     with pytest.raises(SystemExit) as exc:
         cli.main(["--version"])
     assert exc.value.code == 0
@@ -119,7 +155,7 @@ def test_cli_parser_and_version(capsys):
         get("nope")
 
 
-def test_perturb_and_monotone():
+def test_perturb_lorenz():
     import jax
 
     true = common.true_lorenz(2)
@@ -129,5 +165,5 @@ def test_perturb_and_monotone():
         assert np.all(np.abs(a - b) <= 0.1 * np.abs(b) + 1e-15)
         assert not np.allclose(a, b)
     np.testing.assert_array_equal(np.asarray(guess.C), np.asarray(true.C))  # C stays known
-    assert common.is_monotone(1.0, [{"J": 2.0}, {"J": 2.0}, {"J": 3.0}])
-    assert not common.is_monotone(1.0, [{"J": 2.0}, {"J": 1.5}])
+    no_h = common.perturb_lorenz(jax.random.PRNGKey(0), true, coupling=False)
+    np.testing.assert_array_equal(np.asarray(no_h.H), np.asarray(true.H))

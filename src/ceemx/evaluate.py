@@ -1,37 +1,38 @@
-"""Evaluation of identified models: ε(θ) (paper Eq. 14), open-loop simulation RMSE, summary tables.
+"""Metrics of identified models: ε(θ) (paper Eq. 14), open-loop simulation RMSE, mean (SE).
 
 - :func:`dynamics_error` — the paper's ε(θ) as the authors computed it: the mean squared difference
   of the continuous-time vector fields of two systems at 1024 random states.
 - :func:`simulation_rmse` — noise-free open-loop rollouts compared with the observations.
-- :func:`mean_se`, :func:`format_estimate`, :func:`parameter_table`, :func:`markdown_table` —
-  mean (standard error) summaries over seeds, flagged like the paper's Table 1 when the mean is
-  not within two standard errors of the truth.
+- :func:`mean_se` — mean and standard error over seeds (an :class:`Estimate`).
+- Fit callbacks and checks: :class:`DynamicsErrorCallback` (ε(θ) every epoch),
+  :class:`FitTimer` (wall time every epoch), :func:`is_monotone` (J never decreased).
+
+Tables, files and figures are in :mod:`ceemx.report`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import NamedTuple
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, Float
 
 from .data import Trajectories, rollout_one
-from .models.system import AbstractContinuousSystem, AbstractSystem
+from .models.system import AbstractContinuousSystem, AbstractSystem, float_dtype
 
 __all__ = [
+    "DynamicsErrorCallback",
     "Estimate",
+    "FitTimer",
     "SimulationRMSE",
-    "default_state_mean",
     "dynamics_error",
-    "format_estimate",
-    "markdown_table",
+    "is_monotone",
     "mean_se",
-    "parameter_table",
     "simulation_rmse",
 ]
 
@@ -39,25 +40,6 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 # ε(θ), Eq. 14
 # --------------------------------------------------------------------------------------------
-
-
-def _float_dtype(system: AbstractSystem):
-    for leaf in jtu.tree_leaves(system):
-        if eqx.is_inexact_array(leaf):
-            return leaf.dtype
-    return jnp.zeros(()).dtype  # pragma: no cover - a system without float parameters
-
-
-def default_state_mean(system: AbstractSystem) -> Array | None:
-    """The paper's initial-state mean for systems that have one, else ``None``.
-
-    For :class:`ceemx.systems.CoupledLorenz` it is (−6, −6, 24) per attractor (paper §4.1).
-    """
-    from .systems.lorenz import INITIAL_MEAN, CoupledLorenz
-
-    if isinstance(system, CoupledLorenz):
-        return jnp.tile(jnp.asarray(INITIAL_MEAN, _float_dtype(system)), system.K)
-    return None
 
 
 @eqx.filter_jit
@@ -95,9 +77,9 @@ def dynamics_error(
         key: PRNG key of the state samples (default ``PRNGKey(4)``, fixed so that ε is comparable
             across epochs, runs and methods).
         num: number of sampled states (authors: 1024).
-        mean: (n,) mean of the sampled states; default: the system's paper initial-state mean
-            ((−6, −6, 24) per attractor for :class:`~ceemx.systems.CoupledLorenz`); required for
-            other systems.
+        mean: (n,) mean of the sampled states; default: ``true_system.default_state_mean()``
+            (for :class:`~ceemx.systems.CoupledLorenz` the paper's initial-state mean, (−6, −6, 24)
+            per attractor); required for systems without one.
         std: standard deviation of the sampled states (authors: 5).
 
     Returns:
@@ -110,13 +92,13 @@ def dynamics_error(
 
     """
     if mean is None:
-        mean = default_state_mean(true_system)
+        mean = true_system.default_state_mean()
         if mean is None:
             raise ValueError(
                 f"`mean` is required for {type(true_system).__name__} "
                 "(no default sampling distribution)."
             )
-    dtype = _float_dtype(true_system)
+    dtype = float_dtype(true_system)
     mean = jnp.asarray(mean, dtype)
     if mean.shape != (true_system.state_dim,):
         raise ValueError(f"`mean` must have shape ({true_system.state_dim},); got {mean.shape}.")
@@ -208,57 +190,89 @@ def mean_se(values) -> Estimate:
     return Estimate(float(np.mean(v)), se, int(v.size))
 
 
-def format_estimate(
-    est: Estimate, truth: float | None = None, *, digits: int = 3, k: float = 2.0
-) -> str:
-    """``"10.011 (0.012)"``; bold with a ``†`` when ``truth`` is given and is not within k SE."""
-    s = f"{est.mean:.{digits}f} ({est.se:.{digits}f})"
-    if truth is not None and not est.within(truth, k):
-        s = f"**{s}**†"
-    return s
+# --------------------------------------------------------------------------------------------
+# Monitoring a fit
+# --------------------------------------------------------------------------------------------
 
 
-def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
-    """A GitHub-flavoured Markdown table."""
-    lines = ["| " + " | ".join(str(h) for h in header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-    return "\n".join(lines) + "\n"
+class DynamicsErrorCallback:
+    """A fit callback recording ε(θ) (:func:`dynamics_error`) against a reference every epoch.
 
-
-def parameter_table(
-    rows: Mapping[str, Mapping[str, tuple[object, float]]],
-    *,
-    label: str = "setting",
-    digits: int = 3,
-    k: float = 2.0,
-) -> str:
-    """Markdown table of mean (SE) per row and parameter, flagging means not within k SE of truth.
+    ``fit(..., callbacks=[DynamicsErrorCallback(true_system)])`` adds ``"eps"`` to every epoch's
+    history record (``result.history_array("eps")``).
 
     Args:
-        rows: row label → {parameter name → (estimates over seeds, true value)}; every row must
-            name the same parameters.
-        label: header of the first column.
-        digits: decimals.
-        k: flagging threshold in standard errors (paper: 2).
+        true_system: the reference system.
+        name: the key of ε in the history records.
+        printer: optional ``printer(info, eps)``, called every epoch (e.g. to print progress).
+        **kwargs: options of :func:`dynamics_error` (``key``, ``num``, ``mean``, ``std``).
+    """
+
+    def __init__(
+        self,
+        true_system: AbstractContinuousSystem,
+        *,
+        name: str = "eps",
+        printer: Callable[[Any, float], None] | None = None,
+        **kwargs,
+    ):
+        self.true_system = true_system
+        self.name = name
+        self.printer = printer
+        self.kwargs = kwargs
+
+    def error(self, system: AbstractContinuousSystem) -> float:
+        """ε(θ) of ``system`` against the reference (e.g. of the initial guess)."""
+        return float(dynamics_error(system, self.true_system, **self.kwargs))
+
+    def __call__(self, info) -> dict[str, float]:
+        """ε(θ) of ``info.system`` (an epoch's :class:`ceemx.EpochInfo`) as ``{name: ε}``."""
+        eps = self.error(info.system)
+        if self.printer is not None:
+            self.printer(info, eps)
+        return {self.name: eps}
+
+
+class FitTimer:
+    """A fit callback recording the wall time at the end of every epoch (``wall`` in the history).
+
+    Call :meth:`start` just before ``fit``; :meth:`per_epoch` returns the epoch durations (the
+    first includes JIT compilation).
+    """
+
+    def __init__(self):
+        self.t0 = time.perf_counter()
+        self.stamps: list[float] = []
+
+    def start(self) -> FitTimer:
+        """Reset the clock."""
+        self.t0 = time.perf_counter()
+        self.stamps = []
+        return self
+
+    def __call__(self, info) -> dict[str, float]:
+        """Record the time; the returned dict is merged into the epoch's history record."""
+        now = time.perf_counter()
+        self.stamps.append(now)
+        return {"wall": now - self.t0}
+
+    def per_epoch(self) -> list[float]:
+        """Durations of the epochs so far."""
+        t = [self.t0, *self.stamps]
+        return [b - a for a, b in zip(t[:-1], t[1:], strict=False)]
+
+
+def is_monotone(initial_J: float, history: Sequence[dict], rtol: float = 1e-9) -> bool:
+    """Whether J never decreased over the epochs (up to ``rtol·|J|`` of float round-off).
+
+    Args:
+        initial_J: J before the first epoch (``FitResult.initial_J``).
+        history: the epochs' records, each with ``"J"`` (``FitResult.history``).
+        rtol: relative round-off allowance.
 
     Returns:
-        The table (a line "† not within k SE of the truth" is appended when any cell is flagged).
-
+        ``True`` when no epoch's J is below the previous one's.
     """
-    if not rows:
-        return ""
-    names = list(next(iter(rows.values())).keys())
-    body, flagged = [], False
-    for name, params in rows.items():
-        cells = [name]
-        for p in names:
-            values, truth = params[p]
-            est = mean_se(values)
-            flagged |= not est.within(truth, k)
-            cells.append(format_estimate(est, truth, digits=digits, k=k))
-        body.append(cells)
-    truths = ", ".join(f"{p} = {float(next(iter(rows.values()))[p][1]):.{digits}f}" for p in names)
-    out = markdown_table([label, *names], body) + f"\nTruth: {truths}.\n"
-    if flagged:
-        out += f"† mean not within {k:g} standard errors of the truth.\n"
-    return out
+    Js = [initial_J] + [h["J"] for h in history]
+    pairs = zip(Js[:-1], Js[1:], strict=True)
+    return all(b >= a - rtol * max(abs(a), abs(b), 1.0) for a, b in pairs)

@@ -1,22 +1,27 @@
-"""Shared pieces of the experiments: x64, seeded coupled-Lorenz problems, θ perturbation, output."""
+"""Shared wiring of the experiments: x64, seeds, methods, seeded coupled-Lorenz problems.
+
+The library parts they use live in :mod:`ceemx.initialize` (start guesses), :mod:`ceemx.evaluate`
+(metrics and fit callbacks) and :mod:`ceemx.report` (tables, files, figures).
+"""
 
 from __future__ import annotations
 
-import json
-import math
-import os
-import time
-from collections.abc import Callable, Sequence
-from pathlib import Path
-from typing import Any
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.tree_util as jtu
-import numpy as np
 
+from .. import (
+    AbstractFitSolver,
+    AbstractLearner,
+    Alternating,
+    JointLM,
+    LMLearner,
+    LMSmoother,
+)
 from ..data import Trajectories, simulate
+from ..initialize import perturb
 from ..models.noise import DiagonalGaussian
 from ..systems.lorenz import (
     TRUE_PARAMS,
@@ -27,29 +32,99 @@ from ..systems.lorenz import (
 )
 
 __all__ = [
+    "LORENZ_PARAMS",
+    "LORENZ_PARAMS_H",
+    "METHODS",
     "LorenzProblem",
     "enable_x64",
-    "fit_timer",
-    "is_monotone",
     "lorenz_problem",
-    "output_dir",
-    "perturb",
+    "make_solver",
+    "parse_seeds",
     "perturb_lorenz",
-    "plt",
-    "save_figure",
-    "save_json",
-    "save_text",
+    "seed_list",
     "true_lorenz",
-    "warm_start",
-    "with_noise",
 ]
 
 TRUE_SIGMA, TRUE_RHO, TRUE_BETA = TRUE_PARAMS
+METHODS = ("joint", "alternate")
 
 
 def enable_x64() -> None:
     """Turn on float64 (experiments and the CLI do this at start; the library never does)."""
     jax.config.update("jax_enable_x64", True)
+
+
+# --------------------------------------------------------------------------------------------
+# Seeds and methods
+# --------------------------------------------------------------------------------------------
+
+
+def parse_seeds(text: str) -> int | tuple[int, ...]:
+    """``--seeds`` of the command line: ``"N"`` → N (a count); ``"42,44"`` or ``"42,"`` → seeds.
+
+    Raises:
+        ValueError: when ``text`` is not a non-negative integer or a comma list of integers.
+    """
+    text = text.strip()
+    if "," in text:
+        return tuple(int(s) for s in text.split(",") if s.strip())
+    n = int(text)
+    if n < 0:
+        raise ValueError(f"the number of seeds must be >= 0; got {n}.")
+    return n
+
+
+def seed_list(seeds: int | str | Sequence[int] | None, *, first: int, default: int) -> list[int]:
+    """The seeds of an experiment, whose seed sequence is ``first, first + 1, …``.
+
+    Args:
+        seeds: ``None`` → the first ``default`` seeds of the sequence; an ``int`` N → the first N;
+            a ``str`` → parsed by :func:`parse_seeds`; a sequence → those seeds.
+        first: the first seed of the experiment's sequence (table1: 0; figure3: 42).
+        default: how many seeds by default.
+
+    Returns:
+        The seeds, in order.
+    """
+    if isinstance(seeds, str):
+        seeds = parse_seeds(seeds)
+    if seeds is None:
+        seeds = default
+    if isinstance(seeds, int):
+        return list(range(first, first + seeds))
+    return [int(s) for s in seeds]
+
+
+def make_solver(
+    method: str,
+    *,
+    rho_x: float = 0.0,
+    learner: AbstractLearner | None = None,
+    rtol: float = 1e-10,
+) -> AbstractFitSolver:
+    """The fit solver of an experiment's ``method``.
+
+    Args:
+        method: ``"alternate"`` → :class:`ceemx.Alternating` (paper Algorithm 1) with an
+            :class:`ceemx.LMSmoother` of trust-region weight ``rho_x`` and ``learner`` (default
+            :class:`ceemx.LMLearner`); ``"joint"`` → :class:`ceemx.JointLM` with proximal weight
+            ``rho_x`` on the states (``learner`` unused).
+        rho_x: ρ_x.
+        learner: the θ-step optimiser of Algorithm 1.
+        rtol: relative stopping tolerance on the improvement of J.
+
+    Returns:
+        The solver.
+
+    Raises:
+        ValueError: on an unknown method.
+    """
+    if method == "joint":
+        return JointLM(rho_x=rho_x, rtol=rtol)
+    if method == "alternate":
+        learner = LMLearner() if learner is None else learner
+        return Alternating(smoother=LMSmoother(rho_x=rho_x), learner=learner, rtol=rtol)
+    raise ValueError(f"unknown method {method!r}; use one of {', '.join(METHODS)}.")
 
 
 # --------------------------------------------------------------------------------------------
@@ -88,34 +163,6 @@ def true_lorenz(
         process_noise=process_noise,
         obs_noise=obs_noise,
     )
-
-
-def with_noise(system: CoupledLorenz, process_noise: float, obs_noise: float) -> CoupledLorenz:
-    """The same system with diagonal Gaussian noise of the given scales (the fit's weights)."""
-    dtype = system.sigma.dtype
-    pn = DiagonalGaussian(jnp.asarray(process_noise, dtype), system.state_dim)
-    on = DiagonalGaussian(jnp.asarray(obs_noise, dtype), system.obs_dim)
-    return eqx.tree_at(lambda s: (s.process_noise, s.obs_noise), system, (pn, on))
-
-
-def perturb(key, tree, frac: float = 0.1, where: Callable | None = None):
-    """θ·(1 + U(−frac, frac)) elementwise on the floating-point leaves of ``tree``.
-
-    With ``where``, only on the sub-trees ``where(tree)`` returns, e.g.
-    ``lambda s: (s.sigma, s.rho, s.beta, s.H)``. Zeros stay zero (the authors' perturbation is
-    multiplicative).
-    """
-    target = tree if where is None else where(tree)
-    leaves, treedef = jtu.tree_flatten(target)
-    keys = jax.random.split(key, max(len(leaves), 1))
-    out = [
-        leaf * (1.0 + jax.random.uniform(k, leaf.shape, leaf.dtype, -frac, frac))
-        if eqx.is_inexact_array(leaf)
-        else leaf
-        for k, leaf in zip(keys, leaves, strict=False)
-    ]
-    new = jtu.tree_unflatten(treedef, out)
-    return new if where is None else eqx.tree_at(where, tree, new)
 
 
 LORENZ_PARAMS = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
@@ -163,128 +210,3 @@ def lorenz_problem(
     xs, data = simulate(true_system, k_sim, x1, T, process_noise=pn, obs_noise=on)
     init = perturb_lorenz(k_theta, true_system, coupling=coupling)
     return LorenzProblem(true_system, xs, data, x1, init)
-
-
-def warm_start(
-    system: CoupledLorenz, data: Trajectories, *, process_noise: float = 1.0
-) -> jax.Array:
-    """Start states without knowing the true ones.
-
-    :func:`ceemx.initialize.from_observations` (least squares through the observation map; the
-    directions it does not see are left at 0), then one smoothing pass of ``system`` at its current
-    θ with the process noise replaced by ``process_noise`` (weak dynamics weights), which fills in
-    the unobserved directions from the dynamics. Smoothing with stiff dynamics weights directly
-    from the least-squares states often converges to a wrong basin on chaotic systems.
-    """
-    from ..initialize import from_observations
-    from ..smoothing import smooth
-
-    x0 = from_observations(system, data)
-    soft = eqx.tree_at(
-        lambda s: s.process_noise,
-        system,
-        DiagonalGaussian(jnp.asarray(process_noise, x0.dtype), system.state_dim),
-    )
-    return smooth(soft, data, x0).states
-
-
-# --------------------------------------------------------------------------------------------
-# Monitoring
-# --------------------------------------------------------------------------------------------
-
-
-def is_monotone(initial_J: float, history: Sequence[dict], rtol: float = 1e-9) -> bool:
-    """Whether J never decreased over the epochs (up to ``rtol·|J|`` of float round-off)."""
-    Js = [initial_J] + [h["J"] for h in history]
-    pairs = zip(Js[:-1], Js[1:], strict=True)
-    return all(b >= a - rtol * max(abs(a), abs(b), 1.0) for a, b in pairs)
-
-
-class fit_timer:
-    """A fit callback recording the wall time at the end of every epoch (``wall`` in the history).
-
-    Call :meth:`start` just before ``fit``; ``per_epoch()`` returns the epoch durations (the first
-    includes JIT compilation).
-    """
-
-    def __init__(self):
-        self.t0 = time.perf_counter()
-        self.stamps: list[float] = []
-
-    def start(self) -> fit_timer:
-        """Reset the clock."""
-        self.t0 = time.perf_counter()
-        self.stamps = []
-        return self
-
-    def __call__(self, info) -> dict:
-        """Record the time; the returned dict is merged into the epoch's history record."""
-        now = time.perf_counter()
-        self.stamps.append(now)
-        return {"wall": now - self.t0}
-
-    def per_epoch(self) -> list[float]:
-        """Durations of the epochs so far."""
-        t = [self.t0, *self.stamps]
-        return [b - a for a, b in zip(t[:-1], t[1:], strict=False)]
-
-
-# --------------------------------------------------------------------------------------------
-# Output
-# --------------------------------------------------------------------------------------------
-
-
-def output_dir(out: str | os.PathLike | None, default: str) -> Path:
-    """The output folder (created)."""
-    path = Path(default if out is None else out)
-    path.mkdir(parents=True, exist_ok=True)
-    return path
-
-
-def _jsonable(obj: Any):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray | jax.Array):
-        return _jsonable(np.asarray(obj).tolist())
-    if isinstance(obj, np.floating | float):
-        f = float(obj)
-        return f if math.isfinite(f) else str(f)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
-
-
-def save_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON (arrays become lists; non-finite floats become strings)."""
-    path = Path(path)
-    path.write_text(json.dumps(_jsonable(obj), indent=2) + "\n")
-    return path
-
-
-def save_text(path: str | os.PathLike, text: str) -> Path:
-    """Write a text file (Markdown tables)."""
-    path = Path(path)
-    path.write_text(text)
-    return path
-
-
-def plt():
-    """``matplotlib.pyplot`` with the non-interactive Agg backend."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as pyplot
-
-    return pyplot
-
-
-def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> Path:
-    """Save and close a figure."""
-    path = Path(path)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight")
-    plt().close(fig)
-    return path

@@ -4,8 +4,8 @@
    and observation matrix C, σ_v = 0.01, no process noise, T = 128, dt = 0.04).
 2. Guess θ = [σ_{1:6}, ρ_{1:6}, β_{1:6}, H] within ±10 % of the truth; states from the observations
    (least squares, then one smoothing pass with weak dynamics weights).
-3. Identify θ and the states by CE-EM (``fit(..., method="joint")``), printing ε(θ) (Eq. 14) per
-   iteration; print true vs initial vs learned parameters; save a figure.
+3. Identify θ and the states by CE-EM (``fit(..., solver=ceemx.JointLM())``), printing ε(θ)
+   (Eq. 14) per iteration; print true vs initial vs learned parameters; save a figure.
 """
 
 from __future__ import annotations
@@ -17,7 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import evaluate as ev
-from ..em import fit
+from .. import fit, report
+from ..initialize import warm_start
+from ..models import with_noise
 from . import common
 
 NAME = "demo"
@@ -64,7 +66,7 @@ def run(
     K, T = (2, 32) if smoke else (6, 128)
     B = (2 if smoke else 4) if B is None else B
     max_epochs = (3 if smoke else 30) if max_epochs is None else max_epochs
-    outdir = common.output_dir(out, "ceemx-demo")
+    outdir = report.output_dir(out, "ceemx-demo")
     say = print if verbose else (lambda *a, **k: None)
     t_start = time.perf_counter()
 
@@ -72,35 +74,34 @@ def run(
     problem = common.lorenz_problem(seed, true, B=B, T=T, sigma_w=0.0, sigma_v=0.01, coupling=True)
     # Fit with the observation noise σ_v = 0.01 and a small process noise (the data are
     # deterministic; a zero process noise has no density).
-    system = common.with_noise(problem.init_system, 0.01, 0.01)
+    system = with_noise(problem.init_system, 0.01, 0.01)
     say(
         f"{K} coupled Lorenz attractors: n = {true.state_dim}, m = {true.obs_dim}, B = {B}, "
         f"T = {T}, "
         f"{3 * K + (3 * K) ** 2} parameters (σ, ρ, β per attractor and H)"
     )
-    x_init = common.warm_start(system, problem.data)
-    eps0 = float(ev.dynamics_error(system, true))
-    rmse0 = float(jnp.sqrt(jnp.mean((x_init - problem.states) ** 2)))
-    say(f"start: ε(θ) = {eps0:.6g}, state RMSE {rmse0:.4g}")
+    x_init = warm_start(system, problem.data)
 
-    def report(info):
-        eps = float(ev.dynamics_error(info.system, true))
+    def show(info, eps):
         say(
             f"  iteration {info.epoch:3d}   ε(θ) = {eps:.6g}   J = {info.record['J']:.10g}",
             flush=True,
         )
-        return {"eps": eps}
 
-    timer = common.fit_timer().start()
+    record_eps = ev.DynamicsErrorCallback(true, printer=show)
+    eps0 = record_eps.error(system)
+    rmse0 = float(jnp.sqrt(jnp.mean((x_init - problem.states) ** 2)))
+    say(f"start: ε(θ) = {eps0:.6g}, state RMSE {rmse0:.4g}")
+
+    timer = ev.FitTimer().start()
     res = fit(
         system,
         problem.data,
         x_init,
-        method=method,
+        solver=common.make_solver(method, rtol=1e-10),
         trainable=common.LORENZ_PARAMS_H,
         max_epochs=max_epochs,
-        tol=1e-10,
-        callbacks=[report, timer],
+        callbacks=[record_eps, timer],
         progress=False,
     )
     fit_s = sum(timer.per_epoch())
@@ -125,7 +126,7 @@ def run(
         "β init",
         "β learned",
     ]
-    table = ev.markdown_table(header, parameter_rows(true, problem.init_system, learned))
+    table = report.markdown_table(header, parameter_rows(true, problem.init_system, learned))
     table += (
         f"\n‖H − H_true‖_F: initial {H0:.4g}, learned {H1:.4g} (‖H_true‖_F = "
         f"{float(jnp.linalg.norm(true.effective_coupling())):.4g}).\n"
@@ -135,7 +136,7 @@ def run(
     )
     say(table)
 
-    plt = common.plt()
+    plt = report.plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
     axes[0].semilogy(np.arange(len(eps)), eps, "o-")
     axes[0].set_xlabel("iteration")
@@ -158,7 +159,7 @@ def run(
     axes[1].set_xlabel("time [s]")
     axes[1].set_title("attractor 1, trajectory 1: true vs smoothed")
     axes[1].legend(fontsize=7, ncol=3)
-    common.save_figure(fig, outdir / "demo.png")
+    report.save_figure(fig, outdir / "demo.png")
 
     summary = {
         "experiment": NAME,
@@ -170,7 +171,7 @@ def run(
         "eps": eps,
         "epochs": res.epochs,
         "converged": bool(res.converged),
-        "monotone": common.is_monotone(res.initial_J, res.history),
+        "monotone": ev.is_monotone(res.initial_J, res.history),
         "H_error": {"initial": H0, "learned": H1},
         "state_rmse": state_rmse,
         "true": {p: np.asarray(getattr(true, p)) for p in ("sigma", "rho", "beta")},
@@ -182,8 +183,8 @@ def run(
         "wall_s": time.perf_counter() - t_start,
         "table": table,
     }
-    common.save_json(outdir / "results.json", summary)
-    common.save_text(outdir / "table.md", table)
+    report.save_json(outdir / "results.json", summary)
+    report.save_text(outdir / "table.md", table)
     say(
         f"wrote {outdir / 'demo.png'}, {outdir / 'table.md'}, {outdir / 'results.json'} "
         f"({summary['wall_s']:.1f} s in all)"

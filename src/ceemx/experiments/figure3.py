@@ -33,18 +33,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import LBFGSLearner, LMLearner, fit, report
 from .. import evaluate as ev
-from ..em import fit
-from ..learning import LBFGSLearner, LMLearner
-from ..smoothing import LMSmoother
+from ..models import with_noise
 from . import common
 
 NAME = "figure3"
 SIGMA_V = 0.01
-SEEDS = (42, 43, 44, 45)
+FIRST_SEED = 42  # seeds 42, 43, …; the paper's runs use 42–45
 BATCH_SIZES = (2, 4, 8)
-#: Per-epoch diagnostics kept in results.json.
-HISTORY_KEYS = ("J", "eps", "wall", "smooth_time", "learn_time", "learner_steps", "smoother_steps")
+#: Per-epoch diagnostics kept in results.json, besides the solver's own (its ``history_keys``).
+HISTORY_KEYS = ("J", "eps", "wall")
 REFERENCE = "authors' code: ε ≈ 102 → 6.4 after 184 epochs for B = 8 (20 min, 6.2 s per epoch)"
 
 
@@ -66,43 +65,39 @@ def make_learner(name: str):
     raise ValueError(f"unknown learner {name!r}; use 'lm' or 'lbfgs'.")
 
 
-def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, tol, verbose):
+def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, rtol, verbose):
     """One identification; returns a JSON-able record with ε per epoch and timings."""
     problem = common.lorenz_problem(
         seed, true, B=B, T=T, sigma_w=0.0, sigma_v=SIGMA_V, coupling=True
     )
     pn, on, rho_x = fit_setup(weighting)
-    system = common.with_noise(problem.init_system, pn, on)
+    system = with_noise(problem.init_system, pn, on)
     k_x = jax.random.fold_in(jax.random.PRNGKey(seed), 1)
     x_init = problem.states + jax.random.normal(k_x, problem.states.shape, problem.states.dtype)
-    eps0 = float(ev.dynamics_error(system, true))
-    timer = common.fit_timer()
 
-    def record_eps(info):
-        eps = float(ev.dynamics_error(info.system, true))
-        if verbose:
-            print(
-                f"  [B={B} seed={seed}] epoch {info.epoch:4d}  ε = {eps:.6g}  "
-                f"J = {info.record['J']:.8g}",
-                flush=True,
-            )
-        return {"eps": eps}
+    def show(info, eps):
+        print(
+            f"  [B={B} seed={seed}] epoch {info.epoch:4d}  ε = {eps:.6g}  "
+            f"J = {info.record['J']:.8g}",
+            flush=True,
+        )
 
-    timer.start()
+    record_eps = ev.DynamicsErrorCallback(true, printer=show if verbose else None)
+    eps0 = record_eps.error(system)
+    solver = common.make_solver(method, rho_x=rho_x, learner=make_learner(learner), rtol=rtol)
+    timer = ev.FitTimer().start()
     res = fit(
         system,
         problem.data,
         x_init,
-        method=method,
-        smoother=LMSmoother(rho_x=rho_x),
-        learner=make_learner(learner),
+        solver=solver,
         trainable=common.LORENZ_PARAMS_H,
         max_epochs=max_epochs,
-        tol=tol,
         callbacks=[record_eps, timer],
         progress=False,
     )
     times = timer.per_epoch()
+    keep = (*HISTORY_KEYS, *solver.history_keys)
     eps = [eps0] + [h["eps"] for h in res.history]
     H_err = float(jnp.linalg.norm(res.system.effective_coupling() - true.effective_coupling()))
     return {
@@ -112,7 +107,7 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, tol, ve
         "J": [res.initial_J] + [h["J"] for h in res.history],
         "epochs": res.epochs,
         "converged": bool(res.converged),
-        "monotone": common.is_monotone(res.initial_J, res.history),
+        "monotone": ev.is_monotone(res.initial_J, res.history),
         "first_epoch_s": times[0] if times else float("nan"),
         "per_epoch_s": float(np.mean(times[1:])) if len(times) > 1 else float("nan"),
         "total_s": float(sum(times)),
@@ -121,7 +116,7 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, tol, ve
         "rho": np.asarray(res.system.rho),
         "beta": np.asarray(res.system.beta),
         "status": res.messages(),
-        "history": [{k: h[k] for k in HISTORY_KEYS if k in h} for h in res.history],
+        "history": [{k: h[k] for k in keep if k in h} for h in res.history],
     }
 
 
@@ -158,15 +153,14 @@ def make_table(runs: Sequence[dict], header_note: str) -> str:
         per_B.append(
             [B, len(finals), f"{np.median(finals):.4g}", f"{min(finals):.4g}", f"{max(finals):.4g}"]
         )
-    summary = ev.markdown_table(["B", "seeds", "median ε final", "min", "max"], per_B)
-    return (
-        f"{header_note}\n\n{ev.markdown_table(header, rows)}\n{summary}\nReference — {REFERENCE}.\n"
-    )
+    summary = report.markdown_table(["B", "seeds", "median ε final", "min", "max"], per_B)
+    runs_table = report.markdown_table(header, rows)
+    return f"{header_note}\n\n{runs_table}\n{summary}\nReference — {REFERENCE}.\n"
 
 
 def plot(runs: Sequence[dict], path, title: str) -> None:
     """ε(θ) against epoch on a log scale: one colour per B, one line per seed (paper Figure 3)."""
-    plt = common.plt()
+    plt = report.plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     colours = dict(zip(BATCH_SIZES, ("tab:blue", "tab:orange", "tab:green"), strict=False))
     seen = set()
@@ -187,7 +181,7 @@ def plot(runs: Sequence[dict], path, title: str) -> None:
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
-    common.save_figure(fig, path)
+    report.save_figure(fig, path)
 
 
 def run(
@@ -202,14 +196,15 @@ def run(
     batch_sizes: Sequence[int] | None = None,
     K: int | None = None,
     T: int | None = None,
-    tol: float | None = None,
+    rtol: float | None = None,
     verbose: bool = True,
 ) -> dict:
     """Run the Figure 3 experiment; writes ``results.json``, ``table.md`` and ``figure3.png``.
 
     Args:
         smoke: a tiny run (B = 2, one seed, K = 2 attractors, T = 32, 3 epochs) for the tests.
-        seeds: number of seeds (42, 43, …) or a list of seeds (default 42–45).
+        seeds: N (the first N of the seeds 42, 43, …; default 4), a list of seeds, or a string
+            as ``--seeds`` takes (:func:`ceemx.experiments.common.parse_seeds`).
         out: output folder (default ``./results/figure3``).
         method: ``"joint"`` (default) or ``"alternate"`` (Algorithm 1).
         weighting: ``"paper"`` (default) or ``"likelihood"`` (``"both"`` runs both, in subfolders).
@@ -218,8 +213,9 @@ def run(
         batch_sizes: B values (default 2, 4, 8).
         K: number of attractors (default 6; smoke 2).
         T: time steps per trajectory (default 128; smoke 32).
-        tol: relative stopping tolerance on J (default: 1e-10 for the joint method; 0 for
-            alternation, which then runs all ``max_epochs`` epochs unless J stops improving).
+        rtol: relative stopping tolerance on the improvement of J (the solver's ``rtol``; default
+            1e-10 for the joint method, 0 for alternation, which then runs all ``max_epochs``
+            epochs unless J stops improving).
         verbose: print ε per epoch and the table.
 
     Returns:
@@ -228,7 +224,7 @@ def run(
     """
     common.enable_x64()
     if weighting == "both":
-        base = common.output_dir(out, "results/figure3")
+        base = report.output_dir(out, "results/figure3")
         kw = dict(
             smoke=smoke,
             seeds=seeds,
@@ -238,22 +234,19 @@ def run(
             batch_sizes=batch_sizes,
             K=K,
             T=T,
-            tol=tol,
+            rtol=rtol,
             verbose=verbose,
         )
         return {w: run(out=base / w, weighting=w, **kw) for w in ("paper", "likelihood")}
     method = "joint" if method is None else method
-    if tol is None:
-        tol = 1e-10 if method == "joint" else 0.0
-    if seeds is None:
-        seeds = SEEDS[:1] if smoke else SEEDS
-    elif isinstance(seeds, int):
-        seeds = tuple(range(42, 42 + seeds))
+    if rtol is None:
+        rtol = 1e-10 if method == "joint" else 0.0
+    seeds = common.seed_list(seeds, first=FIRST_SEED, default=1 if smoke else 4)
     batch_sizes = tuple(batch_sizes or ((2,) if smoke else BATCH_SIZES))
     K = (2 if smoke else 6) if K is None else K
     T = (32 if smoke else 128) if T is None else T
     max_epochs = (3 if smoke else 200) if max_epochs is None else max_epochs
-    outdir = common.output_dir(out, "results/figure3")
+    outdir = report.output_dir(out, "results/figure3")
     true = common.true_lorenz(K, key=jax.random.PRNGKey(4), obs_noise=SIGMA_V)
     t_start = time.perf_counter()
     runs = []
@@ -268,7 +261,7 @@ def run(
                 weighting=weighting,
                 learner=learner,
                 max_epochs=max_epochs,
-                tol=tol,
+                rtol=rtol,
                 verbose=verbose,
             )
             runs.append(r)
@@ -296,7 +289,8 @@ def run(
         "K": K,
         "T": T,
         "sigma_v": SIGMA_V,
-        "seeds": list(seeds),
+        "seeds": seeds,
+        "rtol": rtol,
         "batch_sizes": list(batch_sizes),
         "max_epochs": max_epochs,
         "runs": runs,
@@ -304,8 +298,8 @@ def run(
         "reference": REFERENCE,
         "table": table,
     }
-    common.save_json(outdir / "results.json", summary)
-    common.save_text(outdir / "table.md", table)
+    report.save_json(outdir / "results.json", summary)
+    report.save_text(outdir / "table.md", table)
     plot(
         runs, outdir / "figure3.png", f"{K} coupled Lorenz: ε(θ) per epoch ({method}, {weighting})"
     )

@@ -15,10 +15,9 @@ Weightings of the objective (the noise scales of the system being fitted):
 
 Start states: :func:`ceemx.initialize.from_observations` (least squares through C; the direction C
 does not see is left at 0) followed by one smoothing pass at the initial θ with weak, unit-scale
-dynamics weights (:func:`ceemx.experiments.common.warm_start`), which fills in the unobserved
-direction. (The authors started from zeros.) Without it, smoothing with the likelihood weights
-(dynamics 100× stiffer than the observations) from the min-norm states often lands in a wrong
-basin.
+dynamics weights (:func:`ceemx.initialize.warm_start`), which fills in the unobserved direction.
+(The authors started from zeros.) Without it, smoothing with the likelihood weights (dynamics 100×
+stiffer than the observations) from the min-norm states often lands in a wrong basin.
 
 ``method="alternate"`` is the paper's Algorithm 1; ``method="joint"`` minimises the same objective
 jointly in (x, θ). Alternation converges slowly here: J is very flat along a valley in which the
@@ -34,28 +33,41 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .. import evaluate as ev
-from ..em import fit
-from ..learning import LMLearner
-from ..smoothing import LMSmoother
+from .. import fit, report
+from ..initialize import warm_start
+from ..models import with_noise
 from . import common
 
 NAME = "table1"
 SETTINGS = ((0.001, 0.01), (0.01, 0.01), (0.1, 0.01), (0.001, 0.05), (0.001, 0.1))
 PARAMS = ("sigma", "rho", "beta")
 TRUTH = dict(zip(PARAMS, common.TRUE_PARAMS, strict=False))
-#: The paper's Table 1: mean (SE) of σ, ρ, β over 10 seeds; † = flagged (not within 2 SE).
+FIRST_SEED = 0
+
+
+class Reported(NamedTuple):
+    """A mean (SE) over seeds as a paper reports it, and whether it flags it (not within 2 SE)."""
+
+    mean: float
+    se: float
+    flagged: bool = False
+
+
+#: The paper's Table 1: mean (SE) of σ, ρ, β over 10 seeds per (σ_w, σ_v).
+PAPER_SEEDS = 10
 PAPER = {
-    (0.001, 0.01): ("10.011 (0.012)", "28.000 (0.001)", "2.667 (0.000)"),
-    (0.01, 0.01): ("10.017 (0.012)", "28.000 (0.001)", "2.668 (0.001)"),
-    (0.1, 0.01): ("10.064 (0.036)", "27.996 (0.013)", "2.676 (0.004)†"),
-    (0.001, 0.05): ("10.006 (0.016)", "27.998 (0.002)", "2.666 (0.001)"),
-    (0.001, 0.1): ("9.998 (0.022)", "27.995 (0.004)", "2.665 (0.001)"),
+    (0.001, 0.01): (Reported(10.011, 0.012), Reported(28.000, 0.001), Reported(2.667, 0.000)),
+    (0.01, 0.01): (Reported(10.017, 0.012), Reported(28.000, 0.001), Reported(2.668, 0.001)),
+    (0.1, 0.01): (Reported(10.064, 0.036), Reported(27.996, 0.013), Reported(2.676, 0.004, True)),
+    (0.001, 0.05): (Reported(10.006, 0.016), Reported(27.998, 0.002), Reported(2.666, 0.001)),
+    (0.001, 0.1): (Reported(9.998, 0.022), Reported(27.995, 0.004), Reported(2.665, 0.001)),
 }
 TRAINABLE = common.LORENZ_PARAMS
 SYMBOL = {"sigma": "σ", "rho": "ρ", "beta": "β"}
@@ -70,22 +82,28 @@ def fit_noise(weighting: str, sigma_w: float, sigma_v: float) -> tuple[float, fl
     raise ValueError(f"unknown weighting {weighting!r}; use 'likelihood' or 'paper'.")
 
 
-def fit_one(problem, weighting, sigma_w, sigma_v, *, method, max_epochs, tol, rho_x):
+def paper_cell(setting: tuple[float, float], i: int) -> str:
+    """The paper's mean (SE) of parameter ``PARAMS[i]`` at ``setting`` = (σ_w, σ_v), or "–"."""
+    reported = PAPER.get(setting)
+    if reported is None:
+        return "–"
+    r = reported[i]
+    return report.format_estimate(ev.Estimate(r.mean, r.se, PAPER_SEEDS), flagged=r.flagged)
+
+
+def fit_one(problem, weighting, sigma_w, sigma_v, *, method, max_epochs, rtol, rho_x):
     """One CE-EM identification; returns a JSON-able record."""
     pn, on = fit_noise(weighting, sigma_w, sigma_v)
-    system = common.with_noise(problem.init_system, pn, on)
-    x_init = common.warm_start(system, problem.data)
+    system = with_noise(problem.init_system, pn, on)
+    x_init = warm_start(system, problem.data)
     t0 = time.perf_counter()
     res = fit(
         system,
         problem.data,
         x_init,
-        method=method,
-        smoother=LMSmoother(rho_x=rho_x),
-        learner=LMLearner(),
+        solver=common.make_solver(method, rho_x=rho_x, rtol=rtol),
         trainable=TRAINABLE,
         max_epochs=max_epochs,
-        tol=tol,
         progress=False,
     )
     wall = time.perf_counter() - t0
@@ -97,19 +115,11 @@ def fit_one(problem, weighting, sigma_w, sigma_v, *, method, max_epochs, tol, rh
         "init": init,
         "epochs": res.epochs,
         "converged": bool(res.converged),
-        "monotone": common.is_monotone(res.initial_J, res.history),
+        "monotone": ev.is_monotone(res.initial_J, res.history),
         "J": res.history[-1]["J"] if res.history else res.initial_J,
         "state_rmse": float(jnp.sqrt(jnp.mean((res.states - problem.states) ** 2))),
         "wall_s": wall,
     }
-
-
-def _seed_list(seeds, default: int) -> list[int]:
-    if seeds is None:
-        return list(range(default))
-    if isinstance(seeds, int):
-        return list(range(seeds))
-    return [int(s) for s in seeds]
 
 
 def _weightings(weighting: str) -> list[str]:
@@ -127,7 +137,7 @@ def make_table(results: dict, weightings: Sequence[str]) -> str:
             cells = [f"{sw:g}", f"{sv:g}"]
             for i, p in enumerate(PARAMS):
                 est = ev.mean_se([f[p] for f in fits])
-                cells += [ev.format_estimate(est, TRUTH[p]), PAPER.get((sw, sv), ("–",) * 3)[i]]
+                cells += [report.format_estimate(est, TRUTH[p]), paper_cell((sw, sv), i)]
             cells.append(f"{np.mean([f['epochs'] for f in fits]):.1f}")
             cells.append(f"{sum(f['monotone'] for f in fits)}/{len(fits)}")
             rows.append(cells)
@@ -143,7 +153,7 @@ def make_table(results: dict, weightings: Sequence[str]) -> str:
             "epochs",
             "J monotone",
         ]
-        out.append(f"### weighting = {w}\n\n" + ev.markdown_table(header, rows))
+        out.append(f"### weighting = {w}\n\n" + report.markdown_table(header, rows))
     out.append(
         "Mean (standard error) over seeds; truth σ = 10, ρ = 28, β = 8/3 ≈ 2.667. "
         "† / bold: mean not within 2 standard errors of the truth (the paper marks these in red).\n"
@@ -153,7 +163,7 @@ def make_table(results: dict, weightings: Sequence[str]) -> str:
 
 def plot(results: dict, weightings: Sequence[str], path, method: str = "alternate") -> None:
     """Estimates (mean ± 2 SE and each seed) per setting against the truth, paper means beside."""
-    plt = common.plt()
+    plt = report.plt()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     colours = {"likelihood": "tab:blue", "paper": "tab:orange"}
     for i, p in enumerate(PARAMS):
@@ -175,11 +185,10 @@ def plot(results: dict, weightings: Sequence[str], path, method: str = "alternat
                 )
                 paper = PAPER.get((runs["sigma_w"], runs["sigma_v"]))
                 if paper is not None and j == 0:
-                    m, se = paper[i].rstrip("†").replace("(", "").replace(")", "").split()
                     ax.errorbar(
                         k + 0.4,
-                        float(m),
-                        yerr=2 * float(se),
+                        paper[i].mean,
+                        yerr=2 * paper[i].se,
                         fmt="s",
                         color="k",
                         capsize=3,
@@ -197,7 +206,7 @@ def plot(results: dict, weightings: Sequence[str], path, method: str = "alternat
         f"Table 1: single Lorenz, CE-EM ({method}); mean ± 2 SE over seeds "
         "(dots: seeds; y-range ±5 %)"
     )
-    common.save_figure(fig, path)
+    report.save_figure(fig, path)
 
 
 def run(
@@ -208,7 +217,7 @@ def run(
     weighting: str = "both",
     method: str | None = None,
     max_epochs: int | None = None,
-    tol: float = 1e-10,
+    rtol: float = 1e-10,
     rho_x: float = 0.0,
     settings: Sequence[tuple[float, float]] | None = None,
     verbose: bool = True,
@@ -217,12 +226,13 @@ def run(
 
     Args:
         smoke: a tiny run (2 seeds, 2 settings, 3 epochs) for the tests.
-        seeds: number of seeds (0, 1, …) or a list of seeds (default 10).
+        seeds: N (the first N of the seeds 0, 1, …; default 10), a list of seeds, or a string
+            as ``--seeds`` takes (:func:`ceemx.experiments.common.parse_seeds`).
         out: output folder (default ``./results/table1``).
         weighting: ``"likelihood"``, ``"paper"`` or ``"both"``.
         method: ``"alternate"`` (Algorithm 1, default) or ``"joint"``.
         max_epochs: epoch bound per fit (default 100; smoke 3).
-        tol: relative stopping tolerance on J.
+        rtol: relative stopping tolerance on the improvement of J (the solver's ``rtol``).
         rho_x: smoother trust-region weight ρ_x (authors ≈ 0).
         settings: (σ_w, σ_v) pairs (default: the paper's five).
         verbose: print progress and the table.
@@ -233,10 +243,10 @@ def run(
     """
     common.enable_x64()
     method = "alternate" if method is None else method
-    seeds = _seed_list(seeds, 2 if smoke else 10)
+    seeds = common.seed_list(seeds, first=FIRST_SEED, default=2 if smoke else 10)
     settings = [tuple(map(float, s)) for s in (settings or (SETTINGS[:2] if smoke else SETTINGS))]
     max_epochs = (3 if smoke else 100) if max_epochs is None else max_epochs
-    outdir = common.output_dir(out, "results/table1")
+    outdir = report.output_dir(out, "results/table1")
     weightings = _weightings(weighting)
     true = common.true_lorenz(1, key=jax.random.PRNGKey(4), coupling=False)
     t_start = time.perf_counter()
@@ -249,7 +259,7 @@ def run(
                     seed, true, B=1, T=128, sigma_w=sw, sigma_v=sv, coupling=False
                 )
                 rec = fit_one(
-                    problem, w, sw, sv, method=method, max_epochs=max_epochs, tol=tol, rho_x=rho_x
+                    problem, w, sw, sv, method=method, max_epochs=max_epochs, rtol=rtol, rho_x=rho_x
                 )
                 fits.append({"seed": seed, **rec})
                 if verbose:
@@ -272,17 +282,20 @@ def run(
         "method": method,
         "seeds": seeds,
         "max_epochs": max_epochs,
-        "tol": tol,
+        "rtol": rtol,
         "rho_x": rho_x,
         "truth": TRUTH,
         "C": np.asarray(true.C),
-        "paper": {f"{k[0]:g}/{k[1]:g}": v for k, v in PAPER.items()},
+        "paper": {
+            f"{sw:g}/{sv:g}": {p: r._asdict() for p, r in zip(PARAMS, v, strict=True)}
+            for (sw, sv), v in PAPER.items()
+        },
         "results": results,
         "wall_s": total,
         "table": table,
     }
-    common.save_json(outdir / "results.json", summary)
-    common.save_text(outdir / "table.md", table)
+    report.save_json(outdir / "results.json", summary)
+    report.save_text(outdir / "table.md", table)
     plot(results, weightings, outdir / "table1.png", method)
     if verbose:
         print(table)
