@@ -108,7 +108,8 @@ def main():
     for f in (ours, theirs):
         x, steps, flag = f(A, E, D, r)
         finite = bool(np.all(np.isfinite(x)))
-        print(f"  {f.__name__}: flagged failure = {bool(flag)}, finite = {finite}, steps {int(steps)}")
+        name = f.__name__
+        print(f"  {name}: flagged failure = {bool(flag)}, finite = {finite}, steps {int(steps)}")
 
 
 if __name__ == "__main__":
