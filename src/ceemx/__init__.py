@@ -8,9 +8,11 @@ user-facing layer — systems, data, the objective, smoothers, learners, fit sol
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import initialize, lib, systems
+from . import evaluate, initialize, lib, report, systems
 from .data import Trajectories, simulate
 from .driver import EpochInfo, FitResult, fit
+from .evaluate import DynamicsErrorCallback, FitTimer, is_monotone
+from .initialize import perturb, warm_start
 from .learning import (
     AbstractLearner,
     LBFGSLearner,
@@ -30,6 +32,7 @@ from .models import (
     DiagonalGaussian,
     GaussianPrior,
     StudentT,
+    with_noise,
 )
 from .objective import log_joint, whitened_residuals
 from .problem import FitProblem
@@ -52,10 +55,12 @@ __all__ = [
     "Alternating",
     "CholeskyGaussian",
     "DiagonalGaussian",
+    "DynamicsErrorCallback",
     "EpochInfo",
     "FitProblem",
     "FitResult",
     "FitState",
+    "FitTimer",
     "GaussianPrior",
     "JointLM",
     "LBFGSLearner",
@@ -67,13 +72,19 @@ __all__ = [
     "SmootherSolution",
     "StudentT",
     "Trajectories",
+    "evaluate",
     "fit",
     "initialize",
+    "is_monotone",
     "learn",
     "lib",
     "log_joint",
+    "perturb",
+    "report",
     "simulate",
     "smooth",
     "systems",
+    "warm_start",
     "whitened_residuals",
+    "with_noise",
 ]
