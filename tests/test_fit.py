@@ -35,6 +35,11 @@ START = TRUE * np.array([1.08, 0.93, 1.05])
 T, B = 64, 2
 
 
+# Jitted once per structure and shape: eager (op-by-op) evaluation costs seconds here.
+simulate = eqx.filter_jit(ceemx.simulate)
+log_joint = eqx.filter_jit(ceemx.log_joint)
+
+
 def where_theta(s):
     return (s.sigma, s.rho, s.beta)
 
@@ -88,7 +93,7 @@ def prob():
     C = random_observation_matrix(keys[0], 1, m=2)
     true = lorenz(TRUE, C)
     x1 = initial_states(keys[1], B, 1)
-    states, data = ceemx.simulate(
+    states, data = simulate(
         true, keys[2], x1, T, process_noise=ceemx.DiagonalGaussian(1e-3, 3)
     )
     x_init = states + 0.5 * jax.random.normal(keys[3], states.shape)
@@ -143,11 +148,11 @@ def test_fit_history_is_monotone_and_complete(prob, fitted):
     assert np.all(np.isfinite(J))
     assert np.all(np.diff(J) >= -1e-9 * np.abs(J[1:])), np.diff(J)
     assert J[0] >= fitted.initial_J
-    J0 = float(np.sum(ceemx.log_joint(prob.start, prob.x_init, prob.data)))
+    J0 = float(np.sum(log_joint(prob.start, prob.x_init, prob.data)))
     np.testing.assert_allclose(fitted.initial_J, J0, rtol=1e-12)
     # J of the last record is J at the returned (x, θ).
     np.testing.assert_allclose(
-        J[-1], float(np.sum(ceemx.log_joint(fitted.system, fitted.states, prob.data))), rtol=1e-12
+        J[-1], float(np.sum(log_joint(fitted.system, fitted.states, prob.data))), rtol=1e-12
     )
     assert fitted.history[-1]["converged"] and not any(h["converged"] for h in fitted.history[:-1])
     # dθ shrinks as EM converges.
@@ -200,7 +205,7 @@ def test_no_retrace_across_epochs_or_new_data(prob, traces):
     assert ("learn", ("LMLearner", (B, T, 3), "float64")) in traces
     # New data of the same shape, started from the result: no new trace.
     x1 = initial_states(prob.keys[4], B, 1)
-    states2, data2 = ceemx.simulate(prob.true, prob.keys[4], x1, T)
+    states2, data2 = simulate(prob.true, prob.keys[4], x1, T)
     res2 = ceemx.fit(res.system, data2, states2 + 0.1, trainable=where_theta, max_epochs=3)
     assert res2.epochs >= 1
     assert len(traces) == counts[0]
@@ -399,7 +404,7 @@ def test_from_observations_inverts_a_full_rank_observation():
     C = rng.standard_normal((n, n))
     system = LinearSystem(jnp.asarray(A), jnp.asarray(C), process_noise=0.1, obs_noise=0.2)
     x1 = jnp.asarray(rng.standard_normal((2, n)))
-    xs, data = ceemx.simulate(
+    xs, data = simulate(
         system, jax.random.PRNGKey(0), x1, 20, process_noise=True, obs_noise=False
     )
     x_exact = ceemx.initialize.from_observations(system, data, ridge=0.0)
@@ -410,7 +415,7 @@ def test_from_observations_inverts_a_full_rank_observation():
 
 
 def test_rollout_equals_noise_free_simulation(prob):
-    xs, data = ceemx.simulate(
+    xs, data = simulate(
         prob.true, jax.random.PRNGKey(1), prob.x1, T, process_noise=False, obs_noise=False
     )
     x = ceemx.initialize.rollout(prob.true, data, prob.x1)
@@ -423,7 +428,7 @@ def test_fit_without_initial_states(prob):
     x0 = ceemx.initialize.from_observations(prob.start, prob.data)
     assert res.epochs == 3
     np.testing.assert_allclose(
-        res.initial_J, float(np.sum(ceemx.log_joint(prob.start, x0, prob.data))), rtol=1e-12
+        res.initial_J, float(np.sum(log_joint(prob.start, x0, prob.data))), rtol=1e-12
     )
     J = res.history_array("J")
     assert np.all(np.isfinite(J)) and J[0] > res.initial_J
