@@ -124,7 +124,7 @@ def time_case(
 
 
 def time_case_isolated(T: int, B: int, K: int, steps: int, repeats: int, min_time: float) -> dict:
-    """:func:`time_case` in a fresh Python process (no allocator or cache state from earlier cases)."""
+    """:func:`time_case` in a fresh Python process (no allocator or cache state from before)."""
     cmd = [
         sys.executable,
         os.path.abspath(__file__),
@@ -156,7 +156,8 @@ def markdown_table(rows: list[dict]) -> str:
     for r in rows:
         lines.append(
             f"| {r['T']} | {r['B']} | {r['K']} | {r['n']} | {r['m']} | {r['compile_s']:.2f} "
-            f"| {r['steady_call_s']:.4f} | {1e3 * r['per_iter_s']:.2f} | {1e3 * r['per_iter_min_s']:.2f} "
+            f"| {r['steady_call_s']:.4f} | {1e3 * r['per_iter_s']:.2f} "
+            f"| {1e3 * r['per_iter_min_s']:.2f} "
             f"| {1e6 * r['per_iter_per_traj_step_s']:.2f} |"
         )
     return "\n".join(lines)
@@ -207,7 +208,8 @@ def main(argv=None) -> dict:
     print(
         f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPUs; "
         f"{args.steps} LM iterations per call, median of ≥{repeats} steady-state call(s) "
-        f"(≥{min_time:g} s per case), {'one process' if args.no_isolate else 'a fresh process per case'}; "
+        f"(≥{min_time:g} s per case), "
+        f"{'one process' if args.no_isolate else 'a fresh process per case'}; "
         f"1-min load average {os.getloadavg()[0]:.2f}\n"
     )
     for var in ("T", "B", "K"):

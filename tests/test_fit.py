@@ -93,9 +93,7 @@ def prob():
     C = random_observation_matrix(keys[0], 1, m=2)
     true = lorenz(TRUE, C)
     x1 = initial_states(keys[1], B, 1)
-    states, data = simulate(
-        true, keys[2], x1, T, process_noise=ceemx.DiagonalGaussian(1e-3, 3)
-    )
+    states, data = simulate(true, keys[2], x1, T, process_noise=ceemx.DiagonalGaussian(1e-3, 3))
     x_init = states + 0.5 * jax.random.normal(keys[3], states.shape)
     return types.SimpleNamespace(
         C=C, true=true, start=lorenz(START, C), states=states, data=data, x_init=x_init, x1=x1,
@@ -240,7 +238,7 @@ def test_callbacks_merge_records_and_stop(prob):
     assert res.epochs == 3
     assert not res.converged
     assert [e for e, _ in seen] == [1, 2, 3]
-    for (epoch, th), rec in zip(seen, res.history):
+    for (epoch, th), rec in zip(seen, res.history, strict=True):
         assert rec["epoch_sq"] == epoch**2
         assert rec["eps"] == float(np.max(np.abs(th / TRUE - 1)))
     assert res.history[-1]["stop"] and not res.history[0]["stop"]
@@ -404,9 +402,7 @@ def test_from_observations_inverts_a_full_rank_observation():
     C = rng.standard_normal((n, n))
     system = LinearSystem(jnp.asarray(A), jnp.asarray(C), process_noise=0.1, obs_noise=0.2)
     x1 = jnp.asarray(rng.standard_normal((2, n)))
-    xs, data = simulate(
-        system, jax.random.PRNGKey(0), x1, 20, process_noise=True, obs_noise=False
-    )
+    xs, data = simulate(system, jax.random.PRNGKey(0), x1, 20, process_noise=True, obs_noise=False)
     x_exact = ceemx.initialize.from_observations(system, data, ridge=0.0)
     np.testing.assert_allclose(x_exact, xs, rtol=1e-10, atol=1e-10)
     # The default ridge is tiny: still very close.

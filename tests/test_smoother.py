@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import ceemx
+from ceemx.lib.results import codes
 from ceemx.objective import linearize
 from ceemx.systems import (
     CoupledLorenz,
@@ -27,7 +28,6 @@ from ceemx.systems import (
 )
 
 RESULTS = ceemx.RESULTS
-from ceemx.lib.results import codes  # noqa: E402
 SOLVER = ceemx.LMSmoother(rho_x=0.0, rtol=1e-10, max_steps=50)
 # The stopping rule is on the *objective* decrease, which bounds the state error only by roughly
 # sqrt(rtol·|J| / λ_min(H)); the exactness oracles use a tighter rtol (and see the xfail test).
