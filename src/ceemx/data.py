@@ -6,16 +6,18 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, PRNGKeyArray
+from jax.core import Tracer
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .models.noise import AbstractNoise
 from .models.system import AbstractSystem
+from .typing import Inputs, ObservationMask, Observations, State, States, Trajectory
 
 __all__ = ["Trajectories", "rollout_one", "simulate"]
 
 
 def _is_concrete(a) -> bool:
-    return not isinstance(a, jax.core.Tracer)
+    return not isinstance(a, Tracer)
 
 
 def _first_bad(bad: np.ndarray) -> tuple[int, ...]:
@@ -41,9 +43,9 @@ class Trajectories(eqx.Module):
     The stored ``y`` has masked entries replaced by zeros and ``mask`` is always (B, T, m) bool.
     """
 
-    y: Float[Array, "B T m"]
-    u: Float[Array, "B T p"]
-    mask: Bool[Array, "B T m"]
+    y: Observations
+    u: Inputs
+    mask: ObservationMask
 
     def __init__(self, y, u=None, mask=None):
         concrete = _is_concrete(y) and _is_concrete(u) and _is_concrete(mask)
@@ -77,8 +79,8 @@ class Trajectories(eqx.Module):
             if bad.any():
                 b, t, j = _first_bad(bad)
                 raise ValueError(
-                    f"`y` has a non-finite value {y_np[b, t, j]} at unmasked index [{b}, {t}, {j}]; "
-                    "mask it or fix it."
+                    f"`y` has a non-finite value {y_np[b, t, j]} at unmasked index "
+                    f"[{b}, {t}, {j}]; mask it or fix it."
                 )
             if u is None:
                 u_np = np.zeros((B, T, 0), y_np.dtype)
@@ -116,22 +118,22 @@ class Trajectories(eqx.Module):
 
     @property
     def batch_size(self) -> int:
-        """B."""
+        """B, the number of trajectories."""
         return self.y.shape[0]
 
     @property
     def num_steps(self) -> int:
-        """T."""
+        """T, the number of time steps."""
         return self.y.shape[1]
 
     @property
     def obs_dim(self) -> int:
-        """M."""
+        """The observation dimension m."""
         return self.y.shape[2]
 
     @property
     def input_dim(self) -> int:
-        """P."""
+        """The input dimension p (0 without inputs)."""
         return self.u.shape[2]
 
     def __getitem__(self, idx) -> Trajectories:
@@ -166,7 +168,12 @@ def sample_noise(noise: AbstractNoise, key: PRNGKeyArray, shape, dtype) -> Array
     raise TypeError(f"cannot sample from {type(noise).__name__}")
 
 
-def rollout_one(system: AbstractSystem, x1, u, w=None):
+def rollout_one(
+    system: AbstractSystem,
+    x1: State,
+    u: Float[Array, "T p"],
+    w: Float[Array, "T-1 n"] | None = None,
+) -> Trajectory:
     """States (T, n) of one trajectory: x_{t+1} = f(x_t, u_t, t) + w_t from x₁, T = len(u)."""
     T = u.shape[0]
     ts = jnp.arange(T)
@@ -184,13 +191,13 @@ def rollout_one(system: AbstractSystem, x1, u, w=None):
 def simulate(
     system: AbstractSystem,
     key: PRNGKeyArray,
-    x0: Float[Array, "B n"],
+    x0: Float[ArrayLike, "B n"],
     num_steps: int,
-    u: Float[Array, "B T p"] | None = None,
+    u: Float[ArrayLike, "B T p"] | None = None,
     *,
     process_noise: bool | AbstractNoise = True,
     obs_noise: bool | AbstractNoise = True,
-) -> tuple[Float[Array, "B T n"], Trajectories]:
+) -> tuple[States, Trajectories]:
     """Simulate B trajectories of ``num_steps`` steps from initial states ``x0``.
 
     Args:
@@ -199,8 +206,9 @@ def simulate(
         x0: (B, n) initial states x₁.
         num_steps: T.
         u: (B, T, p) inputs or ``None``.
-        process_noise, obs_noise: ``True`` to sample the system's own noise model, ``False`` for
-            none (deterministic dynamics / exact observations), or a noise model to sample instead.
+        process_noise: ``True`` to sample the system's own process noise, ``False`` for none
+            (deterministic dynamics), or a noise model to sample instead.
+        obs_noise: likewise for the observation noise (``False``: exact observations).
 
     Returns:
         The true states (B, T, n) and the observations as :class:`Trajectories`.

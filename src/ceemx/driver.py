@@ -17,6 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, PRNGKeyArray
 
 from . import checkpoint as ckpt
 from .data import Trajectories
@@ -27,6 +28,7 @@ from .problem import FitProblem
 from .smoothing import check_inputs
 from .solvers.alternating import Alternating
 from .solvers.base import AbstractFitSolver, FitState, total_J
+from .typing import States, no_type_check
 
 __all__ = ["EpochInfo", "FitResult", "fit"]
 
@@ -44,7 +46,7 @@ class EpochInfo:
 
     epoch: int
     system: AbstractSystem
-    states: jax.Array
+    states: States
     record: dict
 
 
@@ -67,7 +69,7 @@ class FitResult(eqx.Module):
     """
 
     system: AbstractSystem
-    states: jax.Array
+    states: States
     status: RESULTS
     history: list = eqx.field(static=True)
     converged: bool = eqx.field(static=True)
@@ -114,19 +116,20 @@ def _check_max_epochs(max_epochs) -> int:
     return int(max_epochs)
 
 
+@no_type_check  # validates its arguments: check_inputs, solver and max_epochs checks
 def fit(
     system: AbstractSystem,
     data: Trajectories,
-    x_init=None,
+    x_init: ArrayLike | None = None,
     *,
     solver: AbstractFitSolver | None = None,
     trainable=None,
-    log_prior: Callable | None = None,
+    log_prior: Callable[[AbstractSystem], Any] | None = None,
     max_epochs: int = 100,
     callbacks: Sequence[Callable[[EpochInfo], Any]] = (),
     progress: bool | None = None,
     checkpoint: str | None = None,
-    key=None,
+    key: PRNGKeyArray | None = None,
 ) -> FitResult:
     """Identify θ and the state trajectories by maximising the CE-EM objective J(x, θ) (Eq. 9).
 
@@ -210,7 +213,13 @@ def fit(
         bar.close()
     state = solver.postprocess(problem, state)
     return FitResult(
-        problem.build(state.theta), state.states, state.status, history, converged, solver, initial_J
+        problem.build(state.theta),
+        state.states,
+        state.status,
+        history,
+        converged,
+        solver,
+        initial_J,
     )
 
 

@@ -18,11 +18,12 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from .data import Trajectories
 from .lib.blocktri import BlockTridiagonal
 from .models.system import AbstractSystem
+from .typing import PerTrajectory, Scalar, States, Trajectory
 
 __all__ = [
     "Linearization",
@@ -36,7 +37,12 @@ __all__ = [
 ]
 
 
-def residuals(system: AbstractSystem, x, y, u):
+def residuals(
+    system: AbstractSystem,
+    x: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+) -> tuple[Float[Array, "T m"], Float[Array, "T-1 n"]]:
     """Observation residuals (T, m) and dynamics residuals (T−1, n) of one trajectory."""
     T = x.shape[0]
     ts = jnp.arange(T)
@@ -45,7 +51,13 @@ def residuals(system: AbstractSystem, x, y, u):
     return r_obs, r_dyn
 
 
-def neg_log_joint_single(system: AbstractSystem, x, y, u, mask) -> Array:
+def neg_log_joint_single(
+    system: AbstractSystem,
+    x: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+) -> Scalar:
     """−J(x, θ) of one trajectory (Eq. 9 with the initial-state prior when the system has one)."""
     r_obs, r_dyn = residuals(system, x, y, u)
     total = jnp.sum(jax.vmap(system.obs_noise.nll)(r_obs, mask))
@@ -55,7 +67,7 @@ def neg_log_joint_single(system: AbstractSystem, x, y, u, mask) -> Array:
     return total
 
 
-def nll_offset_single(system: AbstractSystem, mask, T: int, dtype) -> Array:
+def nll_offset_single(system: AbstractSystem, mask: Bool[Array, "T m"], T: int, dtype) -> Scalar:
     """The part of −J that does not depend on x: Σ of each factor's −log p at zero residual.
 
     −J − offset is ½‖whitened residuals‖² for Gaussian noise; solvers use it as the scale of their
@@ -71,13 +83,13 @@ def nll_offset_single(system: AbstractSystem, mask, T: int, dtype) -> Array:
     return total
 
 
-def nll_offset(system: AbstractSystem, data: Trajectories) -> Array:
+def nll_offset(system: AbstractSystem, data: Trajectories) -> PerTrajectory:
     """(B,) :func:`nll_offset_single` of each trajectory."""
     T = data.num_steps
     return jax.vmap(lambda mk: nll_offset_single(system, mk, T, data.y.dtype))(data.mask)
 
 
-def log_joint(system: AbstractSystem, x: Float[Array, "B T n"], data: Trajectories) -> Array:
+def log_joint(system: AbstractSystem, x: States, data: Trajectories) -> PerTrajectory:
     """J(x, θ) = log p(x, y | θ) of each trajectory (Eq. 9); shape (B,)."""
     return -jax.vmap(neg_log_joint_single, in_axes=(None, 0, 0, 0, 0))(
         system, x, data.y, data.u, data.mask
@@ -100,7 +112,9 @@ def _whitened_single(system, x, y, u, mask):
     return jnp.concatenate(parts)
 
 
-def whitened_residuals(system: AbstractSystem, x: Float[Array, "B T n"], data: Trajectories):
+def whitened_residuals(
+    system: AbstractSystem, x: States, data: Trajectories
+) -> Float[Array, "B _"]:
     """Whitened residuals r̃ (B, R) with −J = ½‖r̃‖² + const for Gaussian noise models.
 
     Order per trajectory: the T·m observation residuals (zeros where masked), the (T−1)·n dynamics
@@ -120,9 +134,9 @@ class Linearization(NamedTuple):
     value: Array  # scalar −J
     grad_x: Array | None  # (T, n)
     hess_x: BlockTridiagonal | None  # GN blocks in x
-    grad_theta: Array | None = None  # (P,)
-    E: Array | None = None  # (T, n, P) cross blocks J_xᵀ W J_θ
-    D: Array | None = None  # (P, P) J_θᵀ W J_θ
+    grad_theta: Array | None = None  # (theta,)
+    E: Array | None = None  # (T, n, theta) cross blocks J_xᵀ W J_θ
+    D: Array | None = None  # (theta, theta) J_θᵀ W J_θ
 
 
 def _jac(fun, argnum, in_dim, out_dim):
@@ -133,10 +147,10 @@ def _jac(fun, argnum, in_dim, out_dim):
 def linearize(
     build: Callable[[Any], AbstractSystem],
     theta: Any,
-    x: Float[Array, "T n"],
-    y,
-    u,
-    mask,
+    x: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
     *,
     wrt_theta: bool = False,
     wrt_x: bool = True,
@@ -145,8 +159,11 @@ def linearize(
 
     Args:
         build: maps ``theta`` to the system (``lambda s: s`` when θ is the system itself).
-        theta: a flat parameter vector when ``wrt_theta`` is True, otherwise any pytree.
-        x, y, u, mask: one trajectory's states (T, n), observations, inputs and mask.
+        theta: a flat parameter vector (theta,) when ``wrt_theta`` is True, otherwise any pytree.
+        x: one trajectory's states (T, n).
+        y: its observations (T, m).
+        u: its inputs (T, p).
+        mask: which observations are present (T, m).
         wrt_theta: also return the θ-gradient, the cross blocks E and the θθ block D.
         wrt_x: compute the x-gradient and x-blocks (and E); ``False`` for a θ-only linearisation.
     """
@@ -170,12 +187,15 @@ def linearize(
     gw = jax.vmap(jax.grad(pn.nll))(r_dyn)  # (T-1,n)
     value = jnp.sum(jax.vmap(on.nll)(r_obs, mask)) + jnp.sum(jax.vmap(pn.nll)(r_dyn))
     prior = system.initial_prior
+    prior_x = None  # the prior's gradient and curvature in x₁
     if prior is not None:
         r0 = x[0] - prior.mean
         value = value + prior.noise.nll(r0)
+        S0 = prior.noise.sqrt_curvature(r0)
+        prior_x = jax.grad(prior.noise.nll)(r0), S0.T @ S0
     mT = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
 
-    grad = hess = None
+    grad = hess = x_blocks = None
     if wrt_x:
         # Per-step Jacobians with respect to x_t.
         G = jax.vmap(_jac(obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)
@@ -191,15 +211,15 @@ def linearize(
         grad = jnp.einsum("tmn,tm->tn", G, gv)
         grad = grad.at[:-1].add(jnp.einsum("tkn,tk->tn", F, gw))
         grad = grad.at[1:].add(gw)
-        if prior is not None:
-            S0 = prior.noise.sqrt_curvature(r0)
-            grad = grad.at[0].add(jax.grad(prior.noise.nll)(r0))
-            diag = diag.at[0].add(S0.T @ S0)
+        if prior_x is not None:
+            grad = grad.at[0].add(prior_x[0])
+            diag = diag.at[0].add(prior_x[1])
         hess = BlockTridiagonal(diagonal=0.5 * (diag + mT(diag)), lower=lower)
+        x_blocks = SG, SF
     if not wrt_theta:
         return Linearization(value, grad, hess)
 
-    P = theta.shape[0]
+    P = theta.shape[0]  # the length of θ
     Gt = jax.vmap(_jac(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)  # (T,m,P)
     Ft = jax.vmap(_jac(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(x[:-1], theta, u[:-1], ts[:-1])
     SGt = Sv @ Gt
@@ -207,7 +227,8 @@ def linearize(
     D = jnp.einsum("tmp,tmq->pq", SGt, SGt) + jnp.einsum("tnp,tnq->pq", SFt, SFt)
     grad_theta = jnp.einsum("tmp,tm->p", Gt, gv) + jnp.einsum("tnp,tn->p", Ft, gw)
     E = None
-    if wrt_x:
+    if x_blocks is not None:
+        SG, SF = x_blocks
         E = mT(SG) @ SGt
         E = E.at[:-1].add(mT(SF) @ SFt)
         E = E.at[1:].add(mT(Sw) @ SFt)
@@ -216,6 +237,7 @@ def linearize(
 
         def prior_nll(x0, th):
             pr = build(th).initial_prior
+            assert pr is not None  # θ does not decide whether there is a prior
             return pr.nll(x0)
 
         gp = jax.grad(prior_nll, argnums=1)(x[0], theta)

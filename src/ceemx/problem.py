@@ -15,17 +15,21 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, PyTree
 
 from .data import Trajectories
 from .lib.dense import symmetrize
 from .models.system import AbstractSystem
 from .objective import neg_log_joint_single, nll_offset
+from .typing import PerTrajectory, Scalar, States, Theta
 
-__all__ = ["FitProblem", "split_system", "trainable_mask"]
+__all__ = ["FitProblem", "Trainable", "split_system", "trainable_mask"]
+
+Trainable = Callable[[AbstractSystem], Any] | PyTree | None
+"""Which leaves of a system learn: see :func:`trainable_mask`."""
 
 
-def trainable_mask(system: AbstractSystem, trainable=None):
+def trainable_mask(system: AbstractSystem, trainable: Trainable = None) -> PyTree:
     """A boolean pytree over ``system`` marking the leaves that learn.
 
     Args:
@@ -48,17 +52,19 @@ def trainable_mask(system: AbstractSystem, trainable=None):
         )
     if callable(trainable):
         mask = jtu.tree_map(lambda _: False, system)
-        as_tuple = isinstance(trainable(system), tuple)
 
-        def where(s):
-            return tuple(trainable(s)) if as_tuple else (trainable(s),)
+        def where(s) -> tuple[Any, ...]:
+            picked = trainable(s)
+            return picked if isinstance(picked, tuple) else (picked,)
 
         replace = tuple(jtu.tree_map(eqx.is_inexact_array, c) for c in where(system))
         return eqx.tree_at(where, mask, replace=replace)
     return trainable
 
 
-def split_system(system: AbstractSystem, trainable=None):
+def split_system(
+    system: AbstractSystem, trainable: Trainable = None
+) -> tuple[Theta, PyTree, PyTree]:
     """(θ flat, params template, static part) for the trainable leaves of ``system``."""
     params, static = eqx.partition(system, trainable_mask(system, trainable))
     theta, _ = ravel_pytree(params)
@@ -82,12 +88,17 @@ class FitProblem(eqx.Module):
     template: Any
     static: Any
     data: Trajectories
-    log_prior: Callable | None = eqx.field(static=True, default=None)
+    log_prior: Callable[[AbstractSystem], Any] | None = eqx.field(static=True, default=None)
 
     @classmethod
     def create(
-        cls, system: AbstractSystem, data: Trajectories, *, trainable=None, log_prior=None
-    ) -> tuple[FitProblem, Array]:
+        cls,
+        system: AbstractSystem,
+        data: Trajectories,
+        *,
+        trainable: Trainable = None,
+        log_prior: Callable[[AbstractSystem], Any] | None = None,
+    ) -> tuple[FitProblem, Theta]:
         """The problem and the flat θ of ``system``'s trainable leaves."""
         theta, template, static = split_system(system, trainable)
         # Strongly typed θ and template: a weakly typed leaf (e.g. from jnp.asarray(10.0)) would
@@ -95,21 +106,21 @@ class FitProblem(eqx.Module):
         template = jtu.tree_map(_strong, template)
         return cls(template, static, data, log_prior), _strong(theta)
 
-    def build(self, theta: Array) -> AbstractSystem:
+    def build(self, theta: Theta) -> AbstractSystem:
         """The system with trainable leaves set from the flat vector θ."""
         _, unravel = ravel_pytree(self.template)
         return eqx.combine(unravel(theta), self.static)
 
     def per_trajectory(
-        self, theta: Array, states: Float[Array, "B T n"], data: Trajectories | None = None
-    ) -> Float[Array, " B"]:
+        self, theta: Theta, states: States, data: Trajectories | None = None
+    ) -> PerTrajectory:
         """(B,) −J_b(x_b, θ), the negative log-likelihood of each trajectory (Eq. 9)."""
         data = self.data if data is None else data
         return jax.vmap(neg_log_joint_single, in_axes=(None, 0, 0, 0, 0))(
             self.build(theta), states, data.y, data.u, data.mask
         )
 
-    def offset(self, theta: Array, weights: Float[Array, " B"]) -> Array:
+    def offset(self, theta: Theta, weights: PerTrajectory) -> Scalar:
         """Σ_b w_b·c_b, the x-independent constants of −J (see :func:`ceemx.objective.nll_offset`).
 
         −J − offset is ½‖whitened residuals‖² for Gaussian noise: the scale of every relative
@@ -117,13 +128,15 @@ class FitProblem(eqx.Module):
         """
         return jnp.sum(jnp.where(weights > 0, nll_offset(self.build(theta), self.data), 0.0))
 
-    def neg_log_prior(self, theta: Array) -> Array:
+    def neg_log_prior(self, theta: Theta) -> Scalar:
         """−log p(θ) (zero without a prior)."""
         if self.log_prior is None:
             return jnp.zeros((), theta.dtype)
         return -self.log_prior(self.build(theta))
 
-    def prior_terms(self, theta: Array) -> tuple[Array, Array, Array]:
+    def prior_terms(
+        self, theta: Theta
+    ) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
         """(−log p(θ), its gradient, its symmetrised Hessian); zeros without a prior."""
         P = theta.shape[0]
         if self.log_prior is None:

@@ -20,6 +20,7 @@ from .. import evaluate as ev
 from .. import fit, report
 from ..initialize import warm_start
 from ..models import with_noise
+from ..systems import CoupledLorenz
 from . import common
 
 NAME = "demo"
@@ -107,6 +108,7 @@ def run(
     fit_s = sum(timer.per_epoch())
     first_s = timer.per_epoch()[0] if res.epochs else 0.0
     learned = res.system
+    assert isinstance(learned, CoupledLorenz)
     eps = [eps0] + [h["eps"] for h in res.history]
     H0 = float(
         jnp.linalg.norm(problem.init_system.effective_coupling() - true.effective_coupling())

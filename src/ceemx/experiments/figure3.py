@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +37,7 @@ import numpy as np
 from .. import LBFGSLearner, LMLearner, fit, report
 from .. import evaluate as ev
 from ..models import with_noise
+from ..systems import CoupledLorenz
 from . import common
 
 NAME = "figure3"
@@ -99,7 +101,9 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, rtol, v
     times = timer.per_epoch()
     keep = (*HISTORY_KEYS, *solver.history_keys)
     eps = [eps0] + [h["eps"] for h in res.history]
-    H_err = float(jnp.linalg.norm(res.system.effective_coupling() - true.effective_coupling()))
+    learned = res.system
+    assert isinstance(learned, CoupledLorenz)
+    H_err = float(jnp.linalg.norm(learned.effective_coupling() - true.effective_coupling()))
     return {
         "B": B,
         "seed": seed,
@@ -112,9 +116,9 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, rtol, v
         "per_epoch_s": float(np.mean(times[1:])) if len(times) > 1 else float("nan"),
         "total_s": float(sum(times)),
         "H_error": H_err,
-        "sigma": np.asarray(res.system.sigma),
-        "rho": np.asarray(res.system.rho),
-        "beta": np.asarray(res.system.beta),
+        "sigma": np.asarray(learned.sigma),
+        "rho": np.asarray(learned.rho),
+        "beta": np.asarray(learned.beta),
         "status": res.messages(),
         "history": [{k: h[k] for k in keep if k in h} for h in res.history],
     }
@@ -225,18 +229,18 @@ def run(
     common.enable_x64()
     if weighting == "both":
         base = report.output_dir(out, "results/figure3")
-        kw = dict(
-            smoke=smoke,
-            seeds=seeds,
-            method=method,
-            learner=learner,
-            max_epochs=max_epochs,
-            batch_sizes=batch_sizes,
-            K=K,
-            T=T,
-            rtol=rtol,
-            verbose=verbose,
-        )
+        kw: dict[str, Any] = {
+            "smoke": smoke,
+            "seeds": seeds,
+            "method": method,
+            "learner": learner,
+            "max_epochs": max_epochs,
+            "batch_sizes": batch_sizes,
+            "K": K,
+            "T": T,
+            "rtol": rtol,
+            "verbose": verbose,
+        }
         return {w: run(out=base / w, weighting=w, **kw) for w in ("paper", "likelihood")}
     method = "joint" if method is None else method
     if rtol is None:

@@ -244,7 +244,7 @@ def run(
     common.enable_x64()
     method = "alternate" if method is None else method
     seeds = common.seed_list(seeds, first=FIRST_SEED, default=2 if smoke else 10)
-    settings = [tuple(map(float, s)) for s in (settings or (SETTINGS[:2] if smoke else SETTINGS))]
+    pairs = [(float(a), float(b)) for a, b in (settings or (SETTINGS[:2] if smoke else SETTINGS))]
     max_epochs = (3 if smoke else 100) if max_epochs is None else max_epochs
     outdir = report.output_dir(out, "results/table1")
     weightings = _weightings(weighting)
@@ -252,7 +252,7 @@ def run(
     t_start = time.perf_counter()
     results: dict = {w: {} for w in weightings}
     for w in weightings:
-        for sw, sv in settings:
+        for sw, sv in pairs:
             fits = []
             for seed in seeds:
                 problem = common.lorenz_problem(

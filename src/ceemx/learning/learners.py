@@ -1,4 +1,4 @@
-"""Learners for the θ-step (paper Eq. 11): Levenberg–Marquardt, L-BFGS, any Optax transform, Nelder–Mead.
+"""Learners for the θ-step (paper Eq. 11): Levenberg–Marquardt, L-BFGS, Optax, Nelder–Mead.
 
 Every learner maps a :class:`~ceemx.learning.problem.LearningProblem`, the current flat θ and its
 own state to a new θ, a new state and a :class:`LearnInfo`. States persist across EM epochs (so an
@@ -8,17 +8,19 @@ Adam learner keeps its moments) and are saved in checkpoints.
 from __future__ import annotations
 
 import abc
-from typing import Any
+from typing import Any, cast
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optax
 import optimistix as optx
+from jaxtyping import Array, PRNGKeyArray
 
 from ..lib.dense import cholesky_solve
 from ..lib.lm import levenberg_marquardt, marquardt_scale
 from ..lib.results import RESULTS
+from ..typing import IntScalar, Scalar, Theta
 from .problem import LearningProblem
 
 __all__ = [
@@ -34,21 +36,23 @@ __all__ = [
 class LearnInfo(eqx.Module):
     """What one learning step did: objective before/after, iterations, status."""
 
-    value_before: jax.Array
-    value_after: jax.Array
-    steps: jax.Array
+    value_before: Scalar
+    value_after: Scalar
+    steps: IntScalar
     status: RESULTS
 
 
 class AbstractLearner(eqx.Module):
     """A θ-step optimiser (an ``init`` / ``run`` pair; ``run`` is jit-compiled by the caller)."""
 
-    def init(self, theta: jax.Array, key: jax.Array) -> Any:
+    def init(self, theta: Theta, key: PRNGKeyArray) -> Any:
         """The learner's persistent state (default: none)."""
         return None
 
     @abc.abstractmethod
-    def run(self, problem: LearningProblem, theta: jax.Array, state: Any):
+    def run(
+        self, problem: LearningProblem, theta: Theta, state: Any
+    ) -> tuple[Theta, Any, LearnInfo]:
         """Minimise ``problem.value`` from ``theta``; returns (θ, state, LearnInfo)."""
 
 
@@ -71,7 +75,9 @@ class LMLearner(AbstractLearner):
     atol: float = 0.0
     damping: float = 1e-3
 
-    def run(self, problem, theta, state):
+    def run(
+        self, problem: LearningProblem, theta: Theta, state: Any
+    ) -> tuple[Theta, Any, LearnInfo]:
         """LM iterations from θ."""
         offset = problem.offset(
             theta
@@ -115,7 +121,9 @@ class LBFGSLearner(AbstractLearner):
     gtol: float = 1e-9
     memory_size: int = eqx.field(default=20, static=True)
 
-    def run(self, problem, theta, state):
+    def run(
+        self, problem: LearningProblem, theta: Theta, state: Any
+    ) -> tuple[Theta, Any, LearnInfo]:
         """L-BFGS iterations from θ (fresh curvature memory every epoch)."""
         opt = optax.lbfgs(memory_size=self.memory_size)
         fun = problem.value
@@ -132,7 +140,7 @@ class LBFGSLearner(AbstractLearner):
             th, st, k, _ = c
             value, grad = vg(th, state=st)
             upd, st = opt.update(grad, st, th, value=value, grad=grad, value_fn=fun)
-            th = optax.apply_updates(th, upd)
+            th = cast(Array, optax.apply_updates(th, upd))
             return th, st, k + 1, grad
 
         g0 = jax.grad(fun)(theta)
@@ -161,11 +169,13 @@ class OptaxLearner(AbstractLearner):
     steps: int = eqx.field(default=100, static=True)
     batch_size: int | None = eqx.field(default=None, static=True)
 
-    def init(self, theta, key):
+    def init(self, theta: Theta, key: PRNGKeyArray) -> Any:
         """(optimiser state, PRNG key)."""
         return (self.transform.init(theta), key)
 
-    def run(self, problem, theta, state):
+    def run(
+        self, problem: LearningProblem, theta: Theta, state: Any
+    ) -> tuple[Theta, Any, LearnInfo]:
         """``steps`` gradient steps."""
         opt_state, key = state
         B = problem.states.shape[0]
@@ -180,7 +190,7 @@ class OptaxLearner(AbstractLearner):
                 idx = jax.random.choice(sub, B, (self.batch_size,), replace=False)
                 grad = jax.grad(problem.minibatch_value)(th, idx)
             upd, st = self.transform.update(grad, st, th)
-            return (optax.apply_updates(th, upd), st, k), None
+            return (cast(Array, optax.apply_updates(th, upd)), st, k), None
 
         (th, opt_state, key), _ = jax.lax.scan(
             body, (theta, opt_state, key), None, length=self.steps
@@ -197,13 +207,13 @@ class OptaxLearner(AbstractLearner):
 
 
 class NelderMeadLearner(AbstractLearner):
-    """Nelder–Mead simplex (``optimistix.NelderMead``), derivative-free, for a handful of parameters.
+    """Nelder–Mead simplex (``optimistix.NelderMead``): derivative-free, for a few parameters.
 
     Compiled like every other learner (no host round trips). Stops when both the simplex's spread
     in θ and in the objective (less its normalising constants) are within ``rtol·|·| + atol``.
 
     Attributes:
-        max_steps: iteration bound per EM epoch (``None``: 200·P, SciPy's default).
+        max_steps: iteration bound per EM epoch (``None``: 200 per parameter, SciPy's default).
         rtol, atol: relative and absolute tolerances on θ and on the objective.
     """
 
@@ -211,7 +221,9 @@ class NelderMeadLearner(AbstractLearner):
     rtol: float = 1e-8
     atol: float = 1e-8
 
-    def run(self, problem, theta, state):
+    def run(
+        self, problem: LearningProblem, theta: Theta, state: Any
+    ) -> tuple[Theta, Any, LearnInfo]:
         """Nelder–Mead from θ."""
         offset = problem.offset(theta)
         v0 = problem.value(theta)

@@ -6,12 +6,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from ..data import Trajectories
 from ..models.system import AbstractSystem
 from ..objective import linearize
 from ..problem import FitProblem
+from ..typing import PerTrajectory, Scalar, States, Theta
 
 __all__ = ["LearningProblem", "make_problem"]
 
@@ -28,17 +29,17 @@ class LearningProblem(eqx.Module):
     """
 
     problem: FitProblem
-    states: Float[Array, "B T n"]
-    weights: Float[Array, " B"]
-    theta_ref: Float[Array, " theta"]
-    rho_theta: Array
+    states: States
+    weights: PerTrajectory
+    theta_ref: Theta
+    rho_theta: Scalar
 
     @property
     def data(self) -> Trajectories:
         """The observations."""
         return self.problem.data
 
-    def build(self, theta: Array) -> AbstractSystem:
+    def build(self, theta: Theta) -> AbstractSystem:
         """The system with trainable leaves set from the flat vector θ."""
         return self.problem.build(theta)
 
@@ -61,13 +62,13 @@ class LearningProblem(eqx.Module):
 
         return pick(self.states), jtu.tree_map(pick, self.data)
 
-    def value(self, theta: Array) -> Array:
+    def value(self, theta: Theta) -> Scalar:
         """The learning objective (scalar)."""
         states, data = self._participating()
         nll = self.problem.per_trajectory(theta, states, data)
         return jnp.sum(jnp.where(self.weights > 0, nll, 0.0)) + self._regulariser(theta)
 
-    def minibatch_value(self, theta: Array, idx: Array) -> Array:
+    def minibatch_value(self, theta: Theta, idx: Int[Array, " _"]) -> Scalar:
         """Unbiased estimate of :meth:`value` from the trajectories ``idx``."""
         states, data = self._participating()
         w = self.weights[idx]
@@ -75,16 +76,19 @@ class LearningProblem(eqx.Module):
         scale = jnp.sum(self.weights) / jnp.maximum(jnp.sum(w), 1.0)
         return scale * jnp.sum(jnp.where(w > 0, nll, 0.0)) + self._regulariser(theta)
 
-    def offset(self, theta: Array) -> Array:
+    def offset(self, theta: Theta) -> Scalar:
         """The x-independent constants of the objective (see :meth:`FitProblem.offset`)."""
         return self.problem.offset(theta, self.weights)
 
-    def gauss_newton(self, theta: Array):
+    def gauss_newton(
+        self, theta: Theta
+    ) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
         """(value, gradient, Gauss–Newton matrix) of the objective at θ."""
         data = self.data
         lin = jax.vmap(
             lambda x, y, u, m: linearize(self.build, theta, x, y, u, m, wrt_theta=True, wrt_x=False)
         )(self.states, data.y, data.u, data.mask)
+        assert lin.grad_theta is not None and lin.D is not None  # wrt_theta=True
         ok = self.weights > 0
         d = theta - self.theta_ref
         prior, prior_grad, prior_hess = self.problem.prior_terms(theta)
@@ -97,14 +101,27 @@ class LearningProblem(eqx.Module):
 
 
 def make_problem(
-    system, states, data, *, trainable=None, rho_theta=0.0, log_prior=None, weights=None
-) -> tuple[LearningProblem, Array]:
+    system: AbstractSystem,
+    states: States,
+    data: Trajectories,
+    *,
+    trainable=None,
+    rho_theta: float | Array = 0.0,
+    log_prior=None,
+    weights: PerTrajectory | None = None,
+) -> tuple[LearningProblem, Theta]:
     """The :class:`LearningProblem` of ``system`` around its current θ, and that θ."""
     problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
     return learning_problem(problem, theta, states, weights, rho_theta), theta
 
 
-def learning_problem(problem: FitProblem, theta, states, weights=None, rho_theta=0.0):
+def learning_problem(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    weights: PerTrajectory | None = None,
+    rho_theta: float | Array = 0.0,
+) -> LearningProblem:
     """The learning step of ``problem`` at θ with the states fixed."""
     states = jnp.asarray(states)
     B = states.shape[0]

@@ -2,38 +2,45 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
 from ..data import Trajectories
 from ..lib.tree import trace_numbers
 from ..models.system import AbstractSystem
-from .learners import AbstractLearner, LMLearner
+from ..typing import PerTrajectory, Theta
+from .learners import AbstractLearner, LearnInfo, LMLearner
 from .problem import LearningProblem, make_problem
 
 __all__ = ["learn", "run_learner"]
 
 
 @eqx.filter_jit
-def run_learner(learner: AbstractLearner, problem: LearningProblem, theta, state):
+def run_learner(
+    learner: AbstractLearner, problem: LearningProblem, theta: Theta, state: Any
+) -> tuple[Theta, Any, LearnInfo]:
     """Run a learner, compiled once per learner type, problem shape and dtype."""
     return learner.run(problem, theta, state)
 
 
 def learn(
     system: AbstractSystem,
-    states,
+    states: Float[ArrayLike, "B T n"],
     data: Trajectories,
     learner: AbstractLearner | None = None,
     *,
     trainable=None,
     rho_theta: float = 0.0,
-    log_prior=None,
-    weights=None,
-    learner_state=None,
-    key=None,
-):
+    log_prior: Callable[[AbstractSystem], Any] | None = None,
+    weights: PerTrajectory | None = None,
+    learner_state: Any = None,
+    key: PRNGKeyArray | None = None,
+) -> tuple[AbstractSystem, Any, LearnInfo]:
     """One learning step: θ ← argmin Σ_b −J_b(x_b, θ) + ρ_θ‖θ − θᵏ‖² − log p(θ).
 
     Args:

@@ -1,7 +1,7 @@
 """Arrowhead (bordered block-tridiagonal) systems from joint state/parameter Gauss-Newton.
 
-For ``B`` trajectories with states ``x_b`` (``T x n``) and shared parameters ``theta`` (``p``),
-the Gauss-Newton system is
+For ``B`` trajectories with states ``x_b`` (``T x n``) and a shared parameter vector of length
+``theta``, the Gauss-Newton system is
 
     ``A_b dx_b + E_b dtheta = r_b``                 for every ``b``,
     ``sum_b E_b^T dx_b + D dtheta = r_theta``,
@@ -21,7 +21,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ceemx.lib.dense import cholesky_solve
 from ceemx.lib.blocktri import (
     BlockTridiagonal,
     BlockTridiagonalCholesky,
@@ -29,6 +28,7 @@ from ceemx.lib.blocktri import (
     is_finite,
     solve,
 )
+from ceemx.lib.dense import cholesky_solve
 
 __all__ = ["ArrowheadSolution", "arrowhead_solve"]
 
@@ -38,7 +38,7 @@ class ArrowheadSolution(eqx.Module):
 
     Attributes:
         dx: State update, shape ``(B, T, n)``.
-        dtheta: Parameter update, shape ``(p,)``.
+        dtheta: Parameter update, shape ``(theta,)``.
         ok: Boolean scalar: every ``A_b`` factor is finite and ``S`` is (numerically) positive
             definite (dense: its Cholesky factor is finite with non-negligible pivots; CG: no
             non-positive curvature was met). When False, ``dx`` and ``dtheta`` are zeros.
@@ -50,7 +50,7 @@ class ArrowheadSolution(eqx.Module):
     """
 
     dx: Float[Array, "B T n"]
-    dtheta: Float[Array, " p"]
+    dtheta: Float[Array, " theta"]
     ok: Bool[Array, ""]
     converged: Bool[Array, ""]
     cg_steps: Int[Array, ""]
@@ -64,7 +64,7 @@ def _solve_b(L: BlockTridiagonalCholesky, b: Array) -> Array:
 
 def _dense_schur(L, E, D, rhs):
     """Form and factor ``S``; return ``(dtheta, S_ok)``."""
-    Z = _solve_b(L, E)  # (B, T, n, p)
+    Z = _solve_b(L, E)  # (B, T, n, theta)
     S = D - jnp.sum(jnp.einsum("btnp,btnq->bpq", E, Z), axis=0)
     return cholesky_solve(S, rhs)
 
@@ -72,19 +72,19 @@ def _dense_schur(L, E, D, rhs):
 def _schur_diag(L, E, chunk: int):
     """Exact ``diag(sum_b E_b^T A_b^{-1} E_b)``, computed over column chunks of ``E``.
 
-    Peak memory is ``O(B T n chunk)`` instead of ``O(B T n p)``.
+    Peak memory is ``O(B T n chunk)`` instead of ``O(B T n theta)``.
     """
-    p = E.shape[-1]
-    chunk = max(1, min(chunk, p))
-    n_chunks = -(-p // chunk)
-    pad = n_chunks * chunk - p
+    P = E.shape[-1]
+    chunk = max(1, min(chunk, P))
+    n_chunks = -(-P // chunk)
+    pad = n_chunks * chunk - P
     Ep = jnp.pad(E, [(0, 0)] * 3 + [(0, pad)])
     Ec = jnp.moveaxis(Ep.reshape(*E.shape[:3], n_chunks, chunk), 3, 0)
 
     def one(Ei):
         return jnp.sum(Ei * _solve_b(L, Ei), axis=(0, 1, 2))
 
-    return jax.lax.map(one, Ec).reshape(-1)[:p]
+    return jax.lax.map(one, Ec).reshape(-1)[:P]
 
 
 def _pcg(S_mv, rhs, m_inv, rtol, max_steps):
@@ -127,13 +127,13 @@ def _pcg(S_mv, rhs, m_inv, rtol, max_steps):
 )
 def arrowhead_solve(
     A: BlockTridiagonal,
-    E: Float[Array, "B T n p"],
-    D: Float[Array, "p p"],
+    E: Float[Array, "B T n theta"],
+    D: Float[Array, "theta theta"],
     r_x: Float[Array, "B T n"],
-    r_theta: Float[Array, " p"],
+    r_theta: Float[Array, " theta"],
     *,
     method: Literal["auto", "dense", "cg"] = "auto",
-    cg_rtol: float = 1e-10,
+    cg_rtol: float | Float[Array, ""] = 1e-10,
     cg_max_steps: int | None = None,
     dense_max_p: int = 5000,
     cg_preconditioner: Literal["schur_diag", "d_diag", "none"] = "schur_diag",
@@ -146,30 +146,31 @@ def arrowhead_solve(
     ``S = D - sum_b E_b^T A_b^{-1} E_b``, then ``dx_b = A_b^{-1} (r_b - E_b dtheta)``.
 
     Methods:
-        * ``"dense"``: forms ``Z_b = A_b^{-1} E_b`` and ``S`` (``p x p``) and factors ``S`` by
-          Cholesky. Cost ``O(B T (n^3 + n^2 p) + B T n p^2 + p^3)``, memory ``O(B T n p + p^2)``.
+        * ``"dense"``: forms ``Z_b = A_b^{-1} E_b`` and ``S`` (``P x P``, ``P`` the length of
+          ``theta``) and factors ``S`` by Cholesky. Cost ``O(B T (n^3 + n^2 P) + B T n P^2 +
+          P^3)``, memory ``O(B T n P + P^2)``.
         * ``"cg"``: matrix-free preconditioned CG on ``S`` (``S`` and ``Z`` are never formed);
           each step costs one batched block-tridiagonal solve, ``S v = D v - sum_b E_b^T
           A_b^{-1} (E_b v)``. The loop is a ``lax.while_loop`` bounded by ``cg_max_steps``
-          (default ``p``) and stops at ``||r|| <= cg_rtol ||rhs||``. Jacobi preconditioner:
-          ``"schur_diag"`` (default) uses the exact ``diag(S)``, obtained from ``ceil(p /
+          (default ``P``) and stops at ``||r|| <= cg_rtol ||rhs||``. Jacobi preconditioner:
+          ``"schur_diag"`` (default) uses the exact ``diag(S)``, obtained from ``ceil(P /
           cg_chunk)`` multi-RHS solves with ``cg_chunk`` columns each (one pass whose cost equals
           forming ``Z`` once, at ``O(B T n cg_chunk)`` memory); ``"d_diag"`` uses ``diag(D)``
           (free, weaker); ``"none"`` disables preconditioning. Non-positive diagonal entries
           fall back to 1.
-        * ``"auto"``: ``"dense"`` if ``p <= dense_max_p`` else ``"cg"``, decided statically from
+        * ``"auto"``: ``"dense"`` if ``P <= dense_max_p`` else ``"cg"``, decided statically from
           ``D.shape``.
 
     Args:
         A: Batched block-tridiagonal matrices (every leaf has leading axis ``B``).
-        E: Coupling blocks, shape ``(B, T, n, p)``.
-        D: Symmetric parameter block, shape ``(p, p)``.
+        E: Coupling blocks, shape ``(B, T, n, theta)``.
+        D: Symmetric parameter block, shape ``(theta, theta)``.
         r_x: State right-hand sides, shape ``(B, T, n)``.
-        r_theta: Parameter right-hand side, shape ``(p,)``.
+        r_theta: Parameter right-hand side, shape ``(theta,)``.
         method: ``"auto"``, ``"dense"`` or ``"cg"``.
         cg_rtol: Relative residual tolerance of CG.
-        cg_max_steps: Maximum CG iterations (default ``p``).
-        dense_max_p: Largest ``p`` for which ``"auto"`` picks the dense method.
+        cg_max_steps: Maximum CG iterations (default ``P``).
+        dense_max_p: Largest ``P`` for which ``"auto"`` picks the dense method.
         cg_preconditioner: ``"schur_diag"``, ``"d_diag"`` or ``"none"`` (see above).
         cg_chunk: Column chunk size for the ``"schur_diag"`` preconditioner.
 
@@ -177,9 +178,9 @@ def arrowhead_solve(
         An :class:`ArrowheadSolution`. ``ok`` is False (and ``dx``, ``dtheta`` are zeros) when any
         ``A_b`` factor is non-finite or ``S`` is not positive definite.
     """
-    p = D.shape[-1]
+    P = D.shape[-1]
     if method == "auto":
-        method = "dense" if p <= dense_max_p else "cg"
+        method = "dense" if P <= dense_max_p else "cg"
     if method not in ("dense", "cg"):
         raise ValueError(f"unknown method {method!r}")
 
@@ -203,11 +204,11 @@ def arrowhead_solve(
         elif cg_preconditioner == "d_diag":
             d = jnp.diagonal(D)
         elif cg_preconditioner == "none":
-            d = jnp.ones((p,), D.dtype)
+            d = jnp.ones((P,), D.dtype)
         else:
             raise ValueError(f"unknown cg_preconditioner {cg_preconditioner!r}")
         m_inv = jnp.where(d > 0, 1.0 / jnp.where(d > 0, d, 1.0), 1.0)
-        max_steps = p if cg_max_steps is None else cg_max_steps
+        max_steps = P if cg_max_steps is None else cg_max_steps
         dtheta, steps, converged, broken = _pcg(S_mv, rhs, m_inv, cg_rtol, max_steps)
         s_ok = ~broken & jnp.all(jnp.isfinite(dtheta))
 

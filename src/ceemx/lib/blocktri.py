@@ -39,10 +39,13 @@ class BlockTridiagonal(eqx.Module):
         diagonal: Diagonal blocks ``A[t, t]``, shape ``(T, n, n)``.
         lower: Sub-diagonal blocks ``A[t + 1, t]``, shape ``(T - 1, n, n)``. The super-diagonal
             blocks are ``lower[t].T``.
+
+    A batch of matrices (one per trajectory) has leaves with leading axes ``(*batch, T, ...)``;
+    the functions below take one matrix and are ``vmap``-ed over the batch.
     """
 
-    diagonal: Float[Array, "T n n"]
-    lower: Float[Array, "Tm1 n n"]
+    diagonal: Float[Array, "*batch T n n"]
+    lower: Float[Array, "*batch T-1 n n"]
 
 
 class BlockTridiagonalCholesky(eqx.Module):
@@ -51,10 +54,12 @@ class BlockTridiagonalCholesky(eqx.Module):
     Attributes:
         diagonal: Lower-triangular diagonal blocks ``L[t, t]``, shape ``(T, n, n)``.
         lower: Sub-diagonal blocks ``L[t + 1, t]``, shape ``(T - 1, n, n)``.
+
+    Batched like :class:`BlockTridiagonal`.
     """
 
-    diagonal: Float[Array, "T n n"]
-    lower: Float[Array, "Tm1 n n"]
+    diagonal: Float[Array, "*batch T n n"]
+    lower: Float[Array, "*batch T-1 n n"]
 
 
 def _mT(x: Array) -> Array:
@@ -258,8 +263,8 @@ def selected_inverse(L: BlockTridiagonalCholesky) -> BlockTridiagonal:
     return BlockTridiagonal(diagonal=jnp.concatenate([diags, S_last[None]], axis=0), lower=lows)
 
 
-def add_to_diagonal(A: BlockTridiagonal, d: Float[Array, "*B T n"]) -> BlockTridiagonal:
-    """A + diag(d): adds ``d[..., t, i]`` to entry (i, i) of diagonal block t (batched leaves work)."""
+def add_to_diagonal(A: BlockTridiagonal, d: Float[Array, "*batch T n"]) -> BlockTridiagonal:
+    """A + diag(d): adds ``d[..., t, i]`` to entry (i, i) of diagonal block t (batches too)."""
     n = A.diagonal.shape[-1]
     i = jnp.arange(n)
     return BlockTridiagonal(A.diagonal.at[..., i, i].add(d), A.lower)

@@ -1,4 +1,4 @@
-"""A generic, bounded Levenberg–Marquardt driver shared by the smoother, the LM learner and the joint method.
+"""A generic, bounded Levenberg–Marquardt driver: the smoother's, the LM learner's, the joint one's.
 
 The caller supplies the structure: how to evaluate the objective and its local quadratic model
 (``evaluate``), how to solve the damped normal equations (``solve``) and how to evaluate the
@@ -9,13 +9,13 @@ predicted decrease), Nielsen's damping update, convergence tests and status code
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .results import RESULTS
 
@@ -35,7 +35,7 @@ class LMOutput(NamedTuple):
 
 
 def _vdot(a, b):
-    return sum(jnp.sum(x * y) for x, y in zip(jtu.tree_leaves(a), jtu.tree_leaves(b)))
+    return sum(jnp.sum(x * y) for x, y in zip(jtu.tree_leaves(a), jtu.tree_leaves(b), strict=True))
 
 
 def _all_finite(tree):
@@ -52,7 +52,7 @@ def levenberg_marquardt(
     *,
     rtol: float | jax.Array,
     atol: float | jax.Array,
-    max_steps: int,
+    max_steps: int | Int[Array, ""],
     damping: float | jax.Array,
     max_accepted: int | None = None,
     init: tuple[jax.Array, Any] | None = None,
@@ -66,9 +66,10 @@ def levenberg_marquardt(
             factorisation failed.
         quad: ``(lin, delta) -> δᵀ H δ`` with the undamped model matrix H.
         z0: starting point.
-        rtol, atol: converged when the predicted or the actual decrease of an iteration is at most
+        rtol: converged when the predicted or the actual decrease of an iteration is at most
             ``rtol·|f| + atol``.
-        max_steps: bound on iterations (accepted or rejected).
+        atol: the absolute part of that tolerance.
+        max_steps: bound on iterations (accepted or rejected); may be traced.
         damping: initial λ.
         max_accepted: also stop after this many accepted steps (``None``: no such bound); with 1,
             one call is one LM iteration whose final λ (``LMOutput.damping``) seeds the next call.
@@ -146,7 +147,9 @@ def levenberg_marquardt(
     return LMOutput(z, f, lin, steps, status, acc, lam)
 
 
-def marquardt_scale(diag: jax.Array, lam: jax.Array) -> jax.Array:
+def marquardt_scale(
+    diag: Float[Array, "*shape"], lam: Float[ArrayLike, ""]
+) -> Float[Array, "*shape"]:
     """λ·diag(H): Marquardt's per-variable damping, invariant to the scale of each variable.
 
     Variables with (numerically) zero curvature — parameters with no effect on the objective, such
@@ -154,4 +157,4 @@ def marquardt_scale(diag: jax.Array, lam: jax.Array) -> jax.Array:
     gradient is zero too, so they do not move.
     """
     top = jnp.max(diag)
-    return lam * jnp.where(diag > 1e-10 * top, diag, jnp.maximum(top, 1.0))
+    return jnp.asarray(lam) * jnp.where(diag > 1e-10 * top, diag, jnp.maximum(top, 1.0))

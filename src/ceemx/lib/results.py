@@ -39,7 +39,7 @@ def from_codes(values: ArrayLike) -> RESULTS:
     return out
 
 
-def select(pred: Bool[ArrayLike, "..."], a: RESULTS, b: RESULTS) -> RESULTS:
+def select(pred: Bool[ArrayLike, ...], a: RESULTS, b: RESULTS) -> RESULTS:
     """``RESULTS.where`` for a predicate of any shape (elementwise; broadcast items)."""
     pred = jnp.asarray(pred)
     if pred.ndim == 0:

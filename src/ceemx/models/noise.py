@@ -22,9 +22,10 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..lib.dense import masked_cholesky, symmetrize, whitening_matrix
+from ..typing import Scalar
 
 __all__ = [
     "AbstractNoise",
@@ -38,7 +39,7 @@ __all__ = [
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
-def _full_mask(r: Array, mask: Array | None) -> Array:
+def _full_mask(r: Float[Array, " d"], mask: Bool[Array, " d"] | None) -> Bool[Array, " d"]:
     if mask is None:
         return jnp.ones(r.shape, dtype=bool)
     return jnp.broadcast_to(mask, r.shape)
@@ -53,10 +54,10 @@ class AbstractNoise(eqx.Module):
     """
 
     @abc.abstractmethod
-    def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Array:
+    def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Log-density of the present components of the residual ``r``."""
 
-    def nll(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Array:
+    def nll(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Negative log-density, −log p(r_present)."""
         return -self.log_prob(r, mask)
 
@@ -90,15 +91,19 @@ class AbstractGaussianNoise(AbstractNoise):
         """Gaussian noise models are exactly quadratic in the residual."""
         return True
 
-    def sqrt_curvature(self, r, mask=None):
+    def sqrt_curvature(
+        self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
+    ) -> Float[Array, "d d"]:
         """The whitening matrix L⁻¹ of the present components (zero rows for masked ones)."""
         return whitening_matrix(self.cholesky().astype(r.dtype), _full_mask(r, mask))
 
-    def whiten(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Array:
+    def whiten(
+        self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
+    ) -> Float[Array, " d"]:
         """Whitened residual L⁻¹ r of the present components (zero where masked)."""
         return self.sqrt_curvature(r, mask) @ r
 
-    def log_prob(self, r, mask=None):
+    def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Exact Gaussian log-density of the present components."""
         mask = _full_mask(r, mask)
         chol = masked_cholesky(self.cholesky().astype(r.dtype), mask)
@@ -117,28 +122,30 @@ class DiagonalGaussian(AbstractGaussianNoise):
         self.scale = jnp.asarray(scale)
         self.dim = int(dim)
 
-    def std(self) -> Array:
+    def std(self) -> Float[Array, " d"]:
         """Standard deviations as a length-d vector."""
         return jnp.broadcast_to(self.scale, (self.dim,))
 
-    def cholesky(self):
+    def cholesky(self) -> Float[Array, "d d"]:
         """diag(scale)."""
         return jnp.diag(self.std())
 
     # Diagonal fast paths (no d×d Cholesky per step).
-    def sqrt_curvature(self, r, mask=None):
+    def sqrt_curvature(
+        self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
+    ) -> Float[Array, "d d"]:
         """diag(mask / scale)."""
         mask = _full_mask(r, mask)
         return jnp.diag(jnp.where(mask, 1.0 / self.std().astype(r.dtype), 0.0))
 
-    def log_prob(self, r, mask=None):
+    def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Sum of independent normal log-densities over the present components."""
         mask = _full_mask(r, mask)
         s = self.std().astype(r.dtype)
         terms = -0.5 * (r / s) ** 2 - jnp.log(s) - 0.5 * _LOG_2PI
         return jnp.sum(jnp.where(mask, terms, 0.0))
 
-    def check(self, name):
+    def check(self, name: str) -> None:
         """Scales must be finite and positive."""
         _check_positive(name + ".scale", self.scale)
 
@@ -155,11 +162,11 @@ class CholeskyGaussian(AbstractGaussianNoise):
             chol = jnp.linalg.cholesky(jnp.asarray(cov))
         self.chol = jnp.tril(jnp.asarray(chol))
 
-    def cholesky(self):
+    def cholesky(self) -> Float[Array, "d d"]:
         """The stored factor."""
         return self.chol
 
-    def check(self, name):
+    def check(self, name: str) -> None:
         """The factor must be square with a finite, positive diagonal."""
         import numpy as np
 
@@ -187,7 +194,7 @@ class StudentT(AbstractNoise):
         self.df = jnp.asarray(df)
         self.dim = int(dim)
 
-    def _chol(self, dtype):
+    def _chol(self, dtype) -> Float[Array, "d d"]:
         s = jnp.asarray(self.scale, dtype)
         if s.ndim == 2:
             return jnp.tril(s)
@@ -198,7 +205,7 @@ class StudentT(AbstractNoise):
         z = jax.scipy.linalg.solve_triangular(chol, jnp.where(mask, r, 0.0), lower=True)
         return z, chol
 
-    def log_prob(self, r, mask=None):
+    def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Multivariate-t log-density of the present components."""
         mask = _full_mask(r, mask)
         z, chol = self._whitened(r, mask)
@@ -213,7 +220,9 @@ class StudentT(AbstractNoise):
             - 0.5 * (nu + k) * jnp.log1p(d2 / nu)
         )
 
-    def sqrt_curvature(self, r, mask=None):
+    def sqrt_curvature(
+        self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
+    ) -> Float[Array, "d d"]:
         """sqrt((ν+k)/(ν+δ²)) L⁻¹ on the present components."""
         mask = _full_mask(r, mask)
         z, chol = self._whitened(r, mask)
@@ -222,7 +231,7 @@ class StudentT(AbstractNoise):
         w = (nu + k) / (nu + jnp.sum(z**2))
         return jnp.sqrt(w) * whitening_matrix(self._chol(r.dtype), mask)
 
-    def check(self, name):
+    def check(self, name: str) -> None:
         """Scale and degrees of freedom must be positive."""
         import numpy as np
 
@@ -231,8 +240,8 @@ class StudentT(AbstractNoise):
         _check_positive(name + ".df", self.df)
 
 
-def as_noise(value: AbstractNoise | float | Array, dim: int) -> AbstractNoise:
-    """A noise model as given, or ``DiagonalGaussian(value, dim)`` for a scale (scalar or vector)."""
+def as_noise(value: AbstractNoise | ArrayLike, dim: int) -> AbstractNoise:
+    """A noise model as given, or ``DiagonalGaussian(value, dim)`` for a scale (scalar, vector)."""
     return value if isinstance(value, AbstractNoise) else DiagonalGaussian(value, dim)
 
 

@@ -8,8 +8,9 @@ from typing import TypeVar
 import equinox as eqx
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
+from ..typing import Scalar, State
 from .noise import AbstractNoise, as_noise
 
 __all__ = [
@@ -27,10 +28,10 @@ _S = TypeVar("_S", bound="AbstractSystem")
 class GaussianPrior(eqx.Module):
     """Initial-state prior x₁ ~ N(mean, Σ), Σ given by a noise model on the deviation x₁ − mean."""
 
-    mean: Float[Array, " n"]
+    mean: State
     noise: AbstractNoise
 
-    def nll(self, x1: Float[Array, " n"]) -> Array:
+    def nll(self, x1: State) -> Scalar:
         """−log p(x₁)."""
         return self.noise.nll(x1 - self.mean)
 
@@ -67,11 +68,13 @@ class AbstractSystem(eqx.Module):
         return 0
 
     @abc.abstractmethod
-    def dynamics(self, x: Float[Array, " n"], u: Float[Array, " p"], t: Array) -> Array:
-        """f_θ(x, u, t): the next state's mean."""
+    def dynamics(self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]) -> State:
+        """f_θ(x, u, t): the next state's mean (t: the integer time step)."""
 
     @abc.abstractmethod
-    def observe(self, x: Float[Array, " n"], u: Float[Array, " p"], t: Array) -> Array:
+    def observe(
+        self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]
+    ) -> Float[Array, " m"]:
         """g_θ(x, u, t): the observation's mean."""
 
     def check(self) -> None:
@@ -97,8 +100,8 @@ def float_dtype(tree) -> jnp.dtype:
 
 def with_noise(
     system: _S,
-    process_noise: AbstractNoise | float | Array | None = None,
-    obs_noise: AbstractNoise | float | Array | None = None,
+    process_noise: AbstractNoise | ArrayLike | None = None,
+    obs_noise: AbstractNoise | ArrayLike | None = None,
 ) -> _S:
     """The same system with other noise models (the weights of the residuals in J, Eq. 9).
 
@@ -145,10 +148,10 @@ class AbstractContinuousSystem(AbstractSystem):
     dt: eqx.AbstractVar[float]
 
     @abc.abstractmethod
-    def vector_field(self, x: Float[Array, " n"], u: Float[Array, " p"], t: Array) -> Array:
-        """F_θ(x, u, t), the continuous-time derivative of the state."""
+    def vector_field(self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]) -> State:
+        """F_θ(x, u, t), the continuous-time derivative of the state (t: continuous time)."""
 
-    def default_state_mean(self) -> Float[Array, " n"] | None:
+    def default_state_mean(self) -> State | None:
         """A typical state (n,), or ``None`` (the default) when the system has none.
 
         :func:`ceemx.evaluate.dynamics_error` compares vector fields at states sampled around it
@@ -156,6 +159,6 @@ class AbstractContinuousSystem(AbstractSystem):
         """
         return None
 
-    def dynamics(self, x, u, t):
+    def dynamics(self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]) -> State:
         """One RK4 step of length ``dt`` from time t·dt."""
         return rk4_step(self.vector_field, x, u, jnp.asarray(t, x.dtype) * self.dt, self.dt)

@@ -1,22 +1,22 @@
-"""The smoothing step (paper Eq. 10): batched Levenberg–Marquardt on x with a block-tridiagonal solve."""
+"""The smoothing step (paper Eq. 10): batched Levenberg–Marquardt on x, block-tridiagonal solves."""
 
 from __future__ import annotations
-
-import warnings
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import lib
+from .._warnings import warn
 from ..data import Trajectories
 from ..lib.lm import levenberg_marquardt, marquardt_scale
 from ..lib.results import RESULTS, messages
 from ..lib.tree import trace_numbers
 from ..models.system import AbstractSystem
 from ..objective import linearize, nll_offset_single
+from ..typing import PerTrajectory, States, Trajectory, no_type_check
 
 __all__ = ["LMSmoother", "SmootherSolution", "check_inputs", "smooth", "smooth_batch"]
 
@@ -62,15 +62,15 @@ class SmootherSolution(eqx.Module):
         cross_covariances: (B, T−1, n, n) Cov(x_{t+1}, x_t), or ``None``.
     """
 
-    states: Float[Array, "B T n"]
-    objective: Float[Array, " B"]
+    states: States
+    objective: PerTrajectory
     iterations: Int[Array, " B"]
     status: RESULTS
     covariances: Float[Array, "B T n n"] | None = None
     cross_covariances: Float[Array, "B T-1 n n"] | None = None
 
     @property
-    def converged(self) -> Array:
+    def converged(self) -> Bool[Array, " B"]:
         """(B,) True where the trajectory converged."""
         return self.status == RESULTS.successful
 
@@ -79,7 +79,14 @@ class SmootherSolution(eqx.Module):
         return messages(self.status)
 
 
-def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
+def _smooth_one(
+    solver,  # an LMSmoother, or any object with its fields (a test harness traces max_steps)
+    system: AbstractSystem,
+    x0: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+):
     rho = jnp.asarray(solver.rho_x, x0.dtype)
     ident = lambda s: s  # noqa: E731
 
@@ -118,7 +125,13 @@ def _smooth_one(solver: LMSmoother, system, x0, y, u, mask):
 
 
 @eqx.filter_jit
-def smooth_batch(solver: LMSmoother, system, x_init, data, covariance: bool) -> SmootherSolution:
+def smooth_batch(
+    solver: LMSmoother,
+    system: AbstractSystem,
+    x_init: States,
+    data: Trajectories,
+    covariance: bool,
+) -> SmootherSolution:
     """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced)."""
     x, value, steps, status, hess = jax.vmap(_smooth_one, in_axes=(None, None, 0, 0, 0, 0))(
         solver, system, x_init, data.y, data.u, data.mask
@@ -134,6 +147,7 @@ def smooth_batch(solver: LMSmoother, system, x_init, data, covariance: bool) -> 
     return SmootherSolution(x, value, steps, status, cov, cross)
 
 
+@no_type_check  # the validator itself
 def check_inputs(
     system: AbstractSystem, data: Trajectories, x=None, *, name: str = "x_init"
 ) -> None:
@@ -163,17 +177,17 @@ def check_inputs(
                 f"`{name}` has dtype {xa.dtype} but `data.y` has dtype {data.y.dtype}."
             )
         if xa.dtype == np.float32 or xa.dtype == np.float16:
-            warnings.warn(
+            warn(
                 f"identifying in {xa.dtype}: CE-EM's second-order solves lose accuracy in single "
-                "precision; enable float64 with jax.config.update('jax_enable_x64', True).",
-                stacklevel=3,
+                "precision; enable float64 with jax.config.update('jax_enable_x64', True)."
             )
 
 
+@no_type_check  # validates its arguments: check_inputs
 def smooth(
     system: AbstractSystem,
     data: Trajectories,
-    x_init: Float[Array, "B T n"],
+    x_init: ArrayLike,
     solver: LMSmoother | None = None,
     *,
     covariance: bool = False,

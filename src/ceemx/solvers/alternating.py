@@ -3,18 +3,20 @@
 from __future__ import annotations
 
 import time
-import warnings
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import PRNGKeyArray
 
+from .._warnings import warn
 from ..learning import learners as _learners
 from ..learning import step as learning_step
 from ..learning.problem import learning_problem
 from ..lib.results import RESULTS, codes, select
 from ..problem import FitProblem
 from ..smoothing import solver as smoothing_solver
+from ..typing import States, Theta
 from .base import AbstractFitSolver, FitState, trajectory_log_likelihood
 
 __all__ = ["Alternating"]
@@ -58,7 +60,9 @@ class Alternating(AbstractFitSolver):
         if not np.all(np.asarray(self.rho_theta) >= 0):
             raise ValueError(f"`rho_theta` must be >= 0; got {self.rho_theta}.")
 
-    def init(self, problem: FitProblem, theta, states, key) -> FitState:
+    def init(
+        self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
+    ) -> FitState:
         """θ, x as given; all trajectories take part; the learner's state from ``key``."""
         B = states.shape[0]
         return FitState(
@@ -74,15 +78,16 @@ class Alternating(AbstractFitSolver):
         """One smoothing step and one learning step."""
         t0 = time.perf_counter()
         system = problem.build(state.theta)
-        sol = smoothing_solver.smooth_batch(self.smoother, system, state.states, problem.data, False)
+        sol = smoothing_solver.smooth_batch(
+            self.smoother, system, state.states, problem.data, False
+        )
         sol.states.block_until_ready()
         t_smooth = time.perf_counter() - t0
         failed = np.asarray(sol.status == RESULTS.nonfinite)
         if failed.any():
-            warnings.warn(
+            warn(
                 f"smoothing failed (non-finite objective) on trajectories "
-                f"{np.flatnonzero(failed).tolist()}; they are excluded from learning.",
-                stacklevel=4,
+                f"{np.flatnonzero(failed).tolist()}; they are excluded from learning."
             )
         weights = jnp.asarray(np.where(failed, 0.0, 1.0), state.states.dtype)
 

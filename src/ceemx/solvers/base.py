@@ -23,13 +23,12 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PyTree
+from jaxtyping import PRNGKeyArray, PyTree
 
 from ..lib.results import RESULTS
 from ..problem import FitProblem
+from ..typing import PerTrajectory, Scalar, States, Theta
 
 __all__ = [
     "AbstractFitSolver",
@@ -54,23 +53,23 @@ class FitState(eqx.Module):
             checkpointed — a solver must rebuild it when it is ``None``.
     """
 
-    theta: Float[Array, " theta"]
-    states: Float[Array, "B T n"]
-    J: Float[Array, " B"]
-    weights: Float[Array, " B"]
+    theta: Theta
+    states: States
+    J: PerTrajectory
+    weights: PerTrajectory
     status: RESULTS
     solver_state: PyTree = None
     cache: PyTree = None
 
 
 @eqx.filter_jit
-def trajectory_log_likelihood(problem: FitProblem, theta, states) -> Float[Array, " B"]:
+def trajectory_log_likelihood(problem: FitProblem, theta: Theta, states: States) -> PerTrajectory:
     """(B,) J_b(x_b, θ), compiled once per problem shape."""
     return -problem.per_trajectory(theta, states)
 
 
 @eqx.filter_jit
-def _offset(problem: FitProblem, theta, weights):
+def _offset(problem: FitProblem, theta: Theta, weights: PerTrajectory) -> Scalar:
     return problem.offset(theta, weights)
 
 
@@ -112,7 +111,9 @@ class AbstractFitSolver(eqx.Module):
     history_keys: ClassVar[Mapping[str, str]] = {}
 
     @abc.abstractmethod
-    def init(self, problem: FitProblem, theta: Array, states: Array, key: Array) -> FitState:
+    def init(
+        self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
+    ) -> FitState:
         """The initial state at (θ, x)."""
 
     @abc.abstractmethod
@@ -131,4 +132,3 @@ class AbstractFitSolver(eqx.Module):
     def postprocess(self, problem: FitProblem, state: FitState) -> FitState:
         """The final state (default: unchanged)."""
         return state
-

@@ -3,9 +3,10 @@
 The paper minimises −J(x, θ) by alternating blocks (Algorithm 1). Alternation is slow when x and θ
 are strongly coupled; a joint second-order step uses that coupling. Its normal equations are an
 arrowhead: per trajectory b a block-tridiagonal A_b = J_xᵀWJ_x, a shared dense D = Σ_b J_θᵀWJ_θ,
-and the border E_b = J_xᵀWJ_θ. :func:`ceemx.lib.arrowhead_solve` eliminates x through the Schur
-complement S = D − Σ_b E_bᵀA_b⁻¹E_b (P × P) in O(B T (n³ + n² P) + P³) — or matrix-free CG on S
-for P > ``dense_max_p`` — and recovers the x-step by block back-substitution.
+and the border E_b = J_xᵀWJ_θ (shape (T, n, theta)). :func:`ceemx.lib.arrowhead_solve` eliminates
+x through the Schur complement S = D − Σ_b E_bᵀA_b⁻¹E_b (P × P, P the length of θ) in
+O(B T (n³ + n² P) + P³) — or matrix-free CG on S for P > ``dense_max_p`` — and recovers the x-step
+by block back-substitution.
 
 Each epoch is one accepted Levenberg–Marquardt step with Marquardt's per-variable damping (scale
 invariance across parameters of different magnitudes), accepted on actual vs predicted decrease.
@@ -17,21 +18,22 @@ linearisation and one arrowhead solve.
 
 from __future__ import annotations
 
-import warnings
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import lib
+from .._warnings import warn
 from ..lib.blocktri import BlockTridiagonal
 from ..lib.lm import levenberg_marquardt, marquardt_scale
 from ..lib.results import RESULTS, codes, select
 from ..objective import linearize
 from ..problem import FitProblem
+from ..typing import PerTrajectory, Scalar, States, Theta
 from .base import AbstractFitSolver, FitState, improvement_converged, trajectory_log_likelihood
 
 __all__ = ["JointLM", "JointLinearization"]
@@ -86,15 +88,16 @@ class JointLM(AbstractFitSolver):
                 f"`linear_solver` must be 'auto', 'dense' or 'cg'; got {self.linear_solver!r}."
             )
 
-    def init(self, problem: FitProblem, theta, states, key) -> FitState:
+    def init(
+        self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
+    ) -> FitState:
         """θ, x as given; trajectories non-finite at the start are excluded (with a warning)."""
         J = trajectory_log_likelihood(problem, theta, states)
         ok = np.isfinite(np.asarray(J))
         if not ok.all():
-            warnings.warn(
+            warn(
                 f"trajectories {np.flatnonzero(~ok).tolist()} have a non-finite objective at "
-                "the initial states; they are excluded from the joint fit.",
-                stacklevel=4,
+                "the initial states; they are excluded from the joint fit."
             )
         return FitState(
             theta=theta,
@@ -151,12 +154,12 @@ class JointLM(AbstractFitSolver):
 class JointLinearization(NamedTuple):
     """The joint Gauss–Newton model at (x, θ), summed over the trajectories taking part."""
 
-    grad_x: Array  # (B, T, n)
-    grad_theta: Array  # (P,)
-    A: BlockTridiagonal  # x-blocks per trajectory
-    E: Array  # (B, T, n, P) border
-    D: Array  # (P, P)
-    nll: Array  # (B,) −J_b (normalising constants included)
+    grad_x: Float[Array, "B T n"]
+    grad_theta: Float[Array, " theta"]
+    A: BlockTridiagonal  # x-blocks per trajectory, leaves (B, T, ...)
+    E: Float[Array, "B T n theta"]  # border
+    D: Float[Array, "theta theta"]
+    nll: Float[Array, " B"]  # −J_b (normalising constants included)
 
 
 def _mask_tree(ok, tree):
@@ -165,7 +168,7 @@ def _mask_tree(ok, tree):
     )
 
 
-def _evaluator(problem: FitProblem, weights, offset):
+def _evaluator(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
     """``z = (x, θ) -> (value, JointLinearization)``; value = −J − offset − log p(θ)."""
     data = problem.data
     ok_b = weights > 0
@@ -175,6 +178,9 @@ def _evaluator(problem: FitProblem, weights, offset):
         lin = jax.vmap(
             lambda xb, y, u, m: linearize(problem.build, th, xb, y, u, m, wrt_theta=True)
         )(x, data.y, data.u, data.mask)
+        # wrt_theta=True with wrt_x=True: every part of the linearisation is there.
+        assert lin.grad_x is not None and lin.hess_x is not None
+        assert lin.grad_theta is not None and lin.E is not None and lin.D is not None
         eye_n = jnp.eye(x.shape[-1], dtype=x.dtype)
         # Excluded trajectories get an identity x-block (their states stay put).
         A = BlockTridiagonal(
@@ -198,14 +204,24 @@ def _evaluator(problem: FitProblem, weights, offset):
 
 
 @eqx.filter_jit
-def linearize_joint(problem: FitProblem, weights, theta, states):
+def linearize_joint(
+    problem: FitProblem, weights: PerTrajectory, theta: Theta, states: States
+) -> tuple[Scalar, JointLinearization]:
     """(value, :class:`JointLinearization`) at (x, θ): seeds the first iteration."""
     offset = problem.offset(theta, weights)
     return _evaluator(problem, weights, offset)((states, theta))
 
 
 @eqx.filter_jit
-def _iteration(opts: JointLM, problem: FitProblem, weights, theta, states, lam, current):
+def _iteration(
+    opts: JointLM,
+    problem: FitProblem,
+    weights: PerTrajectory,
+    theta: Theta,
+    states: States,
+    lam: Scalar,
+    current: tuple[Scalar, JointLinearization],
+):
     """One accepted LM step on (x, θ) from the linearisation ``current`` at (x, θ).
 
     Returns (θ, x, λ, status, accepted steps, trials, (value, linearisation) at the new point).

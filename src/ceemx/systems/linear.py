@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Real
 
 from ..models.noise import AbstractNoise, as_noise
 from ..models.system import AbstractSystem, GaussianPrior
+from ..typing import State
 
 __all__ = ["LinearSystem"]
 
@@ -33,8 +34,8 @@ class LinearSystem(AbstractSystem):
         B=None,
         D=None,
         *,
-        process_noise: AbstractNoise | float = 1.0,
-        obs_noise: AbstractNoise | float = 1.0,
+        process_noise: AbstractNoise | ArrayLike = 1.0,
+        obs_noise: AbstractNoise | ArrayLike = 1.0,
         initial_prior: GaussianPrior | None = None,
     ):
         self.A = jnp.asarray(A)
@@ -57,23 +58,25 @@ class LinearSystem(AbstractSystem):
 
     @property
     def state_dim(self) -> int:
-        """N."""
+        """The state dimension n."""
         return self.A.shape[0]
 
     @property
     def obs_dim(self) -> int:
-        """M."""
+        """The observation dimension m."""
         return self.C.shape[0]
 
     @property
     def input_dim(self) -> int:
-        """P."""
+        """The input dimension p."""
         return self.B.shape[1]
 
-    def dynamics(self, x, u, t):
+    def dynamics(self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]) -> State:
         """A x + B u."""
         return self.A @ x + self.B @ u
 
-    def observe(self, x, u, t):
+    def observe(
+        self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]
+    ) -> Float[Array, " m"]:
         """C x + D u."""
         return self.C @ x + self.D @ u

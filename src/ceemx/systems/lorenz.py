@@ -6,10 +6,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real
 
 from ..models.noise import AbstractNoise, as_noise
 from ..models.system import AbstractContinuousSystem, GaussianPrior
+from ..typing import State
 
 __all__ = [
     "CoupledLorenz",
@@ -25,7 +26,7 @@ INITIAL_STD = 2.5
 TRUE_PARAMS = (10.0, 28.0, 8.0 / 3.0)
 
 
-def coupling_mask(K: int, dtype=jnp.float64) -> Array:
+def coupling_mask(K: int, dtype=jnp.float64) -> Float[Array, "n n"]:
     """(3K, 3K) mask that is 0 on each attractor's own 3×3 block (no self-coupling), 1 elsewhere."""
     own = jnp.kron(jnp.eye(K), jnp.ones((3, 3)))
     return (1.0 - own).astype(dtype)
@@ -67,8 +68,8 @@ class CoupledLorenz(AbstractContinuousSystem):
         *,
         H=None,
         dt: float = 0.04,
-        process_noise: AbstractNoise | float = 0.01,
-        obs_noise: AbstractNoise | float = 0.01,
+        process_noise: AbstractNoise | ArrayLike = 0.01,
+        obs_noise: AbstractNoise | ArrayLike = 0.01,
         initial_prior: GaussianPrior | None = None,
     ):
         # Integers would silently be untrainable (filters learn inexact arrays): promote them.
@@ -102,23 +103,23 @@ class CoupledLorenz(AbstractContinuousSystem):
 
     @property
     def state_dim(self) -> int:
-        """N = 3K."""
+        """The state dimension n = 3K."""
         return 3 * self.K
 
     @property
     def obs_dim(self) -> int:
-        """M = rows of C."""
+        """The observation dimension m (rows of C)."""
         return self.C.shape[0]
 
-    def effective_coupling(self) -> Array:
+    def effective_coupling(self) -> Float[Array, "n n"]:
         """H with the own-attractor blocks zeroed."""
         return self.H * coupling_mask(self.K, self.H.dtype)
 
-    def default_state_mean(self) -> Array:
+    def default_state_mean(self) -> State:
         """The paper's initial-state mean, (−6, −6, 24) per attractor (§4.1)."""
         return jnp.tile(jnp.asarray(INITIAL_MEAN, self.sigma.dtype), self.K)
 
-    def vector_field(self, x, u, t):
+    def vector_field(self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]) -> State:
         """Eq. 12."""
         z = x.reshape(self.K, 3)
         x1, x2, x3 = z[:, 0], z[:, 1], z[:, 2]
@@ -132,12 +133,16 @@ class CoupledLorenz(AbstractContinuousSystem):
         ).reshape(-1)
         return dx + self.effective_coupling() @ x
 
-    def observe(self, x, u, t):
+    def observe(
+        self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]
+    ) -> Float[Array, " m"]:
         """Eq. 13: y = C x."""
         return self.C @ x
 
 
-def random_coupling(key: PRNGKeyArray, K: int, frobenius: float = 5.0, dtype=jnp.float64) -> Array:
+def random_coupling(
+    key: PRNGKeyArray, K: int, frobenius: float = 5.0, dtype=jnp.float64
+) -> Float[Array, "n n"]:
     """Standard-normal H, own-attractor blocks zeroed, scaled to the given Frobenius norm."""
     H = jax.random.normal(key, (3 * K, 3 * K), dtype) * coupling_mask(K, dtype)
     if K == 1:
@@ -145,7 +150,9 @@ def random_coupling(key: PRNGKeyArray, K: int, frobenius: float = 5.0, dtype=jnp
     return H * (frobenius / jnp.linalg.norm(H))
 
 
-def random_observation_matrix(key: PRNGKeyArray, K: int, m: int | None = None, dtype=jnp.float64):
+def random_observation_matrix(
+    key: PRNGKeyArray, K: int, m: int | None = None, dtype=jnp.float64
+) -> Float[Array, "m n"]:
     """Standard-normal C ∈ R^{m×3K}, m = 3K − 2 by default (full row rank with probability one)."""
     m = 3 * K - 2 if m is None else m
     C = jax.random.normal(key, (m, 3 * K), dtype)
@@ -154,7 +161,7 @@ def random_observation_matrix(key: PRNGKeyArray, K: int, m: int | None = None, d
     return C
 
 
-def initial_states(key: PRNGKeyArray, B: int, K: int, dtype=jnp.float64) -> Array:
+def initial_states(key: PRNGKeyArray, B: int, K: int, dtype=jnp.float64) -> Float[Array, "B n"]:
     """(B, 3K) initial states from the paper's distribution N((−6, −6, 24), 2.5²) per attractor."""
     mean = jnp.tile(jnp.asarray(INITIAL_MEAN, dtype), K)
     return mean[None, :] + INITIAL_STD * jax.random.normal(key, (B, 3 * K), dtype)
