@@ -27,6 +27,15 @@ START = TRUE * np.array([1.08, 0.93, 1.05])  # every parameter within 10% of the
 T = 64
 
 
+# Jitted once per structure and shape: eager (op-by-op) evaluation costs seconds here.
+simulate = eqx.filter_jit(ceemx.simulate)
+
+
+@eqx.filter_jit
+def value_of(problem, theta):
+    return problem.value(theta)
+
+
 def where_theta(s):
     return (s.sigma, s.rho, s.beta)
 
@@ -48,7 +57,7 @@ def exact():
     assert C.shape == (2, 3)
     true = lorenz(TRUE, C)
     x1 = initial_states(jax.random.PRNGKey(1), 1, 1)
-    states, data = ceemx.simulate(
+    states, data = simulate(
         true, jax.random.PRNGKey(2), x1, T, process_noise=False, obs_noise=False
     )
     return types.SimpleNamespace(C=C, true=true, start=lorenz(START, C), states=states, data=data)
@@ -58,7 +67,7 @@ def exact():
 def noisy(exact):
     """Same system, noisy observations and perturbed states: the optimum is not the truth."""
     x1 = initial_states(jax.random.PRNGKey(3), 1, 1)
-    states, data = ceemx.simulate(exact.true, jax.random.PRNGKey(4), x1, T)
+    states, data = simulate(exact.true, jax.random.PRNGKey(4), x1, T)
     states = states + 0.05 * jax.random.normal(jax.random.PRNGKey(5), states.shape)
     return types.SimpleNamespace(C=exact.C, start=exact.start, states=states, data=data)
 
@@ -94,7 +103,7 @@ def test_learners_recover_true_parameters(exact, name):
     )
     # The reported value is the learning objective at the returned θ.
     problem, theta = make_problem(system, exact.states, exact.data, trainable=where_theta)
-    np.testing.assert_allclose(float(info.value_after), float(problem.value(theta)), rtol=1e-10)
+    np.testing.assert_allclose(float(info.value_after), float(value_of(problem, theta)), rtol=1e-10)
     # Nothing but θ moved.
     np.testing.assert_array_equal(system.C, exact.start.C)
     np.testing.assert_array_equal(system.obs_noise.scale, exact.start.obs_noise.scale)
@@ -251,7 +260,7 @@ def test_default_trainable_learns_model_arrays_not_noise(noisy):
 
 def test_minibatch_optax_learner_decreases_objective(exact):
     x1 = initial_states(jax.random.PRNGKey(6), 4, 1)
-    states, data = ceemx.simulate(exact.true, jax.random.PRNGKey(7), x1, T, obs_noise=False)
+    states, data = simulate(exact.true, jax.random.PRNGKey(7), x1, T, obs_noise=False)
     learner = ceemx.OptaxLearner(optax.adam(1e-2), steps=200, batch_size=2)
     key = jax.random.PRNGKey(8)
     system, state, info = ceemx.learn(
@@ -261,7 +270,9 @@ def test_minibatch_optax_learner_decreases_objective(exact):
     assert float(info.value_after) < float(info.value_before)
     # The reported values are those of the full-batch objective.
     problem, theta0 = make_problem(exact.start, states, data, trainable=where_theta)
-    np.testing.assert_allclose(float(info.value_before), float(problem.value(theta0)), rtol=1e-12)
+    np.testing.assert_allclose(
+        float(info.value_before), float(value_of(problem, theta0)), rtol=1e-12
+    )
     assert np.max(np.abs(theta_of(system) / TRUE - 1)) < np.max(np.abs(START / TRUE - 1))
     # The minibatch key advanced and the state carries over to a second call.
     _, key_after = state
