@@ -3,6 +3,7 @@
 import pathlib
 import sys
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -29,7 +30,7 @@ from ceemx.lib import (  # noqa: E402
     to_dense,
 )
 
-SHAPES = [(1, 1), (1, 5), (3, 1), (3, 4), (5, 17), (8, 32)]
+SHAPES = [(1, 1), (1, 5), (3, 1), (3, 4), pytest.param(5, 17, marks=pytest.mark.slow), (8, 32)]
 
 
 def random_spd(rng, n, T, shift=1.0):
@@ -48,36 +49,52 @@ def rel_err(a, b):
     return np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-300)
 
 
+@jax.jit
+def _factor_and_solve(A, x, X, b, Bm):
+    """Every block-tridiagonal operation at once: one compilation per shape (eager op-by-op
+    evaluation compiles each operation separately and costs seconds)."""
+    L = cholesky(A)
+    return dict(
+        dense=to_dense(A),
+        Ax=matvec(A, x),
+        AX=matvec(A, X),
+        finite=is_finite(L),
+        L=to_dense(L),
+        solve_b=solve(L, b),
+        solve_B=solve(L, Bm),
+        cho_solve=cho_solve(A, b),
+        logdet=logdet(L),
+    )
+
+
 @pytest.mark.parametrize("n,T", SHAPES)
 def test_dense_matvec_solve_logdet(n, T):
     rng = np.random.default_rng(n * 100 + T)
     A = random_spd(rng, n, T)
-    Ad = np.asarray(to_dense(A))
-    assert Ad.shape == (T * n, T * n)
-    np.testing.assert_allclose(Ad, Ad.T)
-
     x = rng.standard_normal((T, n))
     X = rng.standard_normal((T, n, 3))
-    np.testing.assert_allclose(matvec(A, x), (Ad @ x.ravel()).reshape(T, n), rtol=1e-12)
-    np.testing.assert_allclose(
-        matvec(A, X), (Ad @ X.reshape(T * n, 3)).reshape(T, n, 3), rtol=1e-12
-    )
-
-    L = cholesky(A)
-    assert bool(is_finite(L))
-    Ld = np.asarray(to_dense(L))
-    assert rel_err(Ld @ Ld.T, Ad) < 1e-12
-
     b = rng.standard_normal((T, n))
     Bm = rng.standard_normal((T, n, 4))
-    assert rel_err(solve(L, b), np.linalg.solve(Ad, b.ravel()).reshape(T, n)) < 1e-10
+    out = _factor_and_solve(A, x, X, b, Bm)
+
+    Ad = np.asarray(out["dense"])
+    assert Ad.shape == (T * n, T * n)
+    np.testing.assert_allclose(Ad, Ad.T)
+    np.testing.assert_allclose(out["Ax"], (Ad @ x.ravel()).reshape(T, n), rtol=1e-12)
+    np.testing.assert_allclose(out["AX"], (Ad @ X.reshape(T * n, 3)).reshape(T, n, 3), rtol=1e-12)
+
+    assert bool(out["finite"])
+    Ld = np.asarray(out["L"])
+    assert rel_err(Ld @ Ld.T, Ad) < 1e-12
+
+    assert rel_err(out["solve_b"], np.linalg.solve(Ad, b.ravel()).reshape(T, n)) < 1e-10
     ref = np.linalg.solve(Ad, Bm.reshape(T * n, 4)).reshape(T, n, 4)
-    assert rel_err(solve(L, Bm), ref) < 1e-10
-    assert rel_err(cho_solve(A, b), np.linalg.solve(Ad, b.ravel()).reshape(T, n)) < 1e-10
+    assert rel_err(out["solve_B"], ref) < 1e-10
+    assert rel_err(out["cho_solve"], np.linalg.solve(Ad, b.ravel()).reshape(T, n)) < 1e-10
 
     sign, ld = np.linalg.slogdet(Ad)
     assert sign == 1
-    assert abs(float(logdet(L)) - ld) <= 1e-10 * max(1.0, abs(ld))
+    assert abs(float(out["logdet"]) - ld) <= 1e-10 * max(1.0, abs(ld))
 
 
 @pytest.mark.parametrize("n,T", SHAPES)
@@ -121,17 +138,28 @@ def test_float32_in_float32_out():
     A64 = random_spd(rng, 3, 4)
     A = jax.tree.map(lambda x: x.astype(jnp.float32), A64)
     b = jnp.ones((4, 3), jnp.float32)
-    L = cholesky(A)
+
+    @jax.jit  # one compilation instead of one per operation
+    def everything(A, b):
+        L = cholesky(A)
+        return L, solve(L, b), matvec(A, b), logdet(L), selected_inverse(L), to_dense(A)
+
+    L, x, Ab, ld, S, dense = everything(A, b)
     assert L.diagonal.dtype == jnp.float32 and L.lower.dtype == jnp.float32
-    assert solve(L, b).dtype == jnp.float32
-    assert matvec(A, b).dtype == jnp.float32
-    assert logdet(L).dtype == jnp.float32
-    S = selected_inverse(L)
+    assert x.dtype == jnp.float32
+    assert Ab.dtype == jnp.float32
+    assert ld.dtype == jnp.float32
     assert S.diagonal.dtype == jnp.float32 and S.lower.dtype == jnp.float32
-    assert to_dense(A).dtype == jnp.float32
+    assert dense.dtype == jnp.float32
+    np.testing.assert_allclose(
+        x, np.linalg.solve(np.asarray(to_dense(A64)), np.ones(12)).reshape(4, 3), rtol=1e-4
+    )
 
 
 # ----------------------------------------------------------------------------- arrowhead
+
+# Compiled once per shapes and (static) options; tests share shapes where they can.
+solve_arrow = eqx.filter_jit(arrowhead_solve)
 
 
 def arrow_problem(rng, B, T, n, p, scale_E=0.3):
@@ -163,7 +191,7 @@ def dense_arrow(mats, E, D, r_x, r_t):
 def test_arrowhead_dense_matches_numpy(B, T, n, p):
     rng = np.random.default_rng(10 + B + T + n + p)
     mats, A, E, D, r_x, r_t = arrow_problem(rng, B, T, n, p)
-    sol = jax.jit(arrowhead_solve, static_argnames="method")(A, E, D, r_x, r_t, method="dense")
+    sol = solve_arrow(A, E, D, r_x, r_t, method="dense")
     dx_ref, dt_ref = dense_arrow(mats, E, D, r_x, r_t)
     assert sol.method == "dense" and bool(sol.ok) and bool(sol.converged)
     assert int(sol.cg_steps) == 0
@@ -176,8 +204,8 @@ def test_arrowhead_cg_matches_dense(precond):
     rng = np.random.default_rng(3)
     B, T, n, p = 3, 6, 2, 7
     _, A, E, D, r_x, r_t = arrow_problem(rng, B, T, n, p)
-    dense = arrowhead_solve(A, E, D, r_x, r_t, method="dense")
-    cg = arrowhead_solve(A, E, D, r_x, r_t, method="cg", cg_preconditioner=precond, cg_chunk=3)
+    dense = solve_arrow(A, E, D, r_x, r_t, method="dense")
+    cg = solve_arrow(A, E, D, r_x, r_t, method="cg", cg_preconditioner=precond, cg_chunk=3)
     assert cg.method == "cg" and bool(cg.ok) and bool(cg.converged)
     assert 0 < int(cg.cg_steps) <= p
     assert rel_err(cg.dtheta, dense.dtheta) < 1e-6
@@ -186,16 +214,18 @@ def test_arrowhead_cg_matches_dense(precond):
 
 def test_arrowhead_auto_method():
     rng = np.random.default_rng(4)
-    _, A, E, D, r_x, r_t = arrow_problem(rng, 2, 3, 2, 3)
-    assert arrowhead_solve(A, E, D, r_x, r_t).method == "dense"
-    sol = arrowhead_solve(A, E, D, r_x, r_t, dense_max_p=2)
+    _, A, E, D, r_x, r_t = arrow_problem(rng, 2, 4, 2, 5)
+    # The method is static: tracing (no compilation) shows the choice.
+    assert jax.eval_shape(lambda: arrowhead_solve(A, E, D, r_x, r_t)).method == "dense"
+    sol = solve_arrow(A, E, D, r_x, r_t, dense_max_p=4)
     assert sol.method == "cg" and bool(sol.ok)
 
 
+@jax.jit
 def _schur_part(A, E):
     L = jax.vmap(cholesky)(A)
     Z = jax.vmap(solve)(L, jnp.asarray(E))
-    return np.asarray(jnp.einsum("btnp,btnq->pq", E, Z))
+    return jnp.einsum("btnp,btnq->pq", E, Z)
 
 
 # CG only detects non-positive curvature it meets, so a singular (rank-deficient PSD) S is
@@ -207,22 +237,22 @@ def test_arrowhead_bad_schur(kind, method):
     rng = np.random.default_rng(5)
     B, T, n, p = 2, 4, 2, 5
     _, A, E, _, r_x, r_t = arrow_problem(rng, B, T, n, p)
-    P = _schur_part(A, E)
+    P = np.asarray(_schur_part(A, E))
     if kind == "indefinite":
         D = P - np.eye(p)  # S = -I
     else:
         v = rng.standard_normal((p, 1))
         D = P + v @ v.T  # S = v v^T, rank one
-    sol = arrowhead_solve(A, E, D, r_x, r_t, method=method)
+    sol = solve_arrow(A, E, D, r_x, r_t, method=method)
     assert not bool(sol.ok)
     assert np.all(np.isfinite(sol.dx)) and np.all(np.isfinite(sol.dtheta))
 
 
 def test_arrowhead_bad_state_block():
     rng = np.random.default_rng(6)
-    _, A, E, D, r_x, r_t = arrow_problem(rng, 2, 4, 2, 3)
+    _, A, E, D, r_x, r_t = arrow_problem(rng, 2, 4, 2, 5)  # the shapes of test_arrowhead_bad_schur
     A = BlockTridiagonal(diagonal=A.diagonal.at[1, 2].set(-10 * jnp.eye(2)), lower=A.lower)
     for method in ("dense", "cg"):
-        sol = arrowhead_solve(A, E, D, r_x, r_t, method=method)
+        sol = solve_arrow(A, E, D, r_x, r_t, method=method)
         assert not bool(sol.ok)
         assert np.all(np.isfinite(sol.dx)) and np.all(np.isfinite(sol.dtheta))
