@@ -306,6 +306,40 @@ def test_failed_trajectory_does_not_poison_gradient_learners(prob, learner):
 # Kill and resume
 # --------------------------------------------------------------------------------------------------
 
+
+class _Interrupted(Exception):
+    pass
+
+
+def test_interrupted_fit_resumes_bitwise(prob, tmp_path):
+    """A run stopped abruptly after epoch 4 was computed, before its checkpoint was written (an
+    exception from a callback, in this process, compiled already; the real SIGKILL of a separate
+    process is ``test_kill_and_resume_matches_uninterrupted_run``, slow) resumes from epoch 3 to
+    the very numbers of an uninterrupted run."""
+    ckpt = tmp_path / "ckpt"
+
+    def interrupt(info):
+        if info.epoch == 4:
+            raise _Interrupted
+
+    with pytest.raises(_Interrupted):
+        fit_a(prob, max_epochs=8, checkpoint=str(ckpt), callbacks=[interrupt])
+    assert sorted(os.listdir(ckpt)) == ["latest.json", "state-3.eqx"]
+    meta = _strict_json(ckpt / "latest.json")
+    assert meta["epoch"] == 3 and meta["state"] == "state-3.eqx" and len(meta["history"]) == 3
+
+    resumed = fit_a(prob, max_epochs=8, checkpoint=str(ckpt))
+    full = fit_a(prob, max_epochs=8)
+    assert resumed.epochs == full.epochs == 8
+    assert [h["epoch"] for h in resumed.history] == list(range(1, 9))
+    np.testing.assert_array_equal(theta_of(resumed.system), theta_of(full.system))
+    np.testing.assert_array_equal(resumed.states, full.states)
+    np.testing.assert_array_equal(resumed.history_array("J"), full.history_array("J"))
+    assert resumed.initial_J == full.initial_J
+    assert resumed.converged == full.converged
+    assert sorted(os.listdir(ckpt)) == ["latest.json", "state-8.eqx"]
+
+
 _SCRIPT = textwrap.dedent(
     """
     import os, signal, sys
@@ -346,6 +380,7 @@ def _strict_json(path):
         return json.load(f, parse_constant=reject)
 
 
+@pytest.mark.slow  # a fresh process compiles everything again
 def test_kill_and_resume_matches_uninterrupted_run(prob, tmp_path):
     np.savez(
         tmp_path / "problem.npz", start=START, C=np.asarray(prob.C), y=np.asarray(prob.data.y),
