@@ -8,10 +8,11 @@ user-facing layer — systems, data, the objective, smoothers, learners, fit sol
 
 from importlib.metadata import PackageNotFoundError, version
 
-from . import evaluate, initialize, lib, report, systems
+from . import evaluate, inference, initialize, lib, report, systems
 from .data import Trajectories, simulate
-from .driver import EpochInfo, FitResult, fit
+from .driver import EpochInfo, FitResult, fit, particle_em
 from .evaluate import DynamicsErrorCallback, FitTimer, is_monotone
+from .inference import ParticleFilterSolution, ffbsi, particle_filter
 from .initialize import perturb, warm_start
 from .learning import (
     AbstractLearner,
@@ -37,7 +38,7 @@ from .models import (
 from .objective import log_joint, whitened_residuals
 from .problem import FitProblem
 from .smoothing import LMSmoother, SmootherSolution, smooth
-from .solvers import AbstractFitSolver, Alternating, FitState, JointLM
+from .solvers import AbstractFitSolver, Alternating, FitState, JointLM, ParticleEM
 
 try:
     __version__ = version("ceemx")
@@ -69,16 +70,22 @@ __all__ = [
     "LearnInfo",
     "NelderMeadLearner",
     "OptaxLearner",
+    "ParticleEM",
+    "ParticleFilterSolution",
     "SmootherSolution",
     "StudentT",
     "Trajectories",
     "evaluate",
+    "ffbsi",
     "fit",
+    "inference",
     "initialize",
     "is_monotone",
     "learn",
     "lib",
     "log_joint",
+    "particle_em",
+    "particle_filter",
     "perturb",
     "report",
     "simulate",

@@ -8,10 +8,12 @@ Examples::
     ceemx experiment figure3 --seeds 2         # the first two seeds of figure3's: 42, 43
     ceemx experiment table1 --seeds 3,7        # exactly seeds 3 and 7
     ceemx experiment table1 --smoke            # seconds; what the tests run
+    ceemx experiment figure2                   # CE-EM vs Particle EM, 10 seeds
+    ceemx experiment figure3 --method particle # Particle EM on six coupled Lorenz
 
 ``--seeds N`` runs the first N seeds of the experiment's seed sequence (table1: 0, 1, 2, …;
-figure3: 42, 43, …); a comma list (``--seeds 42,44``, or ``--seeds 42,`` for one seed) runs
-exactly those seeds.
+figure2: 43, 44, …; figure3: 42, 43, …); a comma list (``--seeds 42,44``, or ``--seeds 42,``
+for one seed) runs exactly those seeds.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--method", choices=METHODS, default=None, help="default: joint")
     demo.add_argument("--max-epochs", type=int, default=None, help="bound on iterations")
 
-    exp = sub.add_parser("experiment", help="run a paper experiment (table1, figure3)")
+    exp = sub.add_parser("experiment", help="run a paper experiment (table1, figure2, figure3)")
     exp.add_argument("name", choices=EXPERIMENTS, help="which experiment")
     exp.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
     exp.add_argument(
@@ -57,15 +59,17 @@ def build_parser() -> argparse.ArgumentParser:
         type=parse_seeds,
         default=None,
         metavar="N|S1,S2,...",
-        help="N: the first N seeds of the experiment's sequence (table1: 0, 1, …; figure3: "
-        "42, 43, …); a comma list: exactly those seeds (default: the paper's)",
+        help="N: the first N seeds of the experiment's sequence (table1: 0, 1, …; figure2: "
+        "43, 44, …; figure3: 42, 43, …); a comma list: exactly those seeds (default: the "
+        "paper's)",
     )
     exp.add_argument("--out", default=None, help="output folder (default: ./results/NAME)")
     exp.add_argument(
         "--method",
         choices=METHODS,
         default=None,
-        help="joint (x, θ) LM or Algorithm 1 (default: table1 alternate, figure3 joint)",
+        help="joint (x, θ) LM, Algorithm 1, or Particle EM (figure3; figure2 runs CE-EM and "
+        "Particle EM) (default: table1 alternate, figure3 joint)",
     )
     exp.add_argument(
         "--weighting",

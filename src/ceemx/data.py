@@ -152,20 +152,8 @@ def _resolve_noise(flag, default: AbstractNoise) -> AbstractNoise | None:
 
 
 def sample_noise(noise: AbstractNoise, key: PRNGKeyArray, shape, dtype) -> Array:
-    """Samples of a Gaussian noise model with the leading ``shape`` (Student-t: scale mixture)."""
-    from .models.noise import AbstractGaussianNoise, StudentT
-
-    if isinstance(noise, AbstractGaussianNoise):
-        L = noise.cholesky().astype(dtype)
-        z = jax.random.normal(key, (*shape, L.shape[0]), dtype)
-        return z @ L.T
-    if isinstance(noise, StudentT):
-        k1, k2 = jax.random.split(key)
-        L = noise._chol(dtype)
-        z = jax.random.normal(k1, (*shape, L.shape[0]), dtype) @ L.T
-        g = jax.random.gamma(k2, 0.5 * noise.df, shape, dtype) / (0.5 * noise.df)
-        return z / jnp.sqrt(g)[..., None]
-    raise TypeError(f"cannot sample from {type(noise).__name__}")
+    """Draws of a noise model with leading axes ``shape`` (see :meth:`AbstractNoise.sample`)."""
+    return noise.sample(key, tuple(shape), dtype)
 
 
 def rollout_one(

@@ -28,9 +28,10 @@ from .problem import FitProblem
 from .smoothing import check_inputs
 from .solvers.alternating import Alternating
 from .solvers.base import AbstractFitSolver, FitState, total_J
+from .solvers.particle_em import ParticleEM
 from .typing import States, no_type_check
 
-__all__ = ["EpochInfo", "FitResult", "fit"]
+__all__ = ["EpochInfo", "FitResult", "fit", "particle_em"]
 
 
 @dataclasses.dataclass
@@ -137,8 +138,9 @@ def fit(
         system: the model at its initial θ.
         data: B observed trajectories.
         x_init: (B, T, n) initial states (``None``: :func:`ceemx.initialize.from_observations`).
-        solver: the method — :class:`ceemx.Alternating` (the paper's Algorithm 1, default) or
-            :class:`ceemx.JointLM` (joint Levenberg–Marquardt on (x, θ)); its tolerances decide
+        solver: the method — :class:`ceemx.Alternating` (the paper's Algorithm 1, default),
+            :class:`ceemx.JointLM` (joint Levenberg–Marquardt on (x, θ)) or
+            :class:`ceemx.ParticleEM` (particle filter + FFBSi + SAEM); its tolerances decide
             convergence.
         trainable: which leaves learn (``None``: all model arrays except noise and prior; a
             callable ``where(system)`` or a boolean filter pytree).
@@ -249,3 +251,65 @@ def _run_callbacks(callbacks, info: EpochInfo) -> bool:
         elif out is False:
             stop = True
     return stop
+
+
+@no_type_check  # validates its arguments through fit and ParticleEM
+def particle_em(
+    system: AbstractSystem,
+    data: Trajectories,
+    x_init: ArrayLike | None = None,
+    *,
+    n_particles: int = 100,
+    n_smoothed: int = 10,
+    learner=None,
+    burn_in: int = 5,
+    alpha: float = 0.7,
+    memory: int = 10,
+    initial=None,
+    trainable=None,
+    log_prior: Callable[[AbstractSystem], Any] | None = None,
+    max_epochs: int = 50,
+    callbacks: Sequence[Callable[[EpochInfo], Any]] = (),
+    progress: bool | None = None,
+    checkpoint: str | None = None,
+    key: PRNGKeyArray | None = None,
+    **options: Any,
+) -> FitResult:
+    """Particle EM (fully adapted particle filter, FFBSi, SAEM): ``fit`` with :class:`ParticleEM`.
+
+    ``system``, ``data``, ``trainable``, ``log_prior``, ``max_epochs``, ``callbacks``,
+    ``progress``, ``checkpoint`` and ``key`` are as for :func:`fit`; ``x_init`` only sets the
+    states reported before epoch 1. ``n_particles``, ``n_smoothed``, ``learner`` (``None``:
+    Levenberg–Marquardt), ``burn_in``, ``alpha``, ``memory``, ``initial`` and further
+    ``options`` (``proposal``, ``ess_threshold``, ``rho_theta``, ``rtol``, ``atol``) are the
+    :class:`ceemx.ParticleEM` options.
+
+    Returns:
+        A :class:`FitResult` whose history has :func:`fit`'s keys plus
+        ``ParticleEM.history_keys`` (the PF log-likelihood estimate and the SAEM objective per
+        epoch among them); ``states`` are the means of the last epoch's FFBSi draws.
+    """
+    kwargs = dict(
+        n_particles=n_particles,
+        n_smoothed=n_smoothed,
+        burn_in=burn_in,
+        alpha=alpha,
+        memory=memory,
+        initial=initial,
+        **options,
+    )
+    if learner is not None:
+        kwargs["learner"] = learner
+    return fit(
+        system,
+        data,
+        x_init,
+        solver=ParticleEM(**kwargs),
+        trainable=trainable,
+        log_prior=log_prior,
+        max_epochs=max_epochs,
+        callbacks=callbacks,
+        progress=progress,
+        checkpoint=checkpoint,
+        key=key,
+    )

@@ -126,7 +126,8 @@ class FitProblem(eqx.Module):
         −J − offset is ½‖whitened residuals‖² for Gaussian noise: the scale of every relative
         tolerance (normalising constants can dwarf the fit).
         """
-        return jnp.sum(jnp.where(weights > 0, nll_offset(self.build(theta), self.data), 0.0))
+        c = nll_offset(self.build(theta), self.data)
+        return jnp.sum(jnp.where(weights > 0, weights * c, 0.0))
 
     def neg_log_prior(self, theta: Theta) -> Scalar:
         """−log p(θ) (zero without a prior)."""

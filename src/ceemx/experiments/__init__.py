@@ -1,6 +1,7 @@
 """The paper's experiments and the README demo, each ``run(*, smoke=False, out=..., ...) -> dict``.
 
 - :mod:`~ceemx.experiments.table1` — Table 1: bias on a single Lorenz system (§4.1.1).
+- :mod:`~ceemx.experiments.figure2` — Figure 2: CE-EM against Particle EM (§4.1.2).
 - :mod:`~ceemx.experiments.figure3` — Figure 3: convergence on six coupled Lorenz (§4.1.3).
 - :mod:`~ceemx.experiments.demo` — the README demo.
 
@@ -11,13 +12,13 @@ command line with ``ceemx experiment NAME [--smoke]`` or ``ceemx demo``.
 
 from importlib import import_module
 
-EXPERIMENTS = ("table1", "figure3")
+EXPERIMENTS = ("table1", "figure2", "figure3")
 
 __all__ = ["EXPERIMENTS", "get"]
 
 
 def get(name: str):
-    """The module of an experiment (``"table1"``, ``"figure3"`` or ``"demo"``)."""
+    """The module of an experiment (``"table1"``, ``"figure2"``, ``"figure3"`` or ``"demo"``)."""
     if name not in (*EXPERIMENTS, "demo"):
         raise ValueError(f"unknown experiment {name!r}; choose from {', '.join(EXPERIMENTS)}.")
     return import_module(f"{__name__}.{name}")

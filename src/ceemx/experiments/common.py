@@ -16,14 +16,18 @@ from .. import (
     AbstractFitSolver,
     AbstractLearner,
     Alternating,
+    GaussianPrior,
     JointLM,
     LMLearner,
     LMSmoother,
+    ParticleEM,
 )
 from ..data import Trajectories, simulate
 from ..initialize import perturb
 from ..models.noise import DiagonalGaussian
 from ..systems.lorenz import (
+    INITIAL_MEAN,
+    INITIAL_STD,
     TRUE_PARAMS,
     CoupledLorenz,
     initial_states,
@@ -37,6 +41,7 @@ __all__ = [
     "METHODS",
     "LorenzProblem",
     "enable_x64",
+    "lorenz_initial_prior",
     "lorenz_problem",
     "make_solver",
     "parse_seeds",
@@ -46,7 +51,7 @@ __all__ = [
 ]
 
 TRUE_SIGMA, TRUE_RHO, TRUE_BETA = TRUE_PARAMS
-METHODS = ("joint", "alternate")
+METHODS = ("joint", "alternate", "particle")
 
 
 def enable_x64() -> None:
@@ -101,6 +106,8 @@ def make_solver(
     rho_x: float = 0.0,
     learner: AbstractLearner | None = None,
     rtol: float = 1e-10,
+    initial: GaussianPrior | None = None,
+    particle_options: dict | None = None,
 ) -> AbstractFitSolver:
     """The fit solver of an experiment's ``method``.
 
@@ -108,10 +115,15 @@ def make_solver(
         method: ``"alternate"`` → :class:`ceemx.Alternating` (paper Algorithm 1) with an
             :class:`ceemx.LMSmoother` of trust-region weight ``rho_x`` and ``learner`` (default
             :class:`ceemx.LMLearner`); ``"joint"`` → :class:`ceemx.JointLM` with proximal weight
-            ``rho_x`` on the states (``learner`` unused).
+            ``rho_x`` on the states (``learner`` unused); ``"particle"`` →
+            :class:`ceemx.ParticleEM` (particle filter + FFBSi + SAEM) with ``learner`` as its
+            M-step, the initial-state prior ``initial`` and ``particle_options``.
         rho_x: ρ_x.
-        learner: the θ-step optimiser of Algorithm 1.
-        rtol: relative stopping tolerance on the improvement of J.
+        learner: the θ-step optimiser of Algorithm 1 (or Particle EM's M-step).
+        rtol: relative stopping tolerance on the improvement of J (not used by Particle EM,
+            which runs its epochs).
+        initial: Particle EM's distribution of x₁.
+        particle_options: further :class:`ceemx.ParticleEM` options.
 
     Returns:
         The solver.
@@ -124,6 +136,11 @@ def make_solver(
     if method == "alternate":
         learner = LMLearner() if learner is None else learner
         return Alternating(smoother=LMSmoother(rho_x=rho_x), learner=learner, rtol=rtol)
+    if method == "particle":
+        options = dict(particle_options or {})
+        if learner is not None:
+            options["learner"] = learner
+        return ParticleEM(initial=initial, **options)
     raise ValueError(f"unknown method {method!r}; use one of {', '.join(METHODS)}.")
 
 
@@ -174,6 +191,12 @@ def perturb_lorenz(
 ) -> CoupledLorenz:
     """Initial guess θ·(1 + U(−frac, frac)) of (σ, ρ, β) and, with ``coupling``, of H."""
     return perturb(key, system, frac, LORENZ_PARAMS_H if coupling else LORENZ_PARAMS)
+
+
+def lorenz_initial_prior(K: int) -> GaussianPrior:
+    """The data's x₁ distribution, N((−6, −6, 24), 2.5²) per attractor (Particle EM's prior)."""
+    mean = jnp.tile(jnp.asarray(INITIAL_MEAN), K)
+    return GaussianPrior(mean, DiagonalGaussian(INITIAL_STD, 3 * K))
 
 
 class LorenzProblem(eqx.Module):

@@ -93,6 +93,7 @@ class LMLearner(AbstractLearner):
             delta, ok = cholesky_solve(damped, -grad)
             return delta, ok
 
+        init = evaluate(theta)
         out = levenberg_marquardt(
             evaluate,
             lambda lin: lin[0],
@@ -103,8 +104,9 @@ class LMLearner(AbstractLearner):
             atol=self.atol,
             max_steps=self.max_steps,
             damping=self.damping,
+            init=init,
         )
-        v0 = problem.value(theta)
+        v0 = init[0] + offset
         return out.z, state, LearnInfo(v0, out.value + offset, out.steps, out.status)
 
 

@@ -20,10 +20,13 @@ __all__ = ["LearningProblem", "make_problem"]
 class LearningProblem(eqx.Module):
     """min_θ Σ_b w_b (−J_b(x_b, θ)) + ρ_θ‖θ − θ_ref‖² − log p(θ)  (Eq. 11), θ the trainable leaves.
 
+    The weights are 1 for trajectories taking part and 0 for excluded ones in CE-EM; other
+    non-negative weights make the objective a weighted sum (SAEM's Q̂ over stored samples).
+
     Attributes:
         problem: the identification problem (data, θ split, prior).
         states: (B, T, n) fixed state trajectories.
-        weights: (B,) 1 for trajectories that take part, 0 for excluded (failed) ones.
+        weights: (B,) non-negative weights w_b; 0 excludes a trajectory (e.g. failed smoothing).
         theta_ref: θᵏ, the centre of the trust region.
         rho_theta: ρ_θ.
     """
@@ -43,7 +46,8 @@ class LearningProblem(eqx.Module):
         """The system with trainable leaves set from the flat vector θ."""
         return self.problem.build(theta)
 
-    def _regulariser(self, theta):
+    def regulariser(self, theta: Theta) -> Scalar:
+        """ρ_θ‖θ − θ_ref‖² − log p(θ): the objective's terms that do not involve the data."""
         d = theta - self.theta_ref
         return self.rho_theta * jnp.sum(d**2) + self.problem.neg_log_prior(theta)
 
@@ -62,19 +66,24 @@ class LearningProblem(eqx.Module):
 
         return pick(self.states), jtu.tree_map(pick, self.data)
 
-    def value(self, theta: Theta) -> Scalar:
-        """The learning objective (scalar)."""
+    def data_term(self, theta: Theta) -> Scalar:
+        """Σ_b w_b (−J_b(x_b, θ)): the objective without the trust region and the prior."""
         states, data = self._participating()
         nll = self.problem.per_trajectory(theta, states, data)
-        return jnp.sum(jnp.where(self.weights > 0, nll, 0.0)) + self._regulariser(theta)
+        return jnp.sum(jnp.where(self.weights > 0, self.weights * nll, 0.0))
+
+    def value(self, theta: Theta) -> Scalar:
+        """The learning objective (scalar)."""
+        return self.data_term(theta) + self.regulariser(theta)
 
     def minibatch_value(self, theta: Theta, idx: Int[Array, " _"]) -> Scalar:
         """Unbiased estimate of :meth:`value` from the trajectories ``idx``."""
         states, data = self._participating()
         w = self.weights[idx]
         nll = self.problem.per_trajectory(theta, states[idx], data[idx])
-        scale = jnp.sum(self.weights) / jnp.maximum(jnp.sum(w), 1.0)
-        return scale * jnp.sum(jnp.where(w > 0, nll, 0.0)) + self._regulariser(theta)
+        part = jnp.sum(w)
+        scale = jnp.where(part > 0, jnp.sum(self.weights) / jnp.where(part > 0, part, 1.0), 0.0)
+        return scale * jnp.sum(jnp.where(w > 0, w * nll, 0.0)) + self.regulariser(theta)
 
     def offset(self, theta: Theta) -> Scalar:
         """The x-independent constants of the objective (see :meth:`FitProblem.offset`)."""
@@ -90,12 +99,14 @@ class LearningProblem(eqx.Module):
         )(self.states, data.y, data.u, data.mask)
         assert lin.grad_theta is not None and lin.D is not None  # wrt_theta=True
         ok = self.weights > 0
+        w = self.weights
         d = theta - self.theta_ref
         prior, prior_grad, prior_hess = self.problem.prior_terms(theta)
-        value = jnp.sum(jnp.where(ok, lin.value, 0.0)) + self.rho_theta * jnp.sum(d**2) + prior
-        grad = jnp.sum(jnp.where(ok[:, None], lin.grad_theta, 0.0), axis=0)
+        value = jnp.sum(jnp.where(ok, w * lin.value, 0.0)) + self.rho_theta * jnp.sum(d**2) + prior
+        grad = jnp.sum(jnp.where(ok[:, None], w[:, None] * lin.grad_theta, 0.0), axis=0)
         grad = grad + 2.0 * self.rho_theta * d + prior_grad
-        hess = jnp.sum(jnp.where(ok[:, None, None], lin.D, 0.0), axis=0) + prior_hess
+        hess = jnp.sum(jnp.where(ok[:, None, None], w[:, None, None] * lin.D, 0.0), axis=0)
+        hess = hess + prior_hess
         hess = hess + 2.0 * self.rho_theta * jnp.eye(theta.shape[0], dtype=theta.dtype)
         return value, grad, hess
 

@@ -8,6 +8,8 @@ Nothing here knows about EM, systems or data; the user-facing layer (``ceemx``) 
   complement (dense Cholesky or matrix-free preconditioned CG).
 - :mod:`~ceemx.lib.dense` — small dense SPD solves with a failure flag, masked whitening.
 - :mod:`~ceemx.lib.lm` — a bounded, vmap-safe Levenberg–Marquardt driver.
+- :mod:`~ceemx.lib.kalman` — linear-Gaussian conditioning (Kalman update) with masks.
+- :mod:`~ceemx.lib.particles` — log-weights, ESS, systematic resampling, FFBSi index draws.
 - :mod:`~ceemx.lib.results` — :class:`RESULTS`, the solvers' status codes.
 - :mod:`~ceemx.lib.tree` — pytree utilities for solver objects.
 """

@@ -22,7 +22,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from ..lib.dense import masked_cholesky, symmetrize, whitening_matrix
 from ..typing import Scalar
@@ -75,6 +75,18 @@ class AbstractNoise(eqx.Module):
         """Whether ``nll`` is exactly ½‖S r‖² plus a constant (Gauss–Newton applies exactly)."""
         return False
 
+    def sample(self, key: PRNGKeyArray, shape: tuple[int, ...], dtype) -> Float[Array, ...]:
+        """Draws with leading axes ``shape`` and the residual dimension last.
+
+        Raises:
+            TypeError: for a density without a sampler (simulation and bootstrap particle
+                filtering need one; subclass and implement ``sample``).
+        """
+        raise TypeError(
+            f"{type(self).__name__} has no sampler: implement `sample(key, shape, dtype)` to "
+            "simulate it or to use it in a particle filter."
+        )
+
     def check(self, name: str) -> None:
         """Raise ``ValueError`` naming ``name`` when the parameters are invalid (host-side)."""
 
@@ -96,6 +108,16 @@ class AbstractGaussianNoise(AbstractNoise):
     ) -> Float[Array, "d d"]:
         """The whitening matrix L⁻¹ of the present components (zero rows for masked ones)."""
         return whitening_matrix(self.cholesky().astype(r.dtype), _full_mask(r, mask))
+
+    def covariance(self) -> Float[Array, "d d"]:
+        """Σ = L Lᵀ."""
+        L = self.cholesky()
+        return L @ L.T
+
+    def sample(self, key: PRNGKeyArray, shape: tuple[int, ...], dtype) -> Float[Array, ...]:
+        """L z with z standard normal, leading axes ``shape``."""
+        L = self.cholesky().astype(dtype)
+        return jax.random.normal(key, (*shape, L.shape[0]), dtype) @ L.T
 
     def whiten(
         self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
@@ -219,6 +241,15 @@ class StudentT(AbstractNoise):
             - jnp.sum(jnp.log(jnp.abs(jnp.diag(chol))))
             - 0.5 * (nu + k) * jnp.log1p(d2 / nu)
         )
+
+    def sample(self, key: PRNGKeyArray, shape: tuple[int, ...], dtype) -> Float[Array, ...]:
+        """A Gaussian scale mixture: L z / sqrt(g), g ~ Gamma(ν/2, rate ν/2)."""
+        k1, k2 = jax.random.split(key)
+        L = self._chol(dtype)
+        z = jax.random.normal(k1, (*shape, L.shape[0]), dtype) @ L.T
+        nu = self.df.astype(dtype)
+        g = jax.random.gamma(k2, 0.5 * nu, shape, dtype) / (0.5 * nu)
+        return z / jnp.sqrt(g)[..., None]
 
     def sqrt_curvature(
         self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None

@@ -77,6 +77,18 @@ class AbstractSystem(eqx.Module):
     ) -> Float[Array, " m"]:
         """g_θ(x, u, t): the observation's mean."""
 
+    def linear_observation(
+        self, u: Float[Array, " p"], t: Real[ArrayLike, ""]
+    ) -> tuple[Float[Array, "m n"], Float[Array, " m"]] | None:
+        """(C, d) when the observation is linear in x, g_θ(x, u, t) = C x + d; else ``None``.
+
+        The default, ``None``, claims nothing. A system whose observation is linear in the state
+        (for any u, t) overrides this; particle filters then use the fully adapted proposal
+        p(x_t | x_{t−1}, y_t) in closed form (:func:`ceemx.particle_filter`). The structure (None
+        or a pair) must not depend on the values of u and t.
+        """
+        return None
+
     def check(self) -> None:
         """Host-side validation of the noise models (raises ``ValueError`` naming the field)."""
         self.process_noise.check("system.process_noise")

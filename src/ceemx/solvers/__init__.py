@@ -2,6 +2,7 @@
 
 - :class:`Alternating` — the paper's Algorithm 1 (smoothing step, learning step).
 - :class:`JointLM` — Levenberg–Marquardt on (x, θ) through the Schur complement.
+- :class:`ParticleEM` — particle filter + FFBSi E-step, SAEM M-step (the paper's baseline).
 
 To add one, subclass :class:`AbstractFitSolver` (see :mod:`ceemx.solvers.base` and
 ``docs/design.md``); :func:`ceemx.fit` runs it with history, callbacks and checkpoints.
@@ -10,5 +11,14 @@ To add one, subclass :class:`AbstractFitSolver` (see :mod:`ceemx.solvers.base` a
 from .alternating import Alternating
 from .base import AbstractFitSolver, FitState
 from .joint import JointLM
+from .particle_em import ParticleEM, SAEMState, saem_step_size
 
-__all__ = ["AbstractFitSolver", "Alternating", "FitState", "JointLM"]
+__all__ = [
+    "AbstractFitSolver",
+    "Alternating",
+    "FitState",
+    "JointLM",
+    "ParticleEM",
+    "SAEMState",
+    "saem_step_size",
+]

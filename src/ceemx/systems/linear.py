@@ -80,3 +80,9 @@ class LinearSystem(AbstractSystem):
     ) -> Float[Array, " m"]:
         """C x + D u."""
         return self.C @ x + self.D @ u
+
+    def linear_observation(
+        self, u: Float[Array, " p"], t: Real[ArrayLike, ""]
+    ) -> tuple[Float[Array, "m n"], Float[Array, " m"]]:
+        """(C, D u): the observation is linear in the state."""
+        return self.C, self.D @ u

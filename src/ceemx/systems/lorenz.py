@@ -139,6 +139,12 @@ class CoupledLorenz(AbstractContinuousSystem):
         """Eq. 13: y = C x."""
         return self.C @ x
 
+    def linear_observation(
+        self, u: Float[Array, " p"], t: Real[ArrayLike, ""]
+    ) -> tuple[Float[Array, "m n"], Float[Array, " m"]]:
+        """Y = C x + 0: linear in the state (particle filters adapt fully)."""
+        return self.C, jnp.zeros((self.C.shape[0],), self.C.dtype)
+
 
 def random_coupling(
     key: PRNGKeyArray, K: int, frobenius: float = 5.0, dtype=jnp.float64
