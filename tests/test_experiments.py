@@ -14,7 +14,7 @@ import pytest
 
 import ceemx
 from ceemx import cli
-from ceemx.experiments import common, figure3, get, table1
+from ceemx.experiments import common, figure2, figure3, get, table1
 
 
 def finite(values) -> bool:
@@ -73,6 +73,33 @@ def test_figure3_smoke(tmp_path):
     assert "authors' code" in (tmp_path / "table.md").read_text()
 
 
+def test_figure2_smoke(tmp_path):
+    """``ceemx experiment figure2 --smoke``: CE-EM (both solvers) and Particle EM side by side."""
+    assert cli.main(["experiment", "figure2", "--smoke", "--out", str(tmp_path)]) == 0
+    res = check_files(tmp_path, "figure2.png")
+    (run,) = res["runs"]
+    for method in figure2.METHODS:
+        rec = run[method]
+        assert rec["epochs"] == 3 and len(rec["params"]) == 3
+        assert finite(rec["params"]) and finite(rec["epoch_s"])
+    pem = run["particle-em"]
+    assert finite(pem["pf_log_likelihood"]) and len(pem["e_step_s"]) == 3
+    # Burn-in 1 epoch, then γ = (k − 1)^(−0.7): γ₂ = 1 empties the older slot, so a memory of 2
+    # epochs still holds all of Q̂ at epoch 3 (weights γ₃ and 1 − γ₃).
+    assert np.allclose(pem["saem_mass"], 1.0)
+    table = (tmp_path / "table.md").read_text()
+    assert "Particle EM / CE-EM" in table and "47×" in table
+
+
+@pytest.mark.slow  # compiles a K = 2 Particle EM with an L-BFGS M-step (≈ 35 s)
+def test_figure3_particle_smoke(tmp_path):
+    res = figure3.run(smoke=True, out=tmp_path, method="particle", verbose=False)
+    check_files(tmp_path, "figure3.png")
+    (run,) = res["runs"]
+    assert run["epochs"] == 3 and finite(run["eps"])
+    assert "Particle EM" in (tmp_path / "table.md").read_text()
+
+
 def test_figure3_setup():
     assert figure3.fit_setup("paper") == (1.0, 1.0, 5e-5)
     assert figure3.fit_setup("likelihood")[1] == 0.01
@@ -101,6 +128,9 @@ def test_make_solver():
     assert alt.smoother.rho_x == 0.5 and alt.rtol == 0.0
     assert isinstance(alt.learner, ceemx.LBFGSLearner)
     assert isinstance(common.make_solver("alternate").learner, ceemx.LMLearner)
+    prior = common.lorenz_initial_prior(1)
+    pem = common.make_solver("particle", initial=prior, particle_options={"memory": 3})
+    assert isinstance(pem, ceemx.ParticleEM) and pem.memory == 3 and pem.initial is prior
     with pytest.raises(ValueError):
         common.make_solver("other")
 
