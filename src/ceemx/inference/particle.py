@@ -36,7 +36,7 @@ from ..lib import kalman
 from ..lib import particles as lp
 from ..lib.results import RESULTS, select
 from ..models.noise import AbstractGaussianNoise
-from ..models.system import AbstractSystem, GaussianPrior
+from ..models.system import AbstractSystem, GaussianPrior, float_dtype
 from ..smoothing import check_inputs
 from ..typing import PerTrajectory, no_type_check
 
@@ -63,8 +63,8 @@ class ParticleFilterSolution(eqx.Module):
             of the initial weights).
         resampled: (B, T) whether step t resampled (ESS below the threshold).
         log_likelihood: (B,) log p̂(y_{1:T} | θ), whose exponential is an unbiased estimate.
-        status: (B,) :class:`ceemx.RESULTS`: ``nonfinite`` where the likelihood estimate is not
-            finite (every particle impossible, or NaN in the model), else ``successful``.
+        status: (B,) :class:`ceemx.RESULTS`: ``particle_failure`` where the likelihood estimate
+            is not finite (every particle impossible, or NaN in the model), else ``successful``.
         proposal: ``"adapted"`` or ``"bootstrap"`` — the proposal used.
     """
 
@@ -239,10 +239,20 @@ def filter_batch(
     )(data.y, data.u, data.mask, keys)
     particles, log_weights, ancestors, ess_all, resampled, log_lik = out
     ok = jnp.isfinite(log_lik) & jnp.all(jnp.isfinite(particles), axis=(1, 2, 3))
-    status = select(ok, RESULTS.successful, RESULTS.nonfinite)
+    status = select(ok, RESULTS.successful, RESULTS.particle_failure)
     return ParticleFilterSolution(
         particles, log_weights, ancestors, ess_all, resampled, log_lik, status, proposal
     )
+
+
+def _check_dtypes(system: AbstractSystem, data: Trajectories) -> None:
+    """The filter runs in the data's precision: the system's must match (host-side)."""
+    have, want = jnp.dtype(float_dtype(system)), jnp.dtype(data.y.dtype)
+    if have != want:
+        raise ValueError(
+            f"the system's parameters are {have} but `data.y` is {want}: convert one of them "
+            "(particle filtering runs in a single precision)."
+        )
 
 
 def _check_int(name: str, value, minimum: int) -> int:
@@ -302,6 +312,7 @@ def particle_filter(
         >>> pf.log_likelihood  # doctest: +SKIP
     """
     check_inputs(system, data)
+    _check_dtypes(system, data)
     n_particles = _check_int("n_particles", n_particles, 1)
     threshold = check_threshold(ess_threshold)
     prior = _initial_prior(system, initial)
@@ -386,6 +397,11 @@ def ffbsi(
     if (B, T) != (data.batch_size, data.num_steps):
         raise ValueError(
             f"`pf` is for (B, T) = {(B, T)} but `data` has {(data.batch_size, data.num_steps)}."
+        )
+    if pf.particles.shape[-1] != system.state_dim:
+        raise ValueError(
+            f"`pf` has particles of dimension {pf.particles.shape[-1]} but the system's state "
+            f"dimension is n = {system.state_dim}."
         )
     key = jax.random.PRNGKey(0) if key is None else key
     return ffbsi_batch(system, data, pf, key, n_samples)

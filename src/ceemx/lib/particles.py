@@ -58,7 +58,7 @@ def systematic_resample(key: PRNGKeyArray, log_w: Float[Array, " N"], num: int |
     return jnp.clip(idx, 0, N - 1).astype(jnp.int32)
 
 
-def offspring_counts(ancestors: Int[Array, " N"], num_particles: int) -> Int[Array, " N"]:
+def offspring_counts(ancestors: Int[Array, " k"], num_particles: int) -> Int[Array, " N"]:
     """How many times each of ``num_particles`` particles appears among ``ancestors``."""
     return jnp.zeros((num_particles,), jnp.int32).at[ancestors].add(1)
 

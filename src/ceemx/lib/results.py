@@ -23,6 +23,10 @@ class RESULTS(eqx.Enumeration):
     max_steps_reached = "reached max_steps before converging"
     nonfinite = "the objective or its derivatives are not finite at the initial point"
     stalled = "no step decreases the objective (damping exhausted) before the tolerances were met"
+    particle_failure = (
+        "the particle filter's likelihood estimate is not finite (every particle impossible, or "
+        "a non-finite model value)"
+    )
 
 
 def codes(status: RESULTS) -> np.ndarray:
@@ -56,4 +60,10 @@ def messages(status: RESULTS) -> list[str]:
     return [RESULTS[from_codes(c)] for c in np.atleast_1d(codes(status)).reshape(-1)]
 
 
-_ITEMS = (RESULTS.successful, RESULTS.max_steps_reached, RESULTS.nonfinite, RESULTS.stalled)
+_ITEMS = (
+    RESULTS.successful,
+    RESULTS.max_steps_reached,
+    RESULTS.nonfinite,
+    RESULTS.stalled,
+    RESULTS.particle_failure,
+)

@@ -221,7 +221,7 @@ class ParticleEM(AbstractFitSolver):
         # The states reported: the mean of this epoch's draws (failed trajectories keep theirs).
         mean = jnp.mean(draws, axis=1)
         states = jnp.where(ok[:, None, None], mean, state.states)
-        status = select(ok, RESULTS.successful, RESULTS.nonfinite)
+        status = select(ok, RESULTS.successful, RESULTS.particle_failure)
         new = FitState(
             theta=theta,
             states=states,
