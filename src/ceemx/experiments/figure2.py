@@ -78,50 +78,30 @@ def run_one(true, seed, *, B, T, ce_epochs, pem_epochs, pem_options, verbose) ->
     init = [float(getattr(system, p)[0]) for p in PARAMS]
     out = {"seed": seed, "init": init}
 
-    # CE-EM (Algorithm 1).
+    def run_fit(solver, max_epochs, key=None):
+        params, timer = _Params(), ev.FitTimer().start()
+        res = fit(
+            system,
+            problem.data,
+            x_init,
+            solver=solver,
+            trainable=common.LORENZ_PARAMS,
+            max_epochs=max_epochs,
+            callbacks=[params, timer],
+            progress=False,
+            key=key,
+        )
+        return res, _record(res, params, timer)
+
     x_init = warm_start(system, problem.data)
-    params, timer = _Params(), ev.FitTimer().start()
-    res = fit(
-        system,
-        problem.data,
-        x_init,
-        solver=Alternating(smoother=LMSmoother(), learner=LMLearner(), rtol=1e-12),
-        trainable=common.LORENZ_PARAMS,
-        max_epochs=ce_epochs,
-        callbacks=[params, timer],
-        progress=False,
-    )
-    out["ce-em"] = _record(res, params, timer)
-
-    # The same objective maximised jointly in (x, θ) (ceemx's JointLM; one iteration per epoch).
-    params, timer = _Params(), ev.FitTimer().start()
-    res = fit(
-        system,
-        problem.data,
-        x_init,
-        solver=JointLM(rtol=1e-12),
-        trainable=common.LORENZ_PARAMS,
-        max_epochs=ce_epochs,
-        callbacks=[params, timer],
-        progress=False,
-    )
-    out["ce-em-joint"] = _record(res, params, timer)
-
+    # CE-EM: Algorithm 1, and the same objective maximised jointly in (x, θ) (ceemx's JointLM;
+    # one iteration per epoch).
+    algorithm1 = Alternating(smoother=LMSmoother(), learner=LMLearner(), rtol=1e-12)
+    out["ce-em"] = run_fit(algorithm1, ce_epochs)[1]
+    out["ce-em-joint"] = run_fit(JointLM(rtol=1e-12), ce_epochs)[1]
     # Particle EM.
-    params, timer = _Params(), ev.FitTimer().start()
     solver = ParticleEM(initial=common.lorenz_initial_prior(1), **pem_options)
-    res = fit(
-        system,
-        problem.data,
-        x_init,
-        solver=solver,
-        trainable=common.LORENZ_PARAMS,
-        max_epochs=pem_epochs,
-        callbacks=[params, timer],
-        progress=False,
-        key=jax.random.PRNGKey(seed),
-    )
-    rec = _record(res, params, timer)
+    res, rec = run_fit(solver, pem_epochs, jax.random.PRNGKey(seed))
     rec["pf_log_likelihood"] = [h["pf_log_likelihood"] for h in res.history]
     rec["e_step_s"] = [h["e_step_time"] for h in res.history]
     rec["m_step_s"] = [h["m_step_time"] for h in res.history]

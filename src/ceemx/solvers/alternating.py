@@ -13,11 +13,11 @@ from .._warnings import warn
 from ..learning import learners as _learners
 from ..learning import step as learning_step
 from ..learning.problem import learning_problem
-from ..lib.results import RESULTS, codes, select
+from ..lib.results import RESULTS, codes
 from ..problem import FitProblem
 from ..smoothing import solver as smoothing_solver
 from ..typing import States, Theta
-from .base import AbstractFitSolver, FitState, trajectory_log_likelihood
+from .base import AbstractFitSolver, FitState, starting_state, trajectory_log_likelihood
 
 __all__ = ["Alternating"]
 
@@ -64,15 +64,7 @@ class Alternating(AbstractFitSolver):
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
     ) -> FitState:
         """θ, x as given; all trajectories take part; the learner's state from ``key``."""
-        B = states.shape[0]
-        return FitState(
-            theta=theta,
-            states=states,
-            J=trajectory_log_likelihood(problem, theta, states),
-            weights=jnp.ones((B,), states.dtype),
-            status=select(jnp.zeros((B,), bool), RESULTS.nonfinite, RESULTS.successful),
-            solver_state=self.learner.init(theta, key),
-        )
+        return starting_state(problem, theta, states, self.learner.init(theta, key))
 
     def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict]:
         """One smoothing step and one learning step."""

@@ -23,10 +23,11 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray, PyTree
 
-from ..lib.results import RESULTS
+from ..lib.results import RESULTS, select
 from ..problem import FitProblem
 from ..typing import PerTrajectory, Scalar, States, Theta
 
@@ -34,6 +35,7 @@ __all__ = [
     "AbstractFitSolver",
     "FitState",
     "improvement_converged",
+    "starting_state",
     "total_J",
     "trajectory_log_likelihood",
 ]
@@ -71,6 +73,21 @@ def trajectory_log_likelihood(problem: FitProblem, theta: Theta, states: States)
 @eqx.filter_jit
 def _offset(problem: FitProblem, theta: Theta, weights: PerTrajectory) -> Scalar:
     return problem.offset(theta, weights)
+
+
+def starting_state(
+    problem: FitProblem, theta: Theta, states: States, solver_state: PyTree = None
+) -> FitState:
+    """θ and x as given, every trajectory taking part and ``successful``, J evaluated."""
+    B = states.shape[0]
+    return FitState(
+        theta=theta,
+        states=states,
+        J=trajectory_log_likelihood(problem, theta, states),
+        weights=jnp.ones((B,), states.dtype),
+        status=select(jnp.zeros((B,), bool), RESULTS.nonfinite, RESULTS.successful),
+        solver_state=solver_state,
+    )
 
 
 def total_J(state: FitState) -> float:

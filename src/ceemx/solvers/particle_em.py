@@ -41,7 +41,7 @@ from ..lib.results import RESULTS, codes, select
 from ..models.system import GaussianPrior
 from ..problem import FitProblem
 from ..typing import Scalar, States, Theta
-from .base import AbstractFitSolver, FitState, trajectory_log_likelihood
+from .base import AbstractFitSolver, FitState, starting_state, trajectory_log_likelihood
 
 __all__ = ["ParticleEM", "SAEMState", "saem_step_size"]
 
@@ -176,14 +176,7 @@ class ParticleEM(AbstractFitSolver):
             valid=jnp.zeros((M, B), bool),
             learner_state=self.learner.init(theta, k_learner),
         )
-        return FitState(
-            theta=theta,
-            states=states,
-            J=trajectory_log_likelihood(problem, theta, states),
-            weights=jnp.ones((B,), states.dtype),
-            status=select(jnp.zeros((B,), bool), RESULTS.nonfinite, RESULTS.successful),
-            solver_state=saem,
-        )
+        return starting_state(problem, theta, states, saem)
 
     def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict[str, Any]]:
         """One E-step (filter + FFBSi) and one SAEM M-step."""
