@@ -629,6 +629,8 @@ def test_invalid_arguments_raise_before_compute(problem):
 
     with pytest.raises(ValueError, match="n_particles"):
         ceemx.ParticleEM(n_particles=0)
+    with pytest.raises(TypeError, match="memory"):
+        ceemx.ParticleEM(memory=2.0)
     with pytest.raises(ValueError, match="alpha"):
         ceemx.ParticleEM(alpha=0.5)
     with pytest.raises(ValueError, match="burn_in"):

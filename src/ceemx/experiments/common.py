@@ -122,8 +122,8 @@ def make_solver(
         learner: the θ-step optimiser of Algorithm 1 (or Particle EM's M-step).
         rtol: relative stopping tolerance on the improvement of J (not used by Particle EM,
             which runs its epochs).
-        initial: Particle EM's distribution of x₁.
-        particle_options: further :class:`ceemx.ParticleEM` options.
+        initial: Particle EM's distribution of x₁ (ignored by the other methods).
+        particle_options: further :class:`ceemx.ParticleEM` options (likewise).
 
     Returns:
         The solver.

@@ -95,15 +95,14 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, rtol, v
 
     record_eps = ev.DynamicsErrorCallback(true, printer=show if verbose else None)
     eps0 = record_eps.error(system)
-    if method == "particle":
-        solver = common.make_solver(
-            method,
-            learner=make_learner(learner),
-            initial=common.lorenz_initial_prior(true.K),
-            particle_options=PARTICLE_OPTIONS,
-        )
-    else:
-        solver = common.make_solver(method, rho_x=rho_x, learner=make_learner(learner), rtol=rtol)
+    solver = common.make_solver(
+        method,
+        rho_x=rho_x,
+        learner=make_learner(learner),
+        rtol=rtol,
+        initial=common.lorenz_initial_prior(true.K),  # used by Particle EM only
+        particle_options=PARTICLE_OPTIONS,
+    )
     timer = ev.FitTimer().start()
     res = fit(
         system,
@@ -267,7 +266,7 @@ def run(
         weighting = "likelihood"
         learner = "lbfgs"
         batch_sizes = batch_sizes or ((2,) if smoke else (8,))
-        max_epochs = max_epochs or (3 if smoke else 50)
+        max_epochs = (3 if smoke else 50) if max_epochs is None else max_epochs
     if rtol is None:
         rtol = 1e-10 if method == "joint" else 0.0
     seeds = common.seed_list(seeds, first=FIRST_SEED, default=1 if smoke else 4)

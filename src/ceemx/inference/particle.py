@@ -41,10 +41,15 @@ from ..smoothing import check_inputs
 from ..typing import PerTrajectory, no_type_check
 
 __all__ = [
+    "PROPOSALS",
     "ParticleFilterSolution",
+    "check_int",
+    "check_proposal",
+    "check_threshold",
     "ffbsi",
     "ffbsi_batch",
     "filter_batch",
+    "initial_prior",
     "particle_filter",
     "resolve_proposal",
 ]
@@ -83,10 +88,18 @@ class ParticleFilterSolution(eqx.Module):
         return jnp.sum(w * self.particles, axis=-2)
 
 
+PROPOSALS = ("auto", "adapted", "bootstrap")
+
+
+def check_proposal(proposal) -> None:
+    """Raise ``ValueError`` unless ``proposal`` is one of :data:`PROPOSALS` (host-side)."""
+    if proposal not in PROPOSALS:
+        raise ValueError(f"`proposal` must be 'auto', 'adapted' or 'bootstrap'; got {proposal!r}.")
+
+
 def resolve_proposal(system: AbstractSystem, proposal: str, prior: GaussianPrior) -> str:
     """``"adapted"`` or ``"bootstrap"`` for ``proposal`` (host-side; raises if impossible)."""
-    if proposal not in ("auto", "adapted", "bootstrap"):
-        raise ValueError(f"`proposal` must be 'auto', 'adapted' or 'bootstrap'; got {proposal!r}.")
+    check_proposal(proposal)
     dtype = prior.mean.dtype
     linear = system.linear_observation(
         jnp.zeros((system.input_dim,), dtype), jnp.zeros((), jnp.int32)
@@ -107,7 +120,12 @@ def resolve_proposal(system: AbstractSystem, proposal: str, prior: GaussianPrior
     return proposal
 
 
-def _initial_prior(system: AbstractSystem, initial: GaussianPrior | None) -> GaussianPrior:
+def initial_prior(system: AbstractSystem, initial: GaussianPrior | None) -> GaussianPrior:
+    """The distribution of x₁ a particle method uses: ``initial``, else the system's own prior.
+
+    Raises (host-side, naming the argument) when there is none, when it is not a
+    :class:`ceemx.GaussianPrior`, or when its mean is not a finite vector of length n.
+    """
     prior = system.initial_prior if initial is None else initial
     if prior is None:
         raise ValueError(
@@ -255,7 +273,8 @@ def _check_dtypes(system: AbstractSystem, data: Trajectories) -> None:
         )
 
 
-def _check_int(name: str, value, minimum: int) -> int:
+def check_int(name: str, value, minimum: int) -> int:
+    """``value`` as an int >= ``minimum`` (raises ``TypeError``/``ValueError`` naming ``name``)."""
     if isinstance(value, bool) or not isinstance(value, int | np.integer):
         raise TypeError(f"`{name}` must be an int; got {value!r}.")
     if value < minimum:
@@ -313,9 +332,9 @@ def particle_filter(
     """
     check_inputs(system, data)
     _check_dtypes(system, data)
-    n_particles = _check_int("n_particles", n_particles, 1)
+    n_particles = check_int("n_particles", n_particles, 1)
     threshold = check_threshold(ess_threshold)
-    prior = _initial_prior(system, initial)
+    prior = initial_prior(system, initial)
     resolved = resolve_proposal(system, proposal, prior)
     key = jax.random.PRNGKey(0) if key is None else key
     dtype = data.y.dtype
@@ -390,7 +409,7 @@ def ffbsi(
         (B, S, T, n) smoothed state trajectories.
     """
     check_inputs(system, data)
-    n_samples = _check_int("n_samples", n_samples, 1)
+    n_samples = check_int("n_samples", n_samples, 1)
     if not isinstance(pf, ParticleFilterSolution):
         raise TypeError(f"`pf` must be a ParticleFilterSolution; got {type(pf).__name__}.")
     B, T = pf.log_weights.shape[:2]
