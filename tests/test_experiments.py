@@ -197,3 +197,31 @@ def test_perturb_lorenz():
     np.testing.assert_array_equal(np.asarray(guess.C), np.asarray(true.C))  # C stays known
     no_h = common.perturb_lorenz(jax.random.PRNGKey(0), true, coupling=False)
     np.testing.assert_array_equal(np.asarray(no_h.H), np.asarray(true.H))
+
+
+def test_figure4_smoke(tmp_path):
+    """``ceemx experiment figure4 --smoke``: five models trained and scored on the generator."""
+    assert cli.main(["experiment", "figure4", "--smoke", "--out", str(tmp_path)]) == 0
+    saved = check_files(tmp_path, "figure4a.png")
+    assert (tmp_path / "figure4b.png").stat().st_size > 0
+    assert set(saved["mean"]) == {"naive", "LSTM", "H25", "SID", "NL"}
+    n_test = saved["sizes"][2]
+    for model, values in saved["rmse"].items():
+        assert len(values) == n_test and finite(values), model
+    assert saved["nl"]["epochs"] == 2 and saved["nl"]["best_epoch"] in (0, 1, 2)
+    assert set(saved["nl_better_on"]) == {"naive", "LSTM", "H25", "SID"}
+    assert "0.615" in saved["table"] and isinstance(saved["paper_ordering"], bool)
+
+
+def test_figure4_helpers():
+    from ceemx.experiments import figure4
+
+    means = {"NL": 0.6, "SID": 0.8, "H25": 0.9, "LSTM": 1.3, "naive": 2.7}
+    assert figure4.paper_ordering(means)
+    assert not figure4.paper_ordering({**means, "NL": 0.85})
+    rmse = {"NL": np.array([1.0, 2.0, 3.0]), "H25": np.array([2.0, 1.0, 4.0])}
+    assert figure4.win_counts(rmse) == {"H25": 2}
+    with pytest.raises(ValueError, match="dataset"):
+        figure4.load_splits(data=None, dataset="nope", smoke=True, seed=0)
+    with pytest.raises(SystemExit):
+        cli.main(["experiment", "table1", "--dataset", "silverbox"])

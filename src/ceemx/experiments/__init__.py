@@ -3,6 +3,8 @@
 - :mod:`~ceemx.experiments.table1` — Table 1: bias on a single Lorenz system (§4.1.1).
 - :mod:`~ceemx.experiments.figure2` — Figure 2: CE-EM against Particle EM (§4.1.2).
 - :mod:`~ceemx.experiments.figure3` — Figure 3: convergence on six coupled Lorenz (§4.1.3).
+- :mod:`~ceemx.experiments.figure4` — Figure 4: one-step prediction with hidden states, five
+  models (§4.2), on the helicopter-like generator, the paper's dataset or real benchmarks.
 - :mod:`~ceemx.experiments.demo` — the README demo.
 
 Each writes ``results.json``, a Markdown ``table.md`` (the paper's numbers beside ours) and a PNG
@@ -12,7 +14,7 @@ command line with ``ceemx experiment NAME [--smoke]`` or ``ceemx demo``.
 
 from importlib import import_module
 
-EXPERIMENTS = ("table1", "figure2", "figure3")
+EXPERIMENTS = ("table1", "figure2", "figure3", "figure4")
 
 __all__ = ["EXPERIMENTS", "get"]
 

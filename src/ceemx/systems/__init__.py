@@ -8,10 +8,12 @@ from .lorenz import (
     random_coupling,
     random_observation_matrix,
 )
+from .neural import NeuralObservationSystem
 
 __all__ = [
     "CoupledLorenz",
     "LinearSystem",
+    "NeuralObservationSystem",
     "coupling_mask",
     "initial_states",
     "random_coupling",
