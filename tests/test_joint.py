@@ -252,7 +252,8 @@ def test_one_linearisation_per_accepted_joint_step(lz, instrumented):
     guess = eqx.tree_at(lambda s: s.process_noise, lz["guess"], ceemx.DiagonalGaussian(1e-3, 3))
     jax.effects_barrier()
     instrumented.evaluations = 0
-    res = fit(lz, ceemx.JointLM(rtol=1e-13, damping=1e-9), guess=guess, x0=jnp.zeros_like(lz["x0"]))
+    opts = ceemx.JointLM(rtol=1e-13, damping=1e-9, max_theta_step=np.inf)  # rejections wanted
+    res = fit(lz, opts, guess=guess, x0=jnp.zeros_like(lz["x0"]))
     jax.effects_barrier()
     trials = res.history_array("trials")
     assert res.converged

@@ -137,7 +137,9 @@ def fit(
     Args:
         system: the model at its initial θ.
         data: B observed trajectories.
-        x_init: (B, T, n) initial states (``None``: :func:`ceemx.initialize.from_observations`).
+        x_init: (B, T, n) initial states (``None``: the solver's ``initial_states`` —
+            :func:`ceemx.initialize.warm_start`, least squares through the observation map and a
+            smoothing pass at the initial θ, for the CE methods).
         solver: the method — :class:`ceemx.Alternating` (the paper's Algorithm 1, default),
             :class:`ceemx.JointLM` (joint Levenberg–Marquardt on (x, θ)) or
             :class:`ceemx.ParticleEM` (particle filter + FFBSi + SAEM); its tolerances decide
@@ -163,8 +165,6 @@ def fit(
         >>> result = ceemx.fit(guess, data, solver=ceemx.JointLM(), trainable=lambda s: s.rho)
         ... # doctest: +SKIP
     """
-    from .initialize import from_observations
-
     solver = Alternating() if solver is None else solver
     if not isinstance(solver, AbstractFitSolver):
         raise TypeError(
@@ -174,7 +174,7 @@ def fit(
     max_epochs = _check_max_epochs(max_epochs)
     check_inputs(system, data)
     if x_init is None:
-        x_init = from_observations(system, data)
+        x_init = solver.initial_states(system, data)
     check_inputs(system, data, x_init)
     states = jnp.asarray(x_init)
     solver = trace_numbers(solver, states.dtype)

@@ -77,6 +77,8 @@ class Settings:
     nn_epochs: int = 60
     lstm_epochs: int = 60
     nn_batch: int = 512
+    nn_lr: float = 1e-3
+    lstm_lr: float = 1e-3
     state_dim: int = 10
     sid_subsets: int = 10
     sid_subset_size: int = 100
@@ -311,8 +313,16 @@ def run(
         f"{s.valid.batch_size}/{s.test.batch_size} trajectories of {s.train.y.shape[1]} steps"
     )
     t0 = time.perf_counter()
+    # The authors' loss is in physical units (per-output factors y_std); their 5000 epochs at
+    # lr 1e-4 are out of our budget: at 60 epochs lr 1e-3 validates better (docs/results.md).
+    nn_opts = {"lr": settings.nn_lr, "scale": y_std}
     naive, naive_info = fit_naive(
-        s.train, s.valid, epochs=settings.nn_epochs, batch_size=settings.nn_batch, key=k_naive
+        s.train,
+        s.valid,
+        epochs=settings.nn_epochs,
+        batch_size=settings.nn_batch,
+        key=k_naive,
+        **nn_opts,
     )
     train_time["naive"] = time.perf_counter() - t0
     say(f"[naive] {train_time['naive']:.1f} s")
@@ -324,6 +334,7 @@ def run(
         epochs=settings.nn_epochs,
         batch_size=settings.nn_batch,
         key=k_h25,
+        **nn_opts,
     )
     train_time["H25"] = time.perf_counter() - t0
     say(f"[H25] {train_time['H25']:.1f} s")
@@ -332,7 +343,14 @@ def run(
     r_valid = residual_data(s.valid, naive.predict(s.valid))
 
     t0 = time.perf_counter()
-    lstm_res, lstm_info = fit_lstm(r_train, r_valid, epochs=settings.lstm_epochs, key=k_lstm)
+    lstm_res, lstm_info = fit_lstm(
+        r_train,
+        r_valid,
+        epochs=settings.lstm_epochs,
+        key=k_lstm,
+        lr=settings.lstm_lr,
+        scale=y_std,
+    )
     lstm = ResidualPredictor(naive, lstm_res)
     train_time["LSTM"] = time.perf_counter() - t0
     say(f"[LSTM] {train_time['LSTM']:.1f} s")

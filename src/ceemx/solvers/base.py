@@ -35,6 +35,7 @@ __all__ = [
     "AbstractFitSolver",
     "FitState",
     "improvement_converged",
+    "objective_scale",
     "starting_state",
     "total_J",
     "trajectory_log_likelihood",
@@ -108,8 +109,12 @@ def improvement_converged(
     J_before, J_after = total_J(before), total_J(after)
     if not np.isfinite(J_after):
         return False
-    scale = abs(J_after + float(_offset(problem, after.theta, after.weights)))
-    return bool(J_after - J_before <= float(rtol) * scale + float(atol))
+    return bool(J_after - J_before <= float(rtol) * objective_scale(problem, after) + float(atol))
+
+
+def objective_scale(problem: FitProblem, state: FitState) -> float:
+    """|J + c| at ``state``: ½‖whitened residuals‖² for Gaussian noise (the scale of rtol)."""
+    return abs(total_J(state) + float(_offset(problem, state.theta, state.weights)))
 
 
 class AbstractFitSolver(eqx.Module):
@@ -126,6 +131,17 @@ class AbstractFitSolver(eqx.Module):
     #: ``J``, ``J_before``, ``J_per_trajectory``, ``dtheta_norm``, ``dx_norm``,
     #: ``failed_trajectories``, ``converged``, ``stop``).
     history_keys: ClassVar[Mapping[str, str]] = {}
+
+    def initial_states(self, system, data) -> States:
+        """The start states of ``fit(..., x_init=None)``: :func:`ceemx.initialize.warm_start`.
+
+        Least squares through the observation map, then one smoothing pass at the initial θ
+        with weak dynamics weights, which fills in the unobserved directions from the dynamics
+        (a start at zero velocity, say, can lead a joint method to a poor stationary point).
+        """
+        from ..initialize import warm_start  # the initialiser smooths: imported at call time
+
+        return warm_start(system, data)
 
     @abc.abstractmethod
     def init(

@@ -14,6 +14,19 @@ invariance across parameters of different magnitudes), accepted on actual vs pre
 their block, as in Eq. 10–11); the log-prior is part of the objective. The linearisation at the
 accepted point is carried to the next epoch, so an epoch whose first trial is accepted costs one
 linearisation and one arrowhead solve.
+
+Two guards make it safe from a poor start (a joint Gauss–Newton model far from the optimum can
+propose a step that moves a log-parameter by hundreds):
+
+- a trust region in scaled variables: a trial step whose largest θ move exceeds
+  ``max_theta_step·max(|θ_i|, 1)`` is shortened, (δx, δθ) together, to that bound (the shortened
+  LM step is still a descent direction of the model; acceptance compares actual and predicted
+  decrease of the shortened step as usual);
+- a smoothing check before stopping: when the iteration would stop (converged, or stuck), one
+  smoothing pass at the end θ (:class:`ceemx.LMSmoother`) is tried; if it raises J by more than
+  ``check_rtol·|J + c|``, its states are taken and the iterations go on (history key
+  ``smoothing_gain``), so a point that the alternating method's own smoothing step would leave
+  is never reported as converged.
 """
 
 from __future__ import annotations
@@ -31,10 +44,18 @@ from .._warnings import warn
 from ..lib.blocktri import BlockTridiagonal
 from ..lib.lm import levenberg_marquardt, marquardt_scale
 from ..lib.results import RESULTS, codes, select
+from ..lib.tree import trace_numbers
 from ..objective import linearize
 from ..problem import FitProblem
+from ..smoothing import solver as smoothing_solver
 from ..typing import PerTrajectory, Scalar, States, Theta
-from .base import AbstractFitSolver, FitState, improvement_converged, trajectory_log_likelihood
+from .base import (
+    AbstractFitSolver,
+    FitState,
+    improvement_converged,
+    objective_scale,
+    trajectory_log_likelihood,
+)
 
 __all__ = ["JointLM", "JointLinearization"]
 
@@ -59,6 +80,11 @@ class JointLM(AbstractFitSolver):
         dense_max_p: threshold of ``"auto"``.
         cg_rtol: relative residual tolerance of CG.
         cg_max_steps: CG iteration bound (``None``: P).
+        max_theta_step: trust region of one step, in scaled variables: no θ_i moves by more than
+            ``max_theta_step·max(|θ_i|, 1)`` (``inf``: unbounded).
+        check_smoothing: before stopping, try one smoothing pass at the end θ and go on if it
+            raises J by more than ``check_rtol·|J + c|`` (see the module notes).
+        check_rtol: the material improvement of that check.
     """
 
     rho_x: float = 0.0
@@ -71,18 +97,24 @@ class JointLM(AbstractFitSolver):
     dense_max_p: int = eqx.field(default=5000, static=True)
     cg_rtol: float = 1e-12
     cg_max_steps: int | None = eqx.field(default=None, static=True)
+    max_theta_step: float = 1.0
+    check_smoothing: bool = eqx.field(default=True, static=True)
+    check_rtol: float = 1e-6
 
     history_keys = {
         "trials": "LM trials in this iteration (accepted and rejected)",
         "accepted": "whether a step was accepted",
         "damping": "Marquardt λ after the iteration",
         "lm_status": "the LM driver's RESULTS code for the iteration",
+        "smoothing_gain": "J gained by the smoothing check before stopping (0: none tried)",
     }
 
     def __check_init__(self):
-        for name in ("rho_x", "rho_theta", "damping"):
+        for name in ("rho_x", "rho_theta", "damping", "check_rtol"):
             if not np.all(np.asarray(getattr(self, name)) >= 0):
                 raise ValueError(f"`{name}` must be >= 0; got {getattr(self, name)}.")
+        if not np.all(np.asarray(self.max_theta_step) > 0):
+            raise ValueError(f"`max_theta_step` must be > 0; got {self.max_theta_step}.")
         if self.linear_solver not in ("auto", "dense", "cg"):
             raise ValueError(
                 f"`linear_solver` must be 'auto', 'dense' or 'cg'; got {self.linear_solver!r}."
@@ -133,11 +165,15 @@ class JointLM(AbstractFitSolver):
             "accepted": accepted,
             "damping": float(lam),
             "lm_status": int(codes(code)),
+            "smoothing_gain": 0.0,
         }
+        stop, _ = self._stopping(problem, state, new, record)
+        if stop and self.check_smoothing and np.any(np.asarray(ok)):
+            new, record["smoothing_gain"] = self._smoothing_check(problem, new)
         return new, record
 
-    def terminate(self, problem, before, after, record):
-        """Converged on Algorithm 1's rule or a negligible predicted decrease; stop if stuck."""
+    def _stopping(self, problem, before, after, record) -> tuple[bool, bool]:
+        """(stop, converged) by Algorithm 1's rule, the LM's predicted decrease, or stuck."""
         if not np.any(np.asarray(after.weights) > 0):
             return True, False
         lm_converged = record["lm_status"] == int(codes(RESULTS.successful))
@@ -149,6 +185,46 @@ class JointLM(AbstractFitSolver):
         # No accepted step: converged if the model predicted no decrease, else damping exhausted
         # or non-finite trials — stop either way.
         return True, lm_converged
+
+    def _smoothing_check(self, problem: FitProblem, state: FitState) -> tuple[FitState, float]:
+        """One smoothing pass at the end θ; its states if it raises J materially."""
+        ok = np.asarray(state.weights) > 0
+        sol = smoothing_solver.smooth_batch(
+            trace_numbers(smoothing_solver.LMSmoother(), state.states.dtype),
+            problem.build(state.theta),
+            state.states,
+            problem.data,
+            False,
+        )
+        J_new = np.asarray(trajectory_log_likelihood(problem, state.theta, sol.states))
+        J_old = np.asarray(state.J)
+        better = ok & np.isfinite(J_new) & (J_new > J_old)
+        gain = float(np.sum(np.where(better, J_new - J_old, 0.0)))
+        if not gain > float(self.check_rtol) * objective_scale(problem, state):
+            return state, 0.0
+        keep = jnp.asarray(better)
+        states = jnp.where(keep[:, None, None], sol.states, state.states)
+        return (
+            FitState(
+                theta=state.theta,
+                states=states,
+                J=jnp.where(keep, jnp.asarray(J_new), state.J),
+                weights=state.weights,
+                status=state.status,
+                solver_state=state.solver_state,
+                cache=None,  # the states moved: linearise again
+            ),
+            gain,
+        )
+
+    def terminate(self, problem, before, after, record):
+        """Converged on Algorithm 1's rule or a negligible predicted decrease; stop if stuck.
+
+        Never right after the smoothing check moved the states (the iterations go on from them).
+        """
+        if record.get("smoothing_gain", 0.0) > 0.0:
+            return False, False
+        return self._stopping(problem, before, after, record)
 
 
 class JointLinearization(NamedTuple):
@@ -230,6 +306,7 @@ def _iteration(
     dtype = states.dtype
     rho_x = jnp.asarray(opts.rho_x, dtype)
     rho_t = jnp.asarray(opts.rho_theta, dtype)
+    max_step = jnp.asarray(opts.max_theta_step, dtype)
     evaluate = _evaluator(problem, weights, problem.offset(theta, weights))
 
     def grad_of(lin):
@@ -251,7 +328,11 @@ def _iteration(
             cg_max_steps=opts.cg_max_steps,
         )
         dx = jnp.where(ok_b[:, None, None], sol.dx, 0.0)
-        return (dx, sol.dtheta), sol.ok
+        # Trust region in scaled variables: shorten (δx, δθ) so no θ_i moves by more than
+        # max_theta_step·max(|θ_i|, 1).
+        ratio = jnp.max(jnp.abs(sol.dtheta) / jnp.maximum(jnp.abs(theta), 1.0), initial=0.0)
+        shrink = jnp.minimum(1.0, max_step / jnp.maximum(ratio, jnp.finfo(dtype).tiny))
+        return (shrink * dx, shrink * sol.dtheta), sol.ok
 
     def quad(lin, delta):
         dx, dth = delta

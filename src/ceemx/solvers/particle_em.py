@@ -154,6 +154,12 @@ class ParticleEM(AbstractFitSolver):
         """``initial``, else the system's ``initial_prior`` (validated; raises if neither)."""
         return initial_prior(problem.build(theta), self.initial)
 
+    def initial_states(self, system, data) -> States:
+        """Only the states reported before epoch 1: least squares through the observation map."""
+        from ..initialize import from_observations
+
+        return from_observations(system, data)
+
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
     ) -> FitState:
