@@ -40,5 +40,11 @@ def _fast_compilation() -> None:
 
 
 _fast_compilation()
+# The CLI turns on JAX's persistent compilation cache: tests (and their subprocesses) share one
+# fresh folder per session instead of the user's ~/.cache.
+if "CEEMX_COMPILATION_CACHE" not in os.environ:
+    import tempfile
+
+    os.environ["CEEMX_COMPILATION_CACHE"] = tempfile.mkdtemp(prefix="ceemx-test-jax-cache-")
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")

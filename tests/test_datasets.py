@@ -286,3 +286,167 @@ def test_data_root_resolution(tmp_path, monkeypatch):
         datasets.load_benchmark("silverbox", root=tmp_path)
     with pytest.raises(ValueError, match="unknown benchmark"):
         datasets.load_benchmark("nope", root=tmp_path)
+
+
+# ---------------------------------------------------------------- the official records as datasets
+
+
+def _col(rec, split, name, k):
+    return getattr(rec, split)[name][k][:, 0]
+
+
+@_need("cascaded_tanks")
+def test_cascaded_tanks_dataset():
+    ds = datasets.cascaded_tanks()
+    rec = datasets.load_benchmark("cascaded_tanks")
+    assert isinstance(ds, datasets.BenchmarkDataset) and ds.name == "cascaded_tanks"
+    assert ds.train.y.shape == ds.train.u.shape == (1, 1024, 1) and ds.train_names == (
+        "estimation",
+    )
+    assert set(ds.tests) == {"test"} and ds.tests["test"].y.shape == (1, 1024, 1)
+    assert ds.train.y.dtype == np.float64 and bool(np.asarray(ds.train.mask).all())
+    np.testing.assert_array_equal(
+        np.asarray(ds.train.y)[0, :, 0], _col(rec, "train", "estimation", 1)
+    )
+    np.testing.assert_array_equal(
+        np.asarray(ds.train.u)[0, :, 0], _col(rec, "train", "estimation", 0)
+    )
+    np.testing.assert_array_equal(
+        np.asarray(ds.tests["test"].y)[0, :, 0], _col(rec, "tests", "validation", 1)
+    )
+    assert ds.n_init == 50 and ds.dt == 4.0 and ds.score_unit == "V" and ds.score_scale == 1.0
+    assert "Schoukens" in ds.citation and "V" in ds.units and ds.verified
+    assert ds.sha256 == benchmarks.BENCHMARKS["cascaded_tanks"].sha256
+    rmse = [p.rmse["test"] for p in ds.published]
+    assert rmse == sorted(rmse) and rmse[0] == 0.18 and rmse[-1] == 0.75 and len(rmse) == 6
+    assert all(p.unit == "V" and "1024" in p.note for p in ds.published)
+
+
+@_need("silverbox")
+def test_silverbox_dataset():
+    ds = datasets.silverbox()
+    assert ds.train.y.shape == (1, 105712 - 40650, 1)
+    sizes = {k: v.y.shape for k, v in ds.tests.items()}
+    assert sizes == {
+        "multisine": (1, 127400 - 105712, 1),
+        "arrow_full": (1, 40575 - 100, 1),
+        "arrow_no_extrapolation": (1, 32100 - 100, 1),
+    }
+    rec = datasets.load_benchmark("silverbox")
+    np.testing.assert_array_equal(
+        np.asarray(ds.tests["arrow_full"].u)[0, :, 0], _col(rec, "tests", "arrow_full", 0)
+    )
+    # the no-extrapolation test is the start of the full arrow record
+    np.testing.assert_array_equal(
+        np.asarray(ds.tests["arrow_no_extrapolation"].y),
+        np.asarray(ds.tests["arrow_full"].y)[:, :32000],
+    )
+    assert ds.n_init == 50 and abs(ds.dt - 1 / 610.35) < 1e-15
+    assert ds.score_unit == "mV" and ds.score_scale == 1000.0
+    assert ds.published[0].rmse == {
+        "multisine": 2.0,
+        "arrow_full": 5.8,
+        "arrow_no_extrapolation": 2.0,
+    }
+    assert "Wigren" in ds.citation and ds.output_names == ("V2",)
+
+
+@_need("coupled_electric_drives")
+def test_coupled_drives_dataset():
+    ds = datasets.coupled_electric_drives()
+    rec = datasets.load_benchmark("coupled_electric_drives")
+    assert ds.train.y.shape == (2, 400, 1) and ds.train_names == ("set1_low", "set2_high")
+    assert set(ds.tests) == {"set1_low", "set2_high"}
+    assert all(t.y.shape == (1, 100, 1) for t in ds.tests.values())
+    for b, name in enumerate(ds.train_names):
+        np.testing.assert_array_equal(np.asarray(ds.train.y)[b, :, 0], _col(rec, "train", name, 1))
+        np.testing.assert_array_equal(
+            np.asarray(ds.tests[name].u)[0, :, 0], _col(rec, "tests", name, 0)
+        )
+    assert ds.n_init == 10 and ds.dt == 0.02
+    assert ds.published[0].rmse == {"set1_low": 0.14, "set2_high": 0.10}
+    assert "different split" in ds.published[0].note
+
+
+@_need("cascaded_tanks")
+def test_dataset_sha256_and_missing_file(tmp_path, monkeypatch):
+    src = datasets.data_root() / datasets.BENCHMARKS["cascaded_tanks"].file
+    folder = tmp_path / "cascaded_tanks"
+    folder.mkdir()
+    lines = [line for line in src.read_text().splitlines() if line.strip()]
+    (folder / "dataBenchmark.csv").write_text("\n".join(lines[:-1]) + "\n")  # one row short
+    with pytest.raises(ValueError, match="sha256"):
+        datasets.cascaded_tanks(tmp_path)
+    ds = datasets.cascaded_tanks(tmp_path, verify=False)
+    assert not ds.verified and ds.train.y.shape == (1, 1023, 1)
+    # a missing file: the error names the expected file and both ways to give the folder
+    for call in (
+        lambda: datasets.silverbox(tmp_path),
+        lambda: datasets.coupled_electric_drives(root=tmp_path),
+    ):
+        with pytest.raises(FileNotFoundError) as err:
+            call()
+        msg = str(err.value)
+        assert "missing benchmark file" in msg and "root=" in msg and "CEEMX_DATA" in msg
+    with pytest.raises(FileNotFoundError, match=r"silverbox/SNLS80mV\.csv"):
+        datasets.silverbox(tmp_path)
+    monkeypatch.setenv("CEEMX_DATA", str(tmp_path / "nowhere"))
+    with pytest.raises(FileNotFoundError, match=r"SNLS80mV\.csv.*CEEMX_DATA"):
+        datasets.silverbox()
+    monkeypatch.setenv("CEEMX_DATA", str(tmp_path))
+    assert datasets.cascaded_tanks(verify=False).path == (folder / "dataBenchmark.csv").resolve()
+
+
+@_need("coupled_electric_drives")
+def test_dataset_windows():
+    ds = datasets.coupled_electric_drives()
+    w = ds.train.windows(100, 50)  # per set (400 − 100) // 50 + 1 = 7 windows
+    assert w.y.shape == (14, 100, 1) and w.u.shape == (14, 100, 1) and w.mask.shape == (14, 100, 1)
+    y = np.asarray(ds.train.y)
+    np.testing.assert_array_equal(np.asarray(w.y)[8], y[1, 50:150])  # set 2, second window
+    np.testing.assert_array_equal(np.asarray(w.u)[6], np.asarray(ds.train.u)[0, 300:400])
+    assert ds.train.windows(400).y.shape == (2, 400, 1)
+
+
+# ---------------------------------------------------------------- Trajectories conveniences
+
+
+def test_trajectories_windows_carry_masks():
+    rng = np.random.default_rng(0)
+    y, u = rng.standard_normal((2, 10, 2)), rng.standard_normal((2, 10, 3))
+    mask = np.ones((2, 10, 2), bool)
+    mask[1, 6:] = False  # padding of a shorter record
+    mask[0, 2, 1] = False
+    d = Trajectories(y, u, mask)
+    w = d.windows(4, 3)  # starts 0, 3, 6 per record
+    assert w.y.shape == (6, 4, 2) and w.u.shape == (6, 4, 3) and w.mask.shape == (6, 4, 2)
+    for i, (b, t) in enumerate((b, t) for b in range(2) for t in (0, 3, 6)):
+        np.testing.assert_array_equal(np.asarray(w.mask)[i], mask[b, t : t + 4])
+        np.testing.assert_array_equal(np.asarray(w.u)[i], u[b, t : t + 4])
+        np.testing.assert_array_equal(
+            np.asarray(w.y)[i], np.where(mask[b, t : t + 4], y[b, t : t + 4], 0.0)
+        )
+    assert not np.asarray(w.mask)[5].any() and not np.asarray(w.mask)[0, 2, 1]
+    assert d.windows(5).y.shape == (4, 5, 2)  # no overlap by default
+    assert Trajectories(y).windows(10).u.shape == (2, 10, 0)
+    for bad in ((1,), (11,), (4, 0), (4.0,)):
+        with pytest.raises(ValueError, match="length|step"):
+            d.windows(*bad)
+
+
+def test_trajectories_from_arrays():
+    t = Trajectories.from_arrays(np.arange(5.0), np.ones(5))
+    assert t.y.shape == (1, 5, 1) and t.u.shape == (1, 5, 1) and t.mask.shape == (1, 5, 1)
+    np.testing.assert_array_equal(np.asarray(t.y)[0, :, 0], np.arange(5.0))
+    t = Trajectories.from_arrays(np.zeros((5, 2)), np.ones((5, 3)), np.arange(5) < 3)
+    assert t.y.shape == (1, 5, 2) and t.u.shape == (1, 5, 3)
+    np.testing.assert_array_equal(np.asarray(t.mask)[0, :, 1], np.arange(5) < 3)
+    assert Trajectories.from_arrays(np.arange(5.0)).u.shape == (1, 5, 0)
+    y = np.zeros((2, 5, 1))
+    assert Trajectories.from_arrays(y, np.ones((2, 5, 1))).y.shape == (2, 5, 1)
+    with pytest.raises(ValueError, match="`y`"):
+        Trajectories.from_arrays(np.zeros((1, 2, 3, 4)))
+    with pytest.raises(ValueError, match="`u`"):
+        Trajectories.from_arrays(np.zeros(5), np.zeros((1, 5, 1)))
+    with pytest.raises(ValueError, match="T >= 2"):
+        Trajectories.from_arrays(np.zeros(1))

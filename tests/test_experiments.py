@@ -9,6 +9,9 @@ import math
 import subprocess
 import sys
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -225,3 +228,53 @@ def test_figure4_helpers():
         figure4.load_splits(data=None, dataset="nope", smoke=True, seed=0)
     with pytest.raises(SystemExit):
         cli.main(["experiment", "table1", "--dataset", "silverbox"])
+
+
+def test_figure4_group_learning_rates():
+    """Per-parameter rates: dynamics (A, B) at one rate, the observation model at the other."""
+    from jax.flatten_util import ravel_pytree
+
+    from ceemx.experiments import figure4
+    from ceemx.problem import split_system
+    from ceemx.systems import NeuralObservationSystem
+
+    n, m, p = 3, 2, 1
+    A, B = jnp.eye(n) * 0.9, jnp.ones((n, p))
+    C, D = jnp.ones((m, n)), jnp.zeros((m, p))
+    system = NeuralObservationSystem(A, B, C, D, key=jax.random.PRNGKey(0), width=4, depth=1)
+    rates = np.asarray(figure4.group_learning_rates(system, 1e-3, 5e-4))
+    theta, params, _ = split_system(system)
+    assert rates.shape == theta.shape
+    # Mark A and B in a copy of θ's template: those positions must carry the dynamics rate.
+    marked = eqx.tree_at(
+        lambda s: (s.A, s.B), params, (jnp.full_like(A, np.inf), jnp.full_like(B, np.inf))
+    )
+    is_dyn = np.isinf(np.asarray(ravel_pytree(marked)[0]))
+    assert is_dyn.sum() == n * n + n * p
+    np.testing.assert_array_equal(rates[is_dyn], 1e-3)
+    np.testing.assert_array_equal(rates[~is_dyn], 5e-4)
+
+
+@pytest.mark.slow
+def test_benchmarks_smoke(tmp_path):
+    """`ceemx experiment benchmarks --smoke`: three gray-box fits, official-protocol scores."""
+    from ceemx.datasets.benchmarks import data_root
+
+    try:
+        data_root()
+    except FileNotFoundError as e:
+        pytest.skip(f"benchmark data absent: {e}")
+    args = ["experiment", "benchmarks", "--smoke", "--out", str(tmp_path)]
+    assert cli.main(args) == 0
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert (tmp_path / "benchmarks.png").exists()
+    assert {d["dataset"] for d in saved["datasets"]} == {
+        "cascaded_tanks",
+        "silverbox",
+        "coupled_electric_drives",
+    }
+    for d in saved["datasets"]:
+        for entry in d["tests"].values():
+            assert math.isfinite(entry["graybox_rmse"]) and entry["graybox_rmse"] > 0
+    with pytest.raises(SystemExit):
+        cli.main(["experiment", "benchmarks", "--method", "particle"])

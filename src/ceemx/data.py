@@ -11,9 +11,17 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .models.noise import AbstractNoise
 from .models.system import AbstractSystem
-from .typing import Inputs, ObservationMask, Observations, State, States, Trajectory
+from .typing import (
+    Inputs,
+    ObservationMask,
+    Observations,
+    State,
+    States,
+    Trajectory,
+    no_type_check,
+)
 
-__all__ = ["Trajectories", "rollout_one", "simulate"]
+__all__ = ["Trajectories", "foh_inputs", "rollout_one", "simulate"]
 
 
 def _is_concrete(a) -> bool:
@@ -142,6 +150,72 @@ class Trajectories(eqx.Module):
             idx = slice(idx, idx + 1) if idx != -1 else slice(-1, None)
         return jax.tree_util.tree_map(lambda a: a[idx] if jnp.ndim(a) else a, self)
 
+    @classmethod
+    @no_type_check  # validates its arguments
+    def from_arrays(cls, y, u=None, mask=None) -> Trajectories:
+        """Trajectories from arrays of one record or of a batch.
+
+        Args:
+            y: (T,) one record of a scalar output, (T, m) one record, or (B, T, m) a batch.
+            u: ``None``, or the inputs with the same leading axes: (T,) / (T, p) for one record
+                (y of rank 1 or 2), (B, T, p) for a batch.
+            mask: ``None``, or booleans shaped like ``y`` (or (T,) / (B, T): whole steps).
+
+        Returns:
+            :class:`Trajectories` with a batch axis (B = 1 for one record), validated as the
+            constructor does.
+        """
+        y = np.asarray(y) if _is_concrete(y) else y
+        if y.ndim == 3:
+            return cls(y, u, mask)
+        if y.ndim not in (1, 2):
+            raise ValueError(f"`y` must have shape (T,), (T, m) or (B, T, m); got {y.shape}.")
+
+        def one(a, name):
+            if a is None:
+                return None
+            a = np.asarray(a) if _is_concrete(a) else a
+            if a.ndim not in (1, 2):
+                raise ValueError(
+                    f"`{name}` of one record must have shape (T,) or (T, k); got {a.shape}."
+                )
+            return (a[:, None] if a.ndim == 1 and name != "mask" else a)[None]
+
+        return cls(one(y, "y"), one(u, "u"), one(mask, "mask"))
+
+    @no_type_check  # validates its arguments
+    def windows(self, length: int, step: int | None = None) -> Trajectories:
+        """Cut every record into windows of ``length`` steps, starting every ``step`` steps.
+
+        Window i of record b holds steps ``[i·step, i·step + length)`` of it, with its inputs and
+        mask; the tail that does not fill a window is dropped. Windows are ordered record by
+        record (all windows of record 0 first). Windows that fall on a record's masked padding
+        are kept (their entries stay masked).
+
+        Args:
+            length: steps per window, in [2, T].
+            step: steps between window starts (≥ 1); ``None``: ``length`` (no overlap).
+
+        Returns:
+            (B·W, length, ·) :class:`Trajectories` with W = (T − length) // step + 1.
+
+        Raises:
+            ValueError: ``length`` outside [2, T] or ``step < 1``.
+        """
+        T = self.num_steps
+        step = length if step is None else step
+        if not (isinstance(length, (int, np.integer)) and 2 <= length <= T):
+            raise ValueError(f"`length` must be an integer in [2, T = {T}]; got {length!r}.")
+        if not (isinstance(step, (int, np.integer)) and step >= 1):
+            raise ValueError(f"`step` must be an integer >= 1; got {step!r}.")
+        starts = np.arange(0, T - length + 1, step)
+        idx = jnp.asarray(starts[:, None] + np.arange(length))
+
+        def cut(a):
+            return a[:, idx].reshape((a.shape[0] * len(starts), length) + a.shape[2:])
+
+        return Trajectories(cut(self.y), cut(self.u), cut(self.mask))
+
 
 def _resolve_noise(flag, default: AbstractNoise) -> AbstractNoise | None:
     if flag is True:
@@ -220,3 +294,28 @@ def simulate(
     if on is not None:
         y = y + sample_noise(on, kv, (B, T), dtype)
     return xs, Trajectories(y, u if u.shape[-1] else None)
+
+
+def foh_inputs(data: Trajectories | ArrayLike):
+    """The inputs of a first-order-hold system: [u_t, u_{t+1}] side by side at every step.
+
+    A system with ``hold="foh"`` (:class:`ceemx.AbstractContinuousSystem`) interpolates the input
+    linearly between samples, which needs u_{t+1} in step t while ``dynamics(x, u, t)`` is given
+    one step's input. This stacks the next sample onto each step's input; the last step repeats
+    u_T (the input after the record is unknown: a zero-order hold over the final interval, which
+    only reaches the state after the last observation).
+
+    Args:
+        data: :class:`Trajectories` (its ``u`` is stacked; y and the mask are kept), or an input
+            array (…, T, p), e.g. the ``u`` of :func:`simulate`.
+
+    Returns:
+        The same kind with inputs (…, T, 2p): entries [:p] are u_t, [p:] are u_{t+1}.
+    """
+    if isinstance(data, Trajectories):
+        return eqx.tree_at(lambda d: d.u, data, foh_inputs(data.u))
+    u = jnp.asarray(data)
+    if u.ndim < 2:
+        raise ValueError(f"inputs must have shape (..., T, p); got {u.shape}.")
+    following = jnp.concatenate([u[..., 1:, :], u[..., -1:, :]], axis=-2)
+    return jnp.concatenate([u, following], axis=-1)

@@ -1,8 +1,11 @@
-"""Metrics of identified models: ε(θ) (paper Eq. 14), open-loop simulation RMSE, mean (SE).
+"""Metrics of identified models: ε(θ) (Eq. 14), simulation RMSE, benchmark scores, mean (SE).
 
 - :func:`dynamics_error` — the paper's ε(θ) as the authors computed it: the mean squared difference
   of the continuous-time vector fields of two systems at 1024 random states.
 - :func:`simulation_rmse` — noise-free open-loop rollouts compared with the observations.
+- :func:`benchmark_score` — the official ``nonlinear-benchmarks`` protocol on measured test
+  records: initial state from the first ``n_init`` outputs, free run, RMSE / NRMSE / fit %
+  (a :class:`BenchmarkScore`).
 - :func:`mean_se` — mean and standard error over seeds (an :class:`Estimate`).
 - Fit callbacks and checks: :class:`DynamicsErrorCallback` (ε(θ) every epoch),
   :class:`FitTimer` (wall time every epoch), :func:`is_monotone` (J never decreased).
@@ -20,16 +23,22 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .data import Trajectories, rollout_one
+from .lib.results import RESULTS, select
 from .models.system import AbstractContinuousSystem, AbstractSystem, float_dtype
+from .simulation import estimate_initial_state, free_run_batch, strongly_typed
+from .smoothing import check_inputs
+from .typing import ObservationMask, Observations, States, no_type_check
 
 __all__ = [
+    "BenchmarkScore",
     "DynamicsErrorCallback",
     "Estimate",
     "FitTimer",
     "SimulationRMSE",
+    "benchmark_score",
     "dynamics_error",
     "is_monotone",
     "mean_se",
@@ -162,6 +171,160 @@ def simulation_rmse(
     per = jnp.sqrt(jnp.sum(sq, axis=(1, 2)) / jnp.maximum(count, 1))
     overall = jnp.sqrt(jnp.sum(sq) / jnp.maximum(jnp.sum(count), 1))
     return SimulationRMSE(per, overall, pred)
+
+
+# --------------------------------------------------------------------------------------------
+# The nonlinear-benchmarks protocol
+# --------------------------------------------------------------------------------------------
+
+
+class BenchmarkScore(NamedTuple):
+    """Scores of free-run simulations of B test trajectories (:func:`benchmark_score`).
+
+    Per trajectory b and output j, over the N present entries of y[n_init:], with errors
+    e = s_j (ŷ − y) in scaled units (``scale``):
+
+    Attributes:
+        rmse: (B, m) sqrt(Σ e² / N).
+        nrmse: (B, m) RMSE / std(y), the standard deviation (ddof 0, scaled) of the scored
+            outputs; ``inf`` for a constant output.
+        fit_percent: (B, m) 100·(1 − ‖y − ŷ‖ / ‖y − ȳ‖) = 100·(1 − NRMSE).
+        rmse_overall: (B,) RMSE over all scored entries of the trajectory (every output).
+        nrmse_overall: (B,) mean over outputs of ``nrmse``.
+        fit_percent_overall: (B,) mean over outputs of ``fit_percent``.
+        y_sim: (B, T, m) simulated outputs over the whole record (unscaled).
+        x_sim: (B, T, n) simulated states (``x_sim[:, 0]`` is ``x1``).
+        x1: (B, n) initial states of the simulations.
+        status: (B,) :class:`ceemx.RESULTS` of the initial-state estimation (``successful``
+            where ``x1`` was given).
+        n_init: outputs used for the initial state (not scored).
+    """
+
+    rmse: Float[Array, "B m"]
+    nrmse: Float[Array, "B m"]
+    fit_percent: Float[Array, "B m"]
+    rmse_overall: Float[Array, " B"]
+    nrmse_overall: Float[Array, " B"]
+    fit_percent_overall: Float[Array, " B"]
+    y_sim: Observations
+    x_sim: States
+    x1: Float[Array, "B n"]
+    status: RESULTS
+    n_init: int
+
+
+@eqx.filter_jit
+def score_batch(
+    y: Observations,
+    y_sim: Observations,
+    mask: ObservationMask,
+    n_init: Int[Array, ""],
+    scale: Float[Array, " m"],
+) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """RMSE, NRMSE, fit % per output, then overall, on steps ≥ ``n_init`` (see BenchmarkScore)."""
+    m = mask & (jnp.arange(y.shape[1]) >= n_init)[None, :, None]
+    scale = scale[None, None, :]
+    count = jnp.sum(m, axis=1)  # (B, m)
+    safe = jnp.maximum(count, 1)
+    sq = jnp.where(m, (scale * (y_sim - y)) ** 2, 0.0)
+    rmse = jnp.sqrt(jnp.sum(sq, axis=1) / safe)
+    mean = jnp.sum(jnp.where(m, y, 0.0), axis=1) / safe
+    dev = jnp.where(m, (scale * (y - mean[:, None, :])) ** 2, 0.0)
+    nrmse = rmse / jnp.sqrt(jnp.sum(dev, axis=1) / safe)
+    overall = jnp.sqrt(jnp.sum(sq, axis=(1, 2)) / jnp.maximum(jnp.sum(count, axis=1), 1))
+    fit = 100.0 * (1.0 - nrmse)
+    return rmse, nrmse, fit, overall, jnp.mean(nrmse, axis=1), jnp.mean(fit, axis=1)
+
+
+@no_type_check  # validates its arguments
+def benchmark_score(
+    system: AbstractSystem,
+    test: Trajectories,
+    n_init: int,
+    *,
+    scale: ArrayLike | None = None,
+    x1: ArrayLike | None = None,
+    **kwargs,
+) -> BenchmarkScore:
+    """Score ``system`` on test records by the official ``nonlinear-benchmarks`` protocol.
+
+    1. x̂₁ from the first ``n_init`` test outputs and the inputs
+       (:func:`ceemx.simulation.estimate_initial_state`);
+    2. a noise-free :func:`ceemx.simulation.free_run` from x̂₁ over the whole test input;
+    3. RMSE, NRMSE = RMSE / std(y) and fit % = 100·(1 − ‖y − ŷ‖/‖y − ȳ‖) on ``y[n_init:]``, per
+       output and overall (masked entries left out), as ``nonlinear_benchmarks.error_metrics``.
+
+    Args:
+        system: the identified model, in the data's units (a model fitted on normalised data
+            scores normalised test data; pass the output standard deviations as ``scale``).
+        test: B test records (pad records of different lengths and mask the padding).
+        n_init: outputs a model may use to set its state, in [1, T−1] (a dataset's ``n_init``).
+        scale: (m,) or scalar factors applied to the errors (1000 for Silverbox's mV — a
+            dataset's ``score_scale`` — or the ``y_std`` of normalised data); NRMSE and fit %
+            do not depend on it. ``None``: 1.
+        x1: (B, n) initial states to use instead of estimating them.
+        **kwargs: options of :func:`~ceemx.simulation.estimate_initial_state` (``refine``,
+            ``smoother``, ``warm_process_noise``).
+
+    Returns:
+        A :class:`BenchmarkScore` (arrays in the data's dtype).
+
+    Raises:
+        TypeError: wrong argument types.
+        ValueError: before any compute: ``n_init`` outside [1, T−1], mismatched shapes or
+            dtypes, non-finite data or ``x1``, a bad ``scale``, or a trajectory with no observed
+            output in its window or in its scored part.
+
+    Compiled once per system structure, B, T and ``n_init`` (the initial-state window, see
+    :func:`~ceemx.simulation.estimate_initial_state`); parameters and data are traced.
+
+    Example:
+        >>> ds = ceemx.datasets.silverbox()  # doctest: +SKIP
+        >>> test = ds.tests["multisine"]  # doctest: +SKIP
+        >>> s = benchmark_score(model, test, ds.n_init, scale=ds.score_scale)  # doctest: +SKIP
+        >>> float(s.rmse[0, 0])  # in mV  # doctest: +SKIP
+    """
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(f"`system` must be a ceemx.AbstractSystem; got {type(system).__name__}.")
+    check_inputs(system, test)
+    T = test.num_steps
+    if isinstance(n_init, bool) or not isinstance(n_init, (int, np.integer)):
+        raise TypeError(f"`n_init` must be an integer; got {n_init!r}.")
+    if not 1 <= n_init <= T - 1:
+        raise ValueError(f"`n_init` must be in [1, T − 1] = [1, {T - 1}]; got {n_init}.")
+    n_init = int(n_init)
+    scored = np.asarray(test.mask)[:, n_init:].any(axis=(1, 2))
+    if not scored.all():
+        raise ValueError(
+            f"trajectory {int(np.argmin(scored))} has no observed output from step "
+            f"n_init = {n_init} on: nothing to score."
+        )
+    y, u, mask = np.asarray(test.y), np.asarray(test.u), np.asarray(test.mask)
+    if not (np.all(np.isfinite(np.where(mask, y, 0.0))) and np.all(np.isfinite(u))):
+        raise ValueError("`test` has a non-finite observed output or input.")
+    dtype = test.y.dtype
+    m = system.obs_dim
+    s = np.ones((m,)) if scale is None else np.asarray(scale, np.float64)
+    if s.ndim > 1 or s.size not in (1, m) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise ValueError(f"`scale` must be a positive scalar or ({m},) vector; got {scale!r}.")
+    if x1 is None:
+        start, status = estimate_initial_state(system, test, n_init, return_status=True, **kwargs)
+    else:
+        if kwargs:
+            raise TypeError(f"options {sorted(kwargs)} estimate x1, which was given.")
+        start = jnp.asarray(x1, dtype)
+        if start.shape != (test.batch_size, system.state_dim):
+            raise ValueError(
+                f"`x1` must have shape (B, n) = {(test.batch_size, system.state_dim)}; "
+                f"got {start.shape}."
+            )
+        if not np.all(np.isfinite(np.asarray(start))):
+            raise ValueError("`x1` has a non-finite value.")
+        status = select(jnp.ones((test.batch_size,), bool), RESULTS.successful, RESULTS.successful)
+    x_sim, y_sim = free_run_batch(strongly_typed(system), start, test.u, jnp.zeros((), jnp.int32))
+    scale_arr = jnp.asarray(np.broadcast_to(s, (m,)), dtype)
+    metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
+    return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init)
 
 
 # --------------------------------------------------------------------------------------------

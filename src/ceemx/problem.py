@@ -3,6 +3,15 @@
 A :class:`FitProblem` knows how to rebuild the system from the flat vector θ of its trainable
 leaves and how to evaluate the CE-EM objective −J(x, θ) (paper Eq. 9) and the log-prior. It holds no
 iterate: solvers keep (θ, x) in their state.
+
+θ is unconstrained. A leaf whose field declares a constraint (:func:`ceemx.param`) enters θ as
+z = inverse(x) and the system is rebuilt with x = forward(z) (:mod:`ceemx.models.constraints`), so
+every solver, learner and checkpoint — they all go through :meth:`FitProblem.create` and
+:meth:`FitProblem.build` — works in unconstrained coordinates, while systems (and so ``log_prior``,
+which is evaluated on the built system) are in natural units. The trust region ρ_θ‖θ − θᵏ‖² of the
+learners and the joint method, and the history's ``dtheta_norm``, measure θ, i.e. the
+unconstrained coordinates; ``log_prior`` is a density of the natural values maximised over θ with
+no change-of-variables term (a penalty in natural units, not a density of θ).
 """
 
 from __future__ import annotations
@@ -19,6 +28,12 @@ from jaxtyping import Array, Float, PyTree
 
 from .data import Trajectories
 from .lib.dense import symmetrize
+from .models.constraints import (
+    AbstractConstraint,
+    Unconstrained,
+    check_constraints,
+    leaf_constraints,
+)
 from .models.system import AbstractSystem
 from .objective import neg_log_joint_single, nll_offset
 from .typing import PerTrajectory, Scalar, States, Theta
@@ -38,7 +53,15 @@ def trainable_mask(system: AbstractSystem, trainable: Trainable = None) -> PyTre
             initial-state prior; a callable ``where(system)`` returning the leaves or sub-trees to
             learn (as in ``eqx.tree_at``), e.g. ``lambda s: (s.sigma, s.rho, s.beta)``; or a boolean
             pytree with the structure of ``system`` (an Equinox filter spec).
+
+    Returns:
+        Booleans with the structure of ``system``. Leaves of fields declared
+        ``ceemx.param(fixed=True)`` are always ``False``, whatever ``trainable`` selects.
     """
+    return _drop_fixed(system, _selected(system, trainable))
+
+
+def _selected(system: AbstractSystem, trainable: Trainable) -> PyTree:
     if trainable is None:
         mask = jtu.tree_map(eqx.is_inexact_array, system)
         frozen = jtu.tree_map(
@@ -62,13 +85,39 @@ def trainable_mask(system: AbstractSystem, trainable: Trainable = None) -> PyTre
     return trainable
 
 
+def _drop_fixed(system: AbstractSystem, mask: PyTree) -> PyTree:
+    """``mask`` (a filter spec, possibly a prefix of ``system``) per leaf, with fixed leaves off."""
+    leaves, treedef = jtu.tree_flatten(system)
+    if not leaves:
+        return mask
+
+    def broadcast(spec, sub):
+        return jtu.tree_map(lambda leaf: bool(spec(leaf) if callable(spec) else spec), sub)
+
+    full = jtu.tree_map(broadcast, mask, system, is_leaf=lambda v: v is None)
+    flags = treedef.flatten_up_to(full)
+    constraints = leaf_constraints(system)
+    kept = [bool(f) and c.trainable for f, c in zip(flags, constraints, strict=True)]
+    return jtu.tree_unflatten(treedef, kept)
+
+
 def split_system(
     system: AbstractSystem, trainable: Trainable = None
 ) -> tuple[Theta, PyTree, PyTree]:
-    """(θ flat, params template, static part) for the trainable leaves of ``system``."""
+    """(θ flat, params template, static part) for the trainable leaves of ``system``.
+
+    Natural units: the leaves as the system holds them (:meth:`FitProblem.create` maps the
+    constrained ones to unconstrained coordinates).
+    """
     params, static = eqx.partition(system, trainable_mask(system, trainable))
     theta, _ = ravel_pytree(params)
     return theta, params, static
+
+
+def _trainable_constraints(system: AbstractSystem, mask: PyTree) -> list[AbstractConstraint]:
+    """The constraint of each trainable leaf, in the order of the trainable sub-tree's leaves."""
+    flags = jtu.tree_structure(system).flatten_up_to(mask)
+    return [c for f, c in zip(flags, leaf_constraints(system), strict=True) if f]
 
 
 def _strong(a):
@@ -79,16 +128,20 @@ class FitProblem(eqx.Module):
     """Data, the model split into trainable θ and the rest, and an optional log-prior.
 
     Attributes:
-        template: the trainable sub-tree (its structure and shapes define the flat θ).
-        static: the rest of the system.
+        template: the trainable sub-tree in unconstrained coordinates (its structure and shapes
+            define the flat θ).
+        static: the rest of the system (natural units).
         data: the observations.
-        log_prior: ``None`` or a callable on the system returning log p(θ).
+        log_prior: ``None`` or a callable on the system returning log p(θ) (natural units).
+        constraints: the constraint of each leaf of ``template``, in leaf order (θ's entries map
+            to natural values through their ``forward``).
     """
 
     template: Any
     static: Any
     data: Trajectories
     log_prior: Callable[[AbstractSystem], Any] | None = eqx.field(static=True, default=None)
+    constraints: tuple[AbstractConstraint, ...] = eqx.field(static=True, default=())
 
     @classmethod
     def create(
@@ -99,17 +152,35 @@ class FitProblem(eqx.Module):
         trainable: Trainable = None,
         log_prior: Callable[[AbstractSystem], Any] | None = None,
     ) -> tuple[FitProblem, Theta]:
-        """The problem and the flat θ of ``system``'s trainable leaves."""
-        theta, template, static = split_system(system, trainable)
+        """The problem and the flat, unconstrained θ of ``system``'s trainable leaves.
+
+        Raises:
+            ValueError: naming the field, when a parameter lies outside its declared constraint
+                (host-side; skipped for traced values).
+        """
+        check_constraints(system)
+        mask = trainable_mask(system, trainable)
+        params, static = eqx.partition(system, mask)
+        constraints = tuple(_trainable_constraints(system, mask))
         # Strongly typed θ and template: a weakly typed leaf (e.g. from jnp.asarray(10.0)) would
         # make the second epoch, whose θ comes back from a solver strongly typed, compile again.
-        template = jtu.tree_map(_strong, template)
-        return cls(template, static, data, log_prior), _strong(theta)
+        leaves, treedef = jtu.tree_flatten(params)
+        unconstrained = [
+            c.inverse(_strong(leaf)) for c, leaf in zip(constraints, leaves, strict=True)
+        ]
+        template = jtu.tree_unflatten(treedef, unconstrained)
+        theta, _ = ravel_pytree(template)
+        return cls(template, static, data, log_prior, constraints), _strong(theta)
 
     def build(self, theta: Theta) -> AbstractSystem:
-        """The system with trainable leaves set from the flat vector θ."""
+        """The system with trainable leaves set from the flat unconstrained vector θ."""
         _, unravel = ravel_pytree(self.template)
-        return eqx.combine(unravel(theta), self.static)
+        params = unravel(theta)
+        if any(not isinstance(c, Unconstrained) for c in self.constraints):
+            leaves, treedef = jtu.tree_flatten(params)
+            natural = [c.forward(z) for c, z in zip(self.constraints, leaves, strict=True)]
+            params = jtu.tree_unflatten(treedef, natural)
+        return eqx.combine(params, self.static)
 
     def per_trajectory(
         self, theta: Theta, states: States, data: Trajectories | None = None

@@ -2,19 +2,27 @@
 
 * :func:`load_helicopter` reads the paper's normalised Stanford helicopter dataset (needs torch).
 * :func:`helicopter_like` generates the documented stand-in (``docs/helicopter_benchmark.md``).
-* :func:`load_benchmark`, :func:`windows` and :func:`benchmark_splits` read three real measured
-  system-identification benchmarks (cascaded tanks, Silverbox, coupled electric drives).
+* :func:`cascaded_tanks`, :func:`silverbox` and :func:`coupled_electric_drives` read three real
+  measured system-identification benchmarks as :class:`BenchmarkDataset` objects (official
+  records, ``n_init``, units, citation, published results); :func:`load_benchmark`,
+  :func:`windows` and :func:`benchmark_splits` give their raw arrays and normalised windows.
 
 All loaders work on the host in NumPy float64 and return :class:`ceemx.Trajectories`.
 """
 
 from .benchmarks import (
     BENCHMARKS,
+    BenchmarkDataset,
     BenchmarkRecord,
+    PublishedResult,
     WindowSplits,
+    benchmark_dataset,
     benchmark_splits,
+    cascaded_tanks,
+    coupled_electric_drives,
     data_root,
     load_benchmark,
+    silverbox,
     windows,
 )
 from .heli_sim import helicopter_like, simulate_flights
@@ -22,14 +30,20 @@ from .helicopter import HelicopterData, load_helicopter
 
 __all__ = [
     "BENCHMARKS",
+    "BenchmarkDataset",
     "BenchmarkRecord",
     "HelicopterData",
+    "PublishedResult",
     "WindowSplits",
+    "benchmark_dataset",
     "benchmark_splits",
+    "cascaded_tanks",
+    "coupled_electric_drives",
     "data_root",
     "helicopter_like",
     "load_benchmark",
     "load_helicopter",
+    "silverbox",
     "simulate_flights",
     "windows",
 ]

@@ -7,7 +7,8 @@ working directory or to the repository; their sha256 is checked against the publ
 =========================  =====================================  ==========================
 name                       file                                   official test records
 =========================  =====================================  ==========================
-``cascaded_tanks``         ``cascaded_tanks/dataBenchmark.csv``   ``validation``
+``cascaded_tanks``         ``cascaded_tanks/dataBenchmark.csv``   ``validation`` (``test`` in a
+                                                                  :class:`BenchmarkDataset`)
 ``silverbox``              ``silverbox/SNLS80mV.csv``             ``multisine``, ``arrow_full``,
                                                                   ``arrow_no_extrapolation``
 ``coupled_electric_drives`` ``coupled_electric_drives/DATAUNIF.csv`` ``set1_low``, ``set2_high``
@@ -15,7 +16,12 @@ name                       file                                   official test 
 
 The official protocol (``nonlinear-benchmarks`` v1.0.1) lets a model use the whole test input and
 the first ``n_init`` test outputs to set its initial state, and scores the free-run simulation RMSE
-on ``y_test[n_init:]``.
+on ``y_test[n_init:]`` (:func:`ceemx.simulation.benchmark_score`).
+
+:func:`cascaded_tanks`, :func:`silverbox` and :func:`coupled_electric_drives` return a
+:class:`BenchmarkDataset`: the official records as :class:`~ceemx.Trajectories` in physical units,
+with ``n_init``, the sample period, units, citation and published results. :func:`load_benchmark`
+gives the raw (u, y) arrays, :func:`benchmark_splits` normalised windows for training.
 """
 
 from __future__ import annotations
@@ -32,11 +38,17 @@ from ..data import Trajectories
 
 __all__ = [
     "BENCHMARKS",
+    "BenchmarkDataset",
     "BenchmarkRecord",
+    "PublishedResult",
     "WindowSplits",
+    "benchmark_dataset",
     "benchmark_splits",
+    "cascaded_tanks",
+    "coupled_electric_drives",
     "data_root",
     "load_benchmark",
+    "silverbox",
     "windows",
 ]
 
@@ -253,9 +265,16 @@ def load_benchmark(
         FileNotFoundError: when the folder or the file is missing.
     """
     spec = _spec(name)
-    path = data_root(root) / spec.file
+    try:
+        path = data_root(root) / spec.file
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"{name}: cannot look for {spec.file}: {e}") from None
     if not path.is_file():
-        raise FileNotFoundError(f"missing benchmark file {path}.")
+        raise FileNotFoundError(
+            f"missing benchmark file {path}: the {name} benchmark needs the official "
+            f"{spec.file} under the data folder. Pass `root=` (the folder holding "
+            f"{spec.file.split('/')[0]}/) or set the CEEMX_DATA environment variable to it."
+        )
     if verify:
         st = path.stat()
         key = (str(path), st.st_size, st.st_mtime)
@@ -419,3 +438,196 @@ def benchmark_splits(
         source=source,
         output_names=spec.output_names,
     )
+
+
+# ---------------------------------------------------------------- the official records as datasets
+
+
+@dataclass(frozen=True)
+class PublishedResult:
+    """A published free-run simulation RMSE to compare against (``shared/data/README.md``).
+
+    Attributes:
+        method: the method and its reference.
+        rmse: RMSE by test name (empty where only a bound is reported; see ``note``).
+        unit: the RMSE's unit (a dataset's ``score_unit``).
+        note: where the number was scored differently from the official protocol.
+    """
+
+    method: str
+    rmse: dict[str, float]
+    unit: str
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class BenchmarkDataset:
+    """One benchmark's official estimation and test records, unnormalised, in physical units.
+
+    Attributes:
+        name: the benchmark's name (a key of :data:`BENCHMARKS`).
+        train: the full official estimation record(s), y and u of shape (B, T, 1) (B = 2 for the
+            coupled drives, one record per set; 1 otherwise).
+        train_names: one name per training record.
+        tests: the official test records by name, each a (1, T, 1) :class:`~ceemx.Trajectories`.
+        n_init: test outputs a model may use to set its initial state (not scored).
+        dt: sample period [s].
+        units: the signals' units, in words.
+        score_unit: the unit published RMSEs use.
+        score_scale: factor from the data's units to ``score_unit`` (``scale`` of
+            :func:`ceemx.simulation.benchmark_score`; 1000 for Silverbox, V → mV).
+        citation: the reference to cite for the data.
+        published: published results on the test records.
+        output_names: one name per output.
+        path: the file read.
+        sha256: the published file's sha256; ``verified``: whether the file was checked.
+    """
+
+    name: str
+    train: Trajectories
+    train_names: tuple[str, ...]
+    tests: dict[str, Trajectories]
+    n_init: int
+    dt: float
+    units: str
+    score_unit: str
+    score_scale: float
+    citation: str
+    published: tuple[PublishedResult, ...]
+    output_names: tuple[str, ...]
+    path: Path = field(repr=False)
+    sha256: str = field(repr=False)
+    verified: bool = True
+
+
+_TANKS_NOTE = "most papers score all 1024 samples rather than dropping the first 50"
+_PUBLISHED = {
+    "cascaded_tanks": (
+        "V",
+        1.0,
+        tuple(
+            PublishedResult(m, {"test": r}, "V", _TANKS_NOTE)
+            for m, r in (
+                ("gray-box model with a physical overflow term (Rogers et al. 2017)", 0.18),
+                ("neural continuous-time state space (Forgione & Piga 2021)", 0.33),
+                ("NLSS2, nonlinear state space, subspace initialisation (Relan et al. 2017)", 0.34),
+                ("flexible state-space model, GP-inspired prior (Svensson & Schön 2017)", 0.45),
+                ("Volterra, 3rd degree (Birpoutsoukis et al. 2018)", 0.54),
+                ("best linear approximation (Relan et al. 2017)", 0.75),
+            )
+        ),
+    ),
+    "silverbox": (
+        "mV",
+        1000.0,
+        (
+            PublishedResult(
+                "deep subspace encoder (Beintema, Tóth, Schoukens 2021), re-run",
+                {"multisine": 2.0, "arrow_full": 5.8, "arrow_no_extrapolation": 2.0},
+                "mV",
+                "approximate (≈)",
+            ),
+            PublishedResult(
+                "classic polynomial nonlinear state-space models",
+                {},
+                "mV",
+                "reported well below 1 mV on arrow_no_extrapolation",
+            ),
+        ),
+    ),
+    "coupled_electric_drives": (
+        "counter units",
+        1.0,
+        (
+            PublishedResult(
+                "continuous-time subspace encoder (Beintema et al. 2023)",
+                {"set1_low": 0.14, "set2_high": 0.10},
+                "counter units",
+                "median over runs, on a different split",
+            ),
+        ),
+    ),
+}
+_TEST_NAMES = {"cascaded_tanks": {"validation": "test"}}
+
+
+def _trajectories(records: Sequence[Record]) -> Trajectories:
+    return Trajectories(np.stack([y for _, y in records]), np.stack([u for u, _ in records]))
+
+
+def benchmark_dataset(
+    name: str, root: str | os.PathLike | None = None, *, verify: bool = True
+) -> BenchmarkDataset:
+    """One benchmark's official records as a :class:`BenchmarkDataset`.
+
+    Args:
+        name: ``"cascaded_tanks"``, ``"silverbox"`` or ``"coupled_electric_drives"``.
+        root: the data folder (see :func:`data_root`; else ``$CEEMX_DATA``).
+        verify: check the file's sha256 against the published one (once per file per process).
+
+    Returns:
+        A :class:`BenchmarkDataset` (float64 when JAX runs in float64).
+
+    Raises:
+        FileNotFoundError: naming the expected file and how to set the folder.
+        ValueError: for an unknown name or a sha256 mismatch.
+    """
+    rec = load_benchmark(name, root, verify)
+    spec = BENCHMARKS[name]
+    unit, scale, published = _PUBLISHED[name]
+    rename = _TEST_NAMES.get(name, {})
+    return BenchmarkDataset(
+        name=name,
+        train=_trajectories(list(rec.train.values())),
+        train_names=tuple(rec.train),
+        tests={rename.get(k, k): _trajectories([r]) for k, r in rec.tests.items()},
+        n_init=rec.n_init,
+        dt=rec.dt,
+        units=rec.units,
+        score_unit=unit,
+        score_scale=scale,
+        citation=rec.citation,
+        published=published,
+        output_names=spec.output_names,
+        path=rec.path,
+        sha256=spec.sha256,
+        verified=verify,
+    )
+
+
+def cascaded_tanks(
+    root: str | os.PathLike | None = None, *, verify: bool = True
+) -> BenchmarkDataset:
+    """The cascaded-tanks benchmark (Schoukens, Mattsson, Wigren, Noël 2016).
+
+    A pump fills an upper tank that drains into a lower one; the upper level is hidden, the lower
+    level saturates at 10 V (overflow). ``train``: (1, 1024, 1), (uEst, yEst); ``tests["test"]``:
+    (1, 1024, 1), (uVal, yVal); ``n_init`` = 50; dt = 4 s; scores in V. See
+    :func:`benchmark_dataset` for the arguments and errors.
+    """
+    return benchmark_dataset("cascaded_tanks", root, verify=verify)
+
+
+def silverbox(root: str | os.PathLike | None = None, *, verify: bool = True) -> BenchmarkDataset:
+    """The Silverbox benchmark (Wigren & Schoukens 2013), an electronic Duffing oscillator.
+
+    u = V1, y = V2 [V], the velocity hidden; fs = 610.35 Hz. ``train``: samples [40650, 105712)
+    (1, 65062, 1); ``tests``: ``"multisine"`` [105712, 127400), ``"arrow_full"`` [100, 40575),
+    ``"arrow_no_extrapolation"`` [100, 32100); ``n_init`` = 50; scores in mV (``score_scale`` =
+    1000). See :func:`benchmark_dataset` for the arguments and errors.
+    """
+    return benchmark_dataset("silverbox", root, verify=verify)
+
+
+def coupled_electric_drives(
+    root: str | os.PathLike | None = None, *, verify: bool = True
+) -> BenchmarkDataset:
+    """The coupled-electric-drives benchmark (Wigren & Schoukens 2017), uniform-input sets.
+
+    Two motors drive a pulley on a flexible belt; y is the pulley speed from a sign-insensitive
+    counter, the belt states hidden. Per set (``"set1_low"``: u11 → z11, ``"set2_high"``:
+    u12 → z12) samples [0, 400) train and [400, 500) test: ``train`` (2, 400, 1) (one record per
+    set, ``train_names``), ``tests[set]`` (1, 100, 1); ``n_init`` = 10; dt = 20 ms. See
+    :func:`benchmark_dataset` for the arguments and errors.
+    """
+    return benchmark_dataset("coupled_electric_drives", root, verify=verify)

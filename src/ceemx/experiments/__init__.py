@@ -5,6 +5,8 @@
 - :mod:`~ceemx.experiments.figure3` — Figure 3: convergence on six coupled Lorenz (§4.1.3).
 - :mod:`~ceemx.experiments.figure4` — Figure 4: one-step prediction with hidden states, five
   models (§4.2), on the helicopter-like generator, the paper's dataset or real benchmarks.
+- :mod:`~ceemx.experiments.benchmarks` — beyond the paper: gray-box CE-EM on three real
+  benchmarks (cascaded tanks, Silverbox, coupled drives), scored by the official protocol.
 - :mod:`~ceemx.experiments.demo` — the README demo.
 
 Each writes ``results.json``, a Markdown ``table.md`` (the paper's numbers beside ours) and a PNG
@@ -14,13 +16,13 @@ command line with ``ceemx experiment NAME [--smoke]`` or ``ceemx demo``.
 
 from importlib import import_module
 
-EXPERIMENTS = ("table1", "figure2", "figure3", "figure4")
+EXPERIMENTS = ("table1", "figure2", "figure3", "figure4", "benchmarks")
 
 __all__ = ["EXPERIMENTS", "get"]
 
 
 def get(name: str):
-    """The module of an experiment (``"table1"``, ``"figure2"``, ``"figure3"`` or ``"demo"``)."""
+    """The module of an experiment (a name of :data:`EXPERIMENTS` or ``"demo"``)."""
     if name not in (*EXPERIMENTS, "demo"):
         raise ValueError(f"unknown experiment {name!r}; choose from {', '.join(EXPERIMENTS)}.")
     return import_module(f"{__name__}.{name}")

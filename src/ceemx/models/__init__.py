@@ -1,5 +1,15 @@
-"""System and noise models."""
+"""System and noise models, and parameter constraints."""
 
+from .constraints import (
+    AbstractConstraint,
+    Fixed,
+    GreaterThan,
+    Interval,
+    LessThan,
+    Positive,
+    Unconstrained,
+    param,
+)
 from .noise import (
     AbstractGaussianNoise,
     AbstractNoise,
@@ -17,15 +27,23 @@ from .system import (
 )
 
 __all__ = [
+    "AbstractConstraint",
     "AbstractContinuousSystem",
     "AbstractGaussianNoise",
     "AbstractNoise",
     "AbstractSystem",
     "CholeskyGaussian",
     "DiagonalGaussian",
+    "Fixed",
     "GaussianPrior",
+    "GreaterThan",
+    "Interval",
+    "LessThan",
+    "Positive",
     "StudentT",
+    "Unconstrained",
     "float_dtype",
+    "param",
     "rk4_step",
     "with_noise",
 ]

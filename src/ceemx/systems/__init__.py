@@ -1,5 +1,6 @@
 """Built-in systems."""
 
+from .benchmarks import CascadedTanks, CoupledDrives, Silverbox
 from .linear import LinearSystem
 from .lorenz import (
     CoupledLorenz,
@@ -11,9 +12,12 @@ from .lorenz import (
 from .neural import NeuralObservationSystem
 
 __all__ = [
+    "CascadedTanks",
+    "CoupledDrives",
     "CoupledLorenz",
     "LinearSystem",
     "NeuralObservationSystem",
+    "Silverbox",
     "coupling_mask",
     "initial_states",
     "random_coupling",

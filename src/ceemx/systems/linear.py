@@ -23,9 +23,6 @@ class LinearSystem(AbstractSystem):
     B: Float[Array, "n p"]
     C: Float[Array, "m n"]
     D: Float[Array, "m p"]
-    process_noise: AbstractNoise
-    obs_noise: AbstractNoise
-    initial_prior: GaussianPrior | None
 
     def __init__(
         self,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -54,10 +53,6 @@ class CoupledLorenz(AbstractContinuousSystem):
     beta: Float[Array, " K"]
     H: Float[Array, "n n"]
     C: Float[Array, "m n"]
-    process_noise: AbstractNoise
-    obs_noise: AbstractNoise
-    initial_prior: GaussianPrior | None
-    dt: float = eqx.field(static=True)
 
     def __init__(
         self,

@@ -36,9 +36,6 @@ class NeuralObservationSystem(AbstractSystem):
     C: Float[Array, "m n"]
     D: Float[Array, "m p"]
     net: eqx.nn.MLP
-    process_noise: AbstractNoise
-    obs_noise: AbstractNoise
-    initial_prior: GaussianPrior | None
 
     def __init__(
         self,

@@ -1,0 +1,134 @@
+"""The gray-box benchmark systems: construction, shapes, constraints, smoothness, identification."""
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ceemx
+from ceemx.systems import CascadedTanks, CoupledDrives, Silverbox
+from ceemx.systems.benchmarks import smooth_abs, smooth_sqrt, soft_min
+
+jax.config.update("jax_enable_x64", True)
+
+T = 160
+
+# (class, typical initial state, input amplitude, parameters that must be positive)
+CASES = [
+    (CascadedTanks, [3.0, 4.0], 5.0, ("k1", "k2", "k3", "k4", "h")),
+    (Silverbox, [0.0, 0.0], 0.1, ("f0", "zeta")),
+    (CoupledDrives, [0.0, 0.0, 0.0], 1.0, ("a", "f0", "zeta")),
+]
+IDS = [c[0].__name__ for c in CASES]
+
+
+def _inputs(cls, amplitude, batch=2, length=T):
+    key = jax.random.PRNGKey(0)
+    if cls is CascadedTanks:  # a slow positive pump voltage
+        steps = jax.random.uniform(key, (batch, length // 20, 1), minval=0.3, maxval=1.4)
+        return amplitude * jnp.repeat(steps, 20, axis=1)
+    return amplitude * jax.random.normal(key, (batch, length, 1))
+
+
+@pytest.mark.parametrize(("cls", "x1", "amp", "positive"), CASES, ids=IDS)
+def test_construction_shapes_and_finite(cls, x1, amp, positive):
+    system = cls.default()
+    assert system.input_dim == system.control_dim == 1
+    assert system.obs_dim == 1 and system.state_dim == len(x1)
+    u = _inputs(cls, amp)
+    x0 = jnp.asarray([x1, x1], dtype=jnp.float64)
+    xs, data = ceemx.simulate(system, jax.random.PRNGKey(1), x0, T, u)
+    assert xs.shape == (2, T, system.state_dim)
+    assert data.y.shape == (2, T, 1)
+    assert bool(jnp.all(jnp.isfinite(xs))) and bool(jnp.all(jnp.isfinite(data.y)))
+    assert data.y.dtype == jnp.float64
+    for name in positive:
+        assert float(getattr(system, name)) > 0
+
+
+@pytest.mark.parametrize(("cls", "x1", "amp", "positive"), CASES, ids=IDS)
+def test_constraints_are_declared_and_checked(cls, x1, amp, positive):
+    system = cls.default()
+    with pytest.raises(ValueError, match="positive"):
+        cls.default(**{positive[0]: -0.5})
+    assert all(float(getattr(system, name)) > 0 for name in positive)
+
+
+@pytest.mark.parametrize(("cls", "x1", "amp", "positive"), CASES, ids=IDS)
+def test_derivatives_finite_at_zero(cls, x1, amp, positive):
+    system = cls.default()
+    x = jnp.zeros(system.state_dim)
+    u = jnp.array([amp])
+
+    def total(x, s):
+        return jnp.sum(s.dynamics(x, u, 0)) + jnp.sum(s.observe(x, u, 0))
+
+    gx = jax.grad(total)(x, system)
+    assert bool(jnp.all(jnp.isfinite(gx)))
+    gtheta = jax.grad(total, argnums=1)(x, system)
+    leaves = jax.tree_util.tree_leaves(gtheta)
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in leaves)
+    jac = jax.jacfwd(lambda x: system.dynamics(x, u, 0))(x)
+    assert bool(jnp.all(jnp.isfinite(jac)))
+
+
+def test_smooth_primitives():
+    x = jnp.array([0.0, 1e-2, 1.0, 9.0, -4.0])
+    np.testing.assert_allclose(smooth_sqrt(x)[2:4], [1.0, 3.0], rtol=1e-4)
+    assert float(smooth_sqrt(x)[4]) < 0  # odd: a negative level gives a restoring flow
+    assert np.isfinite(float(jax.grad(smooth_sqrt)(0.0)))
+    np.testing.assert_allclose(smooth_abs(jnp.array([-3.0, 3.0])), [3.0, 3.0], rtol=1e-5)
+    assert float(jax.grad(smooth_abs)(0.0)) == 0.0
+    sat = soft_min(jnp.array([2.0, 10.0, 14.0]), 10.0, 10.0)
+    np.testing.assert_allclose(sat[0], 2.0, atol=1e-12)
+    assert float(sat[2]) <= 10.0 and float(sat[1]) < 10.0
+
+
+def test_tanks_overflow_and_saturation():
+    tanks = CascadedTanks.default()
+    u = jnp.array([10.0])
+    # far above the overflow level the upper tank receives no inflow, the lower tank φ of it
+    f = tanks.vector_field(jnp.array([12.0, 4.0]), u, 0.0)
+    assert float(f[0]) < 0
+    below = tanks.vector_field(jnp.array([4.0, 4.0]), u, 0.0)
+    assert float(below[0]) > 0
+    y = tanks.observe(jnp.array([1.0, 20.0]), u, 0.0)
+    assert float(y[0]) <= 10.0 + 1e-12
+
+
+def _fit_check(true, guess, trainable, u, x1, names, rtol, max_epochs=15):
+    x0 = jnp.broadcast_to(jnp.asarray(x1, dtype=jnp.float64), (u.shape[0], true.state_dim))
+    _, data = ceemx.simulate(true, jax.random.PRNGKey(3), x0, u.shape[1], u)
+    result = ceemx.fit(
+        guess, data, solver=ceemx.JointLM(), trainable=trainable, max_epochs=max_epochs
+    )
+    for name in names:
+        got, want = float(getattr(result.system, name)), float(getattr(true, name))
+        start = float(getattr(guess, name))
+        assert abs(got - want) <= rtol * abs(want), (name, start, got, want)
+
+
+def test_identify_tanks_outflows():
+    options: dict[str, Any] = dict(process_noise=1e-3, obs_noise=1e-2)
+    true = CascadedTanks.default(**options)
+    guess = CascadedTanks.default(k1=0.035, k4=0.032, **options)
+    u = _inputs(CascadedTanks, 5.0)
+    _fit_check(true, guess, lambda s: (s.k1, s.k4), u, [3.0, 4.0], ("k1", "k4"), 0.1)
+
+
+def test_identify_silverbox_frequency_and_cubic():
+    options: dict[str, Any] = dict(process_noise=1e-4, obs_noise=1e-3)
+    true = Silverbox.default(kappa=20.0, **options)
+    guess = Silverbox.default(f0=55.0, kappa=5.0, **options)
+    u = _inputs(Silverbox, 0.15)
+    _fit_check(true, guess, lambda s: (s.f0, s.kappa), u, [0.0, 0.0], ("f0", "kappa"), 0.1)
+
+
+def test_identify_drives_rate_and_gain():
+    options: dict[str, Any] = dict(process_noise=1e-3, obs_noise=1e-2)
+    true = CoupledDrives.default(**options)
+    guess = CoupledDrives.default(a=1.3, gain=1.3, **options)
+    u = _inputs(CoupledDrives, 1.0)
+    _fit_check(true, guess, lambda s: (s.a, s.gain), u, [0.0, 0.0, 0.0], ("a", "gain"), 0.1)
