@@ -56,6 +56,12 @@ def soft_min(x: Float[Array, "*s"], bound: ArrayLike, sharpness: ArrayLike) -> F
     return jnp.asarray(bound - jax.nn.softplus(sharpness * (bound - x)) / sharpness)
 
 
+def _with_defaults(cls, params: dict, options: dict, dtype: DTypeLike, overrides: dict):
+    """``cls`` from default parameters (cast to ``dtype``), options, and the caller's overrides."""
+    merged = {**params, **options, **overrides}
+    return cls(**{k: jnp.asarray(v, dtype=dtype) if k in params else v for k, v in merged.items()})
+
+
 class CascadedTanks(AbstractContinuousSystem):
     r"""Two cascaded water tanks with overflow and a saturating level sensor (Schoukens et al.).
 
@@ -139,16 +145,10 @@ class CascadedTanks(AbstractContinuousSystem):
         constants ≈ 2√x/k ≈ 100 s. RK4 with 2 substeps of 2 s. ``kwargs`` override any field
         (e.g. ``process_noise``, ``obs_noise``, ``substeps``).
         """
-        values: dict = dict(k1=0.05, k2=0.05, k3=0.05, k4=0.025, h=10.0, phi=0.5, offset=0.0)
-        opts: dict = dict(dt=dt, substeps=2, process_noise=0.05, obs_noise=0.05)
-        values.update(opts)
-        values.update(kwargs)
-        arrays = {
-            k: jnp.asarray(v, dtype=dtype)
-            for k, v in values.items()
-            if k in ("k1", "k2", "k3", "k4", "h", "phi", "offset")
-        }
-        return cls(**{**values, **arrays})
+        params = dict(k1=0.05, k2=0.05, k3=0.05, k4=0.025, h=10.0, phi=0.5, offset=0.0)
+        return _with_defaults(
+            cls, params, dict(dt=dt, substeps=2, process_noise=0.05, obs_noise=0.05), dtype, kwargs
+        )
 
 
 class Silverbox(AbstractContinuousSystem):
@@ -232,16 +232,10 @@ class Silverbox(AbstractContinuousSystem):
 
         ``kwargs`` override any field (e.g. ``process_noise``, ``obs_noise``, ``substeps``).
         """
-        values: dict = dict(f0=60.0, zeta=0.1, kappa=0.0, gain=1.0, u_offset=0.0)
-        opts: dict = dict(dt=dt, substeps=2, process_noise=1e-3, obs_noise=1e-3)
-        values.update(opts)
-        values.update(kwargs)
-        arrays = {
-            k: jnp.asarray(v, dtype=dtype)
-            for k, v in values.items()
-            if k in ("f0", "zeta", "kappa", "gain", "u_offset")
-        }
-        return cls(**{**values, **arrays})
+        params = dict(f0=60.0, zeta=0.1, kappa=0.0, gain=1.0, u_offset=0.0)
+        return _with_defaults(
+            cls, params, dict(dt=dt, substeps=2, process_noise=1e-3, obs_noise=1e-3), dtype, kwargs
+        )
 
 
 class CoupledDrives(AbstractContinuousSystem):
@@ -314,13 +308,7 @@ class CoupledDrives(AbstractContinuousSystem):
 
         ``kwargs`` override any field (e.g. ``process_noise``, ``obs_noise``, ``substeps``).
         """
-        values: dict = dict(a=2.0, f0=1.0, zeta=0.3, gain=1.0)
-        opts: dict = dict(dt=dt, substeps=2, process_noise=0.02, obs_noise=0.05)
-        values.update(opts)
-        values.update(kwargs)
-        arrays = {
-            k: jnp.asarray(v, dtype=dtype)
-            for k, v in values.items()
-            if k in ("a", "f0", "zeta", "gain")
-        }
-        return cls(**{**values, **arrays})
+        params = dict(a=2.0, f0=1.0, zeta=0.3, gain=1.0)
+        return _with_defaults(
+            cls, params, dict(dt=dt, substeps=2, process_noise=0.02, obs_noise=0.05), dtype, kwargs
+        )
