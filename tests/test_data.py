@@ -194,10 +194,12 @@ def test_smooth_x_init_nonfinite(bad):
         ceemx.smooth(system, data, x)
 
 
-def test_smooth_x_init_dtype_mismatch():
+def test_smooth_x_init_dtype_mismatch_is_promoted():
+    # ceemx.smooth promotes x_init (and data) to the system's dtype; check_inputs alone refuses.
     system, data, x = good_inputs()
+    assert ceemx.smooth(system, data, x.astype(jnp.float32)).states.dtype == jnp.float64
     with raises("`x_init` has dtype float32"):
-        ceemx.smooth(system, data, x.astype(jnp.float32))
+        ceemx.smoothing.check_inputs(system, data, x.astype(jnp.float32))
 
 
 @pytest.mark.parametrize(

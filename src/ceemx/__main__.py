@@ -1,4 +1,4 @@
-"""``python -m ceemx`` runs the ``ceemx`` command."""
+"""``python -m ceemx`` runs the ``ceemx`` command (exit status 130 when interrupted)."""
 
 import sys
 

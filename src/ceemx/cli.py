@@ -16,13 +16,23 @@ Examples::
 ``--seeds N`` runs the first N seeds of the experiment's seed sequence (table1: 0, 1, 2, …;
 figure2: 43, 44, …; figure3: 42, 43, …); a comma list (``--seeds 42,44``, or ``--seeds 42,``
 for one seed) runs exactly those seeds.
+
+Interrupts and errors: Ctrl-C (SIGINT) at any point after the command starts prints the one line
+``ceemx: interrupted`` on stderr and exits with status 130, without a traceback and without
+writing any result file (results are held in memory and written, atomically and ``results.json``
+last, only when the run has finished). A usage error (unknown option, ``--seeds 0``, an ``--out``
+folder that cannot be written) prints one line and exits with status 2 before any compute.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
 
 __all__ = ["main"]
 
@@ -33,12 +43,118 @@ def _version() -> str:
     return __version__
 
 
+_INTERRUPTED = b"ceemx: interrupted\n"
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report an interrupted command
+
+
+class _Interrupts:
+    """SIGINT → one line on stderr and ``os._exit(130)``, from wherever the process is.
+
+    ``os._exit`` skips interpreter shutdown: a ``KeyboardInterrupt`` unwinding through JAX while
+    XLA's compiler threads run (and the teardown that follows) is what printed long tracebacks
+    and sometimes crashed. The exit is taken by the first of two routes: the Python-level handler
+    (runs in the main thread between bytecodes) and a watcher thread woken through
+    :func:`signal.set_wakeup_fd` (runs even while the main thread is inside a long C++ call such as
+    an XLA compilation). Inside :meth:`critical` (writing the results) the exit waits until the
+    block ends, so that files are either all written or not at all.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._critical = 0
+        self._pending = False
+        self._exiting = False
+        self._old_handler = None
+        self._old_wakeup = -1
+        self._pipe: tuple[int, int] | None = None
+
+    def install(self) -> None:
+        self._old_handler = signal.signal(signal.SIGINT, self._on_signal)
+        r, w = os.pipe()
+        os.set_blocking(w, False)
+        self._pipe = (r, w)
+        self._old_wakeup = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+        threading.Thread(target=self._watch, args=(r,), name="ceemx-sigint", daemon=True).start()
+
+    def uninstall(self) -> None:
+        signal.set_wakeup_fd(self._old_wakeup)
+        signal.signal(signal.SIGINT, self._old_handler)
+        if self._pipe is not None:
+            os.close(self._pipe[1])  # the watcher reads EOF and ends; it closes the read end
+            self._pipe = None
+
+    def _watch(self, fd: int) -> None:
+        try:
+            while True:
+                data = os.read(fd, 64)
+                if not data:
+                    return
+                if signal.SIGINT in data:
+                    self._exit()
+        finally:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+    def _on_signal(self, signum, frame) -> None:
+        self._exit()
+
+    def _exit(self) -> None:
+        with self._lock:
+            if self._critical:
+                self._pending = True
+                return
+            if self._exiting:
+                return
+            self._exiting = True
+        _die()
+
+    @contextlib.contextmanager
+    def critical(self) -> Iterator[None]:
+        """A block that SIGINT does not cut short (the exit follows the block)."""
+        with self._lock:
+            self._critical += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._critical -= 1
+                die = self._pending and not self._critical and not self._exiting
+                self._exiting = self._exiting or die
+            if die:
+                _die()
+
+
+def _die() -> None:
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+    with contextlib.suppress(OSError):
+        os.write(2, _INTERRUPTED)
+    os._exit(EXIT_INTERRUPTED)
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr and exit status 2."""
+
+    def error(self, message: str):  # type: ignore[override]
+        message = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def _seeds(text: str):
+    from .experiments.common import parse_seeds
+
+    try:
+        return parse_seeds(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for documentation and tests)."""
     from .experiments import EXPERIMENTS
-    from .experiments.common import METHODS, parse_seeds
+    from .experiments.common import METHODS
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ceemx",
         description="Certainty-equivalent EM system identification in JAX.",
     )
@@ -60,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
     exp.add_argument(
         "--seeds",
-        type=parse_seeds,
+        type=_seeds,
         default=None,
         metavar="N|S1,S2,...",
         help="N: the first N seeds of the experiment's sequence (table1: 0, 1, …; figure2: "
@@ -104,17 +220,65 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``ceemx`` console script (and ``python -m ceemx``)."""
+def main(argv: Sequence[str] | None = None, *, handle_sigint: bool | None = None) -> int:
+    """Entry point of the ``ceemx`` console script (and ``python -m ceemx``).
+
+    Args:
+        argv: the arguments (``None``: ``sys.argv[1:]``).
+        handle_sigint: take over SIGINT (one line on stderr, ``os._exit(130)``; see the module
+            notes). ``None``: when ``argv`` is ``None`` (run as a program) in the main thread; a
+            caller in the same process (tests, a notebook) gets ``KeyboardInterrupt`` caught
+            instead: one line and the return value 130.
+
+    Returns:
+        The exit status: 0 done, 1 the results could not be written, 2 usage error, 130
+        interrupted. Usage errors raise ``SystemExit(2)`` (argparse's convention).
+    """
+    if handle_sigint is None:
+        handle_sigint = argv is None
+    handle_sigint = handle_sigint and threading.current_thread() is threading.main_thread()
+    interrupts = _Interrupts()
+    if handle_sigint:
+        interrupts.install()
+    try:
+        return _main(argv, interrupts)
+    except KeyboardInterrupt:
+        sys.stderr.write(_INTERRUPTED.decode())
+        sys.stderr.flush()
+        return EXIT_INTERRUPTED
+    finally:
+        if handle_sigint:
+            interrupts.uninstall()
+
+
+def _check_out(parser: argparse.ArgumentParser, out: str | None, default: str) -> None:
+    from .report import output_dir
+
+    try:
+        output_dir(out, default)
+    except OSError as e:
+        where = out if out is not None else default
+        parser.error(f"--out {where}: cannot write there ({e.strerror or e})")
+
+
+def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
+    if args.command == "demo":
+        _check_out(parser, args.out, "ceemx-demo")
+    else:
+        default = f"results/{args.name}"
+        if args.name == "figure4" and args.dataset is not None:
+            default += f"-{args.dataset}"
+        _check_out(parser, args.out, default)
 
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    from . import report
     from .compilation import enable_compilation_cache
 
     # Compiled programs persist across runs (CEEMX_COMPILATION_CACHE=0 turns this off).
@@ -123,8 +287,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "demo":
         from .experiments import demo
 
-        demo.run(smoke=args.smoke, out=args.out, method=args.method, max_epochs=args.max_epochs)
-        return 0
+        with report.deferred_writes() as held:
+            demo.run(smoke=args.smoke, out=args.out, method=args.method, max_epochs=args.max_epochs)
+        return _commit(held, interrupts)
 
     from .experiments import get
 
@@ -151,7 +316,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         kwargs["dataset"] = args.dataset
     elif args.data is not None or args.dataset is not None:
         parser.error("--data applies to figure4 only, --dataset to figure4 and benchmarks")
-    module.run(**kwargs)
+    with report.deferred_writes() as held:
+        module.run(**kwargs)
+    return _commit(held, interrupts)
+
+
+def _commit(held, interrupts: _Interrupts) -> int:
+    """Write the held result files (SIGINT waits until they are all written)."""
+    try:
+        with interrupts.critical():
+            held.commit()
+    except OSError as e:
+        print(f"ceemx: error: cannot write the results: {e}", file=sys.stderr)
+        return 1
     return 0
 
 

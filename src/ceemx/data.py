@@ -32,6 +32,52 @@ def _first_bad(bad: np.ndarray) -> tuple[int, ...]:
     return tuple(int(i) for i in np.argwhere(bad)[0])
 
 
+def _as_array(name: str, value) -> np.ndarray:
+    """``np.asarray(value)``, with a ragged nesting reported as a ``ValueError`` naming ``name``."""
+    try:
+        return np.asarray(value)
+    except ValueError as err:  # NumPy refuses ragged nested sequences
+        raise ValueError(
+            f"`{name}` must be a rectangular array; got a ragged sequence ({err})."
+        ) from None
+
+
+def _as_numeric(name: str, value) -> np.ndarray:
+    """``value`` as a real numeric NumPy array (bool, integer or floating), else ``TypeError``."""
+    a = _as_array(name, value)
+    if np.issubdtype(a.dtype, np.complexfloating):
+        raise TypeError(f"`{name}` must be real; got complex dtype {a.dtype}.")
+    if not (np.issubdtype(a.dtype, np.number) or a.dtype == np.bool_):
+        raise TypeError(f"`{name}` must be a numeric array; got dtype {a.dtype}.")
+    return a
+
+
+def cast_checked(name: str, a: np.ndarray, dtype, where: np.ndarray | None = None) -> np.ndarray:
+    """``a`` cast to ``dtype``, raising ``ValueError`` where a finite value overflows the cast.
+
+    Args:
+        name: the argument, for the message.
+        a: a real NumPy array.
+        dtype: the target floating-point dtype.
+        where: optional booleans broadcastable to ``a``; only these entries are checked.
+    """
+    dtype = np.dtype(dtype)
+    if a.dtype == dtype:
+        return a
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = a.astype(dtype)
+    overflow = np.isfinite(a) & ~np.isfinite(out)
+    if where is not None:
+        overflow = overflow & where
+    if overflow.any():
+        idx = tuple(int(i) for i in np.argwhere(overflow)[0])
+        raise ValueError(
+            f"`{name}` has the value {a[idx]} at index {list(idx)}, which overflows {dtype} "
+            f"(largest finite value {np.finfo(dtype).max})."
+        )
+    return out
+
+
 class Trajectories(eqx.Module):
     """A batch of B trajectories of T steps: observations y, inputs u and an observation mask.
 
@@ -45,8 +91,14 @@ class Trajectories(eqx.Module):
 
     Raises:
         ValueError: naming the argument and the first offending index, for wrong ranks,
-            mismatched B or T, NaN/inf in unmasked ``y`` or anywhere in ``u``, an empty batch,
-            T < 2, or a mask of the wrong shape or dtype.
+            mismatched B or T, NaN/inf in unmasked ``y`` or anywhere in ``u`` (checked after the
+            cast to the stored dtype: a finite value that overflows it is refused), an empty
+            batch, T < 2, a ragged nested sequence, a non-floating ``y``, or a mask of the wrong
+            shape or dtype.
+        TypeError: for a complex or non-numeric (e.g. string) ``y`` or ``u``.
+
+    ``y`` and ``u`` are stored in ``y``'s floating dtype as JAX stores it (float64 becomes
+    float32 without ``jax_enable_x64``); integer or boolean ``u`` is converted.
 
     The stored ``y`` has masked entries replaced by zeros and ``mask`` is always (B, T, m) bool.
     """
@@ -58,7 +110,7 @@ class Trajectories(eqx.Module):
     def __init__(self, y, u=None, mask=None):
         concrete = _is_concrete(y) and _is_concrete(u) and _is_concrete(mask)
         if concrete:
-            y_np = np.asarray(y)
+            y_np = _as_numeric("y", y)
             if y_np.ndim != 3:
                 raise ValueError(
                     f"`y` must have shape (B, T, m); got rank {y_np.ndim} {y_np.shape}."
@@ -70,10 +122,13 @@ class Trajectories(eqx.Module):
                 raise ValueError(f"`y` must have T >= 2 time steps; got T = {T}.")
             if not np.issubdtype(y_np.dtype, np.floating):
                 raise ValueError(f"`y` must be a floating-point array; got dtype {y_np.dtype}.")
+            # The dtype JAX will store (float64 becomes float32 without x64): cast first, so that
+            # the finiteness checks see the stored values.
+            dtype = np.dtype(jax.dtypes.canonicalize_dtype(y_np.dtype))
             if mask is None:
                 mask_np = np.ones((B, T, m), bool)
             else:
-                mask_np = np.asarray(mask)
+                mask_np = _as_array("mask", mask)
                 if mask_np.dtype != np.bool_:
                     raise ValueError(f"`mask` must be boolean; got dtype {mask_np.dtype}.")
                 if mask_np.shape == (B, T):
@@ -83,6 +138,7 @@ class Trajectories(eqx.Module):
                         f"`mask` must have shape (B, T) = {(B, T)} or (B, T, m) = {(B, T, m)}; "
                         f"got {mask_np.shape}."
                     )
+            y_np = cast_checked("y", y_np, dtype, mask_np)
             bad = mask_np & ~np.isfinite(y_np)
             if bad.any():
                 b, t, j = _first_bad(bad)
@@ -91,9 +147,9 @@ class Trajectories(eqx.Module):
                     f"[{b}, {t}, {j}]; mask it or fix it."
                 )
             if u is None:
-                u_np = np.zeros((B, T, 0), y_np.dtype)
+                u_np = np.zeros((B, T, 0), dtype)
             else:
-                u_np = np.asarray(u)
+                u_np = _as_numeric("u", u)
                 if u_np.ndim != 3:
                     raise ValueError(
                         f"`u` must have shape (B, T, p); got rank {u_np.ndim} {u_np.shape}."
@@ -102,16 +158,14 @@ class Trajectories(eqx.Module):
                     raise ValueError(f"`u` has batch size {u_np.shape[0]} but `y` has B = {B}.")
                 if u_np.shape[1] != T:
                     raise ValueError(f"`u` has {u_np.shape[1]} time steps but `y` has T = {T}.")
+                u_np = cast_checked("u", u_np, dtype)
                 if not np.all(np.isfinite(u_np)):
                     b, t, j = _first_bad(~np.isfinite(u_np))
                     raise ValueError(
                         f"`u` has a non-finite value {u_np[b, t, j]} at index [{b}, {t}, {j}]."
                     )
-            dtype = jnp.asarray(y).dtype
-            self.y = jnp.where(jnp.asarray(mask_np), jnp.nan_to_num(jnp.asarray(y)), 0.0).astype(
-                dtype
-            )
-            self.u = jnp.asarray(u_np).astype(dtype)
+            self.y = jnp.asarray(np.where(mask_np, y_np, np.zeros((), dtype)), dtype)
+            self.u = jnp.asarray(u_np, dtype)
             self.mask = jnp.asarray(mask_np)
         else:  # inside a transformation: trust the caller, only normalise.
             y = jnp.asarray(y)
@@ -165,7 +219,7 @@ class Trajectories(eqx.Module):
             :class:`Trajectories` with a batch axis (B = 1 for one record), validated as the
             constructor does.
         """
-        y = np.asarray(y) if _is_concrete(y) else y
+        y = _as_array("y", y) if _is_concrete(y) else y
         if y.ndim == 3:
             return cls(y, u, mask)
         if y.ndim not in (1, 2):
@@ -174,7 +228,7 @@ class Trajectories(eqx.Module):
         def one(a, name):
             if a is None:
                 return None
-            a = np.asarray(a) if _is_concrete(a) else a
+            a = _as_array(name, a) if _is_concrete(a) else a
             if a.ndim not in (1, 2):
                 raise ValueError(
                     f"`{name}` of one record must have shape (T,) or (T, k); got {a.shape}."

@@ -11,7 +11,7 @@ import dataclasses
 import sys
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -20,12 +20,14 @@ import numpy as np
 from jaxtyping import ArrayLike, PRNGKeyArray
 
 from . import checkpoint as ckpt
+from ._warnings import warn
 from .data import Trajectories
-from .lib.results import RESULTS, messages
+from .health import OUTLIER_OPTIONS, trajectory_health
+from .lib.results import RESULTS, codes, from_codes, messages, select
 from .lib.tree import trace_numbers
 from .models.system import AbstractSystem
 from .problem import FitProblem
-from .smoothing import check_inputs
+from .smoothing import check_inputs, promote_inputs
 from .solvers.alternating import Alternating
 from .solvers.base import AbstractFitSolver, FitState, total_J
 from .solvers.particle_em import ParticleEM
@@ -66,7 +68,12 @@ class FitResult(eqx.Module):
         converged: whether the solver's stopping criterion was met (else ``max_epochs`` ran out,
             a callback stopped the fit, or every trajectory failed).
         solver: the solver that produced it.
-        initial_J: J at the initial (x, θ).
+        initial_J: J at the initial (x, θ) (over the trajectories fitted).
+        excluded: indices of the trajectories the start-of-fit health test excluded
+            (:mod:`ceemx.health`); their states are returned as given, their status is
+            ``outlier``, and ``history`` covers the others only.
+        start_mean_square: (B,) the health test's r_b, the mean squared whitened residual of
+            each trajectory at the start (``None`` with ``outliers="keep"``).
     """
 
     system: AbstractSystem
@@ -76,6 +83,8 @@ class FitResult(eqx.Module):
     converged: bool = eqx.field(static=True)
     solver: AbstractFitSolver
     initial_J: float = eqx.field(static=True)
+    excluded: tuple = eqx.field(static=True, default=())
+    start_mean_square: tuple | None = eqx.field(static=True, default=None)
 
     @property
     def epochs(self) -> int:
@@ -87,8 +96,21 @@ class FitResult(eqx.Module):
         return np.asarray([h[name] for h in self.history])
 
     def messages(self) -> list[str]:
-        """One status message per trajectory."""
-        return messages(self.status)
+        """One status message per trajectory, consistent with :attr:`converged`.
+
+        A trajectory whose solver status is ``successful`` in a fit that did not converge (the
+        epoch bound ran out, a callback stopped it) reads "stopped before convergence".
+        """
+        out = messages(self.status)
+        if not self.converged:
+            ok = np.atleast_1d(codes(self.status)).reshape(-1) == int(codes(RESULTS.successful))
+            out = [
+                "stopped before convergence (max_epochs reached or stopped by a callback)"
+                if good
+                else text
+                for good, text in zip(ok, out, strict=True)
+            ]
+        return out
 
 
 class _Progress:
@@ -130,7 +152,9 @@ def fit(
     callbacks: Sequence[Callable[[EpochInfo], Any]] = (),
     progress: bool | None = None,
     checkpoint: str | None = None,
+    checkpoint_mismatch: Literal["raise", "restart"] = "raise",
     key: PRNGKeyArray | None = None,
+    outliers: str = "exclude",
 ) -> FitResult:
     """Identify θ and the state trajectories by maximising the CE-EM objective J(x, θ) (Eq. 9).
 
@@ -152,14 +176,26 @@ def fit(
             callback is merged into that epoch's history record; returning ``False`` stops.
         progress: show a progress bar (``None``: only when stderr is a terminal).
         checkpoint: folder; after every epoch the state is written there atomically, and an
-            existing checkpoint there is resumed from.
+            existing checkpoint there is resumed from — only if it was written by the same fit
+            (data, system, method and options; see ``docs/guarantees.md``). The folder must be
+            writable (checked before any compute).
+        checkpoint_mismatch: what to do with a checkpoint that is another fit's, corrupt, or not
+            finite: ``"raise"`` a :class:`ceemx.checkpoint.CheckpointError` naming what differs,
+            or ``"restart"`` (warn, start afresh, overwrite it).
         key: PRNG key for stochastic solvers and learners (default ``PRNGKey(0)``).
+        outliers: the start-of-fit health test (:mod:`ceemx.health`): ``"exclude"`` (default)
+            fits without the trajectories whose residuals are far outside the noise model
+            compared with the others, naming them in a warning and in
+            :attr:`FitResult.excluded` (their states are returned as given, status
+            ``outlier``); ``"warn"`` only names them; ``"keep"`` skips the test.
 
     Returns:
         A :class:`FitResult`.
 
     Raises:
         ValueError, TypeError: on invalid inputs (before any compute).
+        ceemx.checkpoint.CheckpointError: (a ``ValueError``) for an unwritable ``checkpoint``
+            folder (before any compute) or a checkpoint that cannot be resumed (see above).
 
     Example:
         >>> result = ceemx.fit(guess, data, solver=ceemx.JointLM(), trainable=lambda s: s.rho)
@@ -172,6 +208,9 @@ def fit(
             f"got {solver!r}."
         )
     max_epochs = _check_max_epochs(max_epochs)
+    if checkpoint is not None:
+        ckpt.check_folder(checkpoint, checkpoint_mismatch)
+    system, data, x_init = promote_inputs(system, data, x_init)
     check_inputs(system, data)
     if x_init is None:
         x_init = solver.initial_states(system, data)
@@ -180,12 +219,42 @@ def fit(
     solver = trace_numbers(solver, states.dtype)
     key = jax.random.PRNGKey(0) if key is None else key
     problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
+    all_states, excluded, health = states, np.zeros((data.batch_size,), bool), None
+    if outliers not in OUTLIER_OPTIONS:
+        raise ValueError(f"`outliers` must be one of {OUTLIER_OPTIONS}; got {outliers!r}.")
+    if outliers != "keep":
+        health = trajectory_health(problem, theta, states)
+        if not np.any(np.isfinite(health.mean_square)):
+            raise ValueError(
+                "no trajectory has a finite objective at the start: check the model's "
+                "parameters and noise, the inputs and `x_init` (J is not finite for all "
+                f"{data.batch_size} trajectories)."
+            )
+        bad = health.flagged & np.isfinite(health.mean_square)
+        if bad.any():
+            idx = np.flatnonzero(bad)
+            action = "excluded from the fit" if outliers == "exclude" else "kept (outliers='warn')"
+            warn(
+                f"trajectories {health.describe(idx)} have residuals far outside the noise model "
+                f"(mean squared whitened residual; median {health.median:.3g}): {action}. "
+                "Pass outliers='keep' to skip this test (ceemx.health)."
+            )
+            if outliers == "exclude":
+                excluded = bad
+                keep = np.flatnonzero(~bad)
+                data, states = data[keep], states[keep]
+                problem, theta = FitProblem.create(
+                    system, data, trainable=trainable, log_prior=log_prior
+                )
 
     state = solver.init(problem, theta, states, key)
     initial_J = total_J(state)
     history: list[dict] = []
+    fingerprint = None
     if checkpoint is not None:
-        loaded = ckpt.load(checkpoint, dataclasses.replace(state, cache=None))
+        template = dataclasses.replace(state, cache=None)
+        fingerprint = ckpt.fingerprint(template, problem, theta, solver)
+        loaded = ckpt.load(checkpoint, template, fingerprint, mismatch=checkpoint_mismatch)
         if loaded is not None:
             state, history = loaded
 
@@ -210,18 +279,32 @@ def fit(
             history.append(record)
             bar.update(record)
             if checkpoint is not None:
-                ckpt.save(checkpoint, dataclasses.replace(state, cache=None), history)
+                ckpt.save(checkpoint, dataclasses.replace(state, cache=None), history, fingerprint)
     finally:
         bar.close()
     state = solver.postprocess(problem, state)
+    # Never "converged" when no trajectory took part or J is not finite.
+    took_part = bool(np.any(np.asarray(state.weights) > 0))
+    converged = bool(converged and took_part and np.isfinite(total_J(state)))
+    out_states, status = state.states, state.status
+    if excluded.any():
+        keep = jnp.asarray(np.flatnonzero(~excluded))
+        out_states = all_states.at[keep].set(state.states)
+        codes_all = np.full(excluded.shape, -1)
+        codes_all[~excluded] = np.asarray(codes(state.status)).reshape(-1)
+        status = select(
+            jnp.asarray(excluded), RESULTS.outlier, from_codes(np.maximum(codes_all, 0))
+        )
     return FitResult(
         problem.build(state.theta),
-        state.states,
-        state.status,
+        out_states,
+        status,
         history,
         converged,
         solver,
         initial_J,
+        tuple(int(b) for b in np.flatnonzero(excluded)),
+        None if health is None else tuple(float(r) for r in health.mean_square),
     )
 
 
@@ -273,12 +356,15 @@ def particle_em(
     progress: bool | None = None,
     checkpoint: str | None = None,
     key: PRNGKeyArray | None = None,
+    checkpoint_mismatch: str = "raise",
+    outliers: str = "exclude",
     **options: Any,
 ) -> FitResult:
     """Particle EM (fully adapted particle filter, FFBSi, SAEM): ``fit`` with :class:`ParticleEM`.
 
     ``system``, ``data``, ``trainable``, ``log_prior``, ``max_epochs``, ``callbacks``,
-    ``progress``, ``checkpoint`` and ``key`` are as for :func:`fit`; ``x_init`` only sets the
+    ``progress``, ``checkpoint``, ``key``, ``checkpoint_mismatch`` and ``outliers`` are as
+    for :func:`fit`; ``x_init`` only sets the
     states reported before epoch 1. ``n_particles``, ``n_smoothed``, ``learner`` (``None``:
     Levenberg–Marquardt), ``burn_in``, ``alpha``, ``memory``, ``initial`` and further
     ``options`` (``proposal``, ``ess_threshold``, ``rho_theta``, ``rtol``, ``atol``) are the
@@ -312,4 +398,6 @@ def particle_em(
         progress=progress,
         checkpoint=checkpoint,
         key=key,
+        checkpoint_mismatch=checkpoint_mismatch,  # pyright: ignore[reportArgumentType]
+        outliers=outliers,
     )

@@ -156,7 +156,7 @@ class FitProblem(eqx.Module):
 
         Raises:
             ValueError: naming the field, when a parameter lies outside its declared constraint
-                (host-side; skipped for traced values).
+                (host-side; skipped for traced values); when ``trainable`` selects nothing.
         """
         check_constraints(system)
         mask = trainable_mask(system, trainable)
@@ -170,6 +170,11 @@ class FitProblem(eqx.Module):
         ]
         template = jtu.tree_unflatten(treedef, unconstrained)
         theta, _ = ravel_pytree(template)
+        if theta.size == 0:
+            raise ValueError(
+                "`trainable` selects no parameter to learn: it must pick at least one "
+                "floating-point array of the system that is not declared `ceemx.param(fixed=True)`."
+            )
         return cls(template, static, data, log_prior, constraints), _strong(theta)
 
     def build(self, theta: Theta) -> AbstractSystem:

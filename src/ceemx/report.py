@@ -3,7 +3,11 @@
 - :func:`format_estimate`, :func:`markdown_table`, :func:`parameter_table` — mean (standard error)
   cells and GitHub-flavoured Markdown tables, flagged like the paper's Table 1 when the mean is not
   within two standard errors of the truth.
-- :func:`output_dir`, :func:`save_json`, :func:`save_text` — result files.
+- :func:`output_dir`, :func:`save_json`, :func:`save_text` — result files, each written atomically
+  (a temporary file in the same folder, then ``os.replace``): a reader never sees half a file.
+- :func:`deferred_writes` — hold every result file in memory until :meth:`Deferred.commit`
+  (the ``ceemx`` command commits after the run, ``results.json`` last, so an interrupted run
+  leaves no result file at all).
 - :func:`plt`, :func:`save_figure` — Matplotlib with a non-interactive backend.
 
 The numbers themselves (ε(θ), simulation RMSE, :class:`~ceemx.evaluate.Estimate`) come from
@@ -12,10 +16,13 @@ The numbers themselves (ε(θ), simulation RMSE, :class:`~ceemx.evaluate.Estimat
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import os
-from collections.abc import Mapping, Sequence
+import tempfile
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +32,8 @@ import numpy as np
 from .evaluate import Estimate, mean_se
 
 __all__ = [
+    "Deferred",
+    "deferred_writes",
     "format_estimate",
     "markdown_table",
     "output_dir",
@@ -118,9 +127,17 @@ def parameter_table(
 
 
 def output_dir(out: str | os.PathLike | None, default: str | os.PathLike) -> Path:
-    """The folder ``out`` (``default`` when ``None``), created if missing."""
+    """The folder ``out`` (``default`` when ``None``), created if missing and checked writable.
+
+    Raises:
+        OSError: the folder cannot be created, or a file cannot be created in it (checked with a
+            probe file that is removed at once, so that a run fails before any compute).
+    """
     path = Path(default if out is None else out)
     path.mkdir(parents=True, exist_ok=True)
+    fd, probe = tempfile.mkstemp(dir=path, prefix=".ceemx-probe.", suffix=".tmp")
+    os.close(fd)
+    os.unlink(probe)
     return path
 
 
@@ -141,18 +158,83 @@ def _jsonable(obj: Any):
     return obj
 
 
-def save_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON (arrays become lists; non-finite floats become strings)."""
-    path = Path(path)
-    path.write_text(json.dumps(_jsonable(obj), indent=2) + "\n")
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temporary file beside ``path``, then rename it over ``path``."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            umask = os.umask(0o022)
+            os.umask(umask)
+            os.fchmod(f.fileno(), 0o666 & ~umask)  # mkstemp's 0600 → an ordinary write's mode
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+class Deferred:
+    """Result files held in memory by :func:`deferred_writes` until :meth:`commit`."""
+
+    def __init__(self) -> None:
+        self.files: dict[Path, bytes] = {}
+
+    def commit(self) -> list[Path]:
+        """Write the held files atomically, ``results.json`` files last; returns their paths."""
+        order = sorted(self.files, key=lambda p: p.name == "results.json")
+        for path in order:
+            _write_atomic(path, self.files[path])
+        self.files.clear()
+        return order
+
+
+_deferred: Deferred | None = None
+
+
+@contextlib.contextmanager
+def deferred_writes() -> Iterator[Deferred]:
+    """Hold result files in memory within the block, to write them later or never.
+
+    Within the block, :func:`save_json`, :func:`save_text` and :func:`save_figure` only hold
+    their files; :meth:`Deferred.commit` writes them. Files not committed are dropped.
+
+    Example::
+
+        with report.deferred_writes() as held:
+            table1.run(smoke=True)
+        held.commit()
+    """
+    global _deferred
+    previous, _deferred = _deferred, Deferred()
+    try:
+        yield _deferred
+    finally:
+        _deferred = previous
+
+
+def _save(path: Path, data: bytes) -> Path:
+    if _deferred is not None:
+        _deferred.files[path] = data
+    else:
+        _write_atomic(path, data)
     return path
+
+
+def save_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON (arrays become lists; non-finite floats become strings).
+
+    The file is replaced atomically (held until commit under :func:`deferred_writes`).
+    """
+    text = json.dumps(_jsonable(obj), indent=2) + "\n"
+    return _save(Path(path), text.encode())
 
 
 def save_text(path: str | os.PathLike, text: str) -> Path:
-    """Write a text file (e.g. a Markdown table)."""
-    path = Path(path)
-    path.write_text(text)
-    return path
+    """Write a text file (e.g. a Markdown table), atomically (see :func:`save_json`)."""
+    return _save(Path(path), text.encode())
 
 
 # --------------------------------------------------------------------------------------------
@@ -171,8 +253,13 @@ def plt():
 
 
 def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> Path:
-    """Save a figure (tight bounding box) and close it."""
+    """Save a figure (tight bounding box), atomically (see :func:`save_json`), and close it."""
     path = Path(path)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight")
-    plt().close(fig)
-    return path
+    buf = io.BytesIO()
+    try:
+        fig.savefig(
+            buf, format=path.suffix.lstrip(".").lower() or "png", dpi=dpi, bbox_inches="tight"
+        )
+    finally:
+        plt().close(fig)
+    return _save(path, buf.getvalue())

@@ -68,14 +68,23 @@ def parse_seeds(text: str) -> int | tuple[int, ...]:
     """``--seeds`` of the command line: ``"N"`` → N (a count); ``"42,44"`` or ``"42,"`` → seeds.
 
     Raises:
-        ValueError: when ``text`` is not a non-negative integer or a comma list of integers.
+        ValueError: when ``text`` is not a positive integer or a comma list of at least one
+            integer (zero runs are an error, never an empty result).
     """
     text = text.strip()
-    if "," in text:
-        return tuple(int(s) for s in text.split(",") if s.strip())
-    n = int(text)
-    if n < 0:
-        raise ValueError(f"the number of seeds must be >= 0; got {n}.")
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()] if "," in text else None
+        n = int(text) if seeds is None else len(seeds)
+    except ValueError:
+        raise ValueError(
+            f"expected a count N or a comma list of integer seeds; got {text!r}."
+        ) from None
+    if seeds is not None:
+        if not seeds:
+            raise ValueError("a comma list of seeds must name at least one seed.")
+        return tuple(seeds)
+    if n < 1:
+        raise ValueError(f"the number of seeds must be >= 1; got {n}.")
     return n
 
 
@@ -90,14 +99,18 @@ def seed_list(seeds: int | str | Sequence[int] | None, *, first: int, default: i
 
     Returns:
         The seeds, in order.
+
+    Raises:
+        ValueError: no seeds (a count below 1 or an empty sequence).
     """
     if isinstance(seeds, str):
         seeds = parse_seeds(seeds)
     if seeds is None:
         seeds = default
-    if isinstance(seeds, int):
-        return list(range(first, first + seeds))
-    return [int(s) for s in seeds]
+    out = list(range(first, first + seeds)) if isinstance(seeds, int) else [int(s) for s in seeds]
+    if not out:
+        raise ValueError(f"an experiment needs at least one seed; got {seeds!r}.")
+    return out
 
 
 def make_solver(

@@ -13,6 +13,7 @@ from jaxtyping import ArrayLike, Float, PRNGKeyArray
 from ..data import Trajectories
 from ..lib.tree import trace_numbers
 from ..models.system import AbstractSystem
+from ..smoothing.solver import check_inputs, check_nonnegative, promote_inputs
 from ..typing import PerTrajectory, Theta
 from .learners import AbstractLearner, LearnInfo, LMLearner
 from .problem import LearningProblem, make_problem
@@ -56,9 +57,21 @@ def learn(
         key: PRNG key for stochastic learners.
 
     Returns:
-        (new system, learner state, :class:`LearnInfo`).
+        (new system, learner state, :class:`LearnInfo`), in the system's dtype: ``states``, the
+        data and the system's noise are first cast to the dtype of its parameters
+        (:func:`ceemx.smoothing.promote_inputs`).
+
+    Raises:
+        ValueError, TypeError: naming the argument, as :func:`ceemx.smooth` does for ``states``
+            (which must be (B, T, n) and finite), for a ``rho_theta`` that is not finite and
+            >= 0, and for a ``trainable`` that selects no parameter. Warns in float32.
     """
     learner = LMLearner() if learner is None else learner
+    if not isinstance(learner, AbstractLearner):
+        raise TypeError(f"`learner` must be a ceemx learner; got {learner!r}.")
+    check_nonnegative("rho_theta", rho_theta)
+    system, data, states = promote_inputs(system, data, states, name="states")
+    check_inputs(system, data, states, name="states")
     states = jnp.asarray(states)
     learner = trace_numbers(learner, states.dtype)
     problem, theta = make_problem(

@@ -27,6 +27,10 @@ class RESULTS(eqx.Enumeration):
         "the particle filter's likelihood estimate is not finite (every particle impossible, or "
         "a non-finite model value)"
     )
+    outlier = (
+        "excluded from the fit: its residuals at the start are far outside the noise model, "
+        "compared with the other trajectories (ceemx.health)"
+    )
 
 
 def codes(status: RESULTS) -> np.ndarray:
@@ -66,4 +70,5 @@ _ITEMS = (
     RESULTS.nonfinite,
     RESULTS.stalled,
     RESULTS.particle_failure,
+    RESULTS.outlier,
 )

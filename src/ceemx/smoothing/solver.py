@@ -2,23 +2,33 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .. import lib
 from .._warnings import warn
-from ..data import Trajectories
+from ..data import Trajectories, cast_checked
 from ..lib.lm import levenberg_marquardt, marquardt_scale
 from ..lib.results import RESULTS, messages
 from ..lib.tree import trace_numbers
-from ..models.system import AbstractSystem
+from ..models.system import AbstractSystem, float_dtype
 from ..objective import linearize, nll_offset_single
 from ..typing import PerTrajectory, States, Trajectory, no_type_check
 
-__all__ = ["LMSmoother", "SmootherSolution", "check_inputs", "smooth", "smooth_batch"]
+__all__ = [
+    "LMSmoother",
+    "SmootherSolution",
+    "check_inputs",
+    "promote_inputs",
+    "smooth",
+    "smooth_batch",
+]
 
 
 class LMSmoother(eqx.Module):
@@ -46,6 +56,25 @@ class LMSmoother(eqx.Module):
     max_steps: int = eqx.field(default=50, static=True)
     damping: float = 1e-3
     throw: bool = eqx.field(default=False, static=True)
+
+    def __check_init__(self):
+        for name in ("rho_x", "rtol", "atol", "damping"):
+            check_nonnegative(name, getattr(self, name))
+        k = self.max_steps
+        if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 0:
+            raise ValueError(f"`max_steps` must be an integer >= 0; got {k!r}.")
+
+
+def check_nonnegative(name: str, value) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is finite and >= 0 (tracers pass)."""
+    if isinstance(value, Tracer):
+        return
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"`{name}` must be a real number; got {value!r}.") from None
+    if not (np.all(np.isfinite(v)) and np.all(v >= 0)):
+        raise ValueError(f"`{name}` must be finite and >= 0; got {value!r}.")
 
 
 class SmootherSolution(eqx.Module):
@@ -147,14 +176,125 @@ def smooth_batch(
     return SmootherSolution(x, value, steps, status, cov, cross)
 
 
+def _working_dtype(system: AbstractSystem) -> np.dtype:
+    """The system's floating dtype (:func:`float_dtype`), refusing float16 and non-floats."""
+    dtype = np.dtype(float_dtype(system))
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(
+            f"the system's parameters have dtype {dtype}; ceemx works in float32 or float64 "
+            "(float16 is too coarse for its second-order solves): cast the parameters."
+        )
+    return dtype
+
+
+def _promote_array(name: str, x, dtype):
+    if x is None:
+        return None
+    if isinstance(x, Tracer):
+        return x.astype(dtype) if x.dtype != dtype else x
+    if isinstance(x, jax.Array) and x.dtype == dtype:
+        return x
+    try:
+        a = np.asarray(x)
+    except ValueError:  # a ragged nested sequence
+        raise ValueError(f"`{name}` must be a rectangular (B, T, n) array.") from None
+    if np.issubdtype(a.dtype, np.complexfloating):
+        raise TypeError(f"`{name}` must be real; got complex dtype {a.dtype}.")
+    if not (np.issubdtype(a.dtype, np.number) or a.dtype == np.bool_):
+        raise TypeError(f"`{name}` must be a numeric array; got dtype {a.dtype}.")
+    return jnp.asarray(cast_checked(name, a, dtype), dtype)
+
+
+def _promote_system(system: AbstractSystem, dtype) -> AbstractSystem:
+    def cast(leaf):
+        if eqx.is_inexact_array(leaf) and leaf.dtype != dtype:
+            return leaf.astype(dtype)
+        return leaf
+
+    return jax.tree_util.tree_map(cast, system)
+
+
+@no_type_check  # validates its arguments
+def promote_inputs(
+    system: AbstractSystem, data: Trajectories, x_init=None, *, name: str = "x_init"
+) -> tuple[AbstractSystem, Trajectories, Any]:
+    """Cast the data, ``x_init`` and all the system's floating arrays to ONE dtype: the system's.
+
+    The working dtype is that of the system's parameters θ
+    (:func:`ceemx.models.system.float_dtype`); its noise models and prior, ``data.y``,
+    ``data.u`` and ``x_init`` are cast to it, so mixed precision never reaches a compiled loop.
+    Arrays already in that dtype are returned as they are. Float16 data or states are
+    promoted; a float16 system is refused.
+
+    Args:
+        system: the model.
+        data: the observations.
+        x_init: (B, T, n) states, or ``None``.
+        name: the name of ``x_init`` in messages.
+
+    Returns:
+        ``(system, data, x_init)`` in the working dtype (``x_init`` stays ``None`` if it was).
+
+    Raises:
+        TypeError: ``data`` is not :class:`Trajectories`; ``x_init`` is complex or non-numeric.
+        ValueError: the system is not float32/float64; a finite value overflows the cast (e.g.
+            1e300 into float32), naming the argument and the index.
+    """
+    if not isinstance(data, Trajectories):
+        raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
+    dtype = _working_dtype(system)
+    system = _promote_system(system, dtype)
+    if data.y.dtype != dtype or data.u.dtype != dtype:
+        y, u, mask = data.y, data.u, data.mask
+        if all(not isinstance(a, Tracer) for a in (y, u, mask)):
+            y = jnp.asarray(cast_checked("data.y", np.asarray(y), dtype, np.asarray(mask)))
+            u = jnp.asarray(cast_checked("data.u", np.asarray(u), dtype))
+        data = eqx.tree_at(lambda d: (d.y, d.u), data, (y.astype(dtype), u.astype(dtype)))
+    return system, data, _promote_array(name, x_init, dtype)
+
+
+def _check_observation_matrix(system: AbstractSystem) -> None:
+    """Warn when a linear observation map C is rank-deficient or ill-conditioned (cheap, host)."""
+    try:
+        u = jnp.zeros((system.input_dim,), float_dtype(system))
+        lin = system.linear_observation(u, 0)
+        if lin is None or isinstance(lin[0], Tracer):
+            return
+        C = np.asarray(lin[0], dtype=np.float64)
+    except Exception:  # a diagnostic only: a system whose map needs real inputs is not checked
+        return
+    if C.ndim != 2 or C.size == 0 or C.shape[0] * C.shape[1] > 250_000:
+        return
+    sv = np.linalg.svd(C, compute_uv=False)
+    rank = int(np.sum(sv > sv[0] * max(C.shape) * np.finfo(np.float64).eps)) if sv[0] > 0 else 0
+    cond = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
+    if rank < min(C.shape) or cond > 1e12:
+        warn(
+            f"the system's observation matrix C {C.shape} has rank {rank} and condition number "
+            f"{cond:.3g}: some state directions are (nearly) unobserved, so the states and θ may "
+            "be poorly identifiable."
+        )
+
+
 @no_type_check  # the validator itself
 def check_inputs(
     system: AbstractSystem, data: Trajectories, x=None, *, name: str = "x_init"
 ) -> None:
-    """Validate shapes, finiteness, noise parameters and dtype before any compute (host-side)."""
+    """Validate shapes, finiteness, noise parameters and dtype before any compute (host-side).
+
+    ``data.y`` and ``x`` must already have the system's dtype (see :func:`promote_inputs`); a
+    float32 identification warns. Without ``x`` it also warns when a linear observation matrix is
+    rank-deficient or has a condition number above 1e12.
+    """
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
     system.check()
+    dtype = _working_dtype(system)
+    if data.y.dtype != dtype:
+        raise ValueError(
+            f"`data.y` has dtype {data.y.dtype} but the system's parameters have dtype {dtype}: "
+            "give both one dtype (ceemx.smoothing.promote_inputs casts to the system's)."
+        )
     if data.obs_dim != system.obs_dim:
         raise ValueError(
             f"`data.y` has m = {data.obs_dim} but the system observes m = {system.obs_dim}."
@@ -163,12 +303,17 @@ def check_inputs(
         raise ValueError(
             f"`data.u` has p = {data.input_dim} but the system takes p = {system.input_dim} inputs."
         )
-    if x is not None:
-        x = np.asarray(x) if not hasattr(x, "shape") else x
+    if x is None:
+        _check_observation_matrix(system)
+    else:
+        if not hasattr(x, "shape"):
+            x = np.asarray(_promote_array(name, x, dtype))
         shape = (data.batch_size, data.num_steps, system.state_dim)
         if tuple(x.shape) != shape:
             raise ValueError(f"`{name}` must have shape (B, T, n) = {shape}; got {tuple(x.shape)}.")
         xa = np.asarray(x)
+        if not (np.issubdtype(xa.dtype, np.floating) or np.issubdtype(xa.dtype, np.integer)):
+            raise TypeError(f"`{name}` must be a real array; got dtype {xa.dtype}.")
         if not np.all(np.isfinite(xa)):
             b, t, j = (int(i) for i in np.argwhere(~np.isfinite(xa))[0])
             raise ValueError(f"`{name}` has a non-finite value at index [{b}, {t}, {j}].")
@@ -207,13 +352,22 @@ def smooth(
         trajectory never changes the others' answers).
 
     Raises:
-        ValueError: on mismatched shapes, non-finite ``x_init`` or invalid noise parameters.
+        ValueError: on mismatched shapes, non-finite ``x_init``, invalid noise parameters, or a
+            value that overflows the working dtype.
+        TypeError: on a ``data`` or ``solver`` of the wrong type, or a complex ``x_init``.
+
+    Data, ``x_init`` and the system's floating arrays are cast to the system's dtype
+    (:func:`promote_inputs`): the result is in the dtype of the system's parameters.
 
     Trajectories are processed with ``vmap``; compiled once per shape and solver type: the
     solver's numbers (``rho_x``, ``rtol``, ``atol``, ``damping``) are traced, so changing them does
     not recompile.
     """
     solver = LMSmoother() if solver is None else solver
+    if not isinstance(solver, LMSmoother):
+        raise TypeError(f"`solver` must be a ceemx.LMSmoother; got {solver!r}.")
+    system, data, x_init = promote_inputs(system, data, x_init)
+    check_inputs(system, data)
     check_inputs(system, data, x_init)
     x_init = jnp.asarray(x_init)
     return smooth_batch(trace_numbers(solver, x_init.dtype), system, x_init, data, covariance)

@@ -57,8 +57,9 @@ class Alternating(AbstractFitSolver):
             raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {self.smoother!r}.")
         if not isinstance(self.learner, _learners.AbstractLearner):
             raise TypeError(f"`learner` must be a ceemx learner; got {self.learner!r}.")
-        if not np.all(np.asarray(self.rho_theta) >= 0):
-            raise ValueError(f"`rho_theta` must be >= 0; got {self.rho_theta}.")
+        rho = np.asarray(self.rho_theta)
+        if not (np.all(np.isfinite(rho)) and np.all(rho >= 0)):
+            raise ValueError(f"`rho_theta` must be finite and >= 0; got {self.rho_theta}.")
 
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray

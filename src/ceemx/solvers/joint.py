@@ -111,9 +111,10 @@ class JointLM(AbstractFitSolver):
 
     def __check_init__(self):
         for name in ("rho_x", "rho_theta", "damping", "check_rtol"):
-            if not np.all(np.asarray(getattr(self, name)) >= 0):
-                raise ValueError(f"`{name}` must be >= 0; got {getattr(self, name)}.")
-        if not np.all(np.asarray(self.max_theta_step) > 0):
+            v = np.asarray(getattr(self, name))
+            if not (np.all(np.isfinite(v)) and np.all(v >= 0)):
+                raise ValueError(f"`{name}` must be finite and >= 0; got {getattr(self, name)}.")
+        if not np.all(np.asarray(self.max_theta_step) > 0):  # inf: no bound
             raise ValueError(f"`max_theta_step` must be > 0; got {self.max_theta_step}.")
         if self.linear_solver not in ("auto", "dense", "cg"):
             raise ValueError(

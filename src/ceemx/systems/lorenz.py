@@ -25,6 +25,25 @@ INITIAL_STD = 2.5
 TRUE_PARAMS = (10.0, 28.0, 8.0 / 3.0)
 
 
+def _as_float(a, name: str, ndim: int = 1) -> Array:
+    """``a`` as a floating-point array (integers promoted: they would be untrainable)."""
+    if isinstance(a, list | tuple):
+        try:
+            a = np.asarray(a)
+        except ValueError:
+            raise ValueError(
+                f"`{name}` must be a rectangular array; got a ragged sequence."
+            ) from None
+    if hasattr(a, "dtype") and not (
+        np.issubdtype(a.dtype, np.number) or np.dtype(a.dtype) == np.bool_
+    ):
+        raise TypeError(f"`{name}` must be a real array; got dtype {a.dtype}.")
+    if hasattr(a, "dtype") and np.issubdtype(a.dtype, np.complexfloating):
+        raise TypeError(f"`{name}` must be real; got dtype {a.dtype}.")
+    out = jnp.asarray(a, dtype=jnp.result_type(float, a))
+    return jnp.atleast_1d(out) if ndim == 1 else out
+
+
 def coupling_mask(K: int, dtype=jnp.float64) -> Float[Array, "n n"]:
     """(3K, 3K) mask that is 0 on each attractor's own 3×3 block (no self-coupling), 1 elsewhere."""
     own = jnp.kron(jnp.eye(K), jnp.ones((3, 3)))
@@ -68,10 +87,10 @@ class CoupledLorenz(AbstractContinuousSystem):
         initial_prior: GaussianPrior | None = None,
     ):
         # Integers would silently be untrainable (filters learn inexact arrays): promote them.
-        as_float = lambda a: jnp.atleast_1d(jnp.asarray(a, dtype=jnp.result_type(float, a)))  # noqa: E731
-        self.sigma = as_float(sigma)
-        self.rho = as_float(rho)
-        self.beta = as_float(beta)
+        # Lists and tuples become arrays first (jnp.result_type refuses them).
+        self.sigma = _as_float(sigma, "sigma")
+        self.rho = _as_float(rho, "rho")
+        self.beta = _as_float(beta, "beta")
         K = self.sigma.shape[0]
         if self.rho.shape != (K,) or self.beta.shape != (K,):
             raise ValueError(
@@ -79,10 +98,10 @@ class CoupledLorenz(AbstractContinuousSystem):
                 f"{self.rho.shape}, {self.beta.shape}."
             )
         n = 3 * K
-        self.C = jnp.asarray(C)
+        self.C = _as_float(C, "C", ndim=2)
         if self.C.ndim != 2 or self.C.shape[1] != n:
             raise ValueError(f"`C` must have shape (m, {n}); got {self.C.shape}.")
-        self.H = jnp.zeros((n, n), self.sigma.dtype) if H is None else jnp.asarray(H)
+        self.H = jnp.zeros((n, n), self.sigma.dtype) if H is None else _as_float(H, "H", 2)
         if self.H.shape != (n, n):
             raise ValueError(f"`H` must have shape ({n}, {n}); got {self.H.shape}.")
         m = self.C.shape[0]

@@ -1,0 +1,226 @@
+"""Checkpoints are verified before they are resumed (docs/guarantees.md, "Checkpoints").
+
+Each test is a regression test for a way a checkpoint used to be trusted blindly: another fit's
+checkpoint of the same shapes (other data, system or method options), a non-finite state, a
+truncated ``latest.json``, a checkpoint of the other fit method, and an unwritable folder (which
+failed only after a full epoch). A tiny linear problem (n = 2, m = 1, T = 12, B = 2) keeps them
+fast.
+"""
+
+import dataclasses
+import json
+import os
+import stat
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import pytest
+
+import ceemx
+from ceemx import checkpoint as ckpt
+from ceemx.checkpoint import CheckpointError
+from ceemx.systems import LinearSystem
+
+A_TRUE = jnp.array([[0.9, 0.1], [-0.1, 0.8]])
+C = jnp.array([[1.0, 0.5]])
+
+
+def where_A(s: LinearSystem):
+    return s.A
+
+
+def system(a00=0.5, process_noise=0.1):
+    A = jnp.array([[a00, 0.0], [0.0, 0.5]])
+    return LinearSystem(A, C, process_noise=process_noise, obs_noise=0.1)
+
+
+def dataset(seed=0):
+    true = LinearSystem(A_TRUE, C, process_noise=0.1, obs_noise=0.1)
+    _, data = ceemx.simulate(true, jax.random.PRNGKey(seed), jnp.ones((2, 2)), 12)
+    return data
+
+
+def run(folder, *, guess=None, data=None, solver=None, max_epochs=2, **kw):
+    return ceemx.fit(
+        system() if guess is None else guess,
+        dataset() if data is None else data,
+        solver=ceemx.Alternating() if solver is None else solver,
+        trainable=where_A,
+        max_epochs=max_epochs,
+        checkpoint=str(folder),
+        progress=False,
+        **kw,
+    )
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    """A folder with the checkpoint of 2 Alternating epochs, and the result."""
+    folder = tmp_path_factory.mktemp("ckpt")
+    return folder, run(folder)
+
+
+@pytest.fixture
+def folder(written, tmp_path):
+    """A private copy of the written checkpoint."""
+    src, _ = written
+    dst = tmp_path / "ckpt"
+    dst.mkdir()
+    for name in os.listdir(src):
+        (dst / name).write_bytes((src / name).read_bytes())
+    return dst
+
+
+def test_same_fit_resumes_and_stores_fingerprint(written, folder):
+    meta = json.loads((folder / "latest.json").read_text())
+    assert meta["format"] == 2 and meta["fingerprint"]["method"] == "Alternating"
+    assert set(meta["fingerprint"]) == set(ckpt._PARTS)
+    resumed = run(folder, max_epochs=3)
+    assert [h["epoch"] for h in resumed.history] == [1, 2, 3]
+    assert resumed.history[:2] == json.loads(json.dumps(written[1].history))
+
+
+def test_other_data_same_shapes_raises(folder):
+    with pytest.raises(CheckpointError, match=r"different fit.*data \(y, u, mask; sha256\)"):
+        run(folder, data=dataset(seed=1), max_epochs=3)
+
+
+@pytest.mark.parametrize(
+    "guess, part",
+    [
+        (system(process_noise=0.3), "fixed parameter values"),  # a non-trainable leaf
+        (system(a00=0.6), "initial θ"),
+    ],
+)
+def test_other_system_same_shapes_raises(folder, guess, part):
+    with pytest.raises(CheckpointError, match=part) as err:
+        run(folder, guess=guess, max_epochs=3)
+    assert str(folder) in str(err.value) and "checkpoint_mismatch" in str(err.value)
+    assert "data (y, u, mask" not in str(err.value)  # only the part that differs is named
+
+
+def test_other_options_raise_and_name_the_option(folder):
+    with pytest.raises(CheckpointError, match=r"method options.*rho_theta"):
+        run(folder, solver=ceemx.Alternating(rho_theta=1.0), max_epochs=3)
+
+
+def test_other_method_raises_naming_both(folder):
+    with pytest.raises(CheckpointError, match="written by Alternating, resumed with JointLM"):
+        run(folder, solver=ceemx.JointLM(), max_epochs=3)
+
+
+def test_other_method_old_direction(tmp_path):
+    """JointLM's checkpoint resumed by Alternating (used to be a TreePathError)."""
+    run(tmp_path, solver=ceemx.JointLM(), max_epochs=1)
+    with pytest.raises(CheckpointError, match="written by JointLM, resumed with Alternating"):
+        run(tmp_path, max_epochs=2)
+
+
+def test_restart_option_starts_afresh_and_overwrites(folder):
+    other = folder.parent / "fresh"
+    fresh = run(other, data=dataset(seed=1), max_epochs=2)
+    with pytest.warns(UserWarning, match="Starting afresh"):
+        restarted = run(folder, data=dataset(seed=1), max_epochs=2, checkpoint_mismatch="restart")
+    assert restarted.history[-1]["J"] == fresh.history[-1]["J"]
+    meta = json.loads((folder / "latest.json").read_text())
+    assert meta["fingerprint"] == json.loads((other / "latest.json").read_text())["fingerprint"]
+    run(folder, data=dataset(seed=1), max_epochs=3)  # now resumes without complaint
+
+
+def test_nan_theta_is_rejected(folder):
+    meta = json.loads((folder / "latest.json").read_text())
+    path = folder / meta["state"]
+    # Load the saved state through a resume-ready template, poison θ, save it back consistently
+    # (with a matching sha256, as if the run had saved it so).
+    data, guess = dataset(), system()
+    problem, theta = ceemx.FitProblem.create(guess, data, trainable=where_A)
+    states = ceemx.Alternating().initial_states(guess, data)
+    state = ceemx.Alternating().init(problem, theta, states, jax.random.PRNGKey(0))
+    template = dataclasses.replace(state, cache=None)
+    with open(path, "rb") as f:
+        saved = eqx.tree_deserialise_leaves(f, template)
+    poisoned = eqx.tree_at(lambda s: s.theta, saved, jnp.full_like(saved.theta, jnp.nan))
+    ckpt.save(str(folder), poisoned, meta["history"], meta["fingerprint"])
+    with pytest.raises(CheckpointError, match=r"non-finite values \(NaN or inf\) in theta"):
+        run(folder, max_epochs=3)
+
+
+def test_tampered_state_file_fails_its_checksum(folder):
+    meta = json.loads((folder / "latest.json").read_text())
+    path = folder / meta["state"]
+    raw = bytearray(path.read_bytes())
+    raw[-1] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    with pytest.raises(CheckpointError, match="sha256 does not match"):
+        run(folder, max_epochs=3)
+
+
+def test_truncated_latest_json_names_the_file(folder):
+    path = folder / "latest.json"
+    text = path.read_text()
+    path.write_text(text[: len(text) // 2])
+    with pytest.raises(CheckpointError, match=r"latest\.json.* is corrupt \(JSONDecodeError"):
+        run(folder, max_epochs=3)
+
+
+def test_missing_state_file_is_corrupt(folder):
+    meta = json.loads((folder / "latest.json").read_text())
+    os.remove(folder / meta["state"])
+    with pytest.raises(CheckpointError, match="state file .* is missing"):
+        run(folder, max_epochs=3)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes to read-only folders")
+def test_read_only_folder_fails_before_any_epoch(tmp_path):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(stat.S_IRUSR | stat.S_IXUSR)
+    epochs = []
+    try:
+        with pytest.raises(CheckpointError, match=r"folder .*ro.* is not writable"):
+            run(folder, callbacks=[lambda info: epochs.append(info.epoch)])
+    finally:
+        folder.chmod(stat.S_IRWXU)
+    assert epochs == [] and os.listdir(folder) == []
+
+
+def test_unwritable_path_fails_before_any_epoch(tmp_path):
+    """Also as root: a folder below a regular file cannot be created."""
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    epochs = []
+    with pytest.raises(CheckpointError, match="is not writable"):
+        run(blocker / "sub", callbacks=[lambda info: epochs.append(info.epoch)])
+    assert epochs == []
+
+
+def test_bad_mismatch_option_raises(tmp_path):
+    with pytest.raises(ValueError, match="checkpoint_mismatch"):
+        run(tmp_path, checkpoint_mismatch="ignore")
+
+
+def test_old_format_checkpoint_resumes_with_a_warning(folder):
+    path = folder / "latest.json"
+    meta = json.loads(path.read_text())
+    for key in ("format", "fingerprint", "state_sha256"):
+        del meta[key]
+    path.write_text(json.dumps(meta))
+    with pytest.warns(UserWarning, match="no fingerprint"):
+        resumed = run(folder, max_epochs=3)
+    assert [h["epoch"] for h in resumed.history] == [1, 2, 3]
+    assert json.loads(path.read_text())["fingerprint"]["method"] == "Alternating"
+
+
+def test_fingerprint_has_no_memory_addresses():
+    """Functions in static fields (a log-prior here) appear without their address, so the
+    fingerprint is the same in the process that resumes."""
+    data, guess = dataset(), system()
+
+    def log_prior(s):
+        return -jnp.sum(s.A**2)
+
+    problem, theta = ceemx.FitProblem.create(guess, data, trainable=where_A, log_prior=log_prior)
+    fp = ckpt.fingerprint(theta, problem, theta, ceemx.Alternating())
+    assert "log_prior" in fp["system_structure"]
+    assert not any(" at 0x" in v for v in fp.values())

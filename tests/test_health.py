@@ -1,0 +1,90 @@
+"""Per-trajectory health (reliability issue items 1–2): outliers excluded and named, ``converged``
+never True without a finite fit, ``messages()`` consistent with ``converged``."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ceemx
+from ceemx.experiments import common
+from ceemx.health import trajectory_health
+from ceemx.problem import FitProblem
+
+jax.config.update("jax_enable_x64", True)
+
+WHERE = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
+
+
+@pytest.fixture(scope="module")
+def lorenz():
+    true = common.true_lorenz(1, m=2, coupling=False)
+    p = common.lorenz_problem(3, true, B=3, T=48, sigma_w=0.01, sigma_v=0.01, coupling=False)
+    guess = ceemx.with_noise(p.init_system, process_noise=0.01, obs_noise=0.01)
+    x0 = p.states + 0.1 * jax.random.normal(jax.random.PRNGKey(1), p.states.shape)
+    return guess, p.data, x0
+
+
+def theta(system):
+    return np.array([float(system.sigma[0]), float(system.rho[0]), float(system.beta[0])])
+
+
+@pytest.mark.parametrize(
+    "solver", [ceemx.JointLM(), ceemx.Alternating()], ids=["joint", "alternate"]
+)
+def test_outlier_start_is_excluded_and_named(lorenz, solver):
+    """A third trajectory started at 1e10 is excluded: θ equals the fit without it (1e-8)."""
+    guess, data, x0 = lorenz
+    bad = x0.at[2].set(1e10)
+    with pytest.warns(UserWarning, match=r"trajectories 2 \(r = "):
+        res = ceemx.fit(guess, data, bad, solver=solver, trainable=WHERE, max_epochs=30)
+    ref = ceemx.fit(guess, data[:2], x0[:2], solver=solver, trainable=WHERE, max_epochs=30)
+    np.testing.assert_allclose(theta(res.system), theta(ref.system), rtol=1e-8)
+    assert res.excluded == (2,)
+    assert res.messages()[2].startswith("excluded from the fit")
+    np.testing.assert_array_equal(res.states[2], bad[2])  # returned as given
+    np.testing.assert_allclose(res.states[:2], ref.states, rtol=1e-8, atol=1e-8)
+    # Kept on request (the defect's behaviour, now opt-in and warned about).
+    with pytest.warns(UserWarning, match="kept"):
+        kept = ceemx.fit(
+            guess, data, bad, solver=solver, trainable=WHERE, max_epochs=2, outliers="warn"
+        )
+    assert kept.excluded == ()
+    assert not np.allclose(theta(kept.system), theta(ref.system), rtol=1e-3)
+
+
+def test_pure_noise_trajectory_is_flagged(lorenz):
+    guess, data, x0 = lorenz
+    rng = np.random.default_rng(0)
+    y = np.asarray(data.y).copy()
+    y[1] = 30.0 * rng.standard_normal(y[1].shape)
+    noisy = ceemx.Trajectories(y)
+    problem, th = FitProblem.create(guess, noisy, trainable=WHERE)
+    health = trajectory_health(problem, th, x0)
+    assert health.flagged.tolist() == [False, True, False]
+    assert health.mean_square[1] > 100 * health.median
+
+
+def test_health_needs_three_trajectories(lorenz):
+    guess, data, x0 = lorenz
+    problem, th = FitProblem.create(guess, data[:2], trainable=WHERE)
+    health = trajectory_health(problem, th, x0[:2].at[1].set(1e5))
+    assert not health.flagged.any()  # two cannot tell which one is odd
+
+
+def test_every_trajectory_failing_is_an_error(lorenz):
+    """Inputs that make J infinite for every trajectory: a clear error, not converged with J = 0."""
+    guess, data, x0 = lorenz
+    with pytest.raises(ValueError, match="no trajectory has a finite objective"):
+        ceemx.fit(guess, data, jnp.full_like(x0, 1e200), trainable=WHERE, max_epochs=2)
+
+
+def test_messages_follow_converged(lorenz):
+    guess, data, x0 = lorenz
+    res = ceemx.fit(guess, data, x0, solver=ceemx.JointLM(), trainable=WHERE, max_epochs=1)
+    assert not res.converged
+    assert all(m.startswith("stopped before convergence") for m in res.messages())
+    done = ceemx.fit(guess, data, x0, solver=ceemx.JointLM(), trainable=WHERE, max_epochs=50)
+    assert done.converged and all(m == "converged" for m in done.messages())
+    with pytest.raises(ValueError, match="outliers"):
+        ceemx.fit(guess, data, x0, trainable=WHERE, outliers="drop")
