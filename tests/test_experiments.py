@@ -278,3 +278,17 @@ def test_benchmarks_smoke(tmp_path):
             assert math.isfinite(entry["graybox_rmse"]) and entry["graybox_rmse"] > 0
     with pytest.raises(SystemExit):
         cli.main(["experiment", "benchmarks", "--method", "particle"])
+
+
+def test_table1_uses_a_known_two_row_C(monkeypatch, tmp_path):
+    """Paper §4.1.1: y = C x + v with C ∈ R^{2×3} (it used to be 1×3, the K = 1 default)."""
+    seen = []
+
+    def stop(seed, true_system, **kwargs):
+        seen.append(true_system.C.shape)
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(common, "lorenz_problem", stop)
+    with pytest.raises(RuntimeError, match="stop"):
+        table1.run(smoke=True, out=tmp_path, verbose=False)
+    assert seen == [(2, 3)]
