@@ -70,7 +70,21 @@ def _with_defaults(cls, params: dict, options: dict, dtype: DTypeLike, overrides
     return cls(**{k: jnp.asarray(v, dtype=dtype) if k in params else v for k, v in merged.items()})
 
 
-class CascadedTanks(AbstractContinuousSystem):
+class _AbstractSISO(AbstractContinuousSystem):
+    """A benchmark model with one input and one measured output (p = m = 1)."""
+
+    @property
+    def obs_dim(self) -> int:
+        """The output dimension m = 1 (the measured output)."""
+        return 1
+
+    @property
+    def control_dim(self) -> int:
+        """The number of inputs p = 1."""
+        return 1
+
+
+class CascadedTanks(_AbstractSISO):
     r"""Two cascaded water tanks with overflow and a saturating level sensor (Schoukens et al.).
 
     State x = (x₁, x₂), the upper and lower water levels in sensor volts; input u the pump
@@ -122,16 +136,6 @@ class CascadedTanks(AbstractContinuousSystem):
         """n, the state dimension."""
         return 2
 
-    @property
-    def obs_dim(self) -> int:
-        """The output dimension m = 1 (the measured output)."""
-        return 1
-
-    @property
-    def control_dim(self) -> int:
-        """The number of inputs p = 1."""
-        return 1
-
     def vector_field(
         self, x: Float[Array, " 2"], u: Float[Array, " p"], t: Real[ArrayLike, ""]
     ) -> Float[Array, " 2"]:
@@ -169,7 +173,7 @@ class CascadedTanks(AbstractContinuousSystem):
         )
 
 
-class Silverbox(AbstractContinuousSystem):
+class Silverbox(_AbstractSISO):
     r"""The Silverbox: an electronic Duffing oscillator m ÿ + d ẏ + k₁y + k₃y³ = u.
 
     Scaled by the linear natural frequency ω = 2πf₀ = √(k₁/m), with damping ratio ζ = d/(2mω),
@@ -206,16 +210,6 @@ class Silverbox(AbstractContinuousSystem):
     def state_dim(self) -> int:
         """n, the state dimension."""
         return 2
-
-    @property
-    def obs_dim(self) -> int:
-        """The output dimension m = 1 (the measured output)."""
-        return 1
-
-    @property
-    def control_dim(self) -> int:
-        """The number of inputs p = 1."""
-        return 1
 
     def vector_field(
         self, x: Float[Array, " 2"], u: Float[Array, " p"], t: Real[ArrayLike, ""]
@@ -256,7 +250,7 @@ class Silverbox(AbstractContinuousSystem):
         )
 
 
-class CoupledDrives(AbstractContinuousSystem):
+class CoupledDrives(_AbstractSISO):
     r"""Coupled electric drives: a belt-driven pulley seen by a rectifying speed sensor.
 
     Two motors drive a pulley through a belt; the pulse counter measuring its speed is
@@ -290,16 +284,6 @@ class CoupledDrives(AbstractContinuousSystem):
     def state_dim(self) -> int:
         """n, the state dimension."""
         return 3
-
-    @property
-    def obs_dim(self) -> int:
-        """The output dimension m = 1 (the measured output)."""
-        return 1
-
-    @property
-    def control_dim(self) -> int:
-        """The number of inputs p = 1."""
-        return 1
 
     def vector_field(
         self, x: Float[Array, " 3"], u: Float[Array, " p"], t: Real[ArrayLike, ""]
