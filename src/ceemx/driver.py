@@ -74,6 +74,14 @@ class FitResult(eqx.Module):
             ``outlier``, and ``history`` covers the others only.
         start_mean_square: (B,) the health test's r_b, the mean squared whitened residual of
             each trajectory at the start (``None`` with ``outliers="keep"``).
+        problem: the :class:`~ceemx.problem.FitProblem` that was fitted (the trajectories
+            taking part; ``None`` for results built by hand).
+        theta: the final flat θ in the problem's unconstrained coordinates.
+        weights: the final (B',) trajectory weights of the fitted trajectories (0: failed).
+
+    Parameter uncertainty (:mod:`ceemx.uncertainty`, the Laplace approximation of the joint
+    posterior p(x, θ | y), valid at a converged maximum of J): :meth:`covariance`,
+    :meth:`standard_errors`, :meth:`parameter_estimates`.
     """
 
     system: AbstractSystem
@@ -85,6 +93,9 @@ class FitResult(eqx.Module):
     initial_J: float = eqx.field(static=True)
     excluded: tuple = eqx.field(static=True, default=())
     start_mean_square: tuple | None = eqx.field(static=True, default=None)
+    problem: FitProblem | None = None
+    theta: Any = None
+    weights: Any = None
 
     @property
     def epochs(self) -> int:
@@ -111,6 +122,54 @@ class FitResult(eqx.Module):
                 for good, text in zip(ok, out, strict=True)
             ]
         return out
+
+    def _laplace_inputs(self):
+        if self.problem is None or self.theta is None:
+            raise ValueError("This FitResult holds no problem: parameter uncertainty needs `fit`.")
+        keep = np.setdiff1d(np.arange(self.states.shape[0]), np.asarray(self.excluded, int))
+        states = self.states if not self.excluded else self.states[jnp.asarray(keep)]
+        weights = self.weights
+        if weights is None:
+            weights = jnp.ones(states.shape[0], states.dtype)
+        return self.problem, self.theta, states, weights
+
+    def covariance(self, natural: bool = False):
+        """(P, P) Laplace covariance of the trainable θ (:mod:`ceemx.uncertainty`).
+
+        Args:
+            natural: ``False`` (default): of the flat θ in the problem's unconstrained
+                coordinates (``FitResult.theta``); ``True``: in natural units by the delta method.
+
+        Returns:
+            The covariance; all NaN, with a warning, when the Schur complement is not positive
+            definite (not at a maximum, or a parameter is not identifiable).
+        """
+        from .uncertainty import natural_covariance, parameter_covariance
+
+        problem, theta, states, weights = self._laplace_inputs()
+        cov = parameter_covariance(problem, theta, states, weights)
+        return natural_covariance(problem, theta, cov) if natural else cov
+
+    def standard_errors(self):
+        """Natural-unit standard errors (delta method), as a pytree like :attr:`system`.
+
+        Each trainable leaf holds its standard errors (same shape); every other leaf is ``None``.
+        """
+        from .uncertainty import standard_errors
+
+        problem, theta, _, _ = self._laplace_inputs()
+        return standard_errors(problem, theta, self.covariance())
+
+    def parameter_estimates(self) -> dict[str, tuple[float, float]]:
+        """``name → (estimate, standard error)`` per trainable scalar, in natural units.
+
+        Names are key paths into the system (``.sigma[0]``, ``.A[0,1]``); the dict feeds
+        :func:`ceemx.report.estimate_table`.
+        """
+        from .uncertainty import standard_errors_by_name
+
+        problem, theta, _, _ = self._laplace_inputs()
+        return standard_errors_by_name(problem, theta, self.covariance())
 
 
 class _Progress:
@@ -305,6 +364,9 @@ def fit(
         initial_J,
         tuple(int(b) for b in np.flatnonzero(excluded)),
         None if health is None else tuple(float(r) for r in health.mean_square),
+        problem=problem,
+        theta=state.theta,
+        weights=state.weights,
     )
 
 

@@ -3,6 +3,8 @@
 - :func:`format_estimate`, :func:`markdown_table`, :func:`parameter_table` — mean (standard error)
   cells and GitHub-flavoured Markdown tables, flagged like the paper's Table 1 when the mean is not
   within two standard errors of the truth.
+- :func:`format_pm`, :func:`estimate_table` — one fit's estimates ± their standard errors (e.g.
+  the Laplace standard errors of :meth:`ceemx.FitResult.parameter_estimates`).
 - :func:`output_dir`, :func:`save_json`, :func:`save_text` — result files, each written atomically
   (a temporary file in the same folder, then ``os.replace``): a reader never sees half a file.
 - :func:`deferred_writes` — hold every result file in memory until :meth:`Deferred.commit`
@@ -37,6 +39,8 @@ __all__ = [
     "format_estimate",
     "markdown_table",
     "output_dir",
+    "estimate_table",
+    "format_pm",
     "parameter_table",
     "plt",
     "save_figure",
@@ -118,6 +122,52 @@ def parameter_table(
     out = markdown_table([label, *names], body) + f"\nTruth: {truths}.\n"
     if any_flagged:
         out += f"† mean not within {k:g} standard errors of the truth.\n"
+    return out
+
+
+def format_pm(value: float, se: float, *, digits: int = 3) -> str:
+    """``"10.011 ± 0.012"`` (``"10.011 ± nan"`` when the standard error is not available)."""
+    return f"{float(value):.{digits}f} ± {float(se):.{digits}f}"
+
+
+def estimate_table(
+    estimates: Mapping[str, tuple[float, float]],
+    truth: Mapping[str, float] | None = None,
+    *,
+    digits: int = 3,
+    k: float = 2.0,
+) -> str:
+    """Markdown table of one fit's parameters as estimate ± standard error.
+
+    Args:
+        estimates: parameter name → (estimate, standard error), e.g.
+            :meth:`ceemx.FitResult.parameter_estimates`.
+        truth: optional parameter name → true value; adds a column and flags (†) the estimates
+            not within ``k`` standard errors of it.
+        digits: decimals.
+        k: flagging threshold in standard errors.
+
+    Returns:
+        The table (a line "† not within k SE of the truth" is appended when any cell is flagged).
+    """
+    if not estimates:
+        return ""
+    header = ["parameter", "estimate ± SE"] + (["truth"] if truth is not None else [])
+    body, any_flagged = [], False
+    for name, (value, se) in estimates.items():
+        cell = format_pm(value, se, digits=digits)
+        row = [name, cell]
+        if truth is not None and name in truth:
+            t = float(truth[name])
+            if not abs(float(value) - t) <= k * float(se):
+                cell, any_flagged = f"**{cell}**†", True
+            row = [name, cell, f"{t:.{digits}f}"]
+        elif truth is not None:
+            row.append("")
+        body.append(row)
+    out = markdown_table(header, body)
+    if any_flagged:
+        out += f"† estimate not within {k:g} standard errors of the truth.\n"
     return out
 
 

@@ -1,0 +1,153 @@
+"""Laplace parameter uncertainty (ceemx.uncertainty, FitResult.covariance / standard_errors)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jaxtyping import Array
+
+import ceemx
+from ceemx.problem import FitProblem
+from ceemx.report import estimate_table
+from ceemx.systems import CoupledLorenz, LinearSystem, initial_states
+from ceemx.uncertainty import natural_jacobian, parameter_covariance
+
+simulate = eqx.filter_jit(ceemx.simulate)
+
+
+def _lorenz():
+    k1, k2 = jax.random.split(jax.random.PRNGKey(3))
+    true = CoupledLorenz(10.0, 28.0, 8 / 3, jnp.eye(3), process_noise=0.1, obs_noise=0.5)
+    xs, data = simulate(true, k1, initial_states(k2, 2, 1), 12)
+    x = xs + 0.05 * np.random.default_rng(0).standard_normal(xs.shape)
+    return true, data, jnp.asarray(x)
+
+
+def test_covariance_equals_dense_inverse_theta_block():
+    """S⁻¹ is the θ-block of the inverse of the dense joint Gauss–Newton matrix."""
+    system, data, x = _lorenz()
+    problem, th = FitProblem.create(system, data, trainable=lambda s: (s.sigma, s.rho, s.beta))
+    B, T, n = x.shape
+
+    @eqx.filter_jit
+    def dense(problem, x, th):
+        def r(xflat, th):
+            return ceemx.whitened_residuals(problem.build(th), xflat.reshape(x.shape), data)
+
+        xflat = x.reshape(-1)
+        return jax.jacfwd(lambda a, b: r(a, b).reshape(-1), 0)(xflat, th), jax.jacfwd(
+            lambda a, b: r(a, b).reshape(-1), 1
+        )(xflat, th)
+
+    Jx, Jt = map(np.asarray, dense(problem, x, th))
+    H = np.block([[Jx.T @ Jx, Jx.T @ Jt], [Jt.T @ Jx, Jt.T @ Jt]])
+    expected = np.linalg.inv(H)[B * T * n :, B * T * n :]
+    cov = np.asarray(parameter_covariance(problem, th, x, jnp.ones(B)))
+    np.testing.assert_allclose(cov, expected, rtol=1e-8, atol=1e-8 * np.abs(expected).max())
+    # A zero weight removes a trajectory: same as fitting the other alone.
+    one, th1 = FitProblem.create(system, data[np.array([0])], trainable=lambda s: s.sigma)
+    full, thf = FitProblem.create(system, data, trainable=lambda s: s.sigma)
+    np.testing.assert_allclose(
+        parameter_covariance(full, thf, x, jnp.asarray([1.0, 0.0])),
+        parameter_covariance(one, th1, x[:1], jnp.ones(1)),
+        rtol=1e-10,
+    )
+
+
+def _scalar_data(key, a, B, T):
+    true = LinearSystem([[a]], [[1.0]], process_noise=0.5, obs_noise=0.1)
+    k1, k2 = jax.random.split(key)
+    _, data = simulate(true, k1, jax.random.normal(k2, (B, 1)), T)
+    return true, data
+
+
+def test_standard_error_matches_monte_carlo_spread():
+    """x_{t+1} = a x_t + w, y_t = x_t + v: the SE of â matches the spread of â over datasets."""
+    a, B, T, R = 0.8, 8, 40, 30
+    guess = LinearSystem([[0.5]], [[1.0]], process_noise=0.5, obs_noise=0.1)
+    solver = ceemx.JointLM(rtol=1e-10)
+    estimates, ses, res = [], [], None
+    for key in jax.random.split(jax.random.PRNGKey(1), R):
+        _, data = _scalar_data(key, a, B, T)
+        res = ceemx.fit(
+            guess,
+            data,
+            data.y,
+            solver=solver,
+            trainable=lambda s: s.A,
+            max_epochs=50,
+            progress=False,
+            outliers="keep",
+        )
+        assert res.converged
+        estimates.append(float(res.system.A[0, 0]))
+        ses.append(float(res.standard_errors().A[0, 0]))
+    spread = np.std(estimates, ddof=1)
+    ratio = np.mean(ses) / spread
+    assert 0.6 <= ratio <= 1.6, (ratio, spread, np.mean(ses))
+    assert abs(np.mean(estimates) - a) < 3 * spread / np.sqrt(R) + 0.02
+    assert res is not None
+    table = estimate_table(res.parameter_estimates(), {".A[0,0]": a})
+    assert ".A[0,0]" in table and "±" in table
+
+
+class Decay(ceemx.AbstractSystem):
+    """x_{t+1} = a x_t + w,  y_t = g x_t + v (a ∈ (0, 1), g > 0)."""
+
+    a: Array = ceemx.param(lower=0.0, upper=1.0)
+    g: Array = ceemx.param(positive=True)
+
+    @property
+    def state_dim(self):
+        return 1
+
+    @property
+    def obs_dim(self):
+        return 1
+
+    def dynamics(self, x, u, t):
+        return self.a * x
+
+    def observe(self, x, u, t):
+        return self.g * x
+
+
+def test_constrained_parameters_use_the_delta_method():
+    true = Decay(jnp.asarray(0.7), jnp.asarray(1.5), process_noise=0.3, obs_noise=0.1)
+    k1, k2 = jax.random.split(jax.random.PRNGKey(5))
+    xs, data = simulate(true, k1, jax.random.normal(k2, (4, 1)), 30)
+    res = ceemx.fit(true, data, xs, solver=ceemx.JointLM(rtol=1e-10), max_epochs=30, progress=False)
+    assert res.problem is not None
+    cov = np.asarray(res.covariance())
+    assert cov.shape == (2, 2) and np.all(np.isfinite(cov))
+    jac = np.asarray(natural_jacobian(res.problem, res.theta))
+    # d interval/dz = (1-0) σ(z)(1-σ(z)) = a(1-a); d softplus/dz = 1 - e^{-g}.
+    a, g = float(res.system.a), float(res.system.g)
+    np.testing.assert_allclose(jac, [a * (1 - a), 1 - np.exp(-g)], rtol=1e-10)
+    se = res.standard_errors()
+    np.testing.assert_allclose(
+        [float(se.a), float(se.g)], jac * np.sqrt(np.diagonal(cov)), rtol=1e-12
+    )
+    np.testing.assert_allclose(
+        res.covariance(natural=True), jac[:, None] * cov * jac[None, :], rtol=1e-12
+    )
+    # Non-trainable leaves are None.
+    assert se.process_noise is None or all(
+        leaf is None for leaf in jax.tree_util.tree_leaves(se.process_noise)
+    )
+    est = res.parameter_estimates()
+    assert set(est) == {".a", ".g"}
+    assert est[".a"] == pytest.approx((a, float(se.a)))
+
+
+def test_unidentifiable_parameter_gives_nan_and_a_warning():
+    """H has no effect on a single attractor: S is singular."""
+    system, data, x = _lorenz()
+    problem, th = FitProblem.create(system, data, trainable=lambda s: (s.sigma, s.rho, s.beta, s.H))
+    with pytest.warns(UserWarning, match="not positive definite") as record:
+        cov = parameter_covariance(problem, th, x, jnp.ones(x.shape[0]))
+    message = str(record[0].message)
+    assert ".H[0,0]" in message and ".sigma" not in message  # names the culprits only
+    assert cov.shape == (12, 12)
+    assert np.all(np.isnan(np.asarray(cov)))
