@@ -107,8 +107,8 @@ class AbstractConstraint(eqx.Module):
         """The allowed set in words, e.g. ``"> 0 (positive)"``."""
 
 
-class Unconstrained(AbstractConstraint):
-    """No constraint: x = z."""
+class _AbstractIdentity(AbstractConstraint):
+    """x = z with every value allowed (what :class:`Unconstrained` and :class:`Fixed` share)."""
 
     def forward(self, z: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
         """Z."""
@@ -122,28 +122,20 @@ class Unconstrained(AbstractConstraint):
         """Every value is allowed."""
         return np.ones(np.shape(x), bool)
 
+
+class Unconstrained(_AbstractIdentity):
+    """No constraint: x = z."""
+
     @property
     def description(self) -> str:
         """``"unconstrained"``."""
         return "unconstrained"
 
 
-class Fixed(AbstractConstraint):
+class Fixed(_AbstractIdentity):
     """A parameter that never learns: dropped from θ whatever ``trainable`` says."""
 
     trainable: ClassVar[bool] = False
-
-    def forward(self, z: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
-        """Z (never called by fits: the leaf is not in θ)."""
-        return z
-
-    def inverse(self, x: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
-        """X."""
-        return x
-
-    def contains(self, x: np.ndarray) -> np.ndarray:
-        """Every value is allowed."""
-        return np.ones(np.shape(x), bool)
 
     @property
     def description(self) -> str:
