@@ -72,7 +72,14 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
     from .problem import FitProblem
     from .simulation import estimate_initial_state, free_run, predict_k_step
     from .smoothing import LMSmoother, SmootherSolution, smooth
-    from .solvers import AbstractFitSolver, Alternating, FitState, JointLM, ParticleEM
+    from .solvers import (
+        AbstractFitSolver,
+        Alternating,
+        FitState,
+        JointLM,
+        LaplaceEM,
+        ParticleEM,
+    )
 
 #: public name -> the module that defines it (loaded on first access)
 _LAZY = {
@@ -99,6 +106,7 @@ _LAZY = {
     "GreaterThan": ".models",
     "Interval": ".models",
     "JointLM": ".solvers",
+    "LaplaceEM": ".solvers",
     "LBFGSLearner": ".learning",
     "LMLearner": ".learning",
     "LMSmoother": ".smoothing",
@@ -186,6 +194,7 @@ __all__ = [
     "GreaterThan",
     "Interval",
     "JointLM",
+    "LaplaceEM",
     "LBFGSLearner",
     "LMLearner",
     "LMSmoother",

@@ -225,10 +225,12 @@ def fit(
             smoothing pass at the initial θ, for the CE methods).
         solver: the method — :class:`ceemx.Alternating` (the paper's Algorithm 1, default),
             :class:`ceemx.JointLM` (joint Levenberg–Marquardt on (x, θ)) or
-            :class:`ceemx.ParticleEM` (particle filter + FFBSi + SAEM); its tolerances decide
-            convergence.
+            :class:`ceemx.ParticleEM` (particle filter + FFBSi + SAEM) or
+            :class:`ceemx.LaplaceEM` (EM with a Gaussian E-step; learns noise covariances); its
+            tolerances decide convergence.
         trainable: which leaves learn (``None``: all model arrays except noise and prior; a
-            callable ``where(system)`` or a boolean filter pytree).
+            callable ``where(system)`` or a boolean filter pytree). Noise models may be selected
+            only with :class:`ceemx.LaplaceEM`.
         log_prior: optional ``system -> log p(θ)``.
         max_epochs: bound on epochs (iterations of the solver).
         callbacks: called with an :class:`EpochInfo` after every epoch; a dict returned by a
@@ -278,6 +280,15 @@ def fit(
     solver = trace_numbers(solver, states.dtype)
     key = jax.random.PRNGKey(0) if key is None else key
     problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
+    noise = [f for f in ("process_noise", "obs_noise") if problem.trains(f)]
+    if noise and not solver.learns_noise:
+        raise ValueError(
+            f"`trainable` selects the noise model{'s' if len(noise) > 1 else ''} "
+            f"{', '.join('system.' + f for f in noise)}, but {type(solver).__name__} maximises "
+            "the certainty-equivalent J(x, θ), which grows without bound as a noise scale → 0 "
+            "(the states absorb the residuals): noise cannot be learned by it. Use "
+            "solver=ceemx.LaplaceEM(), which learns noise covariances by EM, or fix the noise."
+        )
     all_states, excluded, health = states, np.zeros((data.batch_size,), bool), None
     if outliers not in OUTLIER_OPTIONS:
         raise ValueError(f"`outliers` must be one of {OUTLIER_OPTIONS}; got {outliers!r}.")

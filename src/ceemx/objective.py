@@ -27,7 +27,9 @@ from .typing import PerTrajectory, Scalar, States, Trajectory
 
 __all__ = [
     "Linearization",
+    "expected_neg_log_joint_single",
     "linearize",
+    "linearize_expected",
     "log_joint",
     "neg_log_joint_single",
     "nll_offset",
@@ -243,3 +245,105 @@ def linearize(
         gp = jax.grad(prior_nll, argnums=1)(x[0], theta)
         grad_theta = grad_theta + gp
     return Linearization(value, grad, hess, grad_theta, E, 0.5 * (D + D.T))
+
+
+# --- The expected complete-data objective of Laplace EM -------------------------------------------
+#
+# Under a Gaussian state posterior q, E_q[−log p(x, y | θ)] is a sum of expectations over the
+# marginals of x_t (observation terms, the initial prior) and over the pairs (x_t, x_{t+1})
+# (dynamics terms). Each expectation is a cubature sum over equally weighted points
+# (:mod:`ceemx.lib.cubature`): ``points`` (T, K, n) of each x_t and ``pairs`` (T−1, K₂, 2n) of each
+# (x_t, x_{t+1}).
+
+
+def _expected_terms(theta_build, points, pairs, y, u, mask):
+    """Per-point residual functions of θ, flattened over (time, point): used by both functions."""
+    T, K1, n = points.shape
+    K2 = pairs.shape[1]
+    ts = jnp.arange(T)
+    obs_rows = (
+        points.reshape(T * K1, n),
+        jnp.repeat(y, K1, axis=0),
+        jnp.repeat(u, K1, axis=0),
+        jnp.repeat(mask, K1, axis=0),
+        jnp.repeat(ts, K1),
+    )
+    dyn_rows = (
+        pairs.reshape((T - 1) * K2, 2 * n),
+        jnp.repeat(u[:-1], K2, axis=0),
+        jnp.repeat(ts[:-1], K2),
+    )
+
+    def obs_res(th, x, yt, ut, mk, t):
+        return yt - theta_build(th).observe(x, ut, t)
+
+    def dyn_res(th, z, ut, t):
+        return z[n:] - theta_build(th).dynamics(z[:n], ut, t)
+
+    return obs_rows, dyn_rows, obs_res, dyn_res, 1.0 / K1, 1.0 / K2
+
+
+def expected_neg_log_joint_single(
+    system: AbstractSystem,
+    points: Float[Array, "T K n"],
+    pairs: Float[Array, "T-1 K2 n2"],
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+) -> Scalar:
+    """E_q[−log p(x, y | θ)] of one trajectory by cubature over marginal and pairwise points."""
+    ident = lambda th: th  # noqa: E731
+    obs_rows, dyn_rows, obs_res, dyn_res, c1, c2 = _expected_terms(ident, points, pairs, y, u, mask)
+    x, yy, uu, mk, t = obs_rows
+    r_obs = jax.vmap(obs_res, in_axes=(None, 0, 0, 0, 0, 0))(system, x, yy, uu, mk, t)
+    z, uw, tw = dyn_rows
+    r_dyn = jax.vmap(dyn_res, in_axes=(None, 0, 0, 0))(system, z, uw, tw)
+    total = c1 * jnp.sum(jax.vmap(system.obs_noise.nll)(r_obs, mk))
+    total = total + c2 * jnp.sum(jax.vmap(system.process_noise.nll)(r_dyn))
+    if system.initial_prior is not None:
+        total = total + jnp.mean(jax.vmap(system.initial_prior.nll)(points[0]))
+    return total
+
+
+def linearize_expected(
+    build: Callable[[Any], AbstractSystem],
+    theta: Float[Array, " theta"],
+    points: Float[Array, "T K n"],
+    pairs: Float[Array, "T-1 K2 n2"],
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
+    """(value, θ-gradient, Gauss–Newton matrix in θ) of :func:`expected_neg_log_joint_single`.
+
+    The Gauss–Newton matrix is Σ_points c·J_θᵀ W J_θ with each noise model's curvature W = SᵀS, as
+    for the CE learning step; for Gaussian noise and a model linear in θ it is the exact Hessian.
+    """
+    system = build(theta)
+    obs_rows, dyn_rows, obs_res, dyn_res, c1, c2 = _expected_terms(build, points, pairs, y, u, mask)
+    P = theta.shape[0]
+    m = y.shape[-1]
+    n = points.shape[-1]
+    on, pn = system.obs_noise, system.process_noise
+    x, yy, uu, mk, t = obs_rows
+    r_obs = jax.vmap(obs_res, in_axes=(None, 0, 0, 0, 0, 0))(theta, x, yy, uu, mk, t)
+    G = jax.vmap(_jac(obs_res, 0, P, m), in_axes=(None, 0, 0, 0, 0, 0))(theta, x, yy, uu, mk, t)
+    z, uw, tw = dyn_rows
+    r_dyn = jax.vmap(dyn_res, in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
+    F = jax.vmap(_jac(dyn_res, 0, P, n), in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
+    SG = jax.vmap(on.sqrt_curvature)(r_obs, mk) @ G
+    SF = jax.vmap(pn.sqrt_curvature)(r_dyn) @ F
+    value = c1 * jnp.sum(jax.vmap(on.nll)(r_obs, mk)) + c2 * jnp.sum(jax.vmap(pn.nll)(r_dyn))
+    grad = c1 * jnp.einsum("kmp,km->p", G, jax.vmap(jax.grad(on.nll))(r_obs, mk))
+    grad = grad + c2 * jnp.einsum("knp,kn->p", F, jax.vmap(jax.grad(pn.nll))(r_dyn))
+    D = c1 * jnp.einsum("kmp,kmq->pq", SG, SG) + c2 * jnp.einsum("knp,knq->pq", SF, SF)
+    if system.initial_prior is not None:
+
+        def prior_nll(th):
+            pr = build(th).initial_prior
+            assert pr is not None  # θ does not decide whether there is a prior
+            return jnp.mean(jax.vmap(pr.nll)(points[0]))
+
+        pv, gp = jax.value_and_grad(prior_nll)(theta)
+        value, grad = value + pv, grad + gp
+    return value, grad, 0.5 * (D + D.T)

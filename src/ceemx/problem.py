@@ -187,6 +187,29 @@ class FitProblem(eqx.Module):
             params = jtu.tree_unflatten(treedef, natural)
         return eqx.combine(params, self.static)
 
+    def flatten(self, system: AbstractSystem) -> Theta:
+        """The flat unconstrained θ of ``system``'s trainable leaves (the inverse of :meth:`build`).
+
+        ``system`` must have this problem's structure (e.g. ``build(θ)`` with some leaves
+        replaced); its non-trainable leaves are ignored.
+        """
+        params = jtu.tree_map(
+            lambda t, leaf: None if t is None else leaf,
+            self.template,
+            system,
+            is_leaf=lambda v: v is None,
+        )
+        leaves, treedef = jtu.tree_flatten(params)
+        if any(not isinstance(c, Unconstrained) for c in self.constraints):
+            leaves = [c.inverse(x) for c, x in zip(self.constraints, leaves, strict=True)]
+        theta, _ = ravel_pytree(jtu.tree_unflatten(treedef, leaves))
+        return theta
+
+    def trains(self, field: str) -> bool:
+        """Whether any leaf of the system's top-level ``field`` (e.g. ``"obs_noise"``) is in θ."""
+        sub = getattr(self.template, field, None)
+        return bool(jtu.tree_leaves(sub))
+
     def per_trajectory(
         self, theta: Theta, states: States, data: Trajectories | None = None
     ) -> PerTrajectory:

@@ -8,10 +8,14 @@ from .learners import (
     NelderMeadLearner,
     OptaxLearner,
 )
-from .problem import LearningProblem, learning_problem, make_problem
+from .expected import ExpectedLearningProblem, expected_learning_problem
+from .problem import AbstractLearningProblem, LearningProblem, learning_problem, make_problem
 from .step import learn, run_learner
 
 __all__ = [
+    "AbstractLearningProblem",
+    "ExpectedLearningProblem",
+    "expected_learning_problem",
     "AbstractLearner",
     "LBFGSLearner",
     "LMLearner",

@@ -1,6 +1,7 @@
 """Learners for the θ-step (paper Eq. 11): Levenberg–Marquardt, L-BFGS, Optax, Nelder–Mead.
 
-Every learner maps a :class:`~ceemx.learning.problem.LearningProblem`, the current flat θ and its
+Every learner maps an :class:`~ceemx.learning.problem.AbstractLearningProblem` (Eq. 11, or Laplace
+EM's −Q), the current flat θ and its
 own state to a new θ, a new state and a :class:`LearnInfo`. States persist across EM epochs (so an
 Adam learner keeps its moments) and are saved in checkpoints.
 """
@@ -21,7 +22,7 @@ from ..lib.dense import cholesky_solve
 from ..lib.lm import levenberg_marquardt, marquardt_scale
 from ..lib.results import RESULTS
 from ..typing import IntScalar, Scalar, Theta
-from .problem import LearningProblem
+from .problem import AbstractLearningProblem
 
 __all__ = [
     "AbstractLearner",
@@ -51,7 +52,7 @@ class AbstractLearner(eqx.Module):
 
     @abc.abstractmethod
     def run(
-        self, problem: LearningProblem, theta: Theta, state: Any
+        self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
         """Minimise ``problem.value`` from ``theta``; returns (θ, state, LearnInfo)."""
 
@@ -76,7 +77,7 @@ class LMLearner(AbstractLearner):
     damping: float = 1e-3
 
     def run(
-        self, problem: LearningProblem, theta: Theta, state: Any
+        self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
         """LM iterations from θ."""
         offset = problem.offset(
@@ -124,7 +125,7 @@ class LBFGSLearner(AbstractLearner):
     memory_size: int = eqx.field(default=20, static=True)
 
     def run(
-        self, problem: LearningProblem, theta: Theta, state: Any
+        self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
         """L-BFGS iterations from θ (fresh curvature memory every epoch)."""
         opt = optax.lbfgs(memory_size=self.memory_size)
@@ -176,11 +177,11 @@ class OptaxLearner(AbstractLearner):
         return (self.transform.init(theta), key)
 
     def run(
-        self, problem: LearningProblem, theta: Theta, state: Any
+        self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
         """``steps`` gradient steps."""
         opt_state, key = state
-        B = problem.states.shape[0]
+        B = problem.batch_size
         v0 = problem.value(theta)
 
         def body(c, _):
@@ -224,7 +225,7 @@ class NelderMeadLearner(AbstractLearner):
     atol: float = 1e-8
 
     def run(
-        self, problem: LearningProblem, theta: Theta, state: Any
+        self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
         """Nelder–Mead from θ."""
         offset = problem.offset(theta)

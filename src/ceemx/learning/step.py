@@ -16,14 +16,14 @@ from ..models.system import AbstractSystem
 from ..smoothing.solver import check_inputs, check_nonnegative, promote_inputs
 from ..typing import PerTrajectory, Theta
 from .learners import AbstractLearner, LearnInfo, LMLearner
-from .problem import LearningProblem, make_problem
+from .problem import AbstractLearningProblem, make_problem
 
 __all__ = ["learn", "run_learner"]
 
 
 @eqx.filter_jit
 def run_learner(
-    learner: AbstractLearner, problem: LearningProblem, theta: Theta, state: Any
+    learner: AbstractLearner, problem: AbstractLearningProblem, theta: Theta, state: Any
 ) -> tuple[Theta, Any, LearnInfo]:
     """Run a learner, compiled once per learner type, problem shape and dtype."""
     return learner.run(problem, theta, state)

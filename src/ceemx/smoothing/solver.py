@@ -89,6 +89,8 @@ class SmootherSolution(eqx.Module):
         covariances: (B, T, n, n) marginal covariances of x_t under the Laplace approximation
             (inverse Gauss–Newton matrix of −J), or ``None`` unless requested.
         cross_covariances: (B, T−1, n, n) Cov(x_{t+1}, x_t), or ``None``.
+        log_det: (B,) log det of the Gauss–Newton matrix of −J at ``states`` (with the
+            covariances), so the Laplace log-evidence is −objective + (Tn/2) log 2π − log_det/2.
     """
 
     states: States
@@ -97,6 +99,7 @@ class SmootherSolution(eqx.Module):
     status: RESULTS
     covariances: Float[Array, "B T n n"] | None = None
     cross_covariances: Float[Array, "B T-1 n n"] | None = None
+    log_det: PerTrajectory | None = None
 
     @property
     def converged(self) -> Bool[Array, " B"]:
@@ -165,15 +168,16 @@ def smooth_batch(
     x, value, steps, status, hess = jax.vmap(_smooth_one, in_axes=(None, None, 0, 0, 0, 0))(
         solver, system, x_init, data.y, data.u, data.mask
     )
-    cov = cross = None
+    cov = cross = log_det = None
     if covariance:
-        sel = jax.vmap(lambda h: lib.selected_inverse(lib.cholesky(h)))(hess)
-        cov, cross = sel.diagonal, sel.lower
+        factor = jax.vmap(lib.cholesky)(hess)
+        sel = jax.vmap(lib.selected_inverse)(factor)
+        cov, cross, log_det = sel.diagonal, sel.lower, jax.vmap(lib.logdet)(factor)
     if solver.throw:
         x = eqx.error_if(
             x, jnp.any(status != RESULTS.successful), "smoothing failed on a trajectory"
         )
-    return SmootherSolution(x, value, steps, status, cov, cross)
+    return SmootherSolution(x, value, steps, status, cov, cross, log_det)
 
 
 def _working_dtype(system: AbstractSystem) -> np.dtype:

@@ -2,6 +2,7 @@
 
 - :class:`Alternating` — the paper's Algorithm 1 (smoothing step, learning step).
 - :class:`JointLM` — Levenberg–Marquardt on (x, θ) through the Schur complement.
+- :class:`LaplaceEM` — Laplace (MAP-) EM: Gaussian E-step, cubature M-step, learned noise.
 - :class:`ParticleEM` — particle filter + FFBSi E-step, SAEM M-step (the paper's baseline).
 
 To add one, subclass :class:`AbstractFitSolver` (see :mod:`ceemx.solvers.base` and
@@ -11,6 +12,7 @@ To add one, subclass :class:`AbstractFitSolver` (see :mod:`ceemx.solvers.base` a
 from .alternating import Alternating
 from .base import AbstractFitSolver, FitState
 from .joint import JointLM
+from .laplace import LaplaceEM
 from .particle_em import ParticleEM, SAEMState, saem_step_size
 
 __all__ = [
@@ -18,6 +20,7 @@ __all__ = [
     "Alternating",
     "FitState",
     "JointLM",
+    "LaplaceEM",
     "ParticleEM",
     "SAEMState",
     "saem_step_size",

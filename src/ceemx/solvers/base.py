@@ -132,6 +132,10 @@ class AbstractFitSolver(eqx.Module):
     #: ``failed_trajectories``, ``converged``, ``stop``).
     history_keys: ClassVar[Mapping[str, str]] = {}
 
+    #: Whether the method can learn noise covariances (only :class:`ceemx.LaplaceEM`: the CE-EM
+    #: objective J grows without bound as a noise scale → 0, so CE methods refuse them).
+    learns_noise: ClassVar[bool] = False
+
     def initial_states(self, system, data) -> States:
         """The start states of ``fit(..., x_init=None)``: :func:`ceemx.initialize.warm_start`.
 

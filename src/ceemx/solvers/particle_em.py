@@ -281,7 +281,13 @@ def saem_problem(
     total = jnp.sum(weights)
     w = (per / jnp.where(total > 0, total, 1.0)).reshape(-1)
     tiled_problem = eqx.tree_at(lambda p: p.data, problem, tiled)
-    return LearningProblem(tiled_problem, samples.reshape((M * B * S, T, n)), w, theta, rho_theta)
+    return LearningProblem(
+        problem=tiled_problem,
+        states=samples.reshape((M * B * S, T, n)),
+        weights=w,
+        theta_ref=theta,
+        rho_theta=rho_theta,
+    )
 
 
 @eqx.filter_jit
