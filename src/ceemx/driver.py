@@ -30,6 +30,7 @@ from .problem import FitProblem
 from .smoothing import check_inputs, promote_inputs
 from .solvers.alternating import Alternating
 from .solvers.base import AbstractFitSolver, FitState, total_J
+from .solvers.laplace import LaplaceEM
 from .solvers.particle_em import ParticleEM
 from .typing import States, no_type_check
 
@@ -79,9 +80,11 @@ class FitResult(eqx.Module):
         theta: the final flat θ in the problem's unconstrained coordinates.
         weights: the final (B',) trajectory weights of the fitted trajectories (0: failed).
 
-    Parameter uncertainty (:mod:`ceemx.uncertainty`, the Laplace approximation of the joint
-    posterior p(x, θ | y), valid at a converged maximum of J): :meth:`covariance`,
-    :meth:`standard_errors`, :meth:`parameter_estimates`.
+    Parameter uncertainty (:mod:`ceemx.uncertainty`): :meth:`covariance`,
+    :meth:`standard_errors`, :meth:`parameter_estimates` — for the CE methods the Laplace
+    approximation of the joint posterior p(x, θ | y) (valid at a converged maximum of J); for
+    :class:`ceemx.LaplaceEM` the inverse observed information of the Laplace log-evidence, the
+    states integrated out (learned noise scales included).
     """
 
     system: AbstractSystem
@@ -144,10 +147,13 @@ class FitResult(eqx.Module):
             The covariance; all NaN, with a warning, when the Schur complement is not positive
             definite (not at a maximum, or a parameter is not identifiable).
         """
-        from .uncertainty import natural_covariance, parameter_covariance
+        from .uncertainty import evidence_covariance, natural_covariance, parameter_covariance
 
         problem, theta, states, weights = self._laplace_inputs()
-        cov = parameter_covariance(problem, theta, states, weights)
+        if isinstance(self.solver, LaplaceEM):
+            cov = evidence_covariance(problem, theta, states, weights, self.solver.smoother)
+        else:
+            cov = parameter_covariance(problem, theta, states, weights)
         return natural_covariance(problem, theta, cov) if natural else cov
 
     def standard_errors(self):

@@ -53,6 +53,7 @@ from .solvers.joint import linearize_joint
 from .typing import PerTrajectory, States, Theta
 
 __all__ = [
+    "evidence_covariance",
     "natural_covariance",
     "natural_jacobian",
     "parameter_covariance",
@@ -88,11 +89,20 @@ def schur_complement(
 
 @eqx.filter_jit
 def _laplace(
-    problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    weights: PerTrajectory,
+    keep: Float[Array, " theta"],
 ) -> tuple[Float[Array, "theta theta"], Bool[Array, ""], Bool[Array, " theta"]]:
-    """``(S⁻¹ or NaN, ok, weak)``; ``weak`` flags the θ entries with a negligible pivot of S."""
+    """``(S⁻¹ or NaN, ok, weak)``; ``weak`` flags the θ entries with a negligible pivot of S.
+
+    Entries with ``keep`` = 0 (learned noise scales) are held fixed: their rows and columns of S
+    are replaced by the identity, so the rest is the inverse of S restricted to the kept entries.
+    """
     S, a_ok = schur_complement(problem, theta, states, weights)
     P = S.shape[-1]
+    S = keep[:, None] * S * keep[None, :] + jnp.diag(1.0 - keep)
     chol = jnp.linalg.cholesky(S)
     pivots = jnp.diagonal(chol)
     floor = P * jnp.finfo(S.dtype).eps * jnp.max(jnp.abs(jnp.diagonal(S)))
@@ -140,17 +150,134 @@ def parameter_covariance(
 
     Returns:
         The (P, P) covariance; all NaN, with a warning, when ``S`` is not positive definite.
+        Learned noise scales (:class:`ceemx.LaplaceEM`) are held fixed in ``S`` (the rest is
+        conditional on them) and get the Gaussian Fisher variance σ²/(2N) of a scale estimated
+        from N residuals, uncorrelated with the rest (the Fisher information of a Gaussian is
+        block-diagonal between means and scales); NaN for full Cholesky factors.
         See the module docstring for when it is valid. Not vmappable (the warning is host-side);
         the compiled core is :func:`schur_complement`.
     """
     if weights is None:
         weights = jnp.ones(states.shape[0], states.dtype)
-    cov, ok, weak = _laplace(problem, theta, states, weights)
+    noise, noise_var = _noise_variances(problem, theta, weights)
+    keep = jnp.where(noise, 0.0, 1.0).astype(theta.dtype)
+    cov, ok, weak = _laplace(problem, theta, states, weights, keep)
     if not bool(ok):
         flagged = [n for n, w in zip(_names(problem), np.asarray(weak), strict=True) if w]
         which = f" (weakly determined: {', '.join(flagged)})" if flagged else ""
         warn(_NOT_PD.format(which=which))
-    return cov
+    cov = jnp.where(noise[:, None] | noise[None, :], 0.0, cov)
+    return cov + jnp.diag(jnp.where(noise, noise_var, 0.0))
+
+
+def _noise_variances(
+    problem: FitProblem, theta: Theta, weights: PerTrajectory
+) -> tuple[Array, Array]:
+    """``(is_noise, var)`` over θ: which entries are learned noise, and their variances.
+
+    For Gaussian noise the Fisher information is block-diagonal between the mean parameters and
+    the scales, and a scale σ estimated from N residuals has variance σ²/(2N) (a scalar scale
+    shared by d components: N·d residuals). Entries of full covariance factors (CholeskyGaussian)
+    get NaN: no per-entry formula is given. Other entries: ``is_noise`` False, ``var`` 0.
+    """
+    from .models.noise import DiagonalGaussian
+
+    system = problem.build(theta)
+    data = problem.data
+    w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
+    flags = jtu.tree_map(lambda leaf: jnp.zeros(jnp.shape(leaf), theta.dtype), problem.template)
+    var = flags
+    counts = {
+        "process_noise": np.full(system.state_dim, w.sum() * (data.num_steps - 1)),
+        "obs_noise": np.einsum("b,btm->m", w, np.asarray(data.mask, float)),
+    }
+    for field, count in counts.items():
+        if not problem.trains(field):
+            continue
+        noise = getattr(system, field)
+        sub = getattr(flags, field)
+        flags = eqx.tree_at(
+            lambda t, f=field: getattr(t, f), flags, jtu.tree_map(jnp.ones_like, sub)
+        )
+        if isinstance(noise, DiagonalGaussian):
+            scale = jnp.asarray(noise.scale)
+            n_res = count.sum() if scale.ndim == 0 else count
+            v = scale**2 / (2.0 * jnp.asarray(np.maximum(n_res, 1.0), theta.dtype))
+            var = eqx.tree_at(lambda t, f=field: getattr(t, f).scale, var, v)
+        else:
+            nan = jtu.tree_map(lambda a: jnp.full_like(a, jnp.nan), sub)
+            var = eqx.tree_at(lambda t, f=field: getattr(t, f), var, nan)
+    return ravel_pytree(flags)[0] > 0, ravel_pytree(var)[0]
+
+
+def evidence_covariance(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    weights: PerTrajectory | None = None,
+    smoother=None,
+    *,
+    rel_step: float = 1e-3,
+) -> Float[Array, "theta theta"]:
+    """Inverse observed information of the Laplace log-evidence ℓ(θ) ≈ Σ_b log p(y_b | θ).
+
+    The covariance of a (Laplace-) EM estimate: the states are integrated out, so it accounts for
+    the states being unknown (the Schur complement of :func:`parameter_covariance` holds the noise
+    fixed and treats the states as parameters). ℓ is evaluated by a MAP smoothing and the
+    log-determinant of the Gauss–Newton matrix (:func:`ceemx.solvers.laplace.gaussian_posterior`)
+    at each θ of a central-difference stencil (steps ``rel_step·max(|θ_i|, 0.01)``), from the
+    given states; 2P² + 1 smoothings for P parameters, each compiled once. Learned noise scales
+    are included like any other entry of θ.
+
+    Returns:
+        The (P, P) covariance; all NaN, with a warning, when −∇²ℓ is not positive definite
+        (not at a maximum, or a parameter is not identifiable).
+    """
+    from .lib.tree import trace_numbers
+    from .smoothing.solver import LMSmoother
+    from .solvers.laplace import gaussian_posterior
+
+    if weights is None:
+        weights = jnp.ones(states.shape[0], states.dtype)
+    smoother = trace_numbers(
+        LMSmoother(rtol=1e-14) if smoother is None else smoother, states.dtype
+    )
+    w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
+    th0 = np.asarray(theta, dtype=np.float64)
+    P = th0.size
+    h = rel_step * np.maximum(np.abs(th0), 0.01)
+
+    def ell(offset: np.ndarray) -> float:
+        th = jnp.asarray(th0 + offset, theta.dtype)
+        post = gaussian_posterior(smoother, problem.build(th), states, problem.data)
+        return float(np.sum(w * np.asarray(post.log_evidence)))
+
+    f0 = ell(np.zeros(P))
+    eye = np.eye(P)
+    H = np.zeros((P, P))
+    for i in range(P):
+        ei = h[i] * eye[i]
+        H[i, i] = (ell(ei) - 2.0 * f0 + ell(-ei)) / h[i] ** 2
+        for j in range(i):
+            ej = h[j] * eye[j]
+            H[i, j] = H[j, i] = (
+                ell(ei + ej) - ell(ei - ej) - ell(-ei + ej) + ell(-ei - ej)
+            ) / (4.0 * h[i] * h[j])
+    info = -0.5 * (H + H.T)
+    try:
+        chol = np.linalg.cholesky(info)
+        cov = np.linalg.inv(info) if np.all(np.isfinite(chol)) else None
+    except np.linalg.LinAlgError:
+        cov = None
+    if cov is None:
+        warn(
+            "The evidence covariance of θ is NaN: the negative Hessian of the Laplace "
+            "log-evidence is not positive definite. Either the fit did not converge to a maximum "
+            "or a parameter is not identifiable from the data; fix or drop such parameters "
+            "(`trainable`) or add a prior (`log_prior`)."
+        )
+        return jnp.full((P, P), jnp.nan, theta.dtype)
+    return jnp.asarray(0.5 * (cov + cov.T), theta.dtype)
 
 
 def natural_jacobian(problem: FitProblem, theta: Theta) -> Float[Array, " theta"]:

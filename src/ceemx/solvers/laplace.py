@@ -49,7 +49,7 @@ from ..smoothing import solver as smoothing_solver
 from ..typing import PerTrajectory, States, Theta
 from .base import AbstractFitSolver, FitState, objective_scale, trajectory_log_likelihood
 
-__all__ = ["LaplaceEM", "noise_second_moments"]
+__all__ = ["GaussianPosterior", "LaplaceEM", "gaussian_posterior", "noise_second_moments"]
 
 _NOISE_FIELDS = ("process_noise", "obs_noise")
 
@@ -58,8 +58,17 @@ _NOISE_FIELDS = ("process_noise", "obs_noise")
 _E_STEP_SMOOTHER = smoothing_solver.LMSmoother(rtol=1e-14)
 
 
-class _EStep(eqx.Module):
-    """The Gaussian state posteriors at θ (the solver's cache; recomputed after a resume)."""
+class GaussianPosterior(eqx.Module):
+    """Laplace approximations N(x̂_b, Σ̂_b) of the state posteriors, and the log-evidence.
+
+    Attributes:
+        states: (B, T, n) MAP trajectories x̂.
+        covariances: (B, T, n, n) marginal covariances Σ̂_t.
+        cross: (B, T−1, n, n) Cov(x_{t+1}, x_t).
+        log_evidence: (B,) Laplace approximation of log p(y_b | θ).
+        status: (B,) :class:`ceemx.RESULTS` (``nonfinite`` where the posterior is not finite).
+        iterations: (B,) smoother iterations.
+    """
 
     states: States
     covariances: Float[Array, "B T n n"]
@@ -70,9 +79,16 @@ class _EStep(eqx.Module):
 
 
 @eqx.filter_jit
-def _e_step(
+def gaussian_posterior(
     smoother: smoothing_solver.LMSmoother, system: AbstractSystem, x0: States, data: Trajectories
-) -> _EStep:
+) -> GaussianPosterior:
+    """The Laplace approximation of every trajectory's state posterior at the system's θ.
+
+    MAP smoothing from ``x0`` (compiled; numbers of ``smoother`` must be traced arrays, see
+    :func:`ceemx.lib.trace_numbers`), then the selected inverse and log-determinant of the
+    Gauss–Newton matrix at the MAP: means, marginal and lag-one covariances, and the Laplace
+    log-evidence log p(y_b | θ) ≈ J_b(x̂_b, θ) + (Tn/2) log 2π − ½ log det H_b per trajectory.
+    """
     sol = smoothing_solver.smooth_batch(smoother, system, x0, data, True)
     assert sol.covariances is not None and sol.cross_covariances is not None
     assert sol.log_det is not None
@@ -84,7 +100,7 @@ def _e_step(
         & jnp.all(jnp.isfinite(sol.cross_covariances), axis=(1, 2, 3))
     )
     status = select(finite, sol.status, RESULTS.nonfinite)
-    return _EStep(
+    return GaussianPosterior(
         sol.states, sol.covariances, sol.cross_covariances, log_ev, status, sol.iterations
     )
 
@@ -263,8 +279,8 @@ class LaplaceEM(AbstractFitSolver):
         if not (np.all(np.isfinite(rho)) and np.all(rho >= 0)):
             raise ValueError(f"`rho_theta` must be finite and >= 0; got {self.rho_theta}.")
 
-    def _posterior(self, problem: FitProblem, theta: Theta, x0: States) -> _EStep:
-        e = _e_step(self.smoother, problem.build(theta), x0, problem.data)
+    def _posterior(self, problem: FitProblem, theta: Theta, x0: States) -> GaussianPosterior:
+        e = gaussian_posterior(self.smoother, problem.build(theta), x0, problem.data)
         failed = np.asarray(e.status == RESULTS.nonfinite)
         if failed.any():
             warn(
@@ -273,7 +289,7 @@ class LaplaceEM(AbstractFitSolver):
             )
         return e
 
-    def _state(self, problem: FitProblem, theta: Theta, e: _EStep, learner_state) -> FitState:
+    def _state(self, problem: FitProblem, theta: Theta, e: GaussianPosterior, learner_state) -> FitState:
         weights = jnp.asarray(np.where(np.asarray(e.status == RESULTS.nonfinite), 0.0, 1.0))
         weights = weights.astype(e.states.dtype)
         return FitState(
