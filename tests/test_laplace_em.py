@@ -89,7 +89,7 @@ def test_laplace_em_is_exact_em_on_a_linear_gaussian_model():
         _system(A0, C0, Q0, R0, mu0, P0),
         data,
         jnp.zeros(y.shape[:2] + (2,)),
-        solver=ceemx.LaplaceEM(),
+        solver=ceemx.LaplaceEM(acceleration=None),
         trainable=_trainable,
         max_epochs=iters,
         callbacks=[record],
@@ -106,3 +106,166 @@ def test_laplace_em_is_exact_em_on_a_linear_gaussian_model():
     ev = result.history_array("log_evidence")
     assert np.all(np.diff(ev) > 0)  # EM is monotone in the likelihood
     assert np.all(result.history_array("Q_gain") > -1e-8)
+
+
+def test_cubature_expectation_matches_monte_carlo_on_lorenz():
+    """Q(θ) by cubature over pairwise marginals = E_q[−log p(x, y | θ)] by Monte Carlo over q.
+
+    q is the Laplace posterior of a single noisy Lorenz trajectory (dense here: T = 12, n = 3);
+    the certainty-equivalent plug-in −log p(x̂, y | θ) is off by ~18 nats, cubature by < 4 SE.
+    """
+    from ceemx.experiments import common
+    from ceemx.objective import linearize, neg_log_joint_single
+    from ceemx.problem import FitProblem
+
+    true = common.true_lorenz(1, key=jax.random.PRNGKey(4), m=2, process_noise=0.1, obs_noise=0.5)
+    p = common.lorenz_problem(43, true, B=1, T=12, sigma_w=0.1, sigma_v=0.5, coupling=False)
+    smoother = ceemx.LMSmoother(rtol=1e-14)
+    sol = ceemx.smooth(true, p.data, p.states, smoother, covariance=True)
+    x, d = sol.states[0], p.data
+    lin = linearize(lambda s: s, true, x, d.y[0], d.u[0], d.mask[0])
+    cov = jnp.linalg.inv(to_dense(lin.hess_x))
+    chol = jnp.linalg.cholesky(cov)
+    problem, theta = FitProblem.create(true, d, trainable=common.LORENZ_PARAMS)
+    mp = expected_learning_problem(
+        problem, theta, sol.states, sol.covariances, sol.cross_covariances, jnp.ones(1)
+    )
+    z = jax.random.normal(jax.random.PRNGKey(1), (100_000, x.size))
+    xs = x[None] + (z @ chol.T).reshape(-1, *x.shape)
+    for scale in (1.0, 1.05):
+        th = theta * scale
+        system = problem.build(th)
+        q_cub = float(mp.per_trajectory(th)[0])
+        vals = jax.vmap(lambda xx: neg_log_joint_single(system, xx, d.y[0], d.u[0], d.mask[0]))(xs)
+        q_mc, se = float(vals.mean()), float(vals.std() / np.sqrt(vals.size))
+        plug = float(neg_log_joint_single(system, x, d.y[0], d.u[0], d.mask[0]))
+        assert abs(q_cub - q_mc) < 4 * se + 1e-3 * abs(q_mc), (scale, q_cub, q_mc, se)
+        assert abs(plug - q_mc) > 100 * se  # the correction is material
+
+
+def test_cubature_gauss_newton_matches_autodiff():
+    """The M-step's value and gradient agree with autodiff of the expected objective."""
+    y, params = _lg_problem(B=2, T=15)
+    system = _system(*params)
+    data = ceemx.Trajectories(jnp.asarray(y))
+    sol = ceemx.smooth(system, data, jnp.zeros(y.shape[:2] + (2,)), covariance=True)
+    from ceemx.problem import FitProblem
+
+    problem, theta = FitProblem.create(system, data, trainable=lambda s: (s.A, s.C))
+    mp = expected_learning_problem(
+        problem, theta, sol.states, sol.covariances, sol.cross_covariances, jnp.ones(2)
+    )
+    th = theta + 0.05
+    value, grad, hess = mp.gauss_newton(th)
+    np.testing.assert_allclose(value, mp.value(th), rtol=1e-12)
+    np.testing.assert_allclose(grad, jax.grad(mp.value)(th), rtol=1e-9, atol=1e-9)
+    # The model is linear in θ with Gaussian noise: Gauss–Newton is the exact Hessian.
+    np.testing.assert_allclose(hess, jax.hessian(mp.value)(th), rtol=1e-9, atol=1e-8)
+
+
+def test_squarem_reaches_the_em_fixed_point_in_fewer_epochs():
+    """C known (an identifiable model): both reach the same A, Q, R; SQUAREM in fewer epochs."""
+    y, (_, C, _, _, mu0, P0) = _lg_problem(T=60)
+    A0, _, Q0, R0 = _guess()
+    data = ceemx.Trajectories(jnp.asarray(y))
+    x0 = jnp.zeros(y.shape[:2] + (2,))
+    runs = {}
+    for acc in (None, "squarem"):
+        runs[acc] = ceemx.fit(
+            _system(A0, C, Q0, R0, mu0, P0),
+            data,
+            x0,
+            solver=ceemx.LaplaceEM(acceleration=acc, rtol=1e-9),
+            trainable=lambda s: (s.A, s.process_noise, s.obs_noise),
+            max_epochs=400,
+            outliers="keep",
+        )
+    plain, fast = runs[None], runs["squarem"]
+    assert plain.converged and fast.converged
+    assert fast.history[-1]["log_evidence"] >= plain.history[-1]["log_evidence"] - 1e-6
+    np.testing.assert_allclose(fast.system.A, plain.system.A, atol=2e-3)
+    np.testing.assert_allclose(
+        fast.system.obs_noise.covariance(), plain.system.obs_noise.covariance(), atol=2e-3
+    )
+    assert 2 * fast.epochs < plain.epochs
+
+
+def test_learned_diagonal_noise_with_missing_data():
+    """Diagonal scales (one per component) are recovered with a third of the outputs missing."""
+    rng = np.random.default_rng(3)
+    A = jnp.asarray([[0.95, 0.1], [-0.1, 0.9]])
+    C = jnp.eye(2)
+    truth = ceemx.systems.LinearSystem(A, C, process_noise=jnp.asarray([0.1, 0.2]), obs_noise=jnp.asarray([0.3, 0.5]))
+    x1 = jnp.asarray(rng.normal(size=(4, 2)))
+    _, data = ceemx.simulate(truth, jax.random.PRNGKey(0), x1, 400)
+    mask = rng.uniform(size=data.y.shape) > 1 / 3
+    data = ceemx.Trajectories(data.y, mask=jnp.asarray(mask))
+    guess = ceemx.systems.LinearSystem(A, C, process_noise=jnp.asarray([0.5, 0.5]), obs_noise=jnp.asarray([1.0, 1.0]))
+    res = ceemx.fit(
+        guess,
+        data,
+        solver=ceemx.LaplaceEM(),
+        trainable=lambda s: (s.A, s.process_noise, s.obs_noise),
+        max_epochs=500,
+        outliers="keep",
+    )
+    assert res.converged
+    ev = res.history_array("log_evidence")
+    assert np.all(np.diff(ev) > -1e-6 * np.abs(ev[1:]))  # monotone up to round-off
+    se = res.standard_errors()  # observed information of the Laplace evidence (exact here)
+    for field, truth in (("process_noise", [0.1, 0.2]), ("obs_noise", [0.3, 0.5])):
+        est = np.asarray(getattr(res.system, field).scale)
+        err = np.asarray(getattr(se, field).scale)
+        assert np.all((err > 0) & (err < 0.2 * est)), (field, est, err)
+        assert np.all(np.abs(est - truth) < 3 * err), (field, est, err)
+
+
+@pytest.mark.parametrize("solver", [ceemx.Alternating(), ceemx.JointLM(), ceemx.ParticleEM()])
+def test_certainty_equivalent_methods_refuse_trainable_noise(solver):
+    y, params = _lg_problem(B=1, T=10)
+    with pytest.raises(ValueError, match="LaplaceEM"):
+        ceemx.fit(
+            _system(*params),
+            ceemx.Trajectories(jnp.asarray(y)),
+            solver=solver,
+            trainable=lambda s: (s.A, s.obs_noise),
+        )
+
+
+def test_learned_noise_needs_a_gaussian_model():
+    y, (A, C, Q, R, mu0, P0) = _lg_problem(B=1, T=10)
+    system = ceemx.systems.LinearSystem(
+        jnp.asarray(A), jnp.asarray(C), obs_noise=ceemx.StudentT(0.3, 4.0, 2)
+    )
+    with pytest.raises(ValueError, match="DiagonalGaussian or CholeskyGaussian"):
+        ceemx.fit(
+            system,
+            ceemx.Trajectories(jnp.asarray(y)),
+            solver=ceemx.LaplaceEM(),
+            trainable=lambda s: (s.A, s.obs_noise),
+        )
+
+
+def test_laplace_em_resumes_from_a_checkpoint(tmp_path):
+    y, (_, _, _, _, mu0, P0) = _lg_problem()
+    A0, C0, Q0, R0 = _guess()
+    data = ceemx.Trajectories(jnp.asarray(y))
+    x0 = jnp.zeros(y.shape[:2] + (2,))
+
+    def run(epochs, folder):
+        return ceemx.fit(
+            _system(A0, C0, Q0, R0, mu0, P0),
+            data,
+            x0,
+            solver=ceemx.LaplaceEM(),
+            trainable=_trainable,
+            max_epochs=epochs,
+            checkpoint=folder,
+            outliers="keep",
+        )
+
+    straight = run(6, None)
+    run(3, str(tmp_path))
+    resumed = run(6, str(tmp_path))
+    assert resumed.epochs == 6
+    np.testing.assert_allclose(resumed.theta, straight.theta, rtol=1e-9, atol=1e-12)

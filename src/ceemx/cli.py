@@ -188,7 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--method",
         choices=METHODS,
         default=None,
-        help="joint (x, θ) LM, Algorithm 1, or Particle EM (figure3; figure2 runs CE-EM and "
+        help="joint (x, θ) LM, Algorithm 1, Particle EM (figure3), or Laplace EM (table1: EM "
+        "with a Gaussian E-step, likelihood weighting; figure2 runs CE-EM and "
         "Particle EM; figure4: the NL model's CE-EM solver, alternate or joint) (default: "
         "table1 alternate, figure3 joint, figure4 alternate)",
     )

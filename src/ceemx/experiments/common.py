@@ -18,6 +18,7 @@ from .. import (
     Alternating,
     GaussianPrior,
     JointLM,
+    LaplaceEM,
     LMLearner,
     LMSmoother,
     ParticleEM,
@@ -51,7 +52,7 @@ __all__ = [
 ]
 
 TRUE_SIGMA, TRUE_RHO, TRUE_BETA = TRUE_PARAMS
-METHODS = ("joint", "alternate", "particle")
+METHODS = ("joint", "alternate", "particle", "laplace")
 
 
 def enable_x64() -> None:
@@ -130,7 +131,9 @@ def make_solver(
             :class:`ceemx.LMLearner`); ``"joint"`` → :class:`ceemx.JointLM` with proximal weight
             ``rho_x`` on the states (``learner`` unused); ``"particle"`` →
             :class:`ceemx.ParticleEM` (particle filter + FFBSi + SAEM) with ``learner`` as its
-            M-step, the initial-state prior ``initial`` and ``particle_options``.
+            M-step, the initial-state prior ``initial`` and ``particle_options``; ``"laplace"`` →
+            :class:`ceemx.LaplaceEM` (Gaussian E-step, cubature M-step by ``learner``; its smoother
+            has no trust region, ``rho_x`` unused).
         rho_x: ρ_x.
         learner: the θ-step optimiser of Algorithm 1 (or Particle EM's M-step).
         rtol: relative stopping tolerance on the improvement of J (not used by Particle EM,
@@ -149,6 +152,9 @@ def make_solver(
     if method == "alternate":
         learner = LMLearner() if learner is None else learner
         return Alternating(smoother=LMSmoother(rho_x=rho_x), learner=learner, rtol=rtol)
+    if method == "laplace":
+        learner = LMLearner() if learner is None else learner
+        return LaplaceEM(learner=learner, rtol=rtol)
     if method == "particle":
         options = dict(particle_options or {})
         if learner is not None:
