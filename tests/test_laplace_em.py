@@ -10,7 +10,7 @@ from kalman_em_reference import kalman_em, kalman_smoother
 
 import ceemx
 from ceemx.learning import expected_learning_problem
-from ceemx.lib.blocktri import cholesky, to_dense
+from ceemx.lib.blocktri import to_dense
 
 jax.config.update("jax_enable_x64", True)
 
@@ -80,9 +80,7 @@ def test_laplace_em_is_exact_em_on_a_linear_gaussian_model():
 
     def record(info):
         s = info.system
-        seen.append(
-            (s.A, s.C, s.process_noise.covariance(), s.obs_noise.covariance(), info.record)
-        )
+        seen.append((s.A, s.C, s.process_noise.covariance(), s.obs_noise.covariance(), info.record))
 
     data = ceemx.Trajectories(jnp.asarray(y))
     result = ceemx.fit(
@@ -130,13 +128,15 @@ def test_cubature_expectation_matches_monte_carlo_on_lorenz():
     mp = expected_learning_problem(
         problem, theta, sol.states, sol.covariances, sol.cross_covariances, jnp.ones(1)
     )
-    z = jax.random.normal(jax.random.PRNGKey(1), (100_000, x.size))
+    z = jax.random.normal(jax.random.PRNGKey(1), (40_000, x.size))
     xs = x[None] + (z @ chol.T).reshape(-1, *x.shape)
     for scale in (1.0, 1.05):
         th = theta * scale
         system = problem.build(th)
         q_cub = float(mp.per_trajectory(th)[0])
-        vals = jax.vmap(lambda xx: neg_log_joint_single(system, xx, d.y[0], d.u[0], d.mask[0]))(xs)
+        vals = jax.vmap(neg_log_joint_single, in_axes=(None, 0, None, None, None))(
+            system, xs, d.y[0], d.u[0], d.mask[0]
+        )
         q_mc, se = float(vals.mean()), float(vals.std() / np.sqrt(vals.size))
         plug = float(neg_log_joint_single(system, x, d.y[0], d.u[0], d.mask[0]))
         assert abs(q_cub - q_mc) < 4 * se + 1e-3 * abs(q_mc), (scale, q_cub, q_mc, se)
@@ -145,7 +145,7 @@ def test_cubature_expectation_matches_monte_carlo_on_lorenz():
 
 def test_cubature_gauss_newton_matches_autodiff():
     """The M-step's value and gradient agree with autodiff of the expected objective."""
-    y, params = _lg_problem(B=2, T=15)
+    y, params = _lg_problem(B=1, T=6)
     system = _system(*params)
     data = ceemx.Trajectories(jnp.asarray(y))
     sol = ceemx.smooth(system, data, jnp.zeros(y.shape[:2] + (2,)), covariance=True)
@@ -153,7 +153,7 @@ def test_cubature_gauss_newton_matches_autodiff():
 
     problem, theta = FitProblem.create(system, data, trainable=lambda s: (s.A, s.C))
     mp = expected_learning_problem(
-        problem, theta, sol.states, sol.covariances, sol.cross_covariances, jnp.ones(2)
+        problem, theta, sol.states, sol.covariances, sol.cross_covariances, jnp.ones(1)
     )
     th = theta + 0.05
     value, grad, hess = mp.gauss_newton(th)
@@ -195,12 +195,16 @@ def test_learned_diagonal_noise_with_missing_data():
     rng = np.random.default_rng(3)
     A = jnp.asarray([[0.95, 0.1], [-0.1, 0.9]])
     C = jnp.eye(2)
-    truth = ceemx.systems.LinearSystem(A, C, process_noise=jnp.asarray([0.1, 0.2]), obs_noise=jnp.asarray([0.3, 0.5]))
+    truth = ceemx.systems.LinearSystem(
+        A, C, process_noise=jnp.asarray([0.1, 0.2]), obs_noise=jnp.asarray([0.3, 0.5])
+    )
     x1 = jnp.asarray(rng.normal(size=(4, 2)))
     _, data = ceemx.simulate(truth, jax.random.PRNGKey(0), x1, 400)
     mask = rng.uniform(size=data.y.shape) > 1 / 3
     data = ceemx.Trajectories(data.y, mask=jnp.asarray(mask))
-    guess = ceemx.systems.LinearSystem(A, C, process_noise=jnp.asarray([0.5, 0.5]), obs_noise=jnp.asarray([1.0, 1.0]))
+    guess = ceemx.systems.LinearSystem(
+        A, C, process_noise=jnp.asarray([0.5, 0.5]), obs_noise=jnp.asarray([1.0, 1.0])
+    )
     res = ceemx.fit(
         guess,
         data,

@@ -9,6 +9,7 @@ Examples::
     ceemx experiment table1 --seeds 3,7        # exactly seeds 3 and 7
     ceemx experiment table1 --smoke            # seconds; what the tests run
     ceemx experiment figure2                   # CE-EM vs Particle EM, 10 seeds
+    ceemx experiment laplace                   # learned noise + 95 % coverage, 100 seeds
     ceemx experiment figure3 --method particle # Particle EM on six coupled Lorenz
     ceemx experiment figure4                   # helicopter-like study: naive, LSTM, H25, SID, NL
     ceemx experiment figure4 --dataset silverbox  # the same five models on a real record
@@ -170,7 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--max-epochs", type=int, default=None, help="bound on iterations")
 
     exp = sub.add_parser(
-        "experiment", help="run a paper experiment (table1, figure2, figure3, figure4)"
+        "experiment",
+        help="run an experiment (table1, figure2, figure3, figure4, benchmarks, laplace)",
     )
     exp.add_argument("name", choices=EXPERIMENTS, help="which experiment")
     exp.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
@@ -192,6 +194,13 @@ def build_parser() -> argparse.ArgumentParser:
         "with a Gaussian E-step, likelihood weighting; figure2 runs CE-EM and "
         "Particle EM; figure4: the NL model's CE-EM solver, alternate or joint) (default: "
         "table1 alternate, figure3 joint, figure4 alternate)",
+    )
+    exp.add_argument(
+        "--protocol",
+        choices=("ours", "authors"),
+        default=None,
+        help="table1: 'authors' runs the authors' protocol (explicit midpoint, x1 spread 5, zero "
+        "start states, paper weighting, rho_x 0.001, Nelder-Mead with rho_theta 0.01)",
     )
     exp.add_argument(
         "--weighting",
@@ -304,6 +313,10 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
     )
     if args.weighting is not None:
         kwargs["weighting"] = args.weighting
+    if args.protocol is not None:
+        if args.name != "table1":
+            parser.error("--protocol applies to table1 only")
+        kwargs["protocol"] = args.protocol
     if args.name == "figure3":
         kwargs["learner"] = args.learner
     if args.name == "figure4":

@@ -239,9 +239,7 @@ def evidence_covariance(
 
     if weights is None:
         weights = jnp.ones(states.shape[0], states.dtype)
-    smoother = trace_numbers(
-        LMSmoother(rtol=1e-14) if smoother is None else smoother, states.dtype
-    )
+    smoother = trace_numbers(LMSmoother(rtol=1e-14) if smoother is None else smoother, states.dtype)
     w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
     th0 = np.asarray(theta, dtype=np.float64)
     P = th0.size
@@ -260,9 +258,9 @@ def evidence_covariance(
         H[i, i] = (ell(ei) - 2.0 * f0 + ell(-ei)) / h[i] ** 2
         for j in range(i):
             ej = h[j] * eye[j]
-            H[i, j] = H[j, i] = (
-                ell(ei + ej) - ell(ei - ej) - ell(-ei + ej) + ell(-ei - ej)
-            ) / (4.0 * h[i] * h[j])
+            H[i, j] = H[j, i] = (ell(ei + ej) - ell(ei - ej) - ell(-ei + ej) + ell(-ei - ej)) / (
+                4.0 * h[i] * h[j]
+            )
     info = -0.5 * (H + H.T)
     try:
         chol = np.linalg.cholesky(info)

@@ -177,6 +177,7 @@ def true_lorenz(
     dt: float = 0.04,
     process_noise: float = 0.01,
     obs_noise: float = 0.01,
+    integrator: str = "rk4",
 ) -> CoupledLorenz:
     """θ_true of paper §4.1, with C and H drawn from ``key`` (default ``PRNGKey(4)``).
 
@@ -196,6 +197,7 @@ def true_lorenz(
         C,
         H=H,
         dt=dt,
+        integrator=integrator,
         process_noise=process_noise,
         obs_noise=obs_noise,
     )
@@ -237,6 +239,7 @@ def lorenz_problem(
     sigma_w: float = 0.0,
     sigma_v: float = 0.01,
     coupling: bool = True,
+    x1_std: float = INITIAL_STD,
 ) -> LorenzProblem:
     """Seeded data and initial guess for a coupled-Lorenz system (paper §4.1).
 
@@ -246,7 +249,7 @@ def lorenz_problem(
     """
     k_x1, k_sim, k_theta = jax.random.split(jax.random.PRNGKey(seed), 3)
     K = true_system.K
-    x1 = initial_states(k_x1, B, K)
+    x1 = initial_states(k_x1, B, K, std=x1_std)
     pn = DiagonalGaussian(sigma_w, 3 * K) if sigma_w > 0 else False
     on = DiagonalGaussian(sigma_v, true_system.obs_dim) if sigma_v > 0 else False
     xs, data = simulate(true_system, k_sim, x1, T, process_noise=pn, obs_noise=on)

@@ -1,5 +1,6 @@
 """The learning step: θ given the smoothed states (paper Eq. 11)."""
 
+from .expected import ExpectedLearningProblem, expected_learning_problem
 from .learners import (
     AbstractLearner,
     LBFGSLearner,
@@ -8,7 +9,6 @@ from .learners import (
     NelderMeadLearner,
     OptaxLearner,
 )
-from .expected import ExpectedLearningProblem, expected_learning_problem
 from .problem import AbstractLearningProblem, LearningProblem, learning_problem, make_problem
 from .step import learn, run_learner
 

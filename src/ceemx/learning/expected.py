@@ -94,4 +94,3 @@ def expected_learning_problem(
     return ExpectedLearningProblem(
         problem=problem, points=points, pairs=pairs, weights=weights, theta_ref=theta, rho_theta=rho
     )
-

@@ -342,6 +342,9 @@ def _as_period(value: float | int) -> float:
     return float(value)
 
 
+INTEGRATORS = ("rk4", "midpoint", "euler")
+
+
 def rk4_step(vector_field, x, u, t, dt):
     """One classic fourth-order Runge–Kutta step of ẋ = F(x, u, t), u constant over the step."""
     k1 = vector_field(x, u, t)
@@ -375,12 +378,18 @@ class AbstractContinuousSystem(AbstractSystem):
     Attributes:
         dt: the sampling period (keyword-only; a static Python float).
         hold: ``"zoh"`` or ``"foh"`` (keyword-only, static; default ``"zoh"``).
-        substeps: RK4 steps per sample (keyword-only, static; default 1).
+        substeps: integration steps per sample (keyword-only, static; default 1).
+        integrator: ``"rk4"`` (classic fourth-order Runge–Kutta, default), ``"midpoint"``
+            (explicit midpoint, second order — the authors' single-Lorenz scripts) or
+            ``"euler"`` (keyword-only, static).
     """
 
     dt: float = eqx.field(static=True, kw_only=True, converter=_as_period)
     hold: Literal["zoh", "foh"] = eqx.field(static=True, kw_only=True, default="zoh")
     substeps: int = eqx.field(static=True, kw_only=True, default=1)
+    integrator: Literal["rk4", "midpoint", "euler"] = eqx.field(
+        static=True, kw_only=True, default="rk4"
+    )
 
     def __check_init__(self):
         dt = self.dt
@@ -388,6 +397,10 @@ class AbstractContinuousSystem(AbstractSystem):
             raise ValueError(f"`system.dt` must be a positive finite number; got {dt!r}.")
         if self.hold not in ("zoh", "foh"):
             raise ValueError(f"`system.hold` must be 'zoh' or 'foh'; got {self.hold!r}.")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(
+                f"`system.integrator` must be one of {INTEGRATORS}; got {self.integrator!r}."
+            )
         k = self.substeps
         if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
             raise ValueError(f"`system.substeps` must be an integer >= 1; got {k!r}.")
@@ -436,9 +449,9 @@ class AbstractContinuousSystem(AbstractSystem):
         return u
 
     def dynamics(self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]) -> State:
-        """Integrate from time t·dt over one sample with ``substeps`` RK4 steps under ``hold``."""
+        """Integrate from time t·dt over one sample: ``substeps`` steps of ``integrator``."""
         t0 = jnp.asarray(t, x.dtype) * self.dt
-        if self.hold == "zoh" and self.substeps == 1:
+        if self.hold == "zoh" and self.substeps == 1 and self.integrator == "rk4":
             return rk4_step(self.vector_field, x, u, t0, self.dt)
         if self.hold == "foh":
             u0 = self.current_input(u)
@@ -454,7 +467,11 @@ class AbstractContinuousSystem(AbstractSystem):
         def step(k, xx):
             f0 = jnp.asarray(k, x.dtype) / n
             k1 = field(xx, f0)
+            if self.integrator == "euler":
+                return xx + h * k1
             k2 = field(xx + 0.5 * h * k1, f0 + 0.5 / n)
+            if self.integrator == "midpoint":
+                return xx + h * k2
             k3 = field(xx + 0.5 * h * k2, f0 + 0.5 / n)
             k4 = field(xx + h * k3, f0 + 1.0 / n)
             return xx + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)

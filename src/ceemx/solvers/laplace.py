@@ -302,7 +302,9 @@ class LaplaceEM(AbstractFitSolver):
             )
         return e
 
-    def _state(self, problem: FitProblem, theta: Theta, e: GaussianPosterior, learner_state) -> FitState:
+    def _state(
+        self, problem: FitProblem, theta: Theta, e: GaussianPosterior, learner_state
+    ) -> FitState:
         weights = jnp.asarray(np.where(np.asarray(e.status == RESULTS.nonfinite), 0.0, 1.0))
         weights = weights.astype(e.states.dtype)
         return FitState(
