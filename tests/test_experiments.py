@@ -49,6 +49,47 @@ def test_table1_smoke(tmp_path):
     assert "σ ours" in (tmp_path / "table.md").read_text()
 
 
+def test_table1_laplace_smoke(tmp_path):
+    """``ceemx experiment table1 --method laplace --smoke``: Laplace EM, likelihood weighting."""
+    args = ["experiment", "table1", "--method", "laplace", "--smoke", "--out", str(tmp_path)]
+    assert cli.main(args) == 0
+    saved = check_files(tmp_path, "table1.png")
+    assert saved["method"] == "laplace"
+    assert set(saved["results"]) == {"likelihood"}  # the paper's weighting is not a likelihood
+    for setting in saved["results"]["likelihood"].values():
+        for f in setting["fits"]:
+            assert finite([f["sigma"], f["rho"], f["beta"]])
+            assert f["monotone"]  # the Laplace log-evidence never fell
+            assert all(f["se"][p] > 0 for p in table1.PARAMS)
+    assert "95 % CI covers" in saved["table"]
+
+
+def test_table1_authors_protocol_smoke(tmp_path):
+    """``--protocol authors``: explicit midpoint, x₁ spread 5, zero start, Nelder–Mead."""
+    args = ["experiment", "table1", "--protocol", "authors", "--smoke", "--out", str(tmp_path)]
+    assert cli.main(args) == 0
+    saved = check_files(tmp_path, "table1.png")
+    assert saved["protocol"] == "authors" and set(saved["results"]) == {"paper"}
+    fits = [f for s in saved["results"]["paper"].values() for f in s["fits"]]
+    assert all(finite([f["sigma"], f["rho"], f["beta"]]) for f in fits)
+    with pytest.raises(SystemExit):
+        cli.main(["experiment", "figure2", "--protocol", "authors", "--smoke"])
+
+
+def test_laplace_experiment_smoke(tmp_path):
+    """``ceemx experiment laplace --smoke``: learned noise and interval coverage."""
+    assert cli.main(["experiment", "laplace", "--smoke", "--out", str(tmp_path)]) == 0
+    saved = check_files(tmp_path, "laplace.png")
+    assert len(saved["runs"]) == 2
+    for run in saved["runs"]:
+        lap = run["laplace"]
+        assert finite(list(lap["estimate"].values()))
+        assert set(lap["se"]) == {"sigma", "rho", "beta", "sigma_w", "sigma_v"}
+        assert finite(list(run["ce-joint"]["estimate"].values()))
+    table = (tmp_path / "table.md").read_text()
+    assert "Coverage of the nominal 95 % intervals" in table
+
+
 def test_table1_paper_cells():
     assert table1.paper_cell((0.001, 0.01), 0) == "10.011 (0.012)"
     assert table1.paper_cell((0.1, 0.01), 2) == "**2.676 (0.004)**†"  # flagged by the paper
