@@ -97,7 +97,9 @@ def paper_cell(setting: tuple[float, float], i: int) -> str:
 PROTOCOLS = ("ours", "authors")
 #: The authors' protocol (their ``ceem`` scripts for Table 1): explicit-midpoint integration, x₁
 #: spread 5 (not 2.5), states started at zero, the σ_w/σ_v dynamics weighting, a smoothing trust
-#: region ρ_x = 0.001 and a Nelder–Mead learner with ρ_θ = 0.01.
+#: region ρ_x = 0.001 and a Nelder–Mead learner with ρ_θ = 0.01. Nelder–Mead's tolerances are
+#: tightened to 1e-12: under this weighting J changes by only ≈ 0.1 (of ≈ 1024) between β = 2.667
+#: and 2.8, and at the default 1e-8 the simplex stops there (measured: θ 5 % off, "converged").
 AUTHORS = {"integrator": "midpoint", "x1_std": 5.0, "rho_x": 0.001, "rho_theta": 0.01}
 
 
@@ -111,7 +113,7 @@ def fit_one(
         x_init = jnp.zeros(problem.states.shape, problem.states.dtype)
         solver = Alternating(
             smoother=LMSmoother(rho_x=AUTHORS["rho_x"]),
-            learner=NelderMeadLearner(),
+            learner=NelderMeadLearner(rtol=1e-12, atol=1e-12),
             rho_theta=AUTHORS["rho_theta"],
             rtol=rtol,
         )
@@ -150,10 +152,15 @@ def fit_one(
 
 
 def _monotone(res) -> bool:
-    """Whether the method's objective never fell: J for CE-EM, the log-evidence for Laplace EM."""
+    """Whether the method's objective never fell: J for CE-EM, the log-evidence for Laplace EM.
+
+    Laplace EM is monotone only up to its approximation (exact EM on linear-Gaussian models):
+    decreases below 1e-8·|ℓ| + 1e-5 nat — the level of the E-step's approximation and tolerance
+    measured on these problems — are not counted.
+    """
     if res.history and "log_evidence" in res.history[0]:
         ev_ = np.asarray([h["log_evidence"] for h in res.history])
-        return bool(np.all(np.diff(ev_) >= -1e-9 * np.abs(ev_[1:])))
+        return bool(np.all(np.diff(ev_) >= -(1e-8 * np.abs(ev_[1:]) + 1e-5)))
     return ev.is_monotone(res.initial_J, res.history)
 
 
