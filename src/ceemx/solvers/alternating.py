@@ -17,7 +17,13 @@ from ..lib.results import RESULTS, codes
 from ..problem import FitProblem
 from ..smoothing import solver as smoothing_solver
 from ..typing import States, Theta
-from .base import AbstractFitSolver, FitState, starting_state, trajectory_log_likelihood
+from .base import (
+    AbstractFitSolver,
+    FitState,
+    check_alternation,
+    starting_state,
+    trajectory_log_likelihood,
+)
 
 __all__ = ["Alternating"]
 
@@ -53,13 +59,7 @@ class Alternating(AbstractFitSolver):
     }
 
     def __check_init__(self):
-        if not isinstance(self.smoother, smoothing_solver.LMSmoother):
-            raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {self.smoother!r}.")
-        if not isinstance(self.learner, _learners.AbstractLearner):
-            raise TypeError(f"`learner` must be a ceemx learner; got {self.learner!r}.")
-        rho = np.asarray(self.rho_theta)
-        if not (np.all(np.isfinite(rho)) and np.all(rho >= 0)):
-            raise ValueError(f"`rho_theta` must be finite and >= 0; got {self.rho_theta}.")
+        check_alternation(self.smoother, self.learner, self.rho_theta)
 
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray

@@ -27,12 +27,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray, PyTree
 
+from ..learning.learners import AbstractLearner
 from ..lib.results import RESULTS, select
 from ..problem import FitProblem
+from ..smoothing.solver import LMSmoother
 from ..typing import PerTrajectory, Scalar, States, Theta
 
 __all__ = [
     "AbstractFitSolver",
+    "check_alternation",
     "FitState",
     "improvement_converged",
     "objective_scale",
@@ -115,6 +118,17 @@ def improvement_converged(
 def objective_scale(problem: FitProblem, state: FitState) -> float:
     """|J + c| at ``state``: ½‖whitened residuals‖² for Gaussian noise (the scale of rtol)."""
     return abs(total_J(state) + float(_offset(problem, state.theta, state.weights)))
+
+
+def check_alternation(smoother, learner, rho_theta) -> None:
+    """Validate the options of a smoothing + learning solver (Alternating, LaplaceEM)."""
+    if not isinstance(smoother, LMSmoother):
+        raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {smoother!r}.")
+    if not isinstance(learner, AbstractLearner):
+        raise TypeError(f"`learner` must be a ceemx learner; got {learner!r}.")
+    rho = np.asarray(rho_theta)
+    if not (np.all(np.isfinite(rho)) and np.all(rho >= 0)):
+        raise ValueError(f"`rho_theta` must be finite and >= 0; got {rho_theta}.")
 
 
 class AbstractFitSolver(eqx.Module):

@@ -47,7 +47,13 @@ from ..models.system import AbstractSystem
 from ..problem import FitProblem
 from ..smoothing import solver as smoothing_solver
 from ..typing import PerTrajectory, States, Theta
-from .base import AbstractFitSolver, FitState, objective_scale, trajectory_log_likelihood
+from .base import (
+    AbstractFitSolver,
+    FitState,
+    check_alternation,
+    objective_scale,
+    trajectory_log_likelihood,
+)
 
 __all__ = ["GaussianPosterior", "LaplaceEM", "gaussian_posterior", "noise_second_moments"]
 
@@ -284,13 +290,7 @@ class LaplaceEM(AbstractFitSolver):
             raise ValueError(
                 f"`acceleration` must be 'squarem' or None; got {self.acceleration!r}."
             )
-        if not isinstance(self.smoother, smoothing_solver.LMSmoother):
-            raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {self.smoother!r}.")
-        if not isinstance(self.learner, _learners.AbstractLearner):
-            raise TypeError(f"`learner` must be a ceemx learner; got {self.learner!r}.")
-        rho = np.asarray(self.rho_theta)
-        if not (np.all(np.isfinite(rho)) and np.all(rho >= 0)):
-            raise ValueError(f"`rho_theta` must be finite and >= 0; got {self.rho_theta}.")
+        check_alternation(self.smoother, self.learner, self.rho_theta)
 
     def _posterior(self, problem: FitProblem, theta: Theta, x0: States) -> GaussianPosterior:
         e = gaussian_posterior(self.smoother, problem.build(theta), x0, problem.data)
