@@ -39,3 +39,38 @@ def test_compare_reference_smoke(tmp_path):
         assert summary["reference"]["fit_s_median"] > 0
     else:
         assert "reference environment absent" in proc.stdout
+
+
+def _run_script(name: str, tmp_path, *extra) -> subprocess.CompletedProcess:
+    out = tmp_path / f"{name}.json"
+    return subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / f"{name}.py"),
+            "--smoke",
+            "--out",
+            str(out),
+            *extra,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+
+
+@pytest.mark.slow  # compiles the smoother twice (≈ 20 s)
+def test_compare_peers_smoke(tmp_path):
+    proc = _run_script("compare_peers", tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((tmp_path / "compare_peers.json").read_text())
+    assert res["ceemx"]["steady_s_median"] > 0 and res["ceemx"]["rmse"] < 1.0
+    if "dynamax" not in res:
+        assert "dynamax absent" in proc.stdout
+
+
+@pytest.mark.slow  # one fresh process per device count (≈ 40–60 s)
+def test_multi_device_smoke(tmp_path):
+    proc = _run_script("multi_device", tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((tmp_path / "multi_device.json").read_text())
+    assert res
