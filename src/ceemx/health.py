@@ -64,12 +64,12 @@ def trajectory_health(
     problem: FitProblem, theta: Theta, states: States, *, k: float = 5.0, ratio: float = 100.0
 ) -> Health:
     """The robust outlier test of the module notes, at (θ, x)."""
-    from .objective import nll_offset
+    from .problem import per_trajectory_nll, per_trajectory_offset
 
     data = problem.data
-    nll = np.asarray(problem.per_trajectory(theta, states), dtype=np.float64)
+    nll = np.asarray(per_trajectory_nll(problem, theta, states), dtype=np.float64)
     system = problem.build(theta)
-    c = np.asarray(nll_offset(system, data), dtype=np.float64)
+    c = np.asarray(per_trajectory_offset(problem, theta), dtype=np.float64)
     B, T, _ = data.y.shape
     n = system.state_dim
     count = (T - 1) * n + np.asarray(data.mask).reshape(B, -1).sum(axis=1)

@@ -38,7 +38,14 @@ from .models.system import AbstractSystem
 from .objective import neg_log_joint_single, nll_offset
 from .typing import PerTrajectory, Scalar, States, Theta
 
-__all__ = ["FitProblem", "Trainable", "split_system", "trainable_mask"]
+__all__ = [
+    "FitProblem",
+    "Trainable",
+    "per_trajectory_nll",
+    "per_trajectory_offset",
+    "split_system",
+    "trainable_mask",
+]
 
 Trainable = Callable[[AbstractSystem], Any] | PyTree | None
 """Which leaves of a system learn: see :func:`trainable_mask`."""
@@ -244,3 +251,18 @@ class FitProblem(eqx.Module):
             return zero, jnp.zeros((P,), theta.dtype), jnp.zeros((P, P), theta.dtype)
         value, grad = jax.value_and_grad(self.neg_log_prior)(theta)
         return value, grad, symmetrize(jax.hessian(self.neg_log_prior)(theta))
+
+
+@eqx.filter_jit
+def per_trajectory_nll(problem: FitProblem, theta: Theta, states: States) -> PerTrajectory:
+    """(B,) −J_b(x_b, θ), compiled once per problem shape.
+
+    Shared by the solvers and the health test: one program, not an op-by-op evaluation.
+    """
+    return problem.per_trajectory(theta, states)
+
+
+@eqx.filter_jit
+def per_trajectory_offset(problem: FitProblem, theta: Theta) -> PerTrajectory:
+    """(B,) the x-independent constants of −J_b (see :meth:`FitProblem.offset`), compiled."""
+    return nll_offset(problem.build(theta), problem.data)

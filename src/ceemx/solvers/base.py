@@ -29,7 +29,7 @@ from jaxtyping import PRNGKeyArray, PyTree
 
 from ..learning.learners import AbstractLearner
 from ..lib.results import RESULTS, select
-from ..problem import FitProblem
+from ..problem import FitProblem, per_trajectory_nll
 from ..smoothing.solver import LMSmoother
 from ..typing import PerTrajectory, Scalar, States, Theta
 
@@ -68,10 +68,9 @@ class FitState(eqx.Module):
     cache: PyTree = None
 
 
-@eqx.filter_jit
 def trajectory_log_likelihood(problem: FitProblem, theta: Theta, states: States) -> PerTrajectory:
-    """(B,) J_b(x_b, θ), compiled once per problem shape."""
-    return -problem.per_trajectory(theta, states)
+    """(B,) J_b(x_b, θ), compiled once per problem shape (``problem.per_trajectory_nll``)."""
+    return -per_trajectory_nll(problem, theta, states)
 
 
 @eqx.filter_jit
