@@ -308,3 +308,48 @@ def test_laplace_evidence_matches_the_particle_filter_likelihood():
     np.testing.assert_allclose(lap, pf, atol=1.0)
     assert np.argmax(lap) <= 1 and np.argmax(pf) <= 1  # σ_w ≈ 0.07–0.075 is the likelier
     assert min(pf[0], pf[1]) - pf[3] > 3.0  # ... by several nats over the truth 0.1
+
+
+def test_parameters_saturated_at_a_bound_survive_learned_noise():
+    """A constrained parameter at its bound in float64 (sigmoid = 1.0 exactly) must not break
+    the noise split (natural → unconstrained would give ±∞): θ stays in unconstrained units."""
+    import equinox as eqx
+
+    from ceemx.problem import FitProblem
+    from ceemx.solvers.laplace import _NoiseSplit
+
+    class Bounded(ceemx.AbstractSystem):
+        a: jax.Array = ceemx.param(lower=0.1, upper=1.0)
+
+        @property
+        def state_dim(self):
+            return 1
+
+        @property
+        def obs_dim(self):
+            return 1
+
+        def dynamics(self, x, u, t):
+            return self.a * x
+
+        def observe(self, x, u, t):
+            return x
+
+    system = Bounded(a=jnp.asarray(0.5), process_noise=0.1, obs_noise=0.2)
+    data = ceemx.Trajectories(jnp.ones((1, 5, 1)))
+    problem, theta = FitProblem.create(
+        system, data, trainable=lambda s: (s.a, s.process_noise, s.obs_noise)
+    )
+    from jax.flatten_util import ravel_pytree
+
+    unravel = ravel_pytree(problem.template)[1]
+    # sigmoid(60) == 1.0 in float64: a is at its upper bound.
+    theta = ravel_pytree(eqx.tree_at(lambda s: s.a, unravel(theta), jnp.asarray(60.0)))[0]
+    split = _NoiseSplit.of(problem, theta)
+    assert split.inner is not None
+    built = problem.build(theta)
+    assert float(built.a) == 1.0
+    noisier = eqx.tree_at(lambda s: s.obs_noise, built, ceemx.DiagonalGaussian(0.3, 1))
+    joined = split.join(split.theta_inner, noisier)
+    assert np.all(np.isfinite(joined)) and float(unravel(joined).a) == 60.0
+    assert float(problem.build(joined).obs_noise.scale) == pytest.approx(0.3)

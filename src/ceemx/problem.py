@@ -51,7 +51,9 @@ Trainable = Callable[[AbstractSystem], Any] | PyTree | None
 """Which leaves of a system learn: see :func:`trainable_mask`."""
 
 
-def trainable_mask(system: AbstractSystem, trainable: Trainable = None) -> PyTree:
+def trainable_mask(
+    system: AbstractSystem, trainable: Trainable = None, *, noise: bool = False
+) -> PyTree:
     """A boolean pytree over ``system`` marking the leaves that learn.
 
     Args:
@@ -61,11 +63,23 @@ def trainable_mask(system: AbstractSystem, trainable: Trainable = None) -> PyTre
             learn (as in ``eqx.tree_at``), e.g. ``lambda s: (s.sigma, s.rho, s.beta)``; or a boolean
             pytree with the structure of ``system`` (an Equinox filter spec).
 
+        noise: also mark the floating-point leaves of ``process_noise`` and ``obs_noise`` (for
+            :class:`ceemx.LaplaceEM`, which learns noise covariances:
+            ``fit(model, data, solver=ceemx.LaplaceEM(), trainable=trainable_mask(model,
+            noise=True))``).
+
     Returns:
         Booleans with the structure of ``system``. Leaves of fields declared
         ``ceemx.param(fixed=True)`` are always ``False``, whatever ``trainable`` selects.
     """
-    return _drop_fixed(system, _selected(system, trainable))
+    mask = _drop_fixed(system, _selected(system, trainable))
+    if noise:
+        on = tuple(
+            jtu.tree_map(eqx.is_inexact_array, getattr(system, f))
+            for f in ("process_noise", "obs_noise")
+        )
+        mask = eqx.tree_at(lambda s: (s.process_noise, s.obs_noise), mask, replace=on)
+    return mask
 
 
 def _selected(system: AbstractSystem, trainable: Trainable) -> PyTree:
@@ -193,24 +207,6 @@ class FitProblem(eqx.Module):
             natural = [c.forward(z) for c, z in zip(self.constraints, leaves, strict=True)]
             params = jtu.tree_unflatten(treedef, natural)
         return eqx.combine(params, self.static)
-
-    def flatten(self, system: AbstractSystem) -> Theta:
-        """The flat unconstrained θ of ``system``'s trainable leaves (the inverse of :meth:`build`).
-
-        ``system`` must have this problem's structure (e.g. ``build(θ)`` with some leaves
-        replaced); its non-trainable leaves are ignored.
-        """
-        params = jtu.tree_map(
-            lambda t, leaf: None if t is None else leaf,
-            self.template,
-            system,
-            is_leaf=lambda v: v is None,
-        )
-        leaves, treedef = jtu.tree_flatten(params)
-        if any(not isinstance(c, Unconstrained) for c in self.constraints):
-            leaves = [c.inverse(x) for c, x in zip(self.constraints, leaves, strict=True)]
-        theta, _ = ravel_pytree(jtu.tree_unflatten(treedef, leaves))
-        return theta
 
     def trains(self, field: str) -> bool:
         """Whether any leaf of the system's top-level ``field`` (e.g. ``"obs_noise"``) is in θ."""

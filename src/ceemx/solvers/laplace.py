@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._warnings import warn
@@ -228,21 +229,12 @@ def _check_learned_noise(problem: FitProblem, system: AbstractSystem) -> tuple[s
     return learned
 
 
-def _model_mask(problem: FitProblem) -> Any:
-    """The problem's trainable mask (structure of the system) with the noise fields switched off."""
-    mask = jtu.tree_map(lambda v: v is not None, problem.template, is_leaf=lambda v: v is None)
-    for field in _NOISE_FIELDS:
-        sub = getattr(mask, field)
-        off = jtu.tree_map(lambda _: False, sub)
-        mask = eqx.tree_at(lambda s, f=field: getattr(s, f), mask, replace=off)
-    return mask
-
-
 class LaplaceEM(AbstractFitSolver):
     """Laplace (MAP-) EM: Gaussian E-step around the MAP trajectory, cubature M-step (module docs).
 
     Learns noise covariances: select the noise models' leaves in ``fit(trainable=...)`` (e.g.
-    ``lambda s: (s.sigma, s.process_noise, s.obs_noise)``); DiagonalGaussian scales (scalar or
+    ``lambda s: (s.sigma, s.process_noise, s.obs_noise)``, or every model parameter and the noise:
+    ``ceemx.problem.trainable_mask(model, noise=True)``); DiagonalGaussian scales (scalar or
     per component) and CholeskyGaussian factors are updated in closed form each epoch. Only this
     solver accepts trainable noise: the CE-EM objective is unbounded in the noise scales.
 
@@ -332,17 +324,18 @@ class LaplaceEM(AbstractFitSolver):
         weights = jnp.where(e.status == RESULTS.nonfinite, 0.0, 1.0).astype(e.states.dtype)
         learned = _check_learned_noise(problem, problem.build(theta))
         t0 = time.perf_counter()
+        split = _NoiseSplit.of(problem, theta)
+        theta_inner = split.theta_inner
         system = problem.build(theta)
-        inner, theta_inner = _inner_problem(problem, system)
-        if inner is not None:
+        if split.inner is not None and theta_inner is not None:
             mp = expected_learning_problem(
-                inner, theta_inner, e.states, e.covariances, e.cross, weights, self.rho_theta
+                split.inner, theta_inner, e.states, e.covariances, e.cross, weights, self.rho_theta
             )
-            theta_new, learner_state, info = learning_step.run_learner(
+            theta_inner, learner_state, info = learning_step.run_learner(
                 self.learner, mp, theta_inner, learner_state
             )
-            theta_new.block_until_ready()
-            system = inner.build(theta_new)
+            theta_inner.block_until_ready()
+            system = split.inner.build(theta_inner)
             record["Q_gain"] += float(info.value_before) - float(info.value_after)
             record["learner_steps"] += int(info.steps)
             record["learner_status"] = max(record["learner_status"], int(codes(info.status)))
@@ -352,7 +345,7 @@ class LaplaceEM(AbstractFitSolver):
             for field in learned:
                 noise = _updated_noise(getattr(system, field), field, moments)
                 system = eqx.tree_at(lambda s, f=field: getattr(s, f), system, replace=noise)
-        theta_new = problem.flatten(system).astype(theta.dtype)
+        theta_new = split.join(theta_inner, system).astype(theta.dtype)
         record["learn_time"] += time.perf_counter() - t0
         e_new = self._timed_posterior(problem, theta_new, e.states, record)
         return theta_new, learner_state, e_new
@@ -448,11 +441,62 @@ def _total(values, weights) -> float:
     return float(np.sum(np.where(w > 0, np.asarray(values), 0.0)))
 
 
-def _inner_problem(problem: FitProblem, system: AbstractSystem) -> tuple[FitProblem | None, Any]:
-    """The M-step's problem over the non-noise θ, the noise fixed at ``system``'s (or ``None``)."""
-    if not any(problem.trains(f) for f in _NOISE_FIELDS):
-        return problem, problem.flatten(system)
-    mask = _model_mask(problem)
-    if not any(jtu.tree_leaves(mask)):
-        return None, None
-    return FitProblem.create(system, problem.data, trainable=mask, log_prior=problem.log_prior)
+class _NoiseSplit:
+    """θ split into the model part (learned by the M-step's learner) and the learned noise leaves.
+
+    Built from the problem's template in *unconstrained* coordinates: the model part keeps its
+    values as they are (never mapped to natural units and back, which would send a parameter
+    saturated at a bound to ±∞), and the noise leaves — unconstrained, so natural — are fixed in
+    the inner problem's static part at their current values.
+    """
+
+    def __init__(self, problem: FitProblem, theta: Theta):
+        self.problem = problem
+        self.theta = theta
+        learned = [f for f in _NOISE_FIELDS if problem.trains(f)]
+        _, self.unravel = ravel_pytree(problem.template)
+        if not learned:
+            self.inner, self.theta_inner, self.marks = problem, theta, None
+            return
+        marks = jtu.tree_map(lambda _: False, problem.template)
+        for f in learned:
+            sub = jtu.tree_map(lambda _: True, getattr(marks, f))
+            marks = eqx.tree_at(lambda s, f=f: getattr(s, f), marks, replace=sub)
+        self.marks = jtu.tree_leaves(marks)
+        params = self.unravel(theta)
+        model = jtu.tree_map(lambda x, m: None if m else x, params, marks)
+        if not jtu.tree_leaves(model):  # only noise is learned
+            self.inner, self.theta_inner = None, None
+            return
+        noise = jtu.tree_map(lambda x, m: x if m else None, params, marks)
+        constraints = tuple(
+            c for c, m in zip(problem.constraints, self.marks, strict=True) if not m
+        )
+        self.inner = FitProblem(
+            model, eqx.combine(noise, problem.static), problem.data, problem.log_prior, constraints
+        )
+        self.theta_inner = ravel_pytree(model)[0]
+
+    @classmethod
+    def of(cls, problem: FitProblem, theta: Theta) -> _NoiseSplit:
+        """The split of θ for ``problem``."""
+        return cls(problem, theta)
+
+    def join(self, theta_inner: Array | None, system: AbstractSystem) -> Theta:
+        """The full θ: the model part from ``theta_inner``, the noise leaves from ``system``."""
+        if self.marks is None:
+            assert theta_inner is not None
+            return theta_inner
+        template = self.problem.template
+        mask = jtu.tree_map(lambda v: v is not None, template, is_leaf=lambda v: v is None)
+        natural = jtu.tree_leaves(eqx.filter(system, mask))
+        old = jtu.tree_leaves(self.unravel(self.theta))
+        model: list = []
+        if self.inner is not None and theta_inner is not None:
+            model = jtu.tree_leaves(ravel_pytree(self.inner.template)[1](theta_inner))
+        model_leaves = iter(model)
+        out = [
+            jnp.asarray(nat, o.dtype).reshape(o.shape) if m else next(model_leaves)
+            for o, nat, m in zip(old, natural, self.marks, strict=True)
+        ]
+        return jnp.concatenate([jnp.ravel(a) for a in out]) if out else self.theta
