@@ -74,3 +74,15 @@ def test_multi_device_smoke(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads((tmp_path / "multi_device.json").read_text())
     assert res
+
+
+@pytest.mark.slow  # a fresh process compiles two fit solvers on K = 6 (≈ 30 s)
+def test_compare_reference_figure3_smoke(tmp_path):
+    proc = _run_script("compare_reference_figure3", tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((tmp_path / "compare_reference_figure3.json").read_text())
+    for method in ("alternate", "joint"):
+        eps = res["summary"][method]["eps_per_epoch"]
+        assert len(eps) == 2 and all(e > 0 for e in eps)
+    joint = res["summary"]["joint"]["eps_per_epoch"]
+    assert joint[-1] < joint[0]
