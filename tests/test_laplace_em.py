@@ -345,7 +345,7 @@ def test_parameters_saturated_at_a_bound_survive_learned_noise():
     unravel = ravel_pytree(problem.template)[1]
     # sigmoid(60) == 1.0 in float64: a is at its upper bound.
     theta = ravel_pytree(eqx.tree_at(lambda s: s.a, unravel(theta), jnp.asarray(60.0)))[0]
-    split = _NoiseSplit.of(problem, theta)
+    split = _NoiseSplit(problem, theta)
     assert split.inner is not None
     built = problem.build(theta)
     assert float(built.a) == 1.0

@@ -17,6 +17,7 @@ only Gaussian ones. Tested against Monte Carlo over q in ``tests/test_laplace_em
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
@@ -69,6 +70,7 @@ class ExpectedLearningProblem(AbstractLearningProblem):
         )(self.points, self.pairs, data.y, data.u, data.mask)
 
 
+@eqx.filter_jit
 def cubature_points(
     states: States, covariances: Float[Array, "B T n n"], cross: Float[Array, "B T-1 n n"]
 ) -> tuple[Float[Array, "B T K n"], Float[Array, "B T-1 K2 n2"]]:

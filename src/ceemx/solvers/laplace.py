@@ -41,9 +41,9 @@ from .._warnings import warn
 from ..data import Trajectories
 from ..learning import learners as _learners
 from ..learning import step as learning_step
-from ..learning.expected import cubature_points, expected_learning_problem
+from ..learning.expected import ExpectedLearningProblem, cubature_points
 from ..lib.results import RESULTS, codes, select
-from ..models.noise import AbstractGaussianNoise, CholeskyGaussian, DiagonalGaussian
+from ..models.noise import CholeskyGaussian, DiagonalGaussian
 from ..models.system import AbstractSystem
 from ..problem import FitProblem
 from ..smoothing import solver as smoothing_solver
@@ -141,14 +141,12 @@ def noise_second_moments(
     Returns a dict: ``dyn`` (n, n) Σ_b w_b Σ_t E[r^w_t r^wᵀ_t] and ``dyn_count`` Σ_b w_b (T−1);
     ``obs_diag`` (m,) Σ_b w_b Σ_t mask·E[(r^v_t)²] and ``obs_count`` (m,) Σ_b w_b Σ_t mask;
     ``obs_full`` (m, m) the same with missing components filled in from their conditional under
-    the current observation covariance (for full covariances) and ``obs_full_count`` Σ_b w_b T.
+    the current observation covariance (computed for a CholeskyGaussian observation noise, the
+    only one that uses it; otherwise the unfilled moments) and ``obs_full_count`` Σ_b w_b T.
     """
     n = points.shape[-1]
-    R = (
-        system.obs_noise.covariance()
-        if isinstance(system.obs_noise, AbstractGaussianNoise)
-        else jnp.eye(data.obs_dim, dtype=points.dtype)
-    )
+    obs = system.obs_noise  # only a full covariance uses the filled moment
+    R = obs.covariance() if isinstance(obs, CholeskyGaussian) else None
     T = points.shape[1]
     ts = jnp.arange(T)
 
@@ -156,7 +154,7 @@ def noise_second_moments(
         def obs_step(xs, yt, ut, mk, t):
             v = jax.vmap(lambda x: jnp.where(mk, yt - system.observe(x, ut, t), 0.0))(xs)
             S = jnp.einsum("ki,kj->ij", v, v) / xs.shape[0]
-            return S, _masked_fill(S, R, mk)
+            return S, (_masked_fill(S, R, mk) if R is not None else S)
 
         S_obs, S_full = jax.vmap(obs_step)(xp, y, u, mask, ts)
 
@@ -284,10 +282,12 @@ class LaplaceEM(AbstractFitSolver):
             )
         check_alternation(self.smoother, self.learner, self.rho_theta)
 
-    def _posterior(self, problem: FitProblem, theta: Theta, x0: States) -> GaussianPosterior:
+    def _posterior(
+        self, problem: FitProblem, theta: Theta, x0: States, *, quiet: bool = False
+    ) -> GaussianPosterior:
         e = gaussian_posterior(self.smoother, problem.build(theta), x0, problem.data)
         failed = np.asarray(e.status == RESULTS.nonfinite)
-        if failed.any():
+        if failed.any() and not quiet:
             warn(
                 f"the E-step failed (non-finite objective or covariance) on trajectories "
                 f"{np.flatnonzero(failed).tolist()}; they are excluded from the M-step."
@@ -297,13 +297,11 @@ class LaplaceEM(AbstractFitSolver):
     def _state(
         self, problem: FitProblem, theta: Theta, e: GaussianPosterior, learner_state
     ) -> FitState:
-        weights = jnp.asarray(np.where(np.asarray(e.status == RESULTS.nonfinite), 0.0, 1.0))
-        weights = weights.astype(e.states.dtype)
         return FitState(
             theta=theta,
             states=e.states,
             J=trajectory_log_likelihood(problem, theta, e.states),
-            weights=weights,
+            weights=_weights(e),
             status=e.status,
             solver_state=(learner_state, e.log_evidence),
             cache=e,
@@ -321,15 +319,20 @@ class LaplaceEM(AbstractFitSolver):
         self, problem: FitProblem, theta: Theta, e: GaussianPosterior, learner_state, record: dict
     ) -> tuple[Theta, Any, GaussianPosterior]:
         """One EM update θ → M(θ): the M-step from the posteriors ``e`` at θ, then the E-step."""
-        weights = jnp.where(e.status == RESULTS.nonfinite, 0.0, 1.0).astype(e.states.dtype)
-        learned = _check_learned_noise(problem, problem.build(theta))
+        weights = _weights(e)
         t0 = time.perf_counter()
-        split = _NoiseSplit.of(problem, theta)
+        split = _NoiseSplit(problem, theta)
+        points, pairs = cubature_points(e.states, e.covariances, e.cross)
         theta_inner = split.theta_inner
         system = problem.build(theta)
         if split.inner is not None and theta_inner is not None:
-            mp = expected_learning_problem(
-                split.inner, theta_inner, e.states, e.covariances, e.cross, weights, self.rho_theta
+            mp = ExpectedLearningProblem(
+                problem=split.inner,
+                points=points,
+                pairs=pairs,
+                weights=weights,
+                theta_ref=theta_inner,
+                rho_theta=jnp.asarray(self.rho_theta, theta.dtype),
             )
             theta_inner, learner_state, info = learning_step.run_learner(
                 self.learner, mp, theta_inner, learner_state
@@ -339,10 +342,9 @@ class LaplaceEM(AbstractFitSolver):
             record["Q_gain"] += float(info.value_before) - float(info.value_after)
             record["learner_steps"] += int(info.steps)
             record["learner_status"] = max(record["learner_status"], int(codes(info.status)))
-        if learned:
-            points, pairs = cubature_points(e.states, e.covariances, e.cross)
+        if split.learned:
             moments = noise_second_moments(system, points, pairs, problem.data, weights)
-            for field in learned:
+            for field in split.learned:
                 noise = _updated_noise(getattr(system, field), field, moments)
                 system = eqx.tree_at(lambda s, f=field: getattr(s, f), system, replace=noise)
         theta_new = split.join(theta_inner, system).astype(theta.dtype)
@@ -350,9 +352,9 @@ class LaplaceEM(AbstractFitSolver):
         e_new = self._timed_posterior(problem, theta_new, e.states, record)
         return theta_new, learner_state, e_new
 
-    def _timed_posterior(self, problem, theta, x0, record) -> GaussianPosterior:
+    def _timed_posterior(self, problem, theta, x0, record, quiet=False) -> GaussianPosterior:
         t0 = time.perf_counter()
-        e = self._posterior(problem, theta, x0)
+        e = self._posterior(problem, theta, x0, quiet=quiet)
         record["smooth_time"] += time.perf_counter() - t0
         record["smoother_steps"] = max(record["smoother_steps"], int(jnp.max(e.iterations)))
         return e
@@ -376,26 +378,11 @@ class LaplaceEM(AbstractFitSolver):
         theta, e = th1, e1
         if self.acceleration == "squarem":
             th2, learner_state, e2 = self._em_update(problem, th1, e1, learner_state, record)
-            theta, e, alpha = th2, e2, None
-            r = th1 - th0
-            v = th2 - th1 - r
-            nv = float(jnp.linalg.norm(v))
-            if nv > 0 and np.isfinite(nv):
-                alpha = min(-float(jnp.linalg.norm(r)) / nv, -1.0)
-                th_x = th0 - 2.0 * alpha * r + alpha**2 * v
-                if _valid(problem, th_x):
-                    e_x = self._timed_posterior(problem, th_x, e2.states, record)
-                    if _all_finite(e_x):
-                        th3, ls3, e3 = self._em_update(problem, th_x, e_x, learner_state, record)
-                        if _total(e3.log_evidence, 1.0) >= _total(e2.log_evidence, 1.0):
-                            theta, e, learner_state = th3, e3, ls3
-                        else:
-                            alpha = None  # the extrapolation lost: keep the two plain updates
-                    else:
-                        alpha = None
-                else:
-                    alpha = None
-            record["squarem_alpha"] = alpha
+            theta, e = th2, e2
+            extrapolated = self._extrapolate(problem, th0, th1, th2, e2, learner_state, record)
+            record["squarem_alpha"] = None if extrapolated is None else extrapolated[0]
+            if extrapolated is not None:
+                _, theta, e, learner_state = extrapolated
         new = self._state(problem, theta, e, learner_state)
         system = problem.build(theta)
         for field in _NOISE_FIELDS:
@@ -404,6 +391,30 @@ class LaplaceEM(AbstractFitSolver):
                 record[f"{field}_std"] = np.sqrt(np.diagonal(cov)).tolist()
         record["log_evidence"] = _total(e.log_evidence, new.weights)
         return new, record
+
+    def _extrapolate(self, problem, th0, th1, th2, e2, learner_state, record):
+        """SQUAREM's step from θ₀ through M(θ₀), M(M(θ₀)), stabilised by one more EM update.
+
+        Returns (α, θ, posteriors, learner state), or ``None`` when the extrapolated point is
+        invalid (a noise scale crossed zero, a posterior is not finite) or its stabilised update
+        has less evidence than θ₂ — then the two plain updates stand.
+        """
+        r = th1 - th0
+        v = th2 - th1 - r
+        nv = float(jnp.linalg.norm(v))
+        if not (nv > 0 and np.isfinite(nv)):
+            return None
+        alpha = min(-float(jnp.linalg.norm(r)) / nv, -1.0)
+        th_x = th0 - 2.0 * alpha * r + alpha**2 * v
+        if not _valid(problem, th_x):
+            return None
+        e_x = self._timed_posterior(problem, th_x, e2.states, record, quiet=True)
+        if not bool(jnp.all(e_x.status != RESULTS.nonfinite)):
+            return None
+        th3, ls3, e3 = self._em_update(problem, th_x, e_x, learner_state, record)
+        if _total(e3.log_evidence, 1.0) < _total(e2.log_evidence, 1.0):
+            return None
+        return alpha, th3, e3, ls3
 
     def terminate(
         self, problem: FitProblem, before: FitState, after: FitState, record: dict[str, Any]
@@ -432,8 +443,9 @@ def _valid(problem: FitProblem, theta: Theta) -> bool:
     return True
 
 
-def _all_finite(e: GaussianPosterior) -> bool:
-    return bool(jnp.all(e.status != RESULTS.nonfinite))
+def _weights(e: GaussianPosterior) -> PerTrajectory:
+    """(B,) 1 where the E-step succeeded, 0 where it failed (excluded from the M-step)."""
+    return jnp.where(e.status == RESULTS.nonfinite, 0.0, 1.0).astype(e.states.dtype)
 
 
 def _total(values, weights) -> float:
@@ -453,7 +465,8 @@ class _NoiseSplit:
     def __init__(self, problem: FitProblem, theta: Theta):
         self.problem = problem
         self.theta = theta
-        learned = [f for f in _NOISE_FIELDS if problem.trains(f)]
+        learned = tuple(f for f in _NOISE_FIELDS if problem.trains(f))
+        self.learned = learned
         _, self.unravel = ravel_pytree(problem.template)
         if not learned:
             self.inner, self.theta_inner, self.marks = problem, theta, None
@@ -476,11 +489,6 @@ class _NoiseSplit:
             model, eqx.combine(noise, problem.static), problem.data, problem.log_prior, constraints
         )
         self.theta_inner = ravel_pytree(model)[0]
-
-    @classmethod
-    def of(cls, problem: FitProblem, theta: Theta) -> _NoiseSplit:
-        """The split of θ for ``problem``."""
-        return cls(problem, theta)
 
     def join(self, theta_inner: Array | None, system: AbstractSystem) -> Theta:
         """The full θ: the model part from ``theta_inner``, the noise leaves from ``system``."""
