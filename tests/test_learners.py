@@ -284,3 +284,55 @@ def test_minibatch_optax_learner_decreases_objective(exact):
         system, states, data, learner, trainable=where_theta, learner_state=state
     )
     assert float(info2.value_after) < float(info2.value_before)
+
+
+def test_lm_driver_lazy_linearisation_takes_the_same_steps():
+    """With ``value=`` the LM driver forms linearisations only at accepted points that continue,
+    and takes exactly the eager driver's steps (Rosenbrock as a least-squares problem)."""
+    import numpy as np
+
+    from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
+
+    calls = {"eager": 0, "lazy": 0}
+
+    def residual(z):
+        return jnp.stack([10.0 * (z[1] - z[0] ** 2), 1.0 - z[0]])
+
+    def make_evaluate(tag):
+        def evaluate(z):
+            jax.debug.callback(lambda: calls.__setitem__(tag, calls[tag] + 1))
+            r = residual(z)
+            J = jax.jacfwd(residual)(z)
+            return 0.5 * r @ r, (J.T @ r, J.T @ J)
+
+        return evaluate
+
+    def solve(lin, lam):
+        g, H = lin
+        return jnp.linalg.solve(H + jnp.diag(marquardt_scale(jnp.diagonal(H), lam)), -g), True
+
+    def run(tag, value):
+        out = levenberg_marquardt(
+            make_evaluate(tag),
+            lambda lin: lin[0],
+            solve,
+            lambda lin, d: d @ lin[1] @ d,
+            jnp.array([-1.2, 1.0]),
+            rtol=1e-14,
+            atol=0.0,
+            max_steps=200,
+            damping=1e-3,
+            value=value,
+        )
+        return jax.block_until_ready(out)
+
+    eager = run("eager", None)
+    lazy = run("lazy", lambda z: 0.5 * jnp.sum(residual(z) ** 2))
+    np.testing.assert_allclose(np.asarray(lazy.z), [1.0, 1.0], atol=1e-8)
+    np.testing.assert_array_equal(np.asarray(lazy.z), np.asarray(eager.z))
+    assert int(lazy.steps) == int(eager.steps) and int(lazy.accepted) == int(eager.accepted)
+    assert int(lazy.steps) > int(lazy.accepted)  # some trials were rejected
+    assert lazy.lin is None
+    # eager: the start plus every trial; lazy: the start plus accepted points that continued
+    assert calls["eager"] == 1 + int(eager.steps)
+    assert calls["lazy"] == int(lazy.accepted)

@@ -106,6 +106,10 @@ class LMLearner(AbstractLearner):
             max_steps=self.max_steps,
             damping=self.damping,
             init=init,
+            # Trial points need only the objective's value: the dense Gauss–Newton matrix is formed
+            # only where a step was accepted and another one follows (not at rejected trials nor
+            # at the final point).
+            value=lambda th: problem.value(th) - offset,
         )
         v0 = init[0] + offset
         return out.z, state, LearnInfo(v0, out.value + offset, out.steps, out.status)

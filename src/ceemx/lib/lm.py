@@ -56,6 +56,7 @@ def levenberg_marquardt(
     damping: float | jax.Array,
     max_accepted: int | None = None,
     init: tuple[jax.Array, Any] | None = None,
+    value: Callable[[Any], jax.Array] | None = None,
 ) -> LMOutput:
     """Minimise a function by Levenberg–Marquardt.
 
@@ -75,6 +76,12 @@ def levenberg_marquardt(
             one call is one LM iteration whose final λ (``LMOutput.damping``) seeds the next call.
         init: ``evaluate(z0)`` when the caller already has it (e.g. the linearisation at the point
             accepted by the previous call); saves one evaluation.
+        value: ``z -> f`` alone, when it is much cheaper than ``evaluate`` (a dense Gauss–Newton
+            matrix). Trial points are then judged by their value only and the linearisation is
+            formed lazily, at the start of the iteration after an accepted step: rejected trials
+            and the final accepted point cost one value each instead of a linearisation.
+            ``LMOutput.lin`` is then ``None``. Not for ``vmap``-ped use (the lazy linearisation is a
+            ``lax.cond``, which ``vmap`` turns into computing both branches).
 
     Returns:
         An :class:`LMOutput`: the last accepted point with its value and linearisation.
@@ -92,6 +99,7 @@ def levenberg_marquardt(
         jnp.asarray(0),
         ~finite0,
         RESULTS.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite),
+        jnp.asarray(False),  # lazy mode: lin is not yet formed at z
     )
 
     def tol(f):
@@ -104,17 +112,25 @@ def levenberg_marquardt(
         return going
 
     def body(s):
-        z, f, lin, lam, nu, step, acc, _, status = s
+        z, f, lin, lam, nu, step, acc, _, status, stale = s
+        if value is not None:
+            lin = jax.lax.cond(stale, lambda: evaluate(z)[1], lambda: lin)
         g = grad_of(lin)
+        # Lazy mode: an accepted point whose gradient turns out non-finite ends the run there.
+        broken = ~_all_finite(g)
         delta, ok = solve(lin, lam)
-        ok = ok & _all_finite(delta)
+        ok = ok & _all_finite(delta) & ~broken
         delta = jtu.tree_map(lambda d: jnp.where(ok, d, 0.0), delta)
         pred = -(_vdot(g, delta) + 0.5 * quad(lin, delta))
         z_new = jtu.tree_map(jnp.add, z, delta)
-        f_new, lin_new = evaluate(z_new)
+        if value is None:
+            f_new, lin_new = evaluate(z_new)
+            finite_new = jnp.isfinite(f_new) & _all_finite(grad_of(lin_new))
+        else:
+            f_new, lin_new = value(z_new), lin
+            finite_new = jnp.isfinite(f_new)
         actual = f - f_new
         ratio = actual / jnp.where(pred > 0, pred, 1.0)
-        finite_new = jnp.isfinite(f_new) & _all_finite(grad_of(lin_new))
         small_pred = ok & (pred >= 0) & (pred <= tol(f))
         # A step whose predicted decrease is below tolerance is at round-off level: keep it unless
         # it makes things worse by more than the tolerance (the ratio test is noise there).
@@ -131,6 +147,7 @@ def levenberg_marquardt(
         stalled = lam_new > 1e20
         status = RESULTS.where(stalled, RESULTS.stalled, status)
         status = RESULTS.where(converged, RESULTS.successful, status)
+        status = RESULTS.where(broken, RESULTS.nonfinite, status)
         return (
             z,
             jnp.where(accept, f_new, f),
@@ -139,12 +156,13 @@ def levenberg_marquardt(
             nu_new,
             step + 1,
             acc + accept.astype(jnp.int32),
-            converged | stalled,
+            converged | stalled | broken,
             status,
+            accept if value is not None else stale,
         )
 
-    z, f, lin, lam, _, steps, acc, _, status = jax.lax.while_loop(cond, body, carry)
-    return LMOutput(z, f, lin, steps, status, acc, lam)
+    z, f, lin, lam, _, steps, acc, _, status, _ = jax.lax.while_loop(cond, body, carry)
+    return LMOutput(z, f, None if value is not None else lin, steps, status, acc, lam)
 
 
 def marquardt_scale(
