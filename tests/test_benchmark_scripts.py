@@ -41,11 +41,13 @@ def test_compare_reference_smoke(tmp_path):
         assert "reference environment absent" in proc.stdout
 
 
-def _run_script(name: str, tmp_path, *extra) -> subprocess.CompletedProcess:
+def _run_script(
+    name: str, tmp_path, *extra, python: str = sys.executable
+) -> subprocess.CompletedProcess:
     out = tmp_path / f"{name}.json"
     return subprocess.run(
         [
-            sys.executable,
+            python,
             str(ROOT / "benchmarks" / f"{name}.py"),
             "--smoke",
             "--out",
@@ -58,14 +60,44 @@ def _run_script(name: str, tmp_path, *extra) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.mark.slow  # compiles the smoother twice (≈ 20 s)
+#: The peers' environment (``benchmarks/peers/setup.sh``: dynamax, cuthbert, jax-sysid beside an
+#: editable ceemx); without it the peer scripts run on this Python and skip the peers.
+PEERS_PYTHON = ROOT / "benchmarks" / "peers" / ".venv" / "bin" / "python"
+
+
+def _peers_python() -> str:
+    return str(PEERS_PYTHON) if PEERS_PYTHON.exists() else sys.executable
+
+
+@pytest.mark.slow  # compiles the smoother and two EKS (≈ 20 s)
 def test_compare_peers_smoke(tmp_path):
-    proc = _run_script("compare_peers", tmp_path)
+    proc = _run_script("compare_peers", tmp_path, python=_peers_python())
     assert proc.returncode == 0, proc.stderr[-3000:]
     res = json.loads((tmp_path / "compare_peers.json").read_text())
     assert res["ceemx"]["steady_s_median"] > 0 and res["ceemx"]["rmse"] < 1.0
-    if "dynamax" not in res:
-        assert "dynamax absent" in proc.stdout
+    for peer in ("dynamax", "cuthbert"):
+        if peer in res:
+            assert res[peer]["steady_s_median"] > 0 and res[peer]["rmse"] < 1.0
+        else:
+            assert f"{peer} absent" in proc.stdout and peer in res["absent"]
+    if "dynamax" in res and "cuthbert" in res:  # the same extended Kalman smoother
+        assert res["cuthbert"]["max_abs_diff_to_dynamax"] < 1e-5
+
+
+@pytest.mark.slow  # one identification per method, compiles ceemx's fit and the EKF L-BFGS (≈ 60 s)
+def test_compare_peers_sysid_smoke(tmp_path):
+    proc = _run_script("compare_peers_sysid", tmp_path, python=_peers_python())
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((tmp_path / "compare_peers_sysid.json").read_text())
+    ours = res["summary"]["ceemx"]
+    assert ours["fits"] == 1 and ours["steady_s_median"] > 0
+    assert ours["max_rel_error_max"] < 0.05
+    for peer in ("ekf_lbfgs", "jax_sysid"):
+        if peer in res["summary"]:  # a peer's accuracy is a finding, not a requirement
+            assert res["summary"][peer]["fits"] == 1
+            assert res["summary"][peer]["first_call_s"] > 0
+        else:
+            assert f"{peer} absent" in proc.stdout and peer in res["absent"]
 
 
 @pytest.mark.slow  # one fresh process per device count (≈ 40–60 s)
