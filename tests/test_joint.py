@@ -57,8 +57,8 @@ def instrumented():
         return counted
 
     @eqx.filter_jit
-    def iteration(opts, problem, weights, theta, states, lam, current):
-        out = raw_iteration(opts, problem, weights, theta, states, lam, current)
+    def iteration(opts, problem, weights, theta, states, lam):
+        out = raw_iteration(opts, problem, weights, theta, states, lam)
         log.record("iteration", states, theta, opts.linear_solver)
         return out
 
@@ -242,12 +242,12 @@ def test_singular_schur_complement_is_damped_not_nan(lz, joint):
     assert all(h["accepted"] for h in joint.history)
 
 
-def test_one_linearisation_per_accepted_joint_step(lz, instrumented):
-    """Evaluations of the joint objective and linearisation = 1 (the first) + one per LM trial.
+def test_one_linearisation_per_joint_iteration(lz, instrumented):
+    """Joint linearisations = one per iteration (epoch), however many LM trials it takes.
 
-    The linearisation at an accepted point is carried to the next iteration, so an iteration whose
-    first trial is accepted costs exactly one evaluation. From x = 0, with tiny initial damping and
-    stiff dynamics (σ_w = 1e-3 in the model), the second iteration rejects trials: those count too.
+    Trial points are judged by the objective's value alone. From x = 0, with tiny initial damping
+    and stiff dynamics (σ_w = 1e-3 in the model), some iterations reject trials: those cost no
+    linearisation.
     """
     guess = eqx.tree_at(lambda s: s.process_noise, lz["guess"], ceemx.DiagonalGaussian(1e-3, 3))
     jax.effects_barrier()
@@ -257,7 +257,7 @@ def test_one_linearisation_per_accepted_joint_step(lz, instrumented):
     jax.effects_barrier()
     trials = res.history_array("trials")
     assert res.converged
-    assert instrumented.evaluations == 1 + trials.sum(), (instrumented.evaluations, trials)
+    assert instrumented.evaluations == len(res.history), (instrumented.evaluations, trials)
     assert np.any(trials == 1)
     assert np.any(trials > 1)
     assert res.epochs > 1

@@ -94,7 +94,6 @@ class LMLearner(AbstractLearner):
             delta, ok = cholesky_solve(damped, -grad)
             return delta, ok
 
-        init = evaluate(theta)
         out = levenberg_marquardt(
             evaluate,
             lambda lin: lin[0],
@@ -105,13 +104,12 @@ class LMLearner(AbstractLearner):
             atol=self.atol,
             max_steps=self.max_steps,
             damping=self.damping,
-            init=init,
             # Trial points need only the objective's value: the dense Gauss–Newton matrix is formed
-            # only where a step was accepted and another one follows (not at rejected trials nor
-            # at the final point).
+            # at the start and where an accepted step is followed by another (not at rejected
+            # trials nor at the final point).
             value=lambda th: problem.value(th) - offset,
         )
-        v0 = init[0] + offset
+        v0 = problem.value(theta)
         return out.z, state, LearnInfo(v0, out.value + offset, out.steps, out.status)
 
 

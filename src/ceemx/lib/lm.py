@@ -77,16 +77,27 @@ def levenberg_marquardt(
         init: ``evaluate(z0)`` when the caller already has it (e.g. the linearisation at the point
             accepted by the previous call); saves one evaluation.
         value: ``z -> f`` alone, when it is much cheaper than ``evaluate`` (a dense Gauss–Newton
-            matrix). Trial points are then judged by their value only and the linearisation is
-            formed lazily, at the start of the iteration after an accepted step: rejected trials
-            and the final accepted point cost one value each instead of a linearisation.
-            ``LMOutput.lin`` is then ``None``. Not for ``vmap``-ped use (the lazy linearisation is a
-            ``lax.cond``, which ``vmap`` turns into computing both branches).
+            matrix, a joint linearisation). Trial points are then judged by their value only and
+            the linearisation is formed lazily, at the start of an iteration whose point has none
+            yet (the first, unless ``init`` is given, and each after an accepted step): rejected
+            trials and the final accepted point cost one value each instead of a linearisation,
+            and the compiled program holds one copy of ``evaluate`` instead of two (compile
+            time). ``LMOutput.lin`` is then ``None``. Not for ``vmap``-ped use (the lazy
+            linearisation is a ``lax.cond``, which ``vmap`` turns into computing both branches).
 
     Returns:
         An :class:`LMOutput`: the last accepted point with its value and linearisation.
     """
-    f0, lin0 = evaluate(z0) if init is None else init
+    if init is not None:
+        f0, lin0 = init
+    elif value is not None:
+        # Lazy: the first linearisation is formed inside the loop (one copy of ``evaluate`` in
+        # the compiled program); a zero placeholder of its structure starts the carry.
+        f0 = value(z0)
+        shapes = jax.eval_shape(lambda z: evaluate(z)[1], z0)
+        lin0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    else:
+        f0, lin0 = evaluate(z0)
     finite0 = jnp.isfinite(f0) & _all_finite(grad_of(lin0))
     dtype = jnp.result_type(f0)
     carry = (
@@ -99,7 +110,7 @@ def levenberg_marquardt(
         jnp.asarray(0),
         ~finite0,
         RESULTS.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite),
-        jnp.asarray(False),  # lazy mode: lin is not yet formed at z
+        jnp.asarray(value is not None and init is None),  # lazy mode: lin not yet formed at z
     )
 
     def tol(f):

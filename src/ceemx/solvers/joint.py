@@ -11,9 +11,11 @@ by block back-substitution.
 Each epoch is one accepted Levenberg–Marquardt step with Marquardt's per-variable damping (scale
 invariance across parameters of different magnitudes), accepted on actual vs predicted decrease.
 ρ_x and ρ_θ are proximal terms centred at the current iterate (they add 2ρ to the curvature of
-their block, as in Eq. 10–11); the log-prior is part of the objective. The linearisation at the
-accepted point is carried to the next epoch, so an epoch whose first trial is accepted costs one
-linearisation and one arrowhead solve.
+their block, as in Eq. 10–11); the log-prior is part of the objective. An epoch linearises once,
+at its start point; trial points are judged by the objective's value alone, so an epoch costs one
+linearisation, one arrowhead solve and one evaluation per trial, and nothing is carried between
+epochs (the linearisation, with its B·T·n·P border, is not kept in memory across the driver's
+host work).
 
 Two guards make it safe from a poor start (a joint Gauss–Newton model far from the optimum can
 propose a step that moves a log-parameter by hundreds):
@@ -143,11 +145,8 @@ class JointLM(AbstractFitSolver):
 
     def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict]:
         """One accepted LM step on (x, θ) (or the trials that failed to find one)."""
-        current = state.cache
-        if current is None:
-            current = linearize_joint(problem, state.weights, state.theta, state.states)
-        theta, states, lam, code, n_acc, trials, current = _iteration(
-            self, problem, state.weights, state.theta, state.states, state.solver_state, current
+        theta, states, lam, code, n_acc, trials, nll = _iteration(
+            self, problem, state.weights, state.theta, state.states, state.solver_state
         )
         accepted = int(n_acc) > 0
         ok = state.weights > 0
@@ -155,11 +154,10 @@ class JointLM(AbstractFitSolver):
         new = FitState(
             theta=theta,
             states=states,
-            J=jnp.where(ok, -current[1].nll, state.J),
+            J=jnp.where(ok, -nll, state.J),
             weights=state.weights,
             status=select(ok, run, RESULTS.nonfinite),
             solver_state=lam,
-            cache=current,
         )
         record = {
             "trials": int(trials),
@@ -213,7 +211,6 @@ class JointLM(AbstractFitSolver):
                 weights=state.weights,
                 status=state.status,
                 solver_state=state.solver_state,
-                cache=None,  # the states moved: linearise again
             ),
             gain,
         )
@@ -284,9 +281,21 @@ def _evaluator(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
 def linearize_joint(
     problem: FitProblem, weights: PerTrajectory, theta: Theta, states: States
 ) -> tuple[Scalar, JointLinearization]:
-    """(value, :class:`JointLinearization`) at (x, θ): seeds the first iteration."""
+    """(value, :class:`JointLinearization`) at (x, θ) (the standard errors' Schur complement)."""
     offset = problem.offset(theta, weights)
     return _evaluator(problem, weights, offset)((states, theta))
+
+
+def _value(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
+    """``z = (x, θ) -> value`` of :func:`_evaluator` without the linearisation (trial points)."""
+    ok_b = weights > 0
+
+    def value(z):
+        x, th = z
+        nll = problem.per_trajectory(th, x)
+        return jnp.sum(jnp.where(ok_b, nll, 0.0)) - offset + problem.neg_log_prior(th)
+
+    return value
 
 
 @eqx.filter_jit
@@ -297,18 +306,21 @@ def _iteration(
     theta: Theta,
     states: States,
     lam: Scalar,
-    current: tuple[Scalar, JointLinearization],
 ):
-    """One accepted LM step on (x, θ) from the linearisation ``current`` at (x, θ).
+    """One accepted LM step on (x, θ): linearise at (x, θ), try steps until one is accepted.
 
-    Returns (θ, x, λ, status, accepted steps, trials, (value, linearisation) at the new point).
+    Trial points are judged by their value alone (the LM driver's lazy mode), so a rejected trial
+    costs one objective evaluation, and the compiled program holds one linearisation.
+
+    Returns (θ, x, λ, status, accepted steps, trials, −J_b at the new point).
     """
     ok_b = weights > 0
     dtype = states.dtype
     rho_x = jnp.asarray(opts.rho_x, dtype)
     rho_t = jnp.asarray(opts.rho_theta, dtype)
     max_step = jnp.asarray(opts.max_theta_step, dtype)
-    evaluate = _evaluator(problem, weights, problem.offset(theta, weights))
+    offset = problem.offset(theta, weights)
+    evaluate = _evaluator(problem, weights, offset)
 
     def grad_of(lin):
         return (lin.grad_x, lin.grad_theta)
@@ -353,7 +365,8 @@ def _iteration(
         max_steps=opts.max_trials,
         damping=lam,
         max_accepted=1,
-        init=current,
+        value=_value(problem, weights, offset),
     )
     x, th = out.z
-    return th, x, out.damping, out.status, out.accepted, out.steps, (out.value, out.lin)
+    nll = problem.per_trajectory(th, x)
+    return th, x, out.damping, out.status, out.accepted, out.steps, nll
