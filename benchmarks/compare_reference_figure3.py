@@ -16,7 +16,14 @@ ceemx does not model). Reported: time per epoch (median, first epoch apart — i
 ceemx's compile), ε after each epoch, the load.
 JSON: ``benchmarks/results/compare_reference_figure3.json``.
 
+``--time-to-eps``: each implementation runs until ε(θ) ≤ ``--eps-stop`` (default 0.01) or for
+``--budget`` seconds (default 600), and the time from the start of the fit (ceemx: compile
+included) to the first epoch with ε ≤ 10, 1, 0.01 is reported, with the best ε reached
+(``benchmarks/results/compare_reference_figure3_time_to_eps.json``; ``--reps`` defaults to 1
+there: a reference run takes up to the budget).
+
     python benchmarks/compare_reference_figure3.py [--epochs 5] [--reps 3] [--smoke]
+    python benchmarks/compare_reference_figure3.py --time-to-eps [--budget 600] [--reps 1]
 """
 
 from __future__ import annotations
@@ -36,6 +43,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 REF_PYTHON = HERE / "reference" / ".venv" / "bin" / "python"
 REF_DRIVER = HERE / "reference" / "run_reference_figure3.py"
 RESULTS = HERE / "results" / "compare_reference_figure3.json"
+RESULTS_TTE = HERE / "results" / "compare_reference_figure3_time_to_eps.json"
+THRESHOLDS = (10.0, 1.0, 0.01)
 
 
 def authors_order(K: int) -> np.ndarray:
@@ -56,7 +65,21 @@ def epsilon(theta: dict, truth: dict, states: np.ndarray) -> float:
     return float(np.mean((vector_field(theta, states) - vector_field(truth, states)) ** 2))
 
 
-def make_problem(path: pathlib.Path, B: int, T: int, epochs: int) -> dict:
+def time_to(eps: list[float], epoch_s: list[float], threshold: float) -> float | None:
+    """Seconds from the fit's start to the end of the first epoch with ε ≤ threshold."""
+    t = np.cumsum(epoch_s)
+    hit = [i for i, e in enumerate(eps) if e <= threshold]
+    return float(t[hit[0]]) if hit else None
+
+
+def make_problem(
+    path: pathlib.Path,
+    B: int,
+    T: int,
+    epochs: int,
+    budget_s: float = float("inf"),
+    eps_stop: float = 0.0,
+) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -91,6 +114,11 @@ def make_problem(path: pathlib.Path, B: int, T: int, epochs: int) -> dict:
     rng = np.random.default_rng(0)
     mean = np.asarray([-6.0] * K + [-6.0] * K + [24.0] * K)
     test = mean[None, :] + 5.0 * rng.standard_normal((1024, 3 * K))
+    if np.isfinite(budget_s) or eps_stop > 0:  # time-to-ε: both sides stop on ε or the budget
+        with np.load(path) as z:
+            fields = dict(z)
+        fields.update({"truth_" + k: np.asarray(v) for k, v in truth.items()})
+        np.savez(path, **fields, test=test, budget_s=budget_s, eps_stop=eps_stop)
     return {"truth": truth, "test": test, "ceemx_x_init": np.asarray(x_init)}
 
 
@@ -116,12 +144,15 @@ def ceemx_worker(problem_path: str, out_path: str) -> None:
     pn, on, rho_x = figure3.fit_setup("paper")
     system = with_noise(p.init_system, pn, on)
     x_init = jnp.asarray(d["x_init"][..., inv])
+    budget = float(d["budget_s"]) if "budget_s" in d else float("inf")
+    eps_stop = float(d["eps_stop"]) if "eps_stop" in d else 0.0
+    truth = {k: d["truth_" + k] for k in ("sigma", "rho", "beta", "H")} if "test" in d else None
     out = {}
     for method in ("alternate", "joint"):
-        thetas, times = [], []
+        thetas, times, eps = [], [], []
         clock = {"t": time.perf_counter()}
 
-        def cb(info, thetas=thetas, times=times, clock=clock):
+        def cb(info, thetas=thetas, times=times, eps=eps, clock=clock):
             now = time.perf_counter()
             times.append(now - clock["t"])
             clock["t"] = now
@@ -134,9 +165,14 @@ def ceemx_worker(problem_path: str, out_path: str) -> None:
                     "H": np.asarray(s.effective_coupling())[np.ix_(perm, perm)].tolist(),
                 }
             )
+            if truth is not None:
+                eps.append(epsilon(thetas[-1], truth, d["test"]))
+                if eps[-1] <= eps_stop or now - clock["t0"] > budget:
+                    return False
+            return None
 
         solver = common.make_solver(method, rho_x=rho_x, rtol=0.0)
-        clock["t"] = t0 = time.perf_counter()
+        clock["t"] = clock["t0"] = t0 = time.perf_counter()
         ceemx.fit(
             system,
             p.data,
@@ -148,7 +184,12 @@ def ceemx_worker(problem_path: str, out_path: str) -> None:
             progress=False,
             outliers="keep",
         )
-        out[method] = {"theta": thetas, "epoch_s": times, "total_s": time.perf_counter() - t0}
+        out[method] = {
+            "theta": thetas,
+            "epoch_s": times,
+            "eps": eps,
+            "total_s": time.perf_counter() - t0,
+        }
     pathlib.Path(out_path).write_text(json.dumps(out))
 
 
@@ -156,16 +197,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--smoke", action="store_true")
     ap.add_argument("--epochs", type=int, default=5)
-    ap.add_argument("--reps", type=int, default=3)
-    ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--reps", type=int, default=None, help="default 3 (1 with --time-to-eps)")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--time-to-eps", action="store_true")
+    ap.add_argument("--budget", type=float, default=600.0, help="seconds per fit (--time-to-eps)")
+    ap.add_argument("--eps-stop", type=float, default=0.01, help="stop at this ε (--time-to-eps)")
     ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
         ceemx_worker(*args.worker)
         return
+    tte = args.time_to_eps
     B, T = (2, 32) if args.smoke else (8, 128)
-    epochs = 2 if args.smoke else args.epochs
-    reps = 1 if args.smoke else args.reps
+    budget = (20.0 if args.smoke else args.budget) if tte else float("inf")
+    epochs = 100_000 if tte else 2 if args.smoke else args.epochs
+    reps = 1 if args.smoke else (args.reps or (1 if tte else 3))
+    out_path = args.out or str(RESULTS_TTE if tte else RESULTS)
     have_ref = REF_PYTHON.exists()
     if not have_ref:
         print(
@@ -176,7 +223,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = pathlib.Path(tmp)
         problem = tmp / "figure3.npz"
-        info = make_problem(problem, B, T, epochs)
+        info = make_problem(problem, B, T, epochs, budget, args.eps_stop if tte else 0.0)
         for rep in range(reps):
             rec: dict = {"rep": rep, "load_before": os.getloadavg()[0]}
             if have_ref:
@@ -208,20 +255,51 @@ def main() -> None:
         summary[name] = {
             "epoch_s_median": float(np.median(steady)) if steady else None,
             "first_epoch_s": [r["epoch_s"][0] for r in rs],
-            "eps_per_epoch": eps[0],
+            "eps_per_epoch": eps[0][:50],
         }
+        if tte:
+            summary[name]["epochs"] = [len(r["epoch_s"]) for r in rs]
+            summary[name]["best_eps"] = [min(e) for e in eps]
+            summary[name]["total_s"] = [float(np.sum(r["epoch_s"])) for r in rs]
+            for th in THRESHOLDS:
+                ts = [time_to(e, r["epoch_s"], th) for e, r in zip(eps, rs, strict=True)]
+                summary[name][f"time_to_eps_{th:g}_s"] = ts
     if "reference" in summary:
         ref = summary["reference"]["epoch_s_median"]
         for name in ("alternate", "joint"):
             if name in summary and summary[name]["epoch_s_median"]:
                 summary[name]["speedup_per_epoch"] = ref / summary[name]["epoch_s_median"]
+            if tte and name in summary:
+                # the reference's best ε within its budget: how long ceemx takes to reach it
+                best = float(np.median(summary["reference"]["best_eps"]))
+                ref_at = [
+                    time_to(e, r["epoch_s"], best)
+                    for e, r in zip(
+                        [
+                            [epsilon(t, info["truth"], info["test"]) for t in r["theta"]]
+                            for r in [x["reference"] for x in runs]
+                        ],
+                        [x["reference"] for x in runs],
+                        strict=True,
+                    )
+                ]
+                ours = [
+                    time_to(
+                        [epsilon(t, info["truth"], info["test"]) for t in x[name]["theta"]],
+                        x[name]["epoch_s"],
+                        best,
+                    )
+                    for x in runs
+                ]
+                summary[name]["time_to_reference_best_eps_s"] = ours
+                summary["reference"]["time_to_best_eps_s"] = ref_at
     result = {
         "date": time.strftime("%Y-%m-%d %H:%M"),
-        "setting": {"K": 6, "B": B, "T": T, "epochs": epochs, "reps": reps},
+        "setting": {"K": 6, "B": B, "T": T, "epochs": epochs, "reps": reps, "budget_s": budget},
         "summary": summary,
         "runs": runs,
     }
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
     print(json.dumps(summary, indent=1))

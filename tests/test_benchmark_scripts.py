@@ -118,3 +118,15 @@ def test_compare_reference_figure3_smoke(tmp_path):
         assert len(eps) == 2 and all(e > 0 for e in eps)
     joint = res["summary"]["joint"]["eps_per_epoch"]
     assert joint[-1] < joint[0]
+
+
+@pytest.mark.slow  # as above, with a 20 s budget per implementation
+def test_compare_reference_figure3_time_to_eps_smoke(tmp_path):
+    proc = _run_script("compare_reference_figure3", tmp_path, "--time-to-eps")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((tmp_path / "compare_reference_figure3.json").read_text())
+    joint = res["summary"]["joint"]
+    assert joint["time_to_eps_10_s"][0] is not None  # the joint method gets below ε = 10
+    assert min(joint["eps_per_epoch"]) == joint["best_eps"][0]
+    for method in ("alternate", "joint"):
+        assert res["summary"][method]["total_s"][0] > 0
