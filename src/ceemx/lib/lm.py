@@ -97,7 +97,13 @@ def levenberg_marquardt(
         shapes = jax.eval_shape(lambda z: evaluate(z)[1], z0)
         lin0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     else:
-        f0, lin0 = evaluate(z0)
+        # Eager: z0 is evaluated by the loop's first pass, a zero step (so the compiled program
+        # holds one copy of ``evaluate``, not two: its compile time is most of a small fit's).
+        # That pass still runs ``solve`` on the placeholder (its result is discarded): under
+        # ``vmap`` a ``lax.cond`` would compute it anyway.
+        shapes = jax.eval_shape(evaluate, z0)
+        f0, lin0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    first0 = init is None and value is None
     finite0 = jnp.isfinite(f0) & _all_finite(grad_of(lin0))
     dtype = jnp.result_type(f0)
     carry = (
@@ -111,6 +117,7 @@ def levenberg_marquardt(
         ~finite0,
         RESULTS.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite),
         jnp.asarray(value is not None and init is None),  # lazy mode: lin not yet formed at z
+        jnp.asarray(first0),  # eager mode: the first pass evaluates z0
     )
 
     def tol(f):
@@ -120,17 +127,17 @@ def levenberg_marquardt(
         going = (~s[7]) & (s[5] < max_steps)
         if max_accepted is not None:
             going = going & (s[6] < max_accepted)
-        return going
+        return going | s[10]
 
     def body(s):
-        z, f, lin, lam, nu, step, acc, _, status, stale = s
+        z, f, lin, lam, nu, step, acc, _, status, stale, first = s
         if value is not None:
             lin = jax.lax.cond(stale, lambda: evaluate(z)[1], lambda: lin)
         g = grad_of(lin)
         # Lazy mode: an accepted point whose gradient turns out non-finite ends the run there.
         broken = ~_all_finite(g)
         delta, ok = solve(lin, lam)
-        ok = ok & _all_finite(delta) & ~broken
+        ok = ok & _all_finite(delta) & ~broken & ~first
         delta = jtu.tree_map(lambda d: jnp.where(ok, d, 0.0), delta)
         pred = -(_vdot(g, delta) + 0.5 * quad(lin, delta))
         z_new = jtu.tree_map(jnp.add, z, delta)
@@ -151,28 +158,42 @@ def levenberg_marquardt(
         lam_acc = lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
         lam_new = jnp.where(accept, lam_acc, lam * nu)
         nu_new = jnp.where(accept, 2.0, 2.0 * nu)
-        pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
-        z = jtu.tree_map(pick, z_new, z)
-        lin = jtu.tree_map(pick, lin_new, lin)
         converged = small_pred | (accept & (actual <= tol(f)))
         stalled = lam_new > 1e20
         status = RESULTS.where(stalled, RESULTS.stalled, status)
         status = RESULTS.where(converged, RESULTS.successful, status)
         status = RESULTS.where(broken, RESULTS.nonfinite, status)
+        done = converged | stalled | broken
+        counted = accept
+        if first0:  # the first pass only evaluates z0 (δ = 0): it takes the start, or fails
+            accept = jnp.where(first, finite_new, accept)
+            counted = accept & ~first
+            lam_new = jnp.where(first, lam, lam_new)
+            nu_new = jnp.where(first, nu, nu_new)
+            status = RESULTS.where(
+                first,
+                RESULTS.where(finite_new, RESULTS.max_steps_reached, RESULTS.nonfinite),
+                status,
+            )
+            done = jnp.where(first, ~finite_new, done)
+        pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
+        z = jtu.tree_map(pick, z_new, z)
+        lin = jtu.tree_map(pick, lin_new, lin)
         return (
             z,
             jnp.where(accept, f_new, f),
             lin,
             lam_new,
             nu_new,
-            step + 1,
-            acc + accept.astype(jnp.int32),
-            converged | stalled | broken,
+            step + jnp.where(first, 0, 1),
+            acc + counted.astype(jnp.int32),
+            done,
             status,
             accept if value is not None else stale,
+            jnp.zeros_like(first),
         )
 
-    z, f, lin, lam, _, steps, acc, _, status, _ = jax.lax.while_loop(cond, body, carry)
+    z, f, lin, lam, _, steps, acc, _, status, _, _ = jax.lax.while_loop(cond, body, carry)
     return LMOutput(z, f, None if value is not None else lin, steps, status, acc, lam)
 
 
