@@ -1,0 +1,257 @@
+"""K = 100 coupled Lorenz (n = 300, ≈ 90 000 parameters): a bounded identification attempt.
+
+Problem (the Figure-3 protocol of ``ceemx.experiments.figure3`` at a larger K): K attractors,
+y = C x + v ∈ R^{3K−2} (C standard normal, known), H standard normal off the own-attractor blocks
+(Frobenius norm 5), σ_v = 0.01, no process noise, T steps (RK4, dt = 0.04), B trajectories from
+seed 42; θ = [σ, ρ, β, H] (3K + 9K² parameters) starts at θ·(1 + U(−0.1, 0.1)); the states start at
+truth + N(0, 1). Fitted with the likelihood weighting (σ_w = σ_v = 0.01, ρ_x = 0). ε(θ) is the
+paper's Eq. 14 (``ceemx.evaluate.dynamics_error``); the target is ε ≤ 1 % of the initial ε
+within ``--budget`` seconds (default 600).
+
+Method: Algorithm 1 with a matrix-free learner — ``LMSmoother(max_steps=--smoother-steps)`` then
+``LBFGSLearner(max_steps=--lbfgs-steps)`` on (σ, ρ, β, H). The joint LM's dense Schur complement
+(P × P) and its border E (B·T·n·P) cannot be held at P ≈ 90 000, so it is not used.
+
+Two drivers:
+
+* ``--chunk 0``: ``ceemx.fit(..., solver=ceemx.Alternating(...))`` (the library's Algorithm 1;
+  its smoother vmaps all B trajectories at once, so memory grows as B·T·n²);
+* ``--chunk C`` (default 2 for n ≥ 150): the same epoch written out — ``ceemx.smooth`` on C
+  trajectories at a time, then ``ceemx.learn`` on all of them — which bounds the smoother's
+  memory to C trajectories.
+
+The run stops after the first epoch that ends past the budget, or earlier when the next epoch is
+not expected to fit; ε, J and the timings of every epoch are written to ``--out`` after each
+epoch, so a killed run keeps what it did.
+
+Usage::
+
+    python benchmarks/k100.py                   # the real attempt (K = 100, T = 256, B = 16)
+    python benchmarks/k100.py --K 20 --budget 120   # a scaled-down probe
+    python benchmarks/k100.py --smoke --out x.json  # K = 4, T = 32, B = 2, 2 epochs (seconds)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import ceemx  # noqa: E402
+from ceemx import evaluate as ev  # noqa: E402
+from ceemx.experiments import common  # noqa: E402
+from ceemx.models import with_noise  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEFAULT_OUT = os.path.join(HERE, "results", "k100.json")
+SIGMA_V = 0.01
+
+
+def rss_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
+def setup(K: int, T: int, B: int, seed: int):
+    true = common.true_lorenz(K, key=jax.random.PRNGKey(4), obs_noise=SIGMA_V)
+    prob = common.lorenz_problem(seed, true, B=B, T=T, sigma_w=0.0, sigma_v=SIGMA_V)
+    system = with_noise(prob.init_system, 0.01, SIGMA_V)
+    k_x = jax.random.fold_in(jax.random.PRNGKey(seed), 1)
+    x0 = prob.states + jax.random.normal(k_x, prob.states.shape, prob.states.dtype)
+    return true, prob, system, x0
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--K", type=int, default=100)
+    p.add_argument("--T", type=int, default=256)
+    p.add_argument("--B", type=int, default=16)
+    p.add_argument("--seed", type=int, default=42)
+    p.add_argument("--budget", type=float, default=600.0, help="wall seconds for the epochs")
+    p.add_argument("--max-epochs", type=int, default=1000)
+    p.add_argument("--smoother-steps", type=int, default=1, help="LM iterations per smoothing")
+    p.add_argument("--lbfgs-steps", type=int, default=100, help="L-BFGS iterations per epoch")
+    p.add_argument(
+        "--chunk", type=int, default=None, help="trajectories per smoothing call (0: ceemx.fit)"
+    )
+    p.add_argument("--smoke", action="store_true", help="K = 4, T = 32, B = 2, 2 epochs")
+    p.add_argument("--out", type=str, default=None)
+    args = p.parse_args(argv)
+    if args.smoke:
+        args.K, args.T, args.B, args.max_epochs, args.budget = 4, 32, 2, 2, 120.0
+    n = 3 * args.K
+    chunk = args.chunk if args.chunk is not None else (2 if n >= 150 else 0)
+    out_path = args.out if args.out else (None if args.smoke else DEFAULT_OUT)
+
+    t_setup = time.perf_counter()
+    true, prob, system, x0 = setup(args.K, args.T, args.B, args.seed)
+    P = sum(int(np.size(a)) for a in common.LORENZ_PARAMS_H(system))
+    eps_cb = ev.DynamicsErrorCallback(true)
+    eps0 = eps_cb.error(system)
+    setup_s = time.perf_counter() - t_setup
+    smoother = ceemx.LMSmoother(max_steps=args.smoother_steps)
+    learner = ceemx.LBFGSLearner(max_steps=args.lbfgs_steps)
+    result: dict = {
+        "config": {
+            "K": args.K,
+            "n": n,
+            "m": n - 2,
+            "T": args.T,
+            "B": args.B,
+            "P": P,
+            "seed": args.seed,
+            "budget_s": args.budget,
+            "smoother_steps": args.smoother_steps,
+            "lbfgs_steps": args.lbfgs_steps,
+            "driver": "ceemx.fit(Alternating)" if chunk == 0 else f"manual, chunk={chunk}",
+            "weighting": "likelihood (σ_w = σ_v = 0.01, ρ_x = 0)",
+            "target": "eps <= 0.01 * eps_initial",
+        },
+        "environment": {
+            "jax": jax.__version__,
+            "ceemx": ceemx.__version__,
+            "cpu_count": os.cpu_count(),
+            "date": time.strftime("%Y-%m-%d %H:%M"),
+        },
+        "setup_s": setup_s,
+        "eps_initial": eps0,
+        "epochs": [],
+        "loadavg_start": os.getloadavg(),
+    }
+    print(
+        f"K={args.K} (n={n}, P={P}), T={args.T}, B={args.B}; driver "
+        f"{result['config']['driver']}; ε₀ = {eps0:.6g}; load {os.getloadavg()[0]:.2f}",
+        flush=True,
+    )
+
+    def save():
+        result["rss_max_gb"] = rss_gb()
+        eps = [e["eps"] for e in result["epochs"]]
+        result["eps_final"] = eps[-1] if eps else eps0
+        result["eps_ratio"] = result["eps_final"] / eps0
+        result["target_met"] = bool(result["eps_ratio"] <= 0.01)
+        if out_path:
+            os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
+            with open(out_path, "w") as f:
+                json.dump(result, f, indent=2)
+
+    t0 = time.perf_counter()
+
+    def log_epoch(epoch, sys_now, J, rec):
+        eps = eps_cb.error(sys_now)
+        rec = {"epoch": epoch, "eps": eps, "J": J, "wall_s": time.perf_counter() - t0, **rec}
+        rec["load"] = os.getloadavg()[0]
+        result["epochs"].append(rec)
+        print(
+            f"epoch {epoch:3d}  ε = {eps:.6g} ({eps / eps0:.3%} of ε₀)  J = {J:.8g}  "
+            f"epoch {rec['time']:.1f} s (smooth {rec.get('smooth_time', float('nan')):.1f}, "
+            f"learn {rec.get('learn_time', float('nan')):.1f})  wall {rec['wall_s']:.1f} s  "
+            f"rss {rss_gb():.2f} GB",
+            flush=True,
+        )
+        elapsed = rec["wall_s"]
+        if eps <= 0.01 * eps0:
+            result["stop_reason"] = "target reached"
+        elif elapsed + rec["time"] > args.budget:
+            result["stop_reason"] = (
+                f"another epoch of {rec['time']:.0f} s (the last one's time) would end past the "
+                f"{args.budget:.0f} s budget"
+            )
+        else:
+            result["stop_reason"] = "max_epochs"
+        save()
+        return result["stop_reason"] == "max_epochs"
+
+    if chunk == 0:
+
+        def callback(info):
+            r = info.record
+            rec = {
+                k: r[k] for k in ("time", "smooth_time", "learn_time", "learner_steps") if k in r
+            }
+            if not log_epoch(info.epoch, info.system, r["J"], rec):
+                return False
+            return None
+
+        res = ceemx.fit(
+            system,
+            prob.data,
+            x0,
+            solver=ceemx.Alternating(smoother=smoother, learner=learner, rtol=0.0),
+            trainable=common.LORENZ_PARAMS_H,
+            max_epochs=args.max_epochs,
+            callbacks=[callback],
+            progress=False,
+            outliers="keep",
+        )
+        result["initial_J"] = res.initial_J
+    else:
+        states = x0
+        sys_now = system
+        idx = [np.arange(i, min(i + chunk, args.B)) for i in range(0, args.B, chunk)]
+        for epoch in range(1, args.max_epochs + 1):
+            te = time.perf_counter()
+            parts, chunk_s = [], []
+            for ii in idx:
+                tc = time.perf_counter()
+                sol = ceemx.smooth(sys_now, prob.data[ii], states[ii], smoother)
+                parts.append(jax.block_until_ready(sol.states))
+                chunk_s.append(time.perf_counter() - tc)
+                print(f"  smoothed trajectories {ii.tolist()} in {chunk_s[-1]:.1f} s", flush=True)
+                if time.perf_counter() - t0 > args.budget:
+                    break
+            if len(parts) < len(idx):  # the budget ran out inside the smoothing step
+                result["aborted"] = {
+                    "epoch": epoch,
+                    "trajectories_smoothed": int(sum(len(i) for i in idx[: len(parts)])),
+                    "chunk_times_s": chunk_s,
+                    "wall_s": time.perf_counter() - t0,
+                    "note": "budget exhausted inside the smoothing step of this epoch",
+                }
+                result["stop_reason"] = "budget exhausted inside the smoothing step"
+                print(f"budget exhausted inside epoch {epoch}'s smoothing step", flush=True)
+                save()
+                break
+            states = jnp.concatenate(parts, axis=0)
+            ts = time.perf_counter() - te
+            tl = time.perf_counter()
+            sys_now, _, info = ceemx.learn(
+                sys_now, states, prob.data, learner, trainable=common.LORENZ_PARAMS_H
+            )
+            jax.block_until_ready(sys_now)
+            tl = time.perf_counter() - tl
+            J = float(jnp.sum(ceemx.log_joint(sys_now, states, prob.data)))
+            rec = {
+                "time": time.perf_counter() - te,
+                "smooth_chunk_s": chunk_s,
+                "smooth_time": ts,
+                "learn_time": tl,
+                "learner_steps": int(info.steps),
+            }
+            if not log_epoch(epoch, sys_now, J, rec):
+                break
+    result["total_wall_s"] = time.perf_counter() - t0
+    result["loadavg_end"] = os.getloadavg()
+    save()
+    print(
+        f"ε {eps0:.6g} → {result['eps_final']:.6g} ({result['eps_ratio']:.3%}) after "
+        f"{len(result['epochs'])} epochs, {result['total_wall_s']:.1f} s; target (≤ 1 %) "
+        f"{'met' if result['target_met'] else 'NOT met'}; max RSS {result['rss_max_gb']:.2f} GB",
+        flush=True,
+    )
+    if out_path:
+        print(f"wrote {out_path}")
+    return result
+
+
+if __name__ == "__main__":
+    sys.exit(0 if main() is not None else 1)
