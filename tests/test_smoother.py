@@ -541,3 +541,20 @@ def test_linearize_gradient_and_gauss_newton_on_lorenz():
                 dense[t + 1, :, t] = lower[b, t]
                 dense[t, :, t + 1] = lower[b, t].T
         np.testing.assert_allclose(dense.reshape(T * n, T * n), Jb.T @ Jb, rtol=1e-10, atol=1e-10)
+
+
+def test_batch_chunks_give_the_same_answers(lorenz):
+    """``batch_chunk`` (memory bound for large n) smooths the trajectories in chunks — including a
+    remainder chunk — with the same states, objectives, iterations and covariances."""
+    chunked = ceemx.LMSmoother(rho_x=0.0, rtol=1e-10, max_steps=50, batch_chunk=3)
+    assert B_LZ % 3 != 0  # a remainder chunk is exercised
+    a = ceemx.smooth(lorenz.system, lorenz.data, lorenz.x_init, SOLVER, covariance=True)
+    b = ceemx.smooth(lorenz.system, lorenz.data, lorenz.x_init, chunked, covariance=True)
+    np.testing.assert_allclose(b.states, a.states, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.objective, a.objective, rtol=1e-13)
+    np.testing.assert_array_equal(b.iterations, a.iterations)
+    assert b.covariances is not None and a.covariances is not None
+    np.testing.assert_allclose(b.covariances, a.covariances, rtol=1e-10, atol=1e-16)
+    np.testing.assert_allclose(b.log_det, a.log_det, rtol=1e-12)
+    with pytest.raises(ValueError, match="batch_chunk"):
+        ceemx.LMSmoother(batch_chunk=0)

@@ -48,6 +48,10 @@ class LMSmoother(eqx.Module):
         max_steps: bound on iterations (accepted and rejected) per trajectory.
         damping: initial Marquardt damping λ₀.
         throw: raise (via ``eqx.error_if``) when any trajectory fails; otherwise report statuses.
+        batch_chunk: smooth at most this many trajectories at once (``None``: all of them).
+            Memory grows as (chunk)·T·n² (≈ 20 live (T, n, n) blocks per trajectory): a chunk
+            bounds it for large state dimensions; the answers are the same (each trajectory is
+            solved on its own either way).
     """
 
     rho_x: float = 0.0
@@ -56,6 +60,7 @@ class LMSmoother(eqx.Module):
     max_steps: int = eqx.field(default=50, static=True)
     damping: float = 1e-3
     throw: bool = eqx.field(default=False, static=True)
+    batch_chunk: int | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
         for name in ("rho_x", "rtol", "atol", "damping"):
@@ -63,6 +68,9 @@ class LMSmoother(eqx.Module):
         k = self.max_steps
         if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 0:
             raise ValueError(f"`max_steps` must be an integer >= 0; got {k!r}.")
+        c = self.batch_chunk
+        if c is not None and (isinstance(c, bool) or not isinstance(c, int | np.integer) or c < 1):
+            raise ValueError(f"`batch_chunk` must be None or an integer >= 1; got {c!r}.")
 
 
 def check_nonnegative(name: str, value) -> None:
@@ -165,14 +173,26 @@ def smooth_batch(
     covariance: bool,
 ) -> SmootherSolution:
     """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced)."""
-    x, value, steps, status, hess = jax.vmap(_smooth_one, in_axes=(None, None, 0, 0, 0, 0))(
-        solver, system, x_init, data.y, data.u, data.mask
-    )
+    chunk = getattr(solver, "batch_chunk", None)
+
+    def batched(f, *args):
+        """``vmap`` over the trajectories, in chunks of ``solver.batch_chunk`` when set."""
+        if chunk is None or chunk >= x_init.shape[0]:
+            return jax.vmap(f)(*args)
+        return jax.lax.map(lambda a: f(*a), args, batch_size=chunk)
+
+    def one(x0, y, u, mask):
+        x, value, steps, status, hess = _smooth_one(solver, system, x0, y, u, mask)
+        if not covariance:
+            return x, value, steps, status, None
+        factor = lib.cholesky(hess)
+        sel = lib.selected_inverse(factor)
+        return x, value, steps, status, (sel.diagonal, sel.lower, lib.logdet(factor))
+
+    x, value, steps, status, sel = batched(one, x_init, data.y, data.u, data.mask)
     cov = cross = log_det = None
-    if covariance:
-        factor = jax.vmap(lib.cholesky)(hess)
-        sel = jax.vmap(lib.selected_inverse)(factor)
-        cov, cross, log_det = sel.diagonal, sel.lower, jax.vmap(lib.logdet)(factor)
+    if sel is not None:
+        cov, cross, log_det = sel
     if solver.throw:
         x = eqx.error_if(
             x, jnp.any(status != RESULTS.successful), "smoothing failed on a trajectory"
