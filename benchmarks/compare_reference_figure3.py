@@ -72,6 +72,16 @@ def time_to(eps: list[float], epoch_s: list[float], threshold: float) -> float |
     return float(t[hit[0]]) if hit else None
 
 
+def slim_runs(runs: list[dict], info: dict) -> None:
+    """Replace each run's θ per epoch by ε per epoch and the last θ (in place)."""
+    for r in runs:
+        for name in ("reference", "alternate", "joint"):
+            if name in r and "theta" in r[name]:
+                thetas = r[name].pop("theta")
+                r[name]["eps"] = [epsilon(t, info["truth"], info["test"]) for t in thetas]
+                r[name]["theta_last"] = thetas[-1] if thetas else None
+
+
 def make_problem(
     path: pathlib.Path,
     B: int,
@@ -293,6 +303,8 @@ def main() -> None:
                 ]
                 summary[name]["time_to_reference_best_eps_s"] = ours
                 summary["reference"]["time_to_best_eps_s"] = ref_at
+    if tte:  # long runs: keep ε per epoch and the last θ, not every θ
+        slim_runs(runs, info)
     result = {
         "date": time.strftime("%Y-%m-%d %H:%M"),
         "setting": {"K": 6, "B": B, "T": T, "epochs": epochs, "reps": reps, "budget_s": budget},
