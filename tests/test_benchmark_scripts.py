@@ -130,3 +130,20 @@ def test_compare_reference_figure3_time_to_eps_smoke(tmp_path):
     assert min(joint["eps_per_epoch"]) == joint["best_eps"][0]
     for method in ("alternate", "joint"):
         assert res["summary"][method]["total_s"][0] > 0
+
+
+@pytest.mark.slow  # compiles Particle EM and CE-EM on a tiny problem; the reference, if present
+def test_particle_em_smoke(tmp_path):
+    proc = _run_script("particle_em", tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((tmp_path / "particle_em.json").read_text())
+    summary = res["summary"]
+    assert summary["ceemx_particle_em"]["s_per_epoch"] > 0
+    assert summary["ceemx_ce_em"]["s_per_epoch"] > 0
+    assert len(res["loads"]) == 1 and len(res["runs"]) == 1
+    if (ROOT / "benchmarks" / "reference" / ".venv" / "bin" / "python").exists():
+        ref = summary["reference_particle_em"]
+        assert ref["s_per_epoch"] > 0 and len(ref["theta_last"]) == 1
+        assert summary["speedup_particle_em_same_run"] > 0
+    else:
+        assert "reference environment absent" in proc.stdout
