@@ -48,9 +48,7 @@ def limit_cpu_threads(n: int) -> int:
             "ignored."
         )
         return os.cpu_count() or 1
-    from jax._src import xla_bridge
-
-    if xla_bridge.backends_are_initialized():
+    if _jax_started():
         warn(
             "JAX's backend is already running, so its CPU thread pool keeps its size: limit the "
             "threads before the first computation (or start Python under `taskset`)."
@@ -58,3 +56,13 @@ def limit_cpu_threads(n: int) -> int:
     cpus = sorted(os.sched_getaffinity(0))[:n]
     os.sched_setaffinity(0, cpus)
     return len(cpus)
+
+
+def _jax_started() -> bool:
+    """Whether JAX's backends exist already (JAX has no public query; False when unknown)."""
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):  # a JAX without this internal: no warning
+        return False
