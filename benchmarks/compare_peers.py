@@ -223,11 +223,15 @@ def main() -> None:
     print(json.dumps({k: v for k, v in out.items() if k != "date"}, indent=1))
 
 
-def _versions() -> dict[str, str]:
+PACKAGES = ("ceemx", "jax", "dynamax", "cuthbert", "optax", "jax-sysid", "jaxopt", "scipy")
+
+
+def _versions(names=PACKAGES) -> dict[str, str]:
+    """Installed versions of ``names`` ("absent" when not installed)."""
     from importlib import metadata
 
     out = {}
-    for name in ("ceemx", "jax", "dynamax", "cuthbert", "optax", "jax-sysid"):
+    for name in names:
         try:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:

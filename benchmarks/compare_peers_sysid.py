@@ -45,7 +45,7 @@ import json
 import os
 import pathlib
 import re
-import subprocess
+import sys
 import time
 
 import jax
@@ -59,6 +59,9 @@ import ceemx  # noqa: E402
 from ceemx.experiments import common, table1  # noqa: E402
 from ceemx.initialize import warm_start  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from compare_peers import _uptime, _versions  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results" / "compare_peers_sysid.json"
 PARAMS = ("sigma", "rho", "beta")
@@ -215,25 +218,6 @@ def make_jax_sysid(template):
 
 
 # ------------------------------------------------------------------------------------- driver
-
-
-def _versions() -> dict[str, str]:
-    from importlib import metadata
-
-    out = {}
-    for name in ("ceemx", "jax", "dynamax", "optax", "jax-sysid", "jaxopt", "scipy"):
-        try:
-            out[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            out[name] = "absent"
-    return out
-
-
-def _uptime() -> str:
-    try:
-        return subprocess.run(["uptime"], capture_output=True, text=True, timeout=5).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
 
 
 def main() -> None:
