@@ -18,6 +18,7 @@ import optax
 import optimistix as optx
 from jaxtyping import Array, PRNGKeyArray
 
+from .._memory import check_fits
 from ..lib.dense import cholesky_solve
 from ..lib.lm import levenberg_marquardt, marquardt_scale
 from ..lib.results import RESULTS
@@ -80,6 +81,12 @@ class LMLearner(AbstractLearner):
         self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
         """LM iterations from θ."""
+        P, B = theta.shape[0], problem.batch_size
+        check_fits(
+            f"LMLearner's {B} per-trajectory dense {P} × {P} Gauss–Newton matrices",
+            (B + 4) * P * P * theta.dtype.itemsize,
+            "use ceemx.LBFGSLearner or ceemx.OptaxLearner (matrix-free) for this many parameters.",
+        )
         offset = problem.offset(
             theta
         )  # tolerances are relative to the objective less its constants

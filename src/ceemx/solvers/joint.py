@@ -42,6 +42,7 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import lib
+from .._memory import check_fits
 from .._warnings import warn
 from ..lib.blocktri import BlockTridiagonal
 from ..lib.lm import levenberg_marquardt, marquardt_scale
@@ -127,6 +128,16 @@ class JointLM(AbstractFitSolver):
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
     ) -> FitState:
         """θ, x as given; trajectories non-finite at the start are excluded (with a warning)."""
+        B, T, n = states.shape
+        P = theta.shape[0]
+        itemsize = states.dtype.itemsize
+        check_fits(
+            f"JointLM's linearisation (border E: {B} × {T} × {n} × {P}, θ-Jacobians of the same "
+            f"size, {P} × {P} blocks)",
+            (3 * B * T * n * P + (B + 4) * P * P) * itemsize,
+            "use ceemx.Alternating with a matrix-free learner (ceemx.LBFGSLearner) and, for "
+            "large n, LMSmoother(batch_chunk=...).",
+        )
         J = trajectory_log_likelihood(problem, theta, states)
         ok = np.isfinite(np.asarray(J))
         if not ok.all():

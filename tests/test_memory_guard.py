@@ -1,0 +1,78 @@
+"""Work whose dense arrays cannot fit in memory is refused before any compute, with the way out.
+
+The machine's memory is patched down to 256 bytes so the small test problems "do not fit".
+"""
+
+import jax
+import numpy as np
+import pytest
+
+import ceemx
+from ceemx import _memory
+from ceemx.systems import CoupledLorenz, initial_states, random_observation_matrix
+
+
+@pytest.fixture
+def tiny_memory(monkeypatch):
+    monkeypatch.setattr(_memory, "physical_memory", lambda: 256)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    C = random_observation_matrix(jax.random.PRNGKey(0), 1, m=2)
+    true = CoupledLorenz([10.0], [28.0], [8.0 / 3.0], C, process_noise=0.1, obs_noise=0.5)
+    x1 = initial_states(jax.random.PRNGKey(1), 2, 1)
+    states, data = ceemx.simulate(true, jax.random.PRNGKey(2), x1, 16)
+    guess = CoupledLorenz([9.0], [27.0], [2.5], C, process_noise=0.1, obs_noise=0.5)
+    return guess, states, data
+
+
+def test_physical_memory_is_known_here():
+    total = _memory.physical_memory()
+    assert total is None or total > 2**26
+
+
+def test_check_fits_passes_small_and_refuses_large():
+    _memory.check_fits("a small array", 1024, "no advice needed")
+    with pytest.raises(ValueError, match=r"huge arrays need about .* GiB.*; do less"):
+        _memory.check_fits("huge arrays", 1e30, "do less")
+
+
+def test_lm_learner_refuses_matrices_that_do_not_fit(problem, tiny_memory):
+    guess, states, data = problem
+    trainable = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
+    with pytest.raises(ValueError, match="LMLearner.*Gauss–Newton.*LBFGSLearner"):
+        ceemx.fit(
+            guess,
+            data,
+            states,
+            solver=ceemx.Alternating(),
+            trainable=trainable,
+            max_epochs=1,
+            progress=False,
+        )
+    # A matrix-free learner runs.
+    res = ceemx.fit(
+        guess,
+        data,
+        states,
+        solver=ceemx.Alternating(learner=ceemx.LBFGSLearner(max_steps=5)),
+        trainable=trainable,
+        max_epochs=1,
+        progress=False,
+    )
+    assert np.isfinite(res.history[-1]["J"])
+
+
+def test_joint_method_refuses_a_border_that_does_not_fit(problem, tiny_memory):
+    guess, states, data = problem
+    with pytest.raises(ValueError, match="JointLM's linearisation.*Alternating"):
+        ceemx.fit(
+            guess,
+            data,
+            states,
+            solver=ceemx.JointLM(),
+            trainable=lambda s: (s.sigma, s.rho, s.beta),
+            max_epochs=1,
+            progress=False,
+        )
