@@ -168,10 +168,15 @@ def main() -> None:
         B, T, n_p, n_s, epochs, reps = 4, 128, 100, 10, args.epochs, args.reps
     have_ref = REF_PYTHON.exists() and not args.no_reference
     if not have_ref:
+        why = (
+            "--no-reference"
+            if args.no_reference
+            else f"reference environment absent ({REF_PYTHON})"
+        )
         print(
-            f"reference environment absent ({REF_PYTHON}) or --no-reference: measuring ceemx "
-            f"only (the authors' published figure, {REFERENCE_S} s/epoch on a quiet 2-core CPU, "
-            "is quoted for context; run benchmarks/reference/setup.sh for a side-by-side run).",
+            f"{why}: measuring ceemx only (the authors' published figure, {REFERENCE_S} s/epoch "
+            "on a quiet 2-core CPU, is quoted for context; run benchmarks/reference/setup.sh "
+            "for a side-by-side run).",
             flush=True,
         )
     true, system, data, x_init = problem(B, T)

@@ -7,9 +7,10 @@ import warnings
 
 __all__ = ["warn"]
 
-# Frames that are never the caller: ceemx itself and the runtime type-checking wrappers that the
-# test suite puts around ceemx's functions (jaxtyping, beartype).
-_INTERNAL_MODULES = ("ceemx", "jaxtyping", "beartype")
+# Frames that are never the caller: ceemx itself, the runtime type-checking wrappers that the
+# test suite puts around ceemx's functions (jaxtyping, beartype), and Equinox's method wrappers
+# (a ceemx method called through a module's bound-method wrapper).
+_INTERNAL_MODULES = ("ceemx", "jaxtyping", "beartype", "equinox")
 
 
 def _is_internal(frame) -> bool:
