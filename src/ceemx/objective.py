@@ -183,8 +183,23 @@ def linearize(
     m = y.shape[-1]
     r_obs, r_dyn = residuals(system, x, y, u)
     on, pn = system.obs_noise, system.process_noise
-    Sv = jax.vmap(on.sqrt_curvature)(r_obs, mask)  # (T,m,m)
-    Sw = jax.vmap(pn.sqrt_curvature)(r_dyn)  # (T-1,n,n)
+    mT = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
+    # S_v @ A, S_w @ A, S_wᵀ @ A and S_wᵀ S_w per step; row scalings for diagonal noise.
+    if on.diagonal_curvature:
+        sv = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mask)  # (T,m)
+        Sv_mul = lambda a: sv[..., None] * a  # noqa: E731
+    else:
+        Sv = jax.vmap(on.sqrt_curvature)(r_obs, mask)  # (T,m,m)
+        Sv_mul = lambda a: Sv @ a  # noqa: E731
+    if pn.diagonal_curvature:
+        sw = jax.vmap(pn.sqrt_curvature_diagonal)(r_dyn)  # (T-1,n)
+        Sw_mul = SwT_mul = lambda a: sw[..., None] * a  # noqa: E731
+        SwT_Sw = jax.vmap(jnp.diag)(sw**2)
+    else:
+        Sw = jax.vmap(pn.sqrt_curvature)(r_dyn)  # (T-1,n,n)
+        Sw_mul = lambda a: Sw @ a  # noqa: E731
+        SwT_mul = lambda a: mT(Sw) @ a  # noqa: E731
+        SwT_Sw = mT(Sw) @ Sw
     gv = jax.vmap(jax.grad(on.nll))(r_obs, mask)  # (T,m)
     gw = jax.vmap(jax.grad(pn.nll))(r_dyn)  # (T-1,n)
     value = jnp.sum(jax.vmap(on.nll)(r_obs, mask)) + jnp.sum(jax.vmap(pn.nll)(r_dyn))
@@ -195,7 +210,6 @@ def linearize(
         value = value + prior.noise.nll(r0)
         S0 = prior.noise.sqrt_curvature(r0)
         prior_x = jax.grad(prior.noise.nll)(r0), S0.T @ S0
-    mT = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
 
     grad = hess = x_blocks = None
     if wrt_x:
@@ -204,12 +218,12 @@ def linearize(
         F = jax.vmap(jax.jacfwd(dyn_res, argnums=0), in_axes=(0, None, 0, 0))(
             x[:-1], theta, u[:-1], ts[:-1]
         )  # (T-1,n,n)
-        SG = Sv @ G
-        SF = Sw @ F
+        SG = Sv_mul(G)
+        SF = Sw_mul(F)
         diag = mT(SG) @ SG
         diag = diag.at[:-1].add(mT(SF) @ SF)
-        diag = diag.at[1:].add(mT(Sw) @ Sw)
-        lower = mT(Sw) @ SF  # block (t+1, t)
+        diag = diag.at[1:].add(SwT_Sw)
+        lower = SwT_mul(SF)  # block (t+1, t)
         grad = jnp.einsum("tmn,tm->tn", G, gv)
         grad = grad.at[:-1].add(jnp.einsum("tkn,tk->tn", F, gw))
         grad = grad.at[1:].add(gw)
@@ -224,8 +238,8 @@ def linearize(
     P = theta.shape[0]  # the length of θ
     Gt = jax.vmap(_jac(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)  # (T,m,P)
     Ft = jax.vmap(_jac(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(x[:-1], theta, u[:-1], ts[:-1])
-    SGt = Sv @ Gt
-    SFt = Sw @ Ft
+    SGt = Sv_mul(Gt)
+    SFt = Sw_mul(Ft)
     D = jnp.einsum("tmp,tmq->pq", SGt, SGt) + jnp.einsum("tnp,tnq->pq", SFt, SFt)
     grad_theta = jnp.einsum("tmp,tm->p", Gt, gv) + jnp.einsum("tnp,tn->p", Ft, gw)
     E = None
@@ -233,7 +247,7 @@ def linearize(
         SG, SF = x_blocks
         E = mT(SG) @ SGt
         E = E.at[:-1].add(mT(SF) @ SFt)
-        E = E.at[1:].add(mT(Sw) @ SFt)
+        E = E.at[1:].add(SwT_mul(SFt))
         E = E.astype(dtype)
     if prior is not None:  # a prior whose mean depends on θ
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import abc
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -60,6 +61,17 @@ class AbstractNoise(eqx.Module):
     def nll(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Negative log-density, −log p(r_present)."""
         return -self.log_prob(r, mask)
+
+    #: Whether :meth:`sqrt_curvature` is a diagonal matrix for every residual; then
+    #: :meth:`sqrt_curvature_diagonal` gives its diagonal and the linearisation scales rows
+    #: instead of multiplying by a d × d matrix per step (O(d²) instead of O(d³) work).
+    diagonal_curvature: ClassVar[bool] = False
+
+    def sqrt_curvature_diagonal(
+        self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
+    ) -> Float[Array, " d"]:
+        """The diagonal of :meth:`sqrt_curvature` (only where ``diagonal_curvature``)."""
+        return jnp.diagonal(self.sqrt_curvature(r, mask))
 
     def sqrt_curvature(
         self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
@@ -153,12 +165,20 @@ class DiagonalGaussian(AbstractGaussianNoise):
         return jnp.diag(self.std())
 
     # Diagonal fast paths (no d×d Cholesky per step).
+    diagonal_curvature: ClassVar[bool] = True
+
+    def sqrt_curvature_diagonal(
+        self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
+    ) -> Float[Array, " d"]:
+        """The diagonal of diag(mask / scale): 1/scale on present components, 0 on masked ones."""
+        mask = _full_mask(r, mask)
+        return jnp.where(mask, 1.0 / self.std().astype(r.dtype), 0.0)
+
     def sqrt_curvature(
         self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
     ) -> Float[Array, "d d"]:
         """diag(mask / scale)."""
-        mask = _full_mask(r, mask)
-        return jnp.diag(jnp.where(mask, 1.0 / self.std().astype(r.dtype), 0.0))
+        return jnp.diag(self.sqrt_curvature_diagonal(r, mask))
 
     def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Sum of independent normal log-densities over the present components."""
