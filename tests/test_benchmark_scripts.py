@@ -14,33 +14,6 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.slow  # two fresh processes compile two fit solvers (≈ 30–60 s)
-def test_compare_reference_smoke(tmp_path):
-    out = tmp_path / "cr.json"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "compare_reference.py"),
-            "--smoke",
-            "--out",
-            str(out),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    res = json.loads(out.read_text())
-    summary = res["summary"]
-    for method in ("joint", "alternate"):
-        assert summary[method]["first_fit_s_median"] > 0
-        assert summary[method]["max_rel_error"] < 0.2
-    if (ROOT / "benchmarks" / "reference" / ".venv" / "bin" / "python").exists():
-        assert summary["reference"]["fit_s_median"] > 0
-    else:
-        assert "reference environment absent" in proc.stdout
-
-
 def _run_script(
     name: str, tmp_path, *extra, python: str = sys.executable
 ) -> subprocess.CompletedProcess:
@@ -58,6 +31,21 @@ def _run_script(
         text=True,
         timeout=900,
     )
+
+
+@pytest.mark.slow  # two fresh processes compile two fit solvers (≈ 30–60 s)
+def test_compare_reference_smoke(tmp_path):
+    proc = _run_script("compare_reference", tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads((tmp_path / "compare_reference.json").read_text())
+    summary = res["summary"]
+    for method in ("joint", "alternate"):
+        assert summary[method]["first_fit_s_median"] > 0
+        assert summary[method]["max_rel_error"] < 0.2
+    if (ROOT / "benchmarks" / "reference" / ".venv" / "bin" / "python").exists():
+        assert summary["reference"]["fit_s_median"] > 0
+    else:
+        assert "reference environment absent" in proc.stdout
 
 
 #: The peers' environment (``benchmarks/peers/setup.sh``: dynamax, cuthbert, jax-sysid beside an

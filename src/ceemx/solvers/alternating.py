@@ -61,13 +61,6 @@ class Alternating(AbstractFitSolver):
     def __check_init__(self):
         check_alternation(self.smoother, self.learner, self.rho_theta)
 
-    def initial_states(self, system, data) -> States:
-        """The warm start (:meth:`AbstractFitSolver.initial_states`), in the smoother's chunks."""
-        from ..initialize import warm_start  # the initialiser smooths: imported at call time
-
-        chunk = self.smoother.batch_chunk
-        return warm_start(system, data, smoother=smoothing_solver.LMSmoother(batch_chunk=chunk))
-
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
     ) -> FitState:

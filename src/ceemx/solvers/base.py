@@ -155,10 +155,14 @@ class AbstractFitSolver(eqx.Module):
         Least squares through the observation map, then one smoothing pass at the initial θ
         with weak dynamics weights, which fills in the unobserved directions from the dynamics
         (a start at zero velocity, say, can lead a joint method to a poor stationary point).
+        A solver with its own ``smoother`` (Algorithm 1, Laplace EM) warm-starts in that
+        smoother's ``batch_chunk`` (memory bound for large n).
         """
         from ..initialize import warm_start  # the initialiser smooths: imported at call time
 
-        return warm_start(system, data)
+        own = getattr(self, "smoother", None)
+        chunk = own.batch_chunk if isinstance(own, LMSmoother) else None
+        return warm_start(system, data, smoother=LMSmoother(batch_chunk=chunk))
 
     @abc.abstractmethod
     def init(
