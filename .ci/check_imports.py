@@ -5,7 +5,13 @@
    ``try``/``if`` blocks. Imports inside functions (deferred on purpose) and under
    ``if TYPE_CHECKING:`` are left out. ``from X import name`` is an edge to the module ``X.name``
    when there is one, otherwise to ``X``. Fails on any cycle and prints it.
-2. Private names. Fails when a module imports a name with one leading underscore (``_foo``, not
+2. Layers. The package's folders are ordered as the data flow (``LAYERS``: lib and infra at the
+   bottom, then models, data, systems and datasets, inference, identification, evaluation,
+   baselines, experiments, and the top-level modules). A module may import its own folder and
+   folders of a lower layer only — never a higher layer or a sibling of the same layer — at import
+   time or inside a function (``TYPE_CHECKING`` imports, for annotations only, are exempt). The
+   public facade ``ceemx`` (lazy names from every layer) is for the experiments and the top only.
+3. Private names. Fails when a module imports a name with one leading underscore (``_foo``, not
    ``__dunder__``) from another ceemx module, anywhere in the file, functions included. A private
    module (``_impl.py``) may be imported only from within its own package.
 
@@ -19,6 +25,55 @@ import sys
 from pathlib import Path
 
 PACKAGE = "ceemx"
+
+#: folders of the package, lowest first; one tuple per layer (siblings may not import each other)
+LAYERS: list[tuple[str, ...]] = [
+    ("lib",),
+    ("infra",),
+    ("models",),
+    ("data",),
+    ("systems", "datasets"),
+    ("inference",),
+    ("identification",),
+    ("evaluation",),
+    ("baselines",),
+    ("experiments",),
+    ("",),  # the top-level modules: __init__, __main__, cli
+]
+
+
+def layer_of(module: str) -> tuple[int, str]:
+    """(layer index, folder) of a dotted ceemx module; top-level modules are the last layer."""
+    parts = module.split(".")
+    folder = parts[1] if len(parts) > 2 or (len(parts) == 2 and _is_folder(parts[1])) else ""
+    for i, names in enumerate(LAYERS):
+        if folder in names:
+            return i, folder
+    raise KeyError(f"{module}: folder {folder!r} is not in LAYERS (.ci/check_imports.py)")
+
+
+_FOLDERS: set[str] = set()
+
+
+def _is_folder(name: str) -> bool:
+    return name in _FOLDERS
+
+
+def layer_problem(importer: str, target: str) -> str | None:
+    """Why ``importer`` may not import ``target`` (``None``: allowed)."""
+    layer, folder = layer_of(importer)
+    if target == PACKAGE:  # the public facade (lazy names from every layer): users' API
+        if layer >= len(LAYERS) - 2:  # experiments use ceemx as a user does; so does the top
+            return None
+        return f"{importer} (layer {folder}) imports the public facade ceemx (names from any layer)"
+    target_layer, target_folder = layer_of(target)
+    if folder == target_folder or target_layer < layer:
+        return None
+    kind = "a sibling layer" if target_layer == layer else "a higher layer"
+    return (
+        f"{importer} (layer {folder or 'top'}) imports {target} "
+        f"({kind}: {target_folder or 'top'})"
+    )
 
 
 def module_names(src: Path) -> dict[str, Path]:
@@ -48,8 +103,9 @@ class Imports(ast.NodeVisitor):
     """Collect the imports of one module as ``(node, import-time?)`` pairs."""
 
     def __init__(self) -> None:
-        self.found: list[tuple[ast.Import | ast.ImportFrom, bool]] = []
+        self.found: list[tuple[ast.Import | ast.ImportFrom, bool, bool]] = []
         self.deferred = 0  # depth inside functions / TYPE_CHECKING blocks
+        self.typing_only = 0  # depth inside TYPE_CHECKING blocks
 
     def _defer(self, node: ast.AST) -> None:
         self.deferred += 1
@@ -68,19 +124,21 @@ class Imports(ast.NodeVisitor):
     def visit_If(self, node: ast.If) -> None:  # noqa: D102
         if is_type_checking(node.test):
             self.deferred += 1
+            self.typing_only += 1
             for stmt in node.body:
                 self.visit(stmt)
             self.deferred -= 1
+            self.typing_only -= 1
             for stmt in node.orelse:
                 self.visit(stmt)
         else:
             self.generic_visit(node)
 
     def visit_Import(self, node: ast.Import) -> None:  # noqa: D102
-        self.found.append((node, self.deferred == 0))
+        self.found.append((node, self.deferred == 0, self.typing_only > 0))
 
     def visit_ImportFrom(self, node: ast.ImportFrom) -> None:  # noqa: D102
-        self.found.append((node, self.deferred == 0))
+        self.found.append((node, self.deferred == 0, self.typing_only > 0))
 
 
 def resolve_base(module: str, is_package: bool, node: ast.ImportFrom) -> str | None:
@@ -110,13 +168,14 @@ def private_module_problem(importer: str, target: str) -> str | None:
 def analyse(src: Path) -> tuple[dict[str, set[str]], list[str]]:
     """(import-time graph between ceemx modules, private-import findings)."""
     modules = module_names(src)
+    _FOLDERS.update(p.parent.name for p in (src / PACKAGE).glob("*/__init__.py"))
     graph: dict[str, set[str]] = {m: set() for m in modules}
     problems: list[str] = []
     for module, path in modules.items():
         is_package = path.name == "__init__.py"
         visitor = Imports()
         visitor.visit(ast.parse(path.read_text(encoding="utf-8"), filename=str(path)))
-        for node, import_time in visitor.found:
+        for node, import_time, typing_only in visitor.found:
             where = f"{path}:{node.lineno}"
             targets: list[str] = []
             if isinstance(node, ast.Import):
@@ -141,6 +200,9 @@ def analyse(src: Path) -> tuple[dict[str, set[str]], list[str]]:
                 reason = private_module_problem(module, target)
                 if reason:
                     problems.append(f"{where}: {module} imports {reason}")
+                layer = None if typing_only else layer_problem(module, target)
+                if layer:
+                    problems.append(f"{where}: {layer}")
                 if import_time and target in modules and target != module:
                     graph[module].add(target)
     return graph, problems
@@ -226,13 +288,14 @@ def main(argv: list[str]) -> int:
         print("import cycle: " + " -> ".join(path))
     for problem in problems:
         print(problem)
+    problems = list(dict.fromkeys(problems))
     n_edges = sum(len(v) for v in graph.values())
     if found or problems:
-        print(f"check_imports: {len(found)} cycle(s), {len(problems)} private import(s)")
+        print(f"check_imports: {len(found)} cycle(s), {len(problems)} layer or private finding(s)")
         return 1
     print(
         f"check_imports: {len(graph)} modules, {n_edges} import-time edges, no cycles, "
-        "no private imports"
+        "layers in order, no private imports"
     )
     return 0
 

@@ -6,7 +6,7 @@ in one process on one JAX (the peers' environment, ``benchmarks/peers/setup.sh``
 ``jit``-compiled and ``vmap``-ped over the trajectories:
 
 - ceemx: ``ceemx.smooth`` (batched LM on the MAP objective, block-tridiagonal solves) from the
-  least-squares start ``ceemx.initialize.from_observations`` (timed apart);
+  least-squares start ``ceemx.identification.initialize.from_observations`` (timed apart);
 - dynamax: ``extended_kalman_smoother`` with the same prior N((−6, −6, 24), 2.5² I), f, g, Q, R;
 - cuthbert: the linearised-moments (square-root) Kalman filter and smoother of
   ``cuthbert.gaussian.moments`` with Jacobian linearisation at the filtering / predicted means,
@@ -41,7 +41,7 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
-from ceemx.initialize import from_observations  # noqa: E402
+from ceemx.identification.initialize import from_observations  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results" / "compare_peers.json"
 

@@ -57,7 +57,7 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.experiments import common, table1  # noqa: E402
-from ceemx.initialize import warm_start  # noqa: E402
+from ceemx.identification.initialize import warm_start  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))

@@ -42,7 +42,7 @@ new_api = hasattr(ceemx, "JointLM") and hasattr(ceemx, "Alternating")
 calls = [0]
 if count:  # wrap the joint evaluate (objective + linearisation) with a host-side counter
     if new_api:
-        import ceemx.solvers.joint as jm
+        import ceemx.identification.solvers.joint as jm
         name = "_evaluator"
     else:
         import ceemx.joint as jm
@@ -88,7 +88,7 @@ res = ceemx.fit(system, problem.data, x_init, trainable=common.LORENZ_PARAMS_H, 
                 callbacks=[cb], progress=False, **kw)
 times = [b - a for a, b in zip(stamps[:-1], stamps[1:])]
 cpu_times = [b - a for a, b in zip(cpu[:-1], cpu[1:])]
-from ceemx import evaluate as ev
+from ceemx.evaluation import metrics as ev
 print(json.dumps({
     "file": ceemx.__file__,
     "times": times,

@@ -5,7 +5,7 @@ y = C x + v ∈ R^{3K−2} (C standard normal, known), H standard normal off the
 (Frobenius norm 5), σ_v = 0.01, no process noise, T steps (RK4, dt = 0.04), B trajectories from
 seed 42; θ = [σ, ρ, β, H] (3K + 9K² parameters) starts at θ·(1 + U(−0.1, 0.1)); the states start at
 truth + N(0, 1). Fitted with the likelihood weighting (σ_w = σ_v = 0.01, ρ_x = 0). ε(θ) is the
-paper's Eq. 14 (``ceemx.evaluate.dynamics_error``); the target is ε ≤ 1 % of the initial ε
+paper's Eq. 14 (``ceemx.evaluation.metrics.dynamics_error``); the target is ε ≤ 1 % of the initial ε
 within ``--budget`` seconds (default 600).
 
 Method: Algorithm 1 with a matrix-free learner — ``LMSmoother(max_steps=--smoother-steps)`` then
@@ -48,7 +48,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
-from ceemx import evaluate as ev  # noqa: E402
+from ceemx.evaluation import metrics as ev  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
 

@@ -11,8 +11,8 @@ coupled-Lorenz problem (B = 16, T = 128; float64), times in steady state
 * one :class:`ceemx.JointLM` iteration of ``ceemx.fit(..., devices="all")``: a fit of 5 epochs
   that cannot converge; the first two epochs compile (the second takes another code path), the
   median of the last 3 is reported;
-* one :func:`ceemx.smooth` call on the data and states placed by :func:`ceemx.sharding.shard_batch`
-  (run once to compile, then the median of 3).
+* one :func:`ceemx.smooth` call on the data and states placed by
+  :func:`ceemx.data.sharding.shard_batch` (run once to compile, then the median of 3).
 
 It checks that the states really lie on N devices and that J after the fit agrees across device
 counts. The 1-minute load average (``uptime``) is recorded before every run. Forced host devices
@@ -36,7 +36,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 import ceemx
 from ceemx.experiments import common
-from ceemx.sharding import batch_mesh, shard_batch
+from ceemx.data.sharding import batch_mesh, shard_batch
 
 n, K, B, T = (int(a) for a in sys.argv[1:5])
 assert len(jax.devices()) == n, jax.devices()

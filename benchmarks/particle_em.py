@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
-from ceemx.initialize import warm_start  # noqa: E402
+from ceemx.identification.initialize import warm_start  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 REF_PYTHON = HERE / "reference" / ".venv" / "bin" / "python"

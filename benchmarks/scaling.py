@@ -8,7 +8,8 @@ What is measured (float64, JAX on CPU; issue 12, item 7):
    steady call; ≥ 3 steady calls; the 1-min load average is recorded per case. Log–log slopes of
    the time per iteration against T, B and n.
 2. **FLOP bound** of one smoothing LM iteration, counted analytically from what the code does
-   (``ceemx.objective.linearize``, ``ceemx.lib.blocktri``; see :func:`smoother_flops`), against a
+   (``ceemx.inference.objective.linearize``, ``ceemx.lib.blocktri``; see :func:`smoother_flops`),
+   against a
    peak measured on this machine (a large float64 matmul in JAX): achieved GFLOP/s and the ratio
    ``time / (bound / peak)``. Target of the issue: ratio ≤ 5 at n ≥ 18.
 3. **Fit iterations**: one ``JointLM`` iteration and one Algorithm-1 epoch (``Alternating``) with

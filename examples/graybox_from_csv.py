@@ -185,7 +185,7 @@ def main(argv: list[str] | None = None) -> dict:
     # (the model integrates u linearly between samples: input pairs [u_t, u_{t+1}]). Build the
     # pairs on the whole segment, then cut it into overlapping windows.
     seg = slice(ESTIMATION[0], ESTIMATION[0] + n_train)
-    train = ceemx.data.foh_inputs(ceemx.Trajectories.from_arrays(y[seg], u[seg]))
+    train = ceemx.data.trajectories.foh_inputs(ceemx.Trajectories.from_arrays(y[seg], u[seg]))
     assert isinstance(train, ceemx.Trajectories)
     windows = train.windows(length, step)
     n_windows = windows.y.shape[0]
@@ -219,7 +219,9 @@ def main(argv: list[str] | None = None) -> dict:
     # Official protocol: x̂₁ from the first 50 test outputs, free run over the whole test input,
     # RMSE on y[50:] in mV.
     test_slice = slice(TEST[0], TEST[0] + n_test)
-    test = ceemx.data.foh_inputs(ceemx.Trajectories.from_arrays(y[test_slice], u[test_slice]))
+    test = ceemx.data.trajectories.foh_inputs(
+        ceemx.Trajectories.from_arrays(y[test_slice], u[test_slice])
+    )
     assert isinstance(test, ceemx.Trajectories)
     t0 = time.perf_counter()
     score = ceemx.benchmark_score(fitted, test, N_INIT, scale=1000.0)

@@ -18,8 +18,8 @@ import jax.numpy as jnp
 import pytest
 
 import ceemx
-from ceemx import checkpoint as ckpt
-from ceemx.checkpoint import CheckpointError
+from ceemx.infra import checkpoint as ckpt
+from ceemx.infra.checkpoint import CheckpointError
 from ceemx.systems import LinearSystem
 
 A_TRUE = jnp.array([[0.9, 0.1], [-0.1, 0.8]])

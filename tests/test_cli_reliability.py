@@ -2,8 +2,8 @@
 
 - Usage errors (``--seeds 0``, an ``--out`` that cannot be written) exit 2 with one line, before
   any compute.
-- Result files are replaced atomically; under :func:`ceemx.report.deferred_writes` nothing is
-  written until the commit, ``results.json`` last.
+- Result files are replaced atomically; under :func:`ceemx.evaluation.report.deferred_writes`
+  nothing is written until the commit, ``results.json`` last.
 - SIGINT: exit status 130, exactly one line on stderr, no ``results.json``.
 """
 
@@ -16,7 +16,8 @@ import time
 
 import pytest
 
-from ceemx import cli, report
+from ceemx import cli
+from ceemx.evaluation import report
 from ceemx.experiments import common
 
 # ----------------------------------------------------------------------------------------------

@@ -6,12 +6,12 @@ import sys
 
 import pytest
 
-from ceemx.compilation import default_cache_dir, enable_compilation_cache
+from ceemx.infra.compilation import default_cache_dir, enable_compilation_cache
 
 _SCRIPT = """
 import sys
 import jax, jax.numpy as jnp
-from ceemx.compilation import enable_compilation_cache
+from ceemx.infra.compilation import enable_compilation_cache
 print(enable_compilation_cache(sys.argv[1], min_compile_time_s=0.0))
 f = jax.jit(lambda x: jnp.sin(x) @ jnp.cos(x).T + 1.0)
 print(float(f(jnp.ones((3, 3))).sum()))

@@ -15,8 +15,8 @@ import pytest
 from jaxtyping import Array
 
 import ceemx
+from ceemx.identification.problem import FitProblem, trainable_mask
 from ceemx.models import constraints as cons
-from ceemx.problem import FitProblem, trainable_mask
 
 jax.config.update("jax_enable_x64", True)
 

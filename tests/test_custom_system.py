@@ -19,7 +19,7 @@ import scipy.linalg
 from jaxtyping import Array
 
 import ceemx
-from ceemx.data import foh_inputs
+from ceemx.data.trajectories import foh_inputs
 from ceemx.models import constraints as cons
 from ceemx.models.system import rk4_step
 from ceemx.systems import CoupledLorenz, LinearSystem

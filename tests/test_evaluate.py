@@ -1,4 +1,5 @@
-"""Tests for ceemx.evaluate: ε(θ) (paper Eq. 14), open-loop simulation RMSE, mean (SE), callbacks.
+"""Tests for ceemx.evaluation.metrics: ε(θ) (paper Eq. 14), open-loop simulation RMSE, mean (SE),
+callbacks.
 
 Oracles: a NumPy implementation of the coupled-Lorenz vector field (Eq. 12) evaluated at the same
 sampled states; exact zeros for identical systems and for noise-free data replayed from the true
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx import evaluate as ev
+from ceemx.evaluation import metrics as ev
 from ceemx.models import AbstractContinuousSystem, DiagonalGaussian
 from ceemx.systems import CoupledLorenz, initial_states, random_coupling, random_observation_matrix
 

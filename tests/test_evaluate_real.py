@@ -15,9 +15,9 @@ import pytest
 
 import ceemx
 from ceemx import GaussianPrior, Trajectories
-from ceemx import evaluate as ev
-from ceemx import simulation as sim
-from ceemx.filtering import ekf
+from ceemx.evaluation import metrics as ev
+from ceemx.evaluation import simulation as sim
+from ceemx.inference.ekf import ekf
 from ceemx.models import DiagonalGaussian
 from ceemx.systems import LinearSystem
 

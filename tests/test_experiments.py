@@ -276,7 +276,7 @@ def test_figure4_group_learning_rates():
     from jax.flatten_util import ravel_pytree
 
     from ceemx.experiments import figure4
-    from ceemx.problem import split_system
+    from ceemx.identification.problem import split_system
     from ceemx.systems import NeuralObservationSystem
 
     n, m, p = 3, 2, 1

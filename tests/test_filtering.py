@@ -1,4 +1,4 @@
-"""Tests for the extended Kalman filter (ceemx.filtering.ekf).
+"""Tests for the extended Kalman filter (ceemx.inference.ekf.ekf).
 
 Oracles: a textbook Kalman filter in NumPy (inputs, full noise covariances, missing components
 and steps skipped) and the dense joint Gaussian density of all observations of a linear-Gaussian
@@ -15,7 +15,7 @@ import pytest
 from jaxtyping import Array, ArrayLike, Float, Real
 
 import ceemx
-from ceemx.filtering import FilterSolution, ekf
+from ceemx.inference.ekf import FilterSolution, ekf
 from ceemx.lib.results import codes
 from ceemx.models.noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT
 from ceemx.models.system import AbstractSystem, GaussianPrior

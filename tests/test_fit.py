@@ -24,8 +24,8 @@ import optax
 import pytest
 
 import ceemx
-import ceemx.learning.step
-import ceemx.smoothing.solver
+import ceemx.identification.learning.step
+import ceemx.inference.smoother
 from ceemx.lib.results import codes
 from ceemx.systems import CoupledLorenz, LinearSystem, initial_states, random_observation_matrix
 
@@ -64,7 +64,10 @@ def traces():
     causes it. The wrappers call the library's own compiled functions, so results are unchanged.
     """
     log = []
-    smooth, learn = ceemx.smoothing.solver.smooth_batch, ceemx.learning.step.run_learner
+    smooth, learn = (
+        ceemx.inference.smoother.smooth_batch,
+        ceemx.identification.learning.step.run_learner,
+    )
 
     def record(kind, key):
         if (kind, key) in log:
@@ -86,8 +89,8 @@ def traces():
         return learn(learner, problem, theta, state)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ceemx.smoothing.solver, "smooth_batch", smooth_traced)
-        mp.setattr(ceemx.learning.step, "run_learner", learn_traced)
+        mp.setattr(ceemx.inference.smoother, "smooth_batch", smooth_traced)
+        mp.setattr(ceemx.identification.learning.step, "run_learner", learn_traced)
         yield log
 
 
@@ -442,10 +445,10 @@ def test_from_observations_inverts_a_full_rank_observation():
     system = LinearSystem(jnp.asarray(A), jnp.asarray(C), process_noise=0.1, obs_noise=0.2)
     x1 = jnp.asarray(rng.standard_normal((2, n)))
     xs, data = simulate(system, jax.random.PRNGKey(0), x1, 20, process_noise=True, obs_noise=False)
-    x_exact = ceemx.initialize.from_observations(system, data, ridge=0.0)
+    x_exact = ceemx.identification.initialize.from_observations(system, data, ridge=0.0)
     np.testing.assert_allclose(x_exact, xs, rtol=1e-10, atol=1e-10)
     # The default ridge is tiny: still very close.
-    x_ridge = ceemx.initialize.from_observations(system, data)
+    x_ridge = ceemx.identification.initialize.from_observations(system, data)
     np.testing.assert_allclose(x_ridge, xs, rtol=1e-3, atol=1e-3 * float(np.max(np.abs(xs))))
 
 
@@ -453,14 +456,14 @@ def test_rollout_equals_noise_free_simulation(prob):
     xs, data = simulate(
         prob.true, jax.random.PRNGKey(1), prob.x1, T, process_noise=False, obs_noise=False
     )
-    x = ceemx.initialize.rollout(prob.true, data, prob.x1)
+    x = ceemx.identification.initialize.rollout(prob.true, data, prob.x1)
     np.testing.assert_allclose(x, xs, rtol=1e-14, atol=1e-14)
     np.testing.assert_array_equal(x[:, 0], prob.x1)
 
 
 def test_fit_without_initial_states(prob):
     res = ceemx.fit(prob.start, prob.data, trainable=where_theta, max_epochs=3)
-    x0 = ceemx.initialize.warm_start(prob.start, prob.data)  # the default start
+    x0 = ceemx.identification.initialize.warm_start(prob.start, prob.data)  # the default start
     assert res.epochs == 3
     np.testing.assert_allclose(
         res.initial_J, float(np.sum(log_joint(prob.start, x0, prob.data))), rtol=1e-12

@@ -8,8 +8,8 @@ import pytest
 
 import ceemx
 from ceemx.experiments import common
-from ceemx.health import trajectory_health
-from ceemx.problem import FitProblem
+from ceemx.identification.health import trajectory_health
+from ceemx.identification.problem import FitProblem
 
 jax.config.update("jax_enable_x64", True)
 

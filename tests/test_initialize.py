@@ -1,4 +1,5 @@
-"""Tests for the start of a fit: ceemx.initialize (warm_start, perturb) and models.with_noise."""
+"""Tests for the start of a fit: ceemx.identification.initialize (warm_start, perturb) and
+models.with_noise."""
 
 import equinox as eqx
 import jax
@@ -6,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import ceemx
-from ceemx.initialize import from_observations, perturb, warm_start
+from ceemx.identification.initialize import from_observations, perturb, warm_start
 from ceemx.models import CholeskyGaussian, DiagonalGaussian, with_noise
 from ceemx.systems import CoupledLorenz, random_observation_matrix
 

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 
 import ceemx
-import ceemx.smoothing.solver
-import ceemx.solvers.joint
+import ceemx.identification.solvers.joint
+import ceemx.inference.smoother
 from ceemx import lib as linalg
-from ceemx.learning import make_problem
+from ceemx.identification.learning import make_problem
+from ceemx.inference.objective import linearize
 from ceemx.lib import marquardt_scale
 from ceemx.lib.results import codes
-from ceemx.objective import linearize
 from ceemx.systems import CoupledLorenz, initial_states, random_coupling
 
 simulate = eqx.filter_jit(ceemx.simulate)  # eager simulation costs seconds
@@ -40,7 +40,7 @@ def instrumented():
     ``log.evaluations`` at run time, through ``jax.debug.callback`` (it works inside
     ``lax.while_loop``).
     """
-    joint, smoothing = ceemx.solvers.joint, ceemx.smoothing.solver
+    joint, smoothing = ceemx.identification.solvers.joint, ceemx.inference.smoother
     raw_iteration = joint._iteration.__wrapped__
     raw_linearize = joint.linearize_joint.__wrapped__
     raw_evaluator = joint._evaluator

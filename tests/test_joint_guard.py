@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx.initialize import from_observations
+from ceemx.identification.initialize import from_observations
 from ceemx.models import DiagonalGaussian
 
 jax.config.update("jax_enable_x64", True)

@@ -9,7 +9,7 @@ import pytest
 from kalman_em_reference import kalman_em, kalman_smoother
 
 import ceemx
-from ceemx.learning import expected_learning_problem
+from ceemx.identification.learning import expected_learning_problem
 from ceemx.lib.blocktri import to_dense
 
 jax.config.update("jax_enable_x64", True)
@@ -113,8 +113,8 @@ def test_cubature_expectation_matches_monte_carlo_on_lorenz():
     the certainty-equivalent plug-in −log p(x̂, y | θ) is off by ~18 nats, cubature by < 4 SE.
     """
     from ceemx.experiments import common
-    from ceemx.objective import linearize, neg_log_joint_single
-    from ceemx.problem import FitProblem
+    from ceemx.identification.problem import FitProblem
+    from ceemx.inference.objective import linearize, neg_log_joint_single
 
     true = common.true_lorenz(1, key=jax.random.PRNGKey(4), m=2, process_noise=0.1, obs_noise=0.5)
     p = common.lorenz_problem(43, true, B=1, T=12, sigma_w=0.1, sigma_v=0.5, coupling=False)
@@ -149,7 +149,7 @@ def test_cubature_gauss_newton_matches_autodiff():
     system = _system(*params)
     data = ceemx.Trajectories(jnp.asarray(y))
     sol = ceemx.smooth(system, data, jnp.zeros(y.shape[:2] + (2,)), covariance=True)
-    from ceemx.problem import FitProblem
+    from ceemx.identification.problem import FitProblem
 
     problem, theta = FitProblem.create(system, data, trainable=lambda s: (s.A, s.C))
     mp = expected_learning_problem(
@@ -315,8 +315,8 @@ def test_parameters_saturated_at_a_bound_survive_learned_noise():
     the noise split (natural → unconstrained would give ±∞): θ stays in unconstrained units."""
     import equinox as eqx
 
-    from ceemx.problem import FitProblem
-    from ceemx.solvers.laplace import _NoiseSplit
+    from ceemx.identification.problem import FitProblem
+    from ceemx.identification.solvers.laplace import _NoiseSplit
 
     class Bounded(ceemx.AbstractSystem):
         a: jax.Array = ceemx.param(lower=0.1, upper=1.0)

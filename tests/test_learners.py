@@ -19,7 +19,7 @@ import pytest
 import scipy.optimize
 
 import ceemx
-from ceemx.learning.step import make_problem
+from ceemx.identification.learning.step import make_problem
 from ceemx.systems import CoupledLorenz, initial_states, random_observation_matrix
 
 TRUE = np.array([10.0, 28.0, 8.0 / 3.0])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx import _memory
+from ceemx.infra import memory as _memory
 from ceemx.systems import CoupledLorenz, initial_states, random_observation_matrix
 
 

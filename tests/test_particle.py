@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 
 import ceemx
+import ceemx.identification.solvers.particle_em as particle_em_mod
 import ceemx.inference.particle as particle_mod
-import ceemx.solvers.particle_em as particle_em_mod
+from ceemx.identification.solvers import saem_step_size
 from ceemx.lib import kalman
 from ceemx.lib import particles as lp
 from ceemx.lib.results import codes
-from ceemx.solvers import saem_step_size
 from ceemx.systems import LinearSystem
 
 RESULTS = ceemx.RESULTS

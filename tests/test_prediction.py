@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx.prediction import (
+from ceemx.evaluation.prediction import (
     AbstractPredictor,
     BestValidation,
     ResidualPredictor,

@@ -1,4 +1,4 @@
-"""Tests for ceemx.report: Markdown cells and tables, JSON and text files, figures."""
+"""Tests for ceemx.evaluation.report: Markdown cells and tables, JSON and text files, figures."""
 
 import json
 import math
@@ -6,8 +6,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ceemx import report
-from ceemx.evaluate import Estimate, mean_se
+from ceemx.evaluation import report
+from ceemx.evaluation.metrics import Estimate, mean_se
 
 
 def test_format_estimate():

@@ -1,5 +1,5 @@
-"""``ceemx.runtime.limit_cpu_threads`` and the CLI's ``--threads`` (run in fresh processes: CPU
-affinity and JAX's thread pool are process state)."""
+"""``ceemx.infra.runtime.limit_cpu_threads`` and the CLI's ``--threads`` (run in fresh processes:
+CPU affinity and JAX's thread pool are process state)."""
 
 import os
 import subprocess
@@ -9,7 +9,7 @@ import textwrap
 import pytest
 
 from ceemx import cli
-from ceemx.runtime import limit_cpu_threads
+from ceemx.infra.runtime import limit_cpu_threads
 
 needs_affinity = pytest.mark.skipif(
     not hasattr(os, "sched_getaffinity"), reason="CPU affinity is Linux-only"
@@ -38,7 +38,7 @@ def test_limit_before_jax_starts_pins_the_process_and_sizes_the_pool():
         """
         import os, warnings
         warnings.simplefilter("error")  # no warning: JAX has not started
-        from ceemx.runtime import limit_cpu_threads
+        from ceemx.infra.runtime import limit_cpu_threads
         n = limit_cpu_threads(1)
         import jax, jax.numpy as jnp
         jax.block_until_ready(jnp.ones(3) @ jnp.ones(3))
@@ -55,7 +55,7 @@ def test_limit_after_jax_started_warns():
         """
         import jax, jax.numpy as jnp, warnings
         jax.block_until_ready(jnp.ones(3) + 1)
-        from ceemx.runtime import limit_cpu_threads
+        from ceemx.infra.runtime import limit_cpu_threads
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter("always")
             limit_cpu_threads(1)

@@ -1,4 +1,4 @@
-"""Data parallelism over the trajectory axis (:mod:`ceemx.sharding`, ``fit(devices=...)``).
+"""Data parallelism over the trajectory axis (:mod:`ceemx.data.sharding`, ``fit(devices=...)``).
 
 The multi-device test runs in a subprocess: ``--xla_force_host_platform_device_count`` must be in
 ``XLA_FLAGS`` before JAX starts its backend, and this process already has one CPU device.
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx.sharding import batch_mesh, resolve_devices, shard_batch
+from ceemx.data.sharding import batch_mesh, resolve_devices, shard_batch
 
 _MARKER = "SHARDING-OK"
 
@@ -58,7 +58,7 @@ for solver in (ceemx.JointLM(), ceemx.Alternating()):
         worst = max(worst, close(hp["J"], hr["J"], f"{name} J at epoch {hr['epoch']}"))
 
 # B = 6 on 4 devices: the largest divisor, 3 devices; strict: a ValueError naming B and the count
-from ceemx.sharding import batch_mesh, shard_batch
+from ceemx.data.sharding import batch_mesh, shard_batch
 d6, x6 = shard_batch(p.data[np.arange(6)], x0[:6], batch_mesh())
 assert len(x6.sharding.device_set) == 3 and len(d6.y.sharding.device_set) == 3
 np.testing.assert_array_equal(np.asarray(x6), np.asarray(x0[:6]))

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 import ceemx
+from ceemx.inference.objective import linearize
 from ceemx.lib.results import codes
-from ceemx.objective import linearize
 from ceemx.systems import (
     CoupledLorenz,
     LinearSystem,
@@ -61,7 +61,7 @@ def traces():
     function, so results are unchanged. Yields the data shapes traced so far.
     """
     log, seen = [], set()
-    raw = ceemx.smoothing.solver.smooth_batch
+    raw = ceemx.inference.smoother.smooth_batch
 
     @eqx.filter_jit
     def smooth_batch(solver, system, states, data, covariance):
@@ -74,7 +74,7 @@ def traces():
         return out
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ceemx.smoothing.solver, "smooth_batch", smooth_batch)
+        mp.setattr(ceemx.inference.smoother, "smooth_batch", smooth_batch)
         yield log
 
 
@@ -259,7 +259,7 @@ def _stopped_after(system, data, x_init, solver):
     so that every k shares one compilation (``LMSmoother.max_steps`` is static, so ``smooth``
     recompiles for each k: :func:`test_lorenz_objective_monotone_public_api` does exactly that).
     """
-    from ceemx.smoothing.solver import _smooth_one
+    from ceemx.inference.smoother import _smooth_one
 
     @jax.jit
     def run(k, x0, y, u, mask):

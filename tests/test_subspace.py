@@ -225,7 +225,7 @@ def test_fit_sid_system(dtype):
     if dtype == jnp.float32:
         return
     # the one-step predictor runs and beats predicting zero
-    pred = ceemx.prediction.StateSpacePredictor(model).predict(data)
+    pred = ceemx.evaluation.prediction.StateSpacePredictor(model).predict(data)
     assert np.mean((np.asarray(pred) - np.asarray(data.y)) ** 2) < np.mean(np.asarray(data.y) ** 2)
     unit = fit_sid(data, state_dim=3, horizon=5, noise="unit", initial_prior=False)
     np.testing.assert_allclose(np.asarray(unit.obs_noise.cholesky()), np.eye(2))

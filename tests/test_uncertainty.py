@@ -1,4 +1,5 @@
-"""Laplace parameter uncertainty (ceemx.uncertainty, FitResult.covariance / standard_errors)."""
+"""Laplace parameter uncertainty (ceemx.identification.uncertainty, FitResult.covariance /
+standard_errors)."""
 
 import equinox as eqx
 import jax
@@ -8,10 +9,10 @@ import pytest
 from jaxtyping import Array
 
 import ceemx
-from ceemx.problem import FitProblem
-from ceemx.report import estimate_table
+from ceemx.evaluation.report import estimate_table
+from ceemx.identification.problem import FitProblem
+from ceemx.identification.uncertainty import natural_jacobian, parameter_covariance
 from ceemx.systems import CoupledLorenz, LinearSystem, initial_states
-from ceemx.uncertainty import natural_jacobian, parameter_covariance
 
 simulate = eqx.filter_jit(ceemx.simulate)
 

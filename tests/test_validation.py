@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import ceemx
+from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
-from ceemx.smoothing import check_inputs, promote_inputs
 from ceemx.systems import LinearSystem
 from ceemx.systems.lorenz import CoupledLorenz
 

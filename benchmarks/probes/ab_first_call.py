@@ -39,7 +39,7 @@ mode = sys.argv[1] if len(sys.argv) > 1 else "smooth"
 if mode == "smooth":
     from compare_peers import problem
 
-    from ceemx.initialize import from_observations
+    from ceemx.identification.initialize import from_observations
 
     system, p = problem(16, 128)
     x0 = from_observations(system, p.data)

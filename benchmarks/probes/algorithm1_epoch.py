@@ -13,7 +13,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 import ceemx  # noqa: E402
-from ceemx import evaluate as ev  # noqa: E402
+from ceemx.evaluation import metrics as ev  # noqa: E402
 from ceemx.experiments import common, figure3  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
 

@@ -17,10 +17,10 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import ceemx  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
-from ceemx.initialize import warm_start  # noqa: E402
+from ceemx.identification.initialize import warm_start  # noqa: E402
+from ceemx.identification.problem import FitProblem  # noqa: E402
 from ceemx.lib.tree import trace_numbers  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
-from ceemx.problem import FitProblem  # noqa: E402
 
 
 def cpu() -> float:

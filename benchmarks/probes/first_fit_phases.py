@@ -17,11 +17,11 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
-from ceemx.health import trajectory_health  # noqa: E402
+from ceemx.identification.health import trajectory_health  # noqa: E402
+from ceemx.identification.problem import FitProblem  # noqa: E402
+from ceemx.inference.smoother import check_inputs, promote_inputs  # noqa: E402
 from ceemx.lib.tree import trace_numbers  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
-from ceemx.problem import FitProblem  # noqa: E402
-from ceemx.smoothing import check_inputs, promote_inputs  # noqa: E402
 
 true = common.true_lorenz(
     1, key=jax.random.PRNGKey(4), m=2, coupling=False, process_noise=0.1, obs_noise=0.5

@@ -19,7 +19,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from compare_peers import problem  # noqa: E402
 
 import ceemx  # noqa: E402
-from ceemx.initialize import from_observations  # noqa: E402
+from ceemx.identification.initialize import from_observations  # noqa: E402
 
 system, p = problem(16, 128)
 starts = {

@@ -12,7 +12,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import ceemx  # noqa: E402
 from ceemx.experiments import common, table1  # noqa: E402
-from ceemx.initialize import warm_start  # noqa: E402
+from ceemx.identification.initialize import warm_start  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
 
 

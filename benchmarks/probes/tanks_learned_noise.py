@@ -16,8 +16,8 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 import ceemx  # noqa: E402
 from ceemx import datasets  # noqa: E402
+from ceemx.identification.problem import trainable_mask  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
-from ceemx.problem import trainable_mask  # noqa: E402
 from ceemx.systems.benchmarks import CascadedTanks  # noqa: E402
 
 PARAMS = ("k1", "k2", "k3", "k4", "a1", "a2", "u0")

@@ -1,9 +1,12 @@
 """ceemx: certainty-equivalent EM for partially observed nonlinear dynamical systems, in JAX.
 
-Two layers: :mod:`ceemx.lib` holds the maths that knows nothing of EM (block-tridiagonal and
-arrowhead solves, the Levenberg–Marquardt driver, status codes); the rest composes it into the
-user-facing layer — systems, data, the objective, smoothers, learners, fit solvers and the one
-:func:`fit` driver.
+The package reads as the pipeline, one folder a stage (a lower folder never imports a higher one;
+``.ci/check_imports.py`` enforces it): :mod:`ceemx.lib` (maths that knows nothing of EM) and
+:mod:`ceemx.infra` (checkpoints, compilation cache, threads) at the bottom; :mod:`ceemx.models`,
+:mod:`ceemx.data`, :mod:`ceemx.systems`, :mod:`ceemx.datasets` (what goes in);
+:mod:`ceemx.inference` (state estimators at fixed θ); :mod:`ceemx.identification` (θ: the fit
+driver, its solvers and learners); :mod:`ceemx.evaluation` (simulation, prediction, scores,
+reports); :mod:`ceemx.baselines`, :mod:`ceemx.experiments` and the CLI on top.
 
 ``import ceemx`` is light: the names below load their modules on first use (PEP 562), so the
 ``ceemx`` command can install its interrupt handler and answer ``--help`` before JAX is imported.
@@ -14,32 +17,22 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
-    from . import (
-        datasets,
-        evaluate,
-        filtering,
-        inference,
-        initialize,
-        lib,
-        prediction,
-        report,
-        simulation,
-        systems,
-    )
-    from .compilation import enable_compilation_cache
-    from .data import Trajectories, foh_inputs, simulate
-    from .driver import EpochInfo, FitResult, fit, particle_em
-    from .evaluate import (
+    from ceemx import datasets, lib, systems
+    from ceemx.data.trajectories import Trajectories, foh_inputs, simulate
+    from ceemx.evaluation import metrics as evaluate
+    from ceemx.evaluation import prediction, report, simulation
+    from ceemx.evaluation.metrics import (
         BenchmarkScore,
         DynamicsErrorCallback,
         FitTimer,
         benchmark_score,
         is_monotone,
     )
-    from .filtering import FilterSolution, ekf
-    from .inference import ParticleFilterSolution, ffbsi, particle_filter
-    from .initialize import perturb, warm_start
-    from .learning import (
+    from ceemx.evaluation.simulation import estimate_initial_state, free_run, predict_k_step
+    from ceemx.identification import initialize
+    from ceemx.identification.driver import EpochInfo, FitResult, fit, particle_em
+    from ceemx.identification.initialize import perturb, warm_start
+    from ceemx.identification.learning import (
         AbstractLearner,
         LBFGSLearner,
         LearnInfo,
@@ -48,8 +41,24 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
         OptaxLearner,
         learn,
     )
-    from .lib.results import RESULTS
-    from .models import (
+    from ceemx.identification.problem import FitProblem
+    from ceemx.identification.solvers import (
+        AbstractFitSolver,
+        Alternating,
+        FitState,
+        JointLM,
+        LaplaceEM,
+        ParticleEM,
+    )
+    from ceemx.inference import ekf as filtering
+    from ceemx.inference import particle as inference
+    from ceemx.inference.ekf import FilterSolution, ekf
+    from ceemx.inference.objective import log_joint, whitened_residuals
+    from ceemx.inference.particle import ParticleFilterSolution, ffbsi, particle_filter
+    from ceemx.inference.smoother import LMSmoother, SmootherSolution, smooth
+    from ceemx.infra.compilation import enable_compilation_cache
+    from ceemx.lib.results import RESULTS
+    from ceemx.models import (
         AbstractConstraint,
         AbstractContinuousSystem,
         AbstractGaussianNoise,
@@ -68,80 +77,90 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
         param,
         with_noise,
     )
-    from .objective import log_joint, whitened_residuals
-    from .problem import FitProblem
-    from .simulation import estimate_initial_state, free_run, predict_k_step
-    from .smoothing import LMSmoother, SmootherSolution, smooth
-    from .solvers import (
-        AbstractFitSolver,
-        Alternating,
-        FitState,
-        JointLM,
-        LaplaceEM,
-        ParticleEM,
-    )
+
+#: module names of the flat layout before the folders, kept as attributes (``ceemx.report``, ...)
+_MODULES = {
+    "checkpoint": ".infra.checkpoint",
+    "compilation": ".infra.compilation",
+    "driver": ".identification.driver",
+    "evaluate": ".evaluation.metrics",
+    "filtering": ".inference.ekf",
+    "health": ".identification.health",
+    "initialize": ".identification.initialize",
+    "learning": ".identification.learning",
+    "objective": ".inference.objective",
+    "prediction": ".evaluation.prediction",
+    "problem": ".identification.problem",
+    "report": ".evaluation.report",
+    "runtime": ".infra.runtime",
+    "sharding": ".data.sharding",
+    "simulation": ".evaluation.simulation",
+    "smoothing": ".inference.smoother",
+    "solvers": ".identification.solvers",
+    "uncertainty": ".identification.uncertainty",
+}
 
 #: public name -> the module that defines it (loaded on first access)
 _LAZY = {
     "AbstractConstraint": ".models",
     "AbstractContinuousSystem": ".models",
-    "AbstractFitSolver": ".solvers",
+    "AbstractFitSolver": ".identification.solvers",
     "AbstractGaussianNoise": ".models",
-    "AbstractLearner": ".learning",
+    "AbstractLearner": ".identification.learning",
     "AbstractNoise": ".models",
     "AbstractSystem": ".models",
-    "Alternating": ".solvers",
-    "BenchmarkScore": ".evaluate",
+    "Alternating": ".identification.solvers",
+    "BenchmarkScore": ".evaluation.metrics",
     "CholeskyGaussian": ".models",
     "DiagonalGaussian": ".models",
-    "DynamicsErrorCallback": ".evaluate",
-    "EpochInfo": ".driver",
-    "FilterSolution": ".filtering",
-    "FitProblem": ".problem",
-    "FitResult": ".driver",
-    "FitState": ".solvers",
-    "FitTimer": ".evaluate",
+    "DynamicsErrorCallback": ".evaluation.metrics",
+    "EpochInfo": ".identification.driver",
+    "FilterSolution": ".inference.ekf",
+    "FitProblem": ".identification.problem",
+    "FitResult": ".identification.driver",
+    "FitState": ".identification.solvers",
+    "FitTimer": ".evaluation.metrics",
     "Fixed": ".models",
     "GaussianPrior": ".models",
     "GreaterThan": ".models",
     "Interval": ".models",
-    "JointLM": ".solvers",
-    "LaplaceEM": ".solvers",
-    "LBFGSLearner": ".learning",
-    "LMLearner": ".learning",
-    "LMSmoother": ".smoothing",
-    "LearnInfo": ".learning",
+    "JointLM": ".identification.solvers",
+    "LaplaceEM": ".identification.solvers",
+    "LBFGSLearner": ".identification.learning",
+    "LMLearner": ".identification.learning",
+    "LMSmoother": ".inference.smoother",
+    "LearnInfo": ".identification.learning",
     "LessThan": ".models",
-    "NelderMeadLearner": ".learning",
-    "OptaxLearner": ".learning",
-    "ParticleEM": ".solvers",
-    "ParticleFilterSolution": ".inference",
+    "NelderMeadLearner": ".identification.learning",
+    "OptaxLearner": ".identification.learning",
+    "ParticleEM": ".identification.solvers",
+    "ParticleFilterSolution": ".inference.particle",
     "Positive": ".models",
     "RESULTS": ".lib.results",
-    "SmootherSolution": ".smoothing",
+    "SmootherSolution": ".inference.smoother",
     "StudentT": ".models",
-    "Trajectories": ".data",
+    "Trajectories": ".data.trajectories",
     "Unconstrained": ".models",
-    "benchmark_score": ".evaluate",
-    "ekf": ".filtering",
-    "enable_compilation_cache": ".compilation",
-    "estimate_initial_state": ".simulation",
-    "ffbsi": ".inference",
-    "fit": ".driver",
-    "foh_inputs": ".data",
-    "free_run": ".simulation",
-    "is_monotone": ".evaluate",
-    "learn": ".learning",
-    "log_joint": ".objective",
+    "benchmark_score": ".evaluation.metrics",
+    "ekf": ".inference.ekf",
+    "enable_compilation_cache": ".infra.compilation",
+    "estimate_initial_state": ".evaluation.simulation",
+    "ffbsi": ".inference.particle",
+    "fit": ".identification.driver",
+    "foh_inputs": ".data.trajectories",
+    "free_run": ".evaluation.simulation",
+    "is_monotone": ".evaluation.metrics",
+    "learn": ".identification.learning",
+    "log_joint": ".inference.objective",
     "param": ".models",
-    "particle_em": ".driver",
-    "particle_filter": ".inference",
-    "perturb": ".initialize",
-    "predict_k_step": ".simulation",
-    "simulate": ".data",
-    "smooth": ".smoothing",
-    "warm_start": ".initialize",
-    "whitened_residuals": ".objective",
+    "particle_em": ".identification.driver",
+    "particle_filter": ".inference.particle",
+    "perturb": ".identification.initialize",
+    "predict_k_step": ".evaluation.simulation",
+    "simulate": ".data.trajectories",
+    "smooth": ".inference.smoother",
+    "warm_start": ".identification.initialize",
+    "whitened_residuals": ".inference.objective",
     "with_noise": ".models",
 }
 
@@ -150,8 +169,10 @@ def __getattr__(name: str):
     module = _LAZY.get(name)
     if module is not None:
         value = getattr(import_module(module, __name__), name)
+    elif name in _MODULES:
+        value = import_module(_MODULES[name], __name__)
     else:
-        try:  # a subpackage or module: ceemx.datasets, ceemx.smoothing, ...
+        try:  # a subpackage or module: ceemx.datasets, ceemx.inference, ...
             value = import_module(f".{name}", __name__)
         except ModuleNotFoundError as e:
             if e.name != f"{__name__}.{name}":

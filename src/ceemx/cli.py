@@ -16,7 +16,7 @@ Examples::
 
 ``--threads N`` (or ``CEEMX_THREADS=N``) runs JAX's CPU runtime on N CPUs: on a machine whose
 cores are busy with other work, ``--threads 1`` can be several times faster than the default of
-all cores (:mod:`ceemx.runtime`).
+all cores (:mod:`ceemx.infra.runtime`).
 
 ``--seeds N`` runs the first N seeds of the experiment's seed sequence (table1: 0, 1, 2, …;
 figure2: 43, 44, …; figure3: 42, 43, …); a comma list (``--seeds 42,44``, or ``--seeds 42,``
@@ -43,7 +43,7 @@ __all__ = ["main"]
 
 
 def _version() -> str:
-    from . import __version__
+    from ceemx import __version__
 
     return __version__
 
@@ -146,7 +146,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _seeds(text: str):
-    from .experiments.common import parse_seeds
+    from ceemx.experiments.common import parse_seeds
 
     try:
         return parse_seeds(text)
@@ -166,8 +166,8 @@ def _threads(text: str) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for documentation and tests)."""
-    from .experiments import EXPERIMENTS
-    from .experiments.common import METHODS
+    from ceemx.experiments import EXPERIMENTS
+    from ceemx.experiments.common import METHODS
 
     parser = _Parser(
         prog="ceemx",
@@ -284,7 +284,7 @@ def main(argv: Sequence[str] | None = None, *, handle_sigint: bool | None = None
 
 
 def _check_out(parser: argparse.ArgumentParser, out: str | None, default: str) -> None:
-    from .report import output_dir
+    from ceemx.evaluation.report import output_dir
 
     try:
         output_dir(out, default)
@@ -314,27 +314,27 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
         except argparse.ArgumentTypeError as e:
             parser.error(f"CEEMX_THREADS: {e}")
     if threads is not None:
-        from .runtime import limit_cpu_threads
+        from ceemx.infra.runtime import limit_cpu_threads
 
         limit_cpu_threads(threads)  # before JAX starts: XLA sizes its thread pool then
 
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from . import report
-    from .compilation import enable_compilation_cache
+    from ceemx.evaluation import report
+    from ceemx.infra.compilation import enable_compilation_cache
 
     # Compiled programs persist across runs (CEEMX_COMPILATION_CACHE=0 turns this off).
     enable_compilation_cache()
 
     if args.command == "demo":
-        from .experiments import demo
+        from ceemx.experiments import demo
 
         with report.deferred_writes() as held:
             demo.run(smoke=args.smoke, out=args.out, method=args.method, max_epochs=args.max_epochs)
         return _commit(held, interrupts)
 
-    from .experiments import get
+    from ceemx.experiments import get
 
     module = get(args.name)
     kwargs = dict(

@@ -3,8 +3,8 @@
 h⁰_t = u_t, (hˡ_t, cˡ_t) = LSTMCellˡ(hˡ⁻¹_t, (hˡ_{t−1}, cˡ_{t−1})) for l = 1, …, L from zero
 states, ŷ_t = W h^L_t + b. The authors' network (``experiments/heli/train_lstm.py``): L = 2 layers
 of 32 units and a linear head, on the inputs only; in the paper it models the naive model's
-residual ỹ = y − NN(u) (compose with :class:`ceemx.prediction.ResidualPredictor`). It never reads
-y, and ŷ_t depends on u_1, …, u_t only.
+residual ỹ = y − NN(u) (compose with :class:`ceemx.evaluation.prediction.ResidualPredictor`). It
+never reads y, and ŷ_t depends on u_1, …, u_t only.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ..data import Trajectories
-from ..prediction import AbstractPredictor
-from ..typing import Observations
+from ceemx.data.trajectories import Trajectories
+from ceemx.evaluation.prediction import AbstractPredictor
+from ceemx.lib.typing import Observations
 
 __all__ = ["LSTMRegressor"]
 

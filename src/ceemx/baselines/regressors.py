@@ -21,9 +21,9 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ..data import Trajectories
-from ..prediction import AbstractPredictor
-from ..typing import Observations
+from ceemx.data.trajectories import Trajectories
+from ceemx.evaluation.prediction import AbstractPredictor
+from ceemx.lib.typing import Observations
 
 __all__ = ["LagRegressor", "lag_windows"]
 

@@ -9,7 +9,8 @@ is identified by multi-trajectory N4SID (:func:`ceemx.lib.subspace.n4sid`: block
 of every trajectory side by side, an oblique projection, an SVD truncated to ``state_dim`` states,
 a least-squares regression of the state sequence) and returned as a
 :class:`~ceemx.systems.LinearSystem`, which predicts one step ahead through the Kalman filter like
-every other state-space model (:class:`~ceemx.prediction.StateSpacePredictor`). The paper fits 10
+every other state-space model (:class:`~ceemx.evaluation.prediction.StateSpacePredictor`). The
+paper fits 10
 random subsets of 100 trajectories each (its MATLAB ``n4sid`` scales super-linearly with the
 data); ``fit_sid(data, subsets=10, subset_size=100)`` does that.
 """
@@ -21,12 +22,12 @@ from typing import Literal
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import Trajectories
-from ..lib.subspace import SubspaceResult, n4sid
-from ..models.noise import CholeskyGaussian
-from ..models.system import GaussianPrior
-from ..systems.linear import LinearSystem
-from ..typing import no_type_check
+from ceemx.data.trajectories import Trajectories
+from ceemx.lib.subspace import SubspaceResult, n4sid
+from ceemx.lib.typing import no_type_check
+from ceemx.models.noise import CholeskyGaussian
+from ceemx.models.system import GaussianPrior
+from ceemx.systems.linear import LinearSystem
 
 __all__ = ["fit_sid", "sid_system"]
 

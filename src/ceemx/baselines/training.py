@@ -31,10 +31,10 @@ import numpy as np
 import optax
 from jaxtyping import ArrayLike, PRNGKeyArray
 
-from ..data import Trajectories
-from ..typing import no_type_check
-from .lstm import LSTMRegressor
-from .regressors import LagRegressor
+from ceemx.baselines.lstm import LSTMRegressor
+from ceemx.baselines.regressors import LagRegressor
+from ceemx.data.trajectories import Trajectories
+from ceemx.lib.typing import no_type_check
 
 __all__ = ["TrainInfo", "fit_lag", "fit_lstm", "fit_naive", "train_regressor"]
 
@@ -494,7 +494,7 @@ def fit_lstm(
     """The paper's LSTM baseline (2 layers of 32, linear head, from u), by the authors' recipe.
 
     In the paper it models the naive model's residual: pass ``residual_data(train, naive(train))``
-    and compose with :class:`ceemx.prediction.ResidualPredictor`.
+    and compose with :class:`ceemx.evaluation.prediction.ResidualPredictor`.
 
     Args:
         train: training trajectories; the model's dtype is ``train.y``'s.

@@ -10,7 +10,7 @@
 All loaders work on the host in NumPy float64 and return :class:`ceemx.Trajectories`.
 """
 
-from .benchmarks import (
+from ceemx.datasets.benchmarks import (
     BENCHMARKS,
     BenchmarkDataset,
     BenchmarkRecord,
@@ -25,8 +25,8 @@ from .benchmarks import (
     silverbox,
     windows,
 )
-from .heli_sim import helicopter_like, simulate_flights
-from .helicopter import HelicopterData, load_helicopter
+from ceemx.datasets.heli_sim import helicopter_like, simulate_flights
+from ceemx.datasets.helicopter import HelicopterData, load_helicopter
 
 __all__ = [
     "BENCHMARKS",

@@ -16,7 +16,7 @@ name                       file                                   official test 
 
 The official protocol (``nonlinear-benchmarks`` v1.0.1) lets a model use the whole test input and
 the first ``n_init`` test outputs to set its initial state, and scores the free-run simulation RMSE
-on ``y_test[n_init:]`` (:func:`ceemx.simulation.benchmark_score`).
+on ``y_test[n_init:]`` (:func:`ceemx.evaluation.simulation.benchmark_score`).
 
 :func:`cascaded_tanks`, :func:`silverbox` and :func:`coupled_electric_drives` return a
 :class:`BenchmarkDataset`: the official records as :class:`~ceemx.Trajectories` in physical units,
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import Trajectories
+from ceemx.data.trajectories import Trajectories
 
 __all__ = [
     "BENCHMARKS",
@@ -475,7 +475,7 @@ class BenchmarkDataset:
         units: the signals' units, in words.
         score_unit: the unit published RMSEs use.
         score_scale: factor from the data's units to ``score_unit`` (``scale`` of
-            :func:`ceemx.simulation.benchmark_score`; 1000 for Silverbox, V → mV).
+            :func:`ceemx.evaluation.simulation.benchmark_score`; 1000 for Silverbox, V → mV).
         citation: the reference to cite for the data.
         published: published results on the test records.
         output_names: one name per output.

@@ -43,7 +43,7 @@ import time
 import numpy as np
 from scipy import signal
 
-from .helicopter import HelicopterData, normalise_splits
+from ceemx.datasets.helicopter import HelicopterData, normalise_splits
 
 __all__ = [
     "CONTROL_NAMES",

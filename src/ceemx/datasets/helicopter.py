@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import Trajectories
+from ceemx.data.trajectories import Trajectories
 
 __all__ = ["SPLITS", "HelicopterData", "load_helicopter", "normalise_splits"]
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from . import common
+from ceemx.experiments import common
 
 NAME = "benchmarks"
 DATASETS = ("cascaded_tanks", "silverbox", "coupled_electric_drives")
@@ -62,7 +62,7 @@ SMOKE = Settings(max_epochs=3, silverbox_samples=1024, window=256, test_samples=
 
 
 def _model(name: str):
-    from ..systems import benchmarks as gb
+    from ceemx.systems import benchmarks as gb
 
     return {
         "cascaded_tanks": gb.CascadedTanks,
@@ -80,7 +80,7 @@ def _training_data(name: str, ds, settings: Settings):
 
 def _inputs_for(system, data):
     """The data as the system reads it: [u_t, u_{t+1}] under a first-order hold."""
-    from ..data import Trajectories, foh_inputs
+    from ceemx.data.trajectories import Trajectories, foh_inputs
 
     if getattr(system, "hold", "zoh") != "foh":
         return data
@@ -90,7 +90,7 @@ def _inputs_for(system, data):
 
 
 def _score(system, test, n_init: int, scale: float):
-    from ..evaluate import benchmark_score
+    from ceemx.evaluation.metrics import benchmark_score
 
     t0 = time.perf_counter()
     s = benchmark_score(system, _inputs_for(system, test), n_init, scale=scale)
@@ -98,8 +98,8 @@ def _score(system, test, n_init: int, scale: float):
 
 
 def _fit_graybox(name: str, train, settings: Settings, method: str, dtype):
-    from .. import JointLM, fit
-    from ..problem import trainable_mask
+    from ceemx import JointLM, fit
+    from ceemx.identification.problem import trainable_mask
 
     guess = _model(name)(dtype=dtype, **MODEL_OPTIONS[name])
     solver = JointLM() if method == "joint" else common.make_solver("alternate")
@@ -126,7 +126,7 @@ def _fit_graybox(name: str, train, settings: Settings, method: str, dtype):
 
 
 def _fit_linear(train, order: int):
-    from ..baselines import fit_sid
+    from ceemx.baselines import fit_sid
 
     t0 = time.perf_counter()
     try:
@@ -141,7 +141,7 @@ def run_dataset(name: str, *, settings: Settings, method: str, verbose: bool) ->
     """Fit, score and tabulate one dataset; returns its results (figure data included)."""
     import jax.numpy as jnp
 
-    from .. import datasets
+    from ceemx import datasets
 
     ds = getattr(datasets, name)()
     train = _training_data(name, ds, settings)
@@ -207,7 +207,7 @@ def run_dataset(name: str, *, settings: Settings, method: str, verbose: bool) ->
 
 
 def _plot(results: list[dict], path) -> None:
-    from .. import report
+    from ceemx.evaluation import report
 
     plt = report.plt()
     panels = [(r, t) for r in results for t in r["tests"]]
@@ -259,7 +259,7 @@ def run(
         settings: budgets (default :class:`Settings` or :data:`SMOKE`).
         verbose: print progress and the table.
     """
-    from .. import report
+    from ceemx.evaluation import report
 
     common.enable_x64()
     del seeds

@@ -1,7 +1,8 @@
 """Shared wiring of the experiments: x64, seeds, methods, seeded coupled-Lorenz problems.
 
-The library parts they use live in :mod:`ceemx.initialize` (start guesses), :mod:`ceemx.evaluate`
-(metrics and fit callbacks) and :mod:`ceemx.report` (tables, files, figures).
+The library parts they use live in :mod:`ceemx.identification.initialize` (start guesses),
+:mod:`ceemx.evaluation.metrics`
+(metrics and fit callbacks) and :mod:`ceemx.evaluation.report` (tables, files, figures).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .. import (
+from ceemx import (
     AbstractFitSolver,
     AbstractLearner,
     Alternating,
@@ -23,10 +24,10 @@ from .. import (
     LMSmoother,
     ParticleEM,
 )
-from ..data import Trajectories, simulate
-from ..initialize import perturb
-from ..models.noise import DiagonalGaussian
-from ..systems.lorenz import (
+from ceemx.data.trajectories import Trajectories, simulate
+from ceemx.identification.initialize import perturb
+from ceemx.models.noise import DiagonalGaussian
+from ceemx.systems.lorenz import (
     INITIAL_MEAN,
     INITIAL_STD,
     TRUE_PARAMS,

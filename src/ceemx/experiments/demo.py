@@ -16,12 +16,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import evaluate as ev
-from .. import fit, report
-from ..initialize import warm_start
-from ..models import with_noise
-from ..systems import CoupledLorenz
-from . import common
+from ceemx import fit, report
+from ceemx.evaluation import metrics as ev
+from ceemx.experiments import common
+from ceemx.identification.initialize import warm_start
+from ceemx.models import with_noise
+from ceemx.systems import CoupledLorenz
 
 NAME = "demo"
 

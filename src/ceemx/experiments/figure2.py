@@ -8,7 +8,7 @@ attractor (K = 1, H = 0) observed through a known C ∈ R^{2×3} (standard norma
 
 - **CE-EM**: Algorithm 1 (:class:`ceemx.Alternating`, LM smoother and LM learner) on Eq. 9 with the
   true noise scales (the authors' weighting σ_w/σ_v between dynamics and observations is the same
-  up to a constant), states started by :func:`ceemx.initialize.warm_start`.
+  up to a constant), states started by :func:`ceemx.identification.initialize.warm_start`.
 - **CE-EM, joint**: the same objective maximised jointly in (x, θ) by :class:`ceemx.JointLM`, one
   iteration per "epoch" (beyond the paper; Algorithm 1 creeps along J's valley here).
 - **Particle EM**: :class:`ceemx.ParticleEM` — fully adapted particle filter with systematic,
@@ -32,11 +32,11 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from .. import Alternating, JointLM, LMLearner, LMSmoother, ParticleEM, fit, report
-from .. import evaluate as ev
-from ..initialize import warm_start
-from ..models import with_noise
-from . import common
+from ceemx import Alternating, JointLM, LMLearner, LMSmoother, ParticleEM, fit, report
+from ceemx.evaluation import metrics as ev
+from ceemx.experiments import common
+from ceemx.identification.initialize import warm_start
+from ceemx.models import with_noise
 
 NAME = "figure2"
 SIGMA_W, SIGMA_V = 0.1, 0.5

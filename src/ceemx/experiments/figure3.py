@@ -6,7 +6,8 @@ Frobenius norm 5 (fixed key), σ_v = 0.01, no process noise, T = 128, dt = 0.04 
 B ∈ {2, 4, 8} trajectories, 4 seeds each (42–45, as the authors' script: each seed draws the data
 and the initial guess). θ = [σ_{1:6}, ρ_{1:6}, β_{1:6}, H] is initialised elementwise at
 θ·(1 + U(−0.1, 0.1)); ρ_θ = 0; the smoother starts from the true states + N(0, 1) noise (as the
-authors' script). ε(θ) (Eq. 14, :func:`ceemx.evaluate.dynamics_error`) is recorded every epoch.
+authors' script). ε(θ) (Eq. 14, :func:`ceemx.evaluation.metrics.dynamics_error`) is recorded every
+epoch.
 
 Weightings (noise scales of the fitted system):
 
@@ -34,11 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import LBFGSLearner, LMLearner, fit, report
-from .. import evaluate as ev
-from ..models import with_noise
-from ..systems import CoupledLorenz
-from . import common
+from ceemx import LBFGSLearner, LMLearner, fit, report
+from ceemx.evaluation import metrics as ev
+from ceemx.experiments import common
+from ceemx.models import with_noise
+from ceemx.systems import CoupledLorenz
 
 NAME = "figure3"
 SIGMA_V = 0.01

@@ -1,8 +1,8 @@
 """Paper Figure 4 (§4.2): one-step prediction of accelerations with hidden states — five models.
 
 Models (paper §4.2.2–4.2.3), all predicting y_t one step ahead through
-:class:`ceemx.prediction.AbstractPredictor`, all scored by Eq. 15 as the authors' evaluation file
-(RMS over steps 25–499 and the 6 outputs, in physical units):
+:class:`ceemx.evaluation.prediction.AbstractPredictor`, all scored by Eq. 15 as the authors'
+evaluation file (RMS over steps 25–499 and the 6 outputs, in physical units):
 
 - *naive*: y_t = NN(u_t) (MLP 8×32 tanh, Adam 1e-4 decayed, normalised RMS loss, best validation);
 - *H25*: y_t = NN(u_{t−24..t}), same network and training;
@@ -42,19 +42,19 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from .. import Alternating, JointLM, LMSmoother, OptaxLearner, fit, report
-from ..baselines import fit_lag, fit_lstm, fit_naive, fit_sid
-from ..data import Trajectories
-from ..prediction import (
+from ceemx import Alternating, JointLM, LMSmoother, OptaxLearner, fit, report
+from ceemx.baselines import fit_lag, fit_lstm, fit_naive, fit_sid
+from ceemx.data.trajectories import Trajectories
+from ceemx.evaluation.prediction import (
     BestValidation,
     ResidualPredictor,
     StateSpacePredictor,
     prediction_rmse,
     residual_data,
 )
-from ..problem import trainable_mask
-from ..systems import NeuralObservationSystem
-from . import common
+from ceemx.experiments import common
+from ceemx.identification.problem import trainable_mask
+from ceemx.systems import NeuralObservationSystem
 
 NAME = "figure4"
 MODELS = ("naive", "LSTM", "H25", "SID", "NL")
@@ -117,7 +117,7 @@ class Splits:
 
 def load_splits(*, data: str | None, dataset: str | None, smoke: bool, seed: int) -> Splits:
     """The data of one run: the generator, the paper's dataset, or a real benchmark's windows."""
-    from .. import datasets
+    from ceemx import datasets
 
     if data is not None and dataset is not None:
         raise ValueError(

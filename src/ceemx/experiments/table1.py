@@ -13,9 +13,11 @@ Weightings of the objective (the noise scales of the system being fitted):
   (σ_w/σ_v)·½‖r‖². (Their smoother used a trust-region weight ≈ 0 and their learner Nelder–Mead
   with ρ_θ = 0.01; we use our LM learner with ρ_θ = 0 — the θ-step optimum is the same.)
 
-Start states: :func:`ceemx.initialize.from_observations` (least squares through C; the direction C
+Start states: :func:`ceemx.identification.initialize.from_observations` (least squares through C;
+the direction C
 does not see is left at 0) followed by one smoothing pass at the initial θ with weak, unit-scale
-dynamics weights (:func:`ceemx.initialize.warm_start`), which fills in the unobserved direction.
+dynamics weights (:func:`ceemx.identification.initialize.warm_start`), which fills in the
+unobserved direction.
 (The authors started from zeros.) Without it, smoothing with the likelihood weights (dynamics 100×
 stiffer than the observations) from the min-norm states often lands in a wrong basin.
 
@@ -40,12 +42,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import Alternating, LMSmoother, NelderMeadLearner, fit, report
-from .. import evaluate as ev
-from ..initialize import warm_start
-from ..models import with_noise
-from ..systems.lorenz import INITIAL_STD
-from . import common
+from ceemx import Alternating, LMSmoother, NelderMeadLearner, fit, report
+from ceemx.evaluation import metrics as ev
+from ceemx.experiments import common
+from ceemx.identification.initialize import warm_start
+from ceemx.models import with_noise
+from ceemx.systems.lorenz import INITIAL_STD
 
 NAME = "table1"
 SETTINGS = ((0.001, 0.01), (0.01, 0.01), (0.1, 0.01), (0.001, 0.05), (0.001, 0.1))

@@ -1,5 +1,10 @@
-"""State inference at a fixed θ: particle filtering and FFBSi smoothing (EKF filtering next)."""
+"""Inference: every estimator of the hidden states at a fixed θ.
 
-from .particle import ParticleFilterSolution, ffbsi, particle_filter
-
-__all__ = ["ParticleFilterSolution", "ffbsi", "particle_filter"]
+The objective they share — the joint log-density J(x, θ) of Eq. 9 and its Gauss–Newton
+linearisation (:mod:`~ceemx.inference.objective`) — the MAP smoother of Eq. 10
+(:mod:`~ceemx.inference.smoother`), the Gaussian (Laplace) posterior around it
+(:mod:`~ceemx.inference.posterior`), the extended Kalman filter (:mod:`~ceemx.inference.ekf`) and
+the particle filter with FFBSi (:mod:`~ceemx.inference.particle`). Layer rule: may import
+:mod:`ceemx.lib`, :mod:`ceemx.infra`, :mod:`ceemx.models`, :mod:`ceemx.data`; never
+identification or evaluation.
+"""

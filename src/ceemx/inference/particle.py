@@ -31,14 +31,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from ..data import Trajectories
-from ..lib import kalman
-from ..lib import particles as lp
-from ..lib.results import RESULTS, select
-from ..models.noise import AbstractGaussianNoise
-from ..models.system import AbstractSystem, GaussianPrior, float_dtype
-from ..smoothing import check_inputs
-from ..typing import PerTrajectory, no_type_check
+from ceemx.data.trajectories import Trajectories
+from ceemx.inference.smoother import check_inputs
+from ceemx.lib import kalman
+from ceemx.lib import particles as lp
+from ceemx.lib.results import RESULTS, select
+from ceemx.lib.typing import PerTrajectory, no_type_check
+from ceemx.models.noise import AbstractGaussianNoise
+from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype
 
 __all__ = [
     "PROPOSALS",

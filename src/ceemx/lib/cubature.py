@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .dense import symmetrize
+from ceemx.lib.dense import symmetrize
 
 __all__ = ["pair_covariances", "sigma_points", "sqrtm_psd"]
 

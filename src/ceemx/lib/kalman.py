@@ -15,8 +15,8 @@ import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 from jaxtyping import Array, Bool, Float
 
-from ..typing import Scalar
-from .dense import masked_cholesky, symmetrize
+from ceemx.lib.dense import masked_cholesky, symmetrize
+from ceemx.lib.typing import Scalar
 
 __all__ = ["GaussianUpdate", "gaussian_update", "predictive_log_density"]
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .results import RESULTS
+from ceemx.lib.results import RESULTS
 
 __all__ = ["LMOutput", "levenberg_marquardt", "marquardt_scale"]
 

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from ..typing import Scalar
+from ceemx.lib.typing import Scalar
 
 __all__ = [
     "backward_indices",

@@ -29,7 +29,7 @@ class RESULTS(eqx.Enumeration):
     )
     outlier = (
         "excluded from the fit: its residuals at the start are far outside the noise model, "
-        "compared with the other trajectories (ceemx.health)"
+        "compared with the other trajectories (ceemx.identification.health)"
     )
 
 

@@ -1,6 +1,6 @@
 """System and noise models, and parameter constraints."""
 
-from .constraints import (
+from ceemx.models.constraints import (
     AbstractConstraint,
     Fixed,
     GreaterThan,
@@ -10,14 +10,14 @@ from .constraints import (
     Unconstrained,
     param,
 )
-from .noise import (
+from ceemx.models.noise import (
     AbstractGaussianNoise,
     AbstractNoise,
     CholeskyGaussian,
     DiagonalGaussian,
     StudentT,
 )
-from .system import (
+from ceemx.models.system import (
     AbstractContinuousSystem,
     AbstractSystem,
     GaussianPrior,

@@ -25,8 +25,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
-from ..lib.dense import masked_cholesky, symmetrize, whitening_matrix
-from ..typing import Scalar
+from ceemx.lib.dense import masked_cholesky, symmetrize, whitening_matrix
+from ceemx.lib.typing import Scalar
 
 __all__ = [
     "AbstractNoise",

@@ -16,9 +16,9 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Real
 
-from ..typing import Scalar, State
-from .constraints import check_constraints
-from .noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT, as_noise
+from ceemx.lib.typing import Scalar, State
+from ceemx.models.constraints import check_constraints
+from ceemx.models.noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT, as_noise
 
 __all__ = [
     "AbstractSystem",
@@ -366,8 +366,8 @@ class AbstractContinuousSystem(AbstractSystem):
     - ``"foh"``, first-order hold: u(τ) = u_t + (τ/dt − t)(u_{t+1} − u_t), linear between the
       samples. ``dynamics(x, u, t)`` sees one step's input only, so a first-order-hold system
       takes the pair [u_t, u_{t+1}] stacked as its input: ``input_dim`` = 2p, and the data's
-      inputs are built with :func:`ceemx.data.foh_inputs`. :meth:`vector_field` receives the
-      interpolated p-vector; :meth:`observe` receives the stacked pair, and
+      inputs are built with :func:`ceemx.data.trajectories.foh_inputs`. :meth:`vector_field`
+      receives the interpolated p-vector; :meth:`observe` receives the stacked pair, and
       :meth:`current_input` returns its u_t part.
 
     A subclass with inputs declares p by overriding :attr:`control_dim` (``input_dim`` follows
@@ -409,7 +409,7 @@ class AbstractContinuousSystem(AbstractSystem):
             raise ValueError(
                 f"with hold='foh' the input is the stacked pair [u_t, u_{{t+1}}]: declare the "
                 f"number of inputs p with `control_dim` (input_dim is then 2p); got control_dim = "
-                f"{p}, input_dim = {width}. See ceemx.data.foh_inputs."
+                f"{p}, input_dim = {width}. See ceemx.data.trajectories.foh_inputs."
             )
         if self.hold == "zoh" and p and width != p:
             raise ValueError(
@@ -427,8 +427,8 @@ class AbstractContinuousSystem(AbstractSystem):
     def default_state_mean(self) -> State | None:
         """A typical state (n,), or ``None`` (the default) when the system has none.
 
-        :func:`ceemx.evaluate.dynamics_error` compares vector fields at states sampled around it
-        unless given a ``mean``.
+        :func:`ceemx.evaluation.metrics.dynamics_error` compares vector fields at states sampled
+        around it unless given a ``mean``.
         """
         return None
 

@@ -1,15 +1,15 @@
 """Built-in systems."""
 
-from .benchmarks import CascadedTanks, CoupledDrives, Silverbox
-from .linear import LinearSystem
-from .lorenz import (
+from ceemx.systems.benchmarks import CascadedTanks, CoupledDrives, Silverbox
+from ceemx.systems.linear import LinearSystem
+from ceemx.systems.lorenz import (
     CoupledLorenz,
     coupling_mask,
     initial_states,
     random_coupling,
     random_observation_matrix,
 )
-from .neural import NeuralObservationSystem
+from ceemx.systems.neural import NeuralObservationSystem
 
 __all__ = [
     "CascadedTanks",

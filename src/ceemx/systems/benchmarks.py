@@ -23,8 +23,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, Real
 
-from ..models.constraints import param
-from ..models.system import AbstractContinuousSystem
+from ceemx.models.constraints import param
+from ceemx.models.system import AbstractContinuousSystem
 
 __all__ = [
     "CascadedTanks",
@@ -154,7 +154,7 @@ class CascadedTanks(_AbstractSISO):
         return soft_min(x[1:] + self.offset, self.y_max, self.beta_sensor)
 
     def default_state_mean(self) -> Float[Array, " 2"]:
-        """A typical state, for :func:`ceemx.evaluate.dynamics_error`."""
+        """A typical state, for :func:`ceemx.evaluation.metrics.dynamics_error`."""
         return jnp.full((2,), 5.0, dtype=jnp.result_type(self.k1))
 
     @classmethod
@@ -233,7 +233,7 @@ class Silverbox(_AbstractSISO):
         return jnp.array([[1.0, 0.0]], dtype=dtype), jnp.zeros((1,), dtype=dtype)
 
     def default_state_mean(self) -> Float[Array, " 2"]:
-        """A typical state, for :func:`ceemx.evaluate.dynamics_error`."""
+        """A typical state, for :func:`ceemx.evaluation.metrics.dynamics_error`."""
         return jnp.zeros((2,), dtype=jnp.result_type(self.f0))
 
     @classmethod
@@ -301,7 +301,7 @@ class CoupledDrives(_AbstractSISO):
         return jnp.sqrt(x[1:2] ** 2 + self.eps)
 
     def default_state_mean(self) -> Float[Array, " 3"]:
-        """A typical state, for :func:`ceemx.evaluate.dynamics_error`."""
+        """A typical state, for :func:`ceemx.evaluation.metrics.dynamics_error`."""
         return jnp.zeros((3,), dtype=jnp.result_type(self.a))
 
     @classmethod

@@ -5,9 +5,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Real
 
-from ..models.noise import AbstractNoise, as_noise
-from ..models.system import AbstractSystem, GaussianPrior
-from ..typing import State
+from ceemx.lib.typing import State
+from ceemx.models.noise import AbstractNoise, as_noise
+from ceemx.models.system import AbstractSystem, GaussianPrior
 
 __all__ = ["LinearSystem"]
 

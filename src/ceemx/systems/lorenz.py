@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real
 
-from ..models.noise import AbstractNoise, as_noise
-from ..models.system import AbstractContinuousSystem, GaussianPrior
-from ..typing import State
+from ceemx.lib.typing import State
+from ceemx.models.noise import AbstractNoise, as_noise
+from ceemx.models.system import AbstractContinuousSystem, GaussianPrior
 
 __all__ = [
     "CoupledLorenz",

@@ -8,9 +8,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real
 
-from ..models.noise import AbstractNoise, as_noise
-from ..models.system import AbstractSystem, GaussianPrior
-from ..typing import State
+from ceemx.lib.typing import State
+from ceemx.models.noise import AbstractNoise, as_noise
+from ceemx.models.system import AbstractSystem, GaussianPrior
 
 __all__ = ["NeuralObservationSystem"]
 

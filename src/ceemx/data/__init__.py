@@ -1,0 +1,12 @@
+"""Data: observed trajectories and where they live.
+
+:class:`Trajectories` (y, u, mask; validated on construction; windows, first-order-hold inputs,
+simulation of a system) in :mod:`~ceemx.data.trajectories`, and the placement of the batch axis on
+devices in :mod:`~ceemx.data.sharding`. Layer rule: may import :mod:`ceemx.lib`,
+:mod:`ceemx.infra` and :mod:`ceemx.models`; the real datasets (:mod:`ceemx.datasets`), inference,
+identification and evaluation build on it.
+"""
+
+from ceemx.data.trajectories import Trajectories, foh_inputs, rollout_one, simulate
+
+__all__ = ["Trajectories", "foh_inputs", "rollout_one", "simulate"]

@@ -1,0 +1,436 @@
+"""Models on measured data: free-run simulation, initial states from outputs, k-step prediction.
+
+- :func:`free_run` — noise-free simulation x_{t+1} = f(x_t, u_t, t), y_t = g(x_t, u_t, t) from
+  initial states and an input sequence (no measured output is used).
+- :func:`estimate_initial_state` — x̂₁ from the first ``n_init`` outputs (and the inputs): a MAP
+  smoothing (:func:`ceemx.smooth`) of that window at the system's θ, then x₁ refined so that the
+  free run from it fits the window.
+- :func:`predict_k_step` — ŷ_{t+k|t}: the extended Kalman filter's mean at t, then k noise-free
+  steps.
+
+:func:`ceemx.evaluation.metrics.benchmark_score` combines them into the official protocol of the
+``nonlinear-benchmarks`` package. All work on a batch of B trajectories (``vmap``), ``lax.scan``
+over time, and are compiled once per shape and system structure (numbers — parameters, data,
+tolerances — are traced).
+"""
+
+from __future__ import annotations
+
+import operator
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ceemx.data.trajectories import Trajectories
+from ceemx.identification.initialize import from_observations
+from ceemx.inference.ekf import ekf
+from ceemx.inference.smoother import LMSmoother, check_inputs, smooth_batch
+from ceemx.lib.dense import cholesky_solve
+from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
+from ceemx.lib.results import RESULTS
+from ceemx.lib.tree import trace_numbers
+from ceemx.lib.typing import Inputs, Observations, States, no_type_check
+from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype, with_noise
+
+__all__ = [
+    "estimate_initial_state",
+    "free_run",
+    "predict_k_step",
+    "strongly_typed",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Host-side checks (before any compute)
+# --------------------------------------------------------------------------------------------
+
+
+def _check_system(system) -> None:
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(f"`system` must be a ceemx.AbstractSystem; got {type(system).__name__}.")
+
+
+def _finite(name: str, a: np.ndarray) -> None:
+    if not np.all(np.isfinite(a)):
+        idx = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+        raise ValueError(f"`{name}` has a non-finite value at index {list(idx)}.")
+
+
+def _check_int(name: str, value, low: int, high: int | None = None) -> int:
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        v = operator.index(value)
+    except TypeError:
+        raise TypeError(f"`{name}` must be an integer; got {value!r}.") from None
+    if v < low or (high is not None and v > high):
+        bound = f"[{low}, {high}]" if high is not None else f">= {low}"
+        raise ValueError(f"`{name}` must be in {bound}; got {v}.")
+    return v
+
+
+def strongly_typed(tree):
+    """``tree`` with its weakly typed floating-point arrays made strongly typed (same dtype).
+
+    ``jnp.asarray(0.1)`` is weakly typed and ``filter_jit`` keys its cache on weak types too: a
+    system built from Python scalars and the same system with converted leaves would compile
+    twice. Entry points pass systems through this first.
+    """
+    fix = lambda a: jnp.asarray(a, a.dtype) if eqx.is_inexact_array(a) else a  # noqa: E731
+    return jax.tree_util.tree_map(fix, tree)
+
+
+def _check_data(system: AbstractSystem, data, *, same_dtype: bool) -> None:
+    check_inputs(system, data)
+    y, u, mask = np.asarray(data.y), np.asarray(data.u), np.asarray(data.mask)
+    _finite("data.y", np.where(mask, y, 0.0))  # a Trajectories built under a transformation
+    _finite("data.u", u)
+    if same_dtype and jnp.dtype(float_dtype(system)) != y.dtype:
+        raise ValueError(
+            f"the system's parameters are {jnp.dtype(float_dtype(system))} but `data.y` is "
+            f"{y.dtype}: convert one of them (the smoother runs in a single precision)."
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Free run
+# --------------------------------------------------------------------------------------------
+
+
+def _run_one(system: AbstractSystem, x1, u, t0):
+    dtype = x1.dtype
+
+    def step(x, inp):
+        ut, t = inp
+        y = system.observe(x, ut, t).astype(dtype)
+        return system.dynamics(x, ut, t).astype(dtype), (x, y)
+
+    _, (xs, ys) = jax.lax.scan(step, x1, (u, t0 + jnp.arange(u.shape[0])))
+    return xs, ys
+
+
+@eqx.filter_jit
+def free_run_batch(
+    system: AbstractSystem, x1: Float[Array, "B n"], u: Inputs, t0: Int[Array, ""]
+) -> tuple[States, Observations]:
+    """The compiled kernel of :func:`free_run` (no validation; time steps from ``t0``)."""
+    return jax.vmap(lambda x, ub: _run_one(system, x, ub, t0))(x1, u)
+
+
+@no_type_check  # validates its arguments
+def free_run(
+    system: AbstractSystem,
+    x1: ArrayLike,
+    u: ArrayLike | None = None,
+    *,
+    num_steps: int | None = None,
+) -> tuple[Array, Array]:
+    """Noise-free simulation of ``system`` from initial states under given inputs.
+
+    x_{t+1} = f_θ(x_t, u_t, t), y_t = g_θ(x_t, u_t, t) for t = 0, …, T−1 (the system's integer
+    time index), from x_0 = ``x1`` (the paper's x₁). No measured output is used: this is the
+    "simulation" of the system-identification benchmarks, as opposed to prediction.
+
+    Args:
+        system: the model (any :class:`ceemx.AbstractSystem`; its noise models are not used).
+        x1: (B, n) initial states, or (n,) for one trajectory.
+        u: (B, T, p) inputs (with (B, n) states) or (T, p) (with (n,)); ``None`` for a system
+            without inputs, then ``num_steps`` gives T.
+        num_steps: T when ``u`` is ``None``; otherwise it must be ``None`` or equal to T.
+
+    Returns:
+        ``(states, outputs)``: (B, T, n) and (B, T, m) — or (T, n) and (T, m) for one trajectory —
+        in the dtype of ``x1`` (``u`` is cast to it). ``states[:, 0]`` is ``x1``.
+
+    Raises:
+        TypeError: ``system`` is not a :class:`ceemx.AbstractSystem`.
+        ValueError: mismatched shapes, non-finite ``x1`` or ``u``, or a missing ``num_steps``.
+
+    ``lax.scan`` over time and ``vmap`` over the batch; compiled once per system structure and
+    (B, T, p).
+
+    Example:
+        >>> sys = ceemx.systems.LinearSystem(jnp.array([[0.5]]), jnp.array([[2.0]]))
+        >>> xs, ys = free_run(sys, jnp.array([1.0]), num_steps=3)
+        >>> ys[:, 0].tolist()
+        [2.0, 1.0, 0.5]
+    """
+    _check_system(system)
+    x1 = jnp.asarray(x1)
+    if not jnp.issubdtype(x1.dtype, jnp.floating):
+        x1 = x1.astype(float_dtype(system))
+    single = x1.ndim == 1
+    xb = x1[None] if single else x1
+    n, p = system.state_dim, system.input_dim
+    if xb.ndim != 2 or xb.shape[1] != n:
+        raise ValueError(f"`x1` must have shape (B, n) or (n,) with n = {n}; got {x1.shape}.")
+    if u is None:
+        if p != 0:
+            raise ValueError(f"the system takes p = {p} inputs: pass `u`.")
+        if num_steps is None:
+            raise ValueError("pass `u` or `num_steps` (T).")
+        T = _check_int("num_steps", num_steps, 1)
+        ub = jnp.zeros((xb.shape[0], T, 0), x1.dtype)
+    else:
+        ub = jnp.asarray(u, x1.dtype)
+        ub = ub[None] if single else ub
+        if ub.ndim != 3 or ub.shape[0] != xb.shape[0] or ub.shape[2] != p or ub.shape[1] < 1:
+            want = f"(T, {p})" if single else f"(B, T, {p}) with B = {xb.shape[0]}"
+            raise ValueError(f"`u` must have shape {want}; got {jnp.shape(u)}.")
+        if num_steps is not None and num_steps != ub.shape[1]:
+            raise ValueError(f"`num_steps` = {num_steps} but `u` has T = {ub.shape[1]} steps.")
+        _finite("u", np.asarray(ub))
+    _finite("x1", np.asarray(xb))
+    xs, ys = free_run_batch(strongly_typed(system), xb, ub, jnp.zeros((), jnp.int32))
+    return (xs[0], ys[0]) if single else (xs, ys)
+
+
+# --------------------------------------------------------------------------------------------
+# Initial states from the first outputs
+# --------------------------------------------------------------------------------------------
+
+
+def _window(data: Trajectories, n_init: int) -> Trajectories:
+    """The first ``max(n_init, 2)`` steps, outputs from step ``n_init`` on masked."""
+    L = max(n_init, 2)
+    keep = (jnp.arange(L) < n_init)[None, :, None]
+    return Trajectories(data.y[:, :L], data.u[:, :L], data.mask[:, :L] & keep)
+
+
+def _output_error_one(
+    solver: LMSmoother,
+    system: AbstractSystem,
+    x0: Float[Array, " n"],
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+):
+    """LM on x₁ of Σ_t −log p_v(y_t − g(f^t(x₁))) (+ −log p(x₁)): the simulation error."""
+    n, dtype = x0.shape[0], x0.dtype
+    prior = system.initial_prior
+    zeros_m = jnp.zeros(y.shape[-1:], dtype)
+    offset = jnp.sum(jax.vmap(lambda mk: system.obs_noise.nll(zeros_m, mk))(mask))
+    if prior is not None:
+        offset = offset + prior.noise.nll(jnp.zeros((n,), dtype))
+
+    def residuals(x1):
+        r = y - _run_one(system, x1, u, jnp.zeros((), jnp.int32))[1]
+        return r, r
+
+    def evaluate(x1):
+        jac, r = jax.jacfwd(residuals, has_aux=True)(x1)  # (T, m, n), (T, m)
+        value = jnp.sum(jax.vmap(system.obs_noise.nll)(r, mask)) - offset
+        grad = jnp.einsum("tm,tmn->n", jax.vmap(jax.grad(system.obs_noise.nll))(r, mask), jac)
+        S = jax.vmap(system.obs_noise.sqrt_curvature)(r, mask)
+        SJ = jnp.einsum("tkm,tmn->tkn", S, jac).reshape(-1, n)
+        hess = SJ.T @ SJ
+        if prior is not None:
+            Sp = prior.noise.sqrt_curvature(x1 - prior.mean)
+            value = value + prior.nll(x1)
+            grad = grad + jax.grad(prior.nll)(x1)
+            hess = hess + Sp.T @ Sp
+        return value, (grad, hess)
+
+    def solve(lin, lam):
+        grad, hess = lin
+        damped = hess + jnp.diag(marquardt_scale(jnp.diagonal(hess), lam))
+        return cholesky_solve(damped, -grad)
+
+    out = levenberg_marquardt(
+        evaluate,
+        lambda lin: lin[0],
+        solve,
+        lambda lin, delta: delta @ lin[1] @ delta,
+        x0,
+        rtol=solver.rtol,
+        atol=solver.atol,
+        max_steps=solver.max_steps,
+        damping=solver.damping,
+    )
+    return out.z, out.status
+
+
+@eqx.filter_jit
+def initial_state_batch(
+    solver: LMSmoother,
+    system: AbstractSystem,
+    weak: AbstractSystem | None,
+    window: Trajectories,
+    x_init: States | None,
+    refine: bool,
+) -> tuple[Float[Array, "B n"], RESULTS]:
+    """The compiled kernel of :func:`estimate_initial_state` (no validation; numbers traced).
+
+    Start: ``x_init``, else :func:`ceemx.identification.initialize.from_observations` followed by
+    one smoothing
+    pass of ``weak`` (the system with weak dynamics weights, as :func:`ceemx.warm_start`); then
+    the MAP smoothing of ``system`` and, with ``refine``, LM on x₁ of the window's simulation
+    error. Returns x̂₁ and the last solve's status.
+    """
+    x0 = from_observations(system, window) if x_init is None else x_init
+    if x_init is None and weak is not None:
+        x0 = smooth_batch(solver, weak, x0, window, False).states
+    sol = smooth_batch(solver, system, x0, window, False)
+    x1, status = sol.states[:, 0], sol.status
+    if refine:
+        one = lambda x, y, u, m: _output_error_one(solver, system, x, y, u, m)  # noqa: E731
+        x1, status = jax.vmap(one)(x1, window.y, window.u, window.mask)
+    return x1, status
+
+
+@no_type_check  # validates its arguments
+def estimate_initial_state(
+    system: AbstractSystem,
+    data: Trajectories,
+    n_init: int | None = None,
+    *,
+    refine: bool = True,
+    smoother: LMSmoother | None = None,
+    x_init: ArrayLike | None = None,
+    warm_process_noise: float | None = 1.0,
+    return_status: bool = False,
+) -> Any:
+    """x̂₁ of every trajectory from its first ``n_init`` outputs and inputs.
+
+    1. MAP smoothing of the window y_{0:n_init}, u_{0:n_init} at the system's θ (paper Eq. 10 on
+       the window's states, weighted by the system's noise models and initial prior), started
+       from least squares through the observation map and a weak-dynamics pass (as
+       :func:`ceemx.warm_start`); its first state is x̂₁ when ``refine`` is False.
+    2. With ``refine`` (default): Levenberg–Marquardt on x₁ alone, from that state, of the
+       window's simulation error Σ_{t<n_init} −log p_v(y_t − g(f^t(x₁), u_t, t)) (+ −log p(x₁)):
+       the x̂₁ whose noise-free :func:`free_run` best explains the window — what a free run
+       scored on ``y[n_init:]`` needs (:func:`ceemx.evaluation.metrics.benchmark_score`). The
+       smoothed x₁
+       is the best state estimate under the model's process noise, but a free run from it can
+       be far off when that noise is large (the smoothed path may follow y through w_t).
+
+    On noise-free data of an observable system without an initial prior both give the true x₁.
+
+    Args:
+        system: the model; its noise models weight the window's residuals.
+        data: B trajectories (observations, inputs, mask); only steps ``< n_init`` are read.
+        n_init: outputs to use, in [1, T]; ``None``: all T. With ``n_init = 1`` the window has
+            two steps, the second unobserved.
+        refine: step 2 above.
+        smoother: the solver of both steps (its ``rtol``, ``atol``, ``max_steps``, ``damping``;
+            default :class:`ceemx.LMSmoother`).
+        x_init: (B, max(n_init, 2), n) starting states of step 1 instead of the warm start.
+        warm_process_noise: scale of the weak dynamics weights of the warm start (``None``: no
+            weak pass).
+        return_status: also return the last solve's (B,) :class:`ceemx.RESULTS`.
+
+    Returns:
+        (B, n) initial states in the data's dtype; ``(x1, status)`` with ``return_status``.
+
+    Raises:
+        TypeError: ``system`` or ``data`` of the wrong type, or a non-integer ``n_init``.
+        ValueError: ``n_init`` outside [1, T], mismatched dimensions or dtypes, non-finite data,
+            or a trajectory with no observed output in the window.
+
+    Trajectories are independent (``vmap``). Compiled once per system structure, B and window
+    length ``n_init`` (and the smoother's type): the parameters, data and the smoother's
+    numbers are traced, so scoring many models or records of one shape never recompiles.
+    """
+    _check_system(system)
+    _check_data(system, data, same_dtype=True)
+    T = data.num_steps
+    n_init = T if n_init is None else _check_int("n_init", n_init, 1, T)
+    window = _window(data, n_init)
+    seen = np.asarray(window.mask).any(axis=(1, 2))
+    if not seen.all():
+        raise ValueError(
+            f"trajectory {int(np.argmin(seen))} has no observed output among its first "
+            f"n_init = {n_init} steps: its initial state cannot be estimated."
+        )
+    if x_init is not None:
+        check_inputs(system, window, x_init)
+        x_init = jnp.asarray(x_init)
+    dtype = window.y.dtype
+    solver = trace_numbers(LMSmoother() if smoother is None else smoother, dtype)
+    weak = None
+    if warm_process_noise is not None:
+        weak = with_noise(system, process_noise=jnp.asarray(warm_process_noise, dtype))
+    system, weak = strongly_typed((system, weak))
+    x1, status = initial_state_batch(solver, system, weak, window, x_init, bool(refine))
+    return (x1, status) if return_status else x1
+
+
+# --------------------------------------------------------------------------------------------
+# k-step-ahead prediction
+# --------------------------------------------------------------------------------------------
+
+
+def _k_step_one(system: AbstractSystem, xf, x0, u, k: int):
+    T = xf.shape[0]
+    s = jnp.arange(T)
+    start = s - k
+    z = jnp.where((start >= 0)[:, None], xf[jnp.clip(start, 0, T - 1)], x0[None])
+
+    def step(z, i):
+        tau = start + i
+        t = jnp.clip(tau, 0, T - 1)
+        nxt = jax.vmap(system.dynamics)(z, u[t], t).astype(z.dtype)
+        return jnp.where((tau >= 0)[:, None], nxt, z), None
+
+    z, _ = jax.lax.scan(step, z, jnp.arange(k))
+    return jax.vmap(system.observe)(z, u, s).astype(z.dtype)
+
+
+@eqx.filter_jit
+def k_step_batch(
+    system: AbstractSystem,
+    filtered: States,
+    prior_mean: Float[Array, "B n"],
+    u: Inputs,
+    k: int,
+) -> Observations:
+    """The compiled kernel of :func:`predict_k_step` (``k`` ≤ T static; means from the EKF)."""
+    return jax.vmap(lambda xf, x0, ub: _k_step_one(system, xf, x0, ub, k))(filtered, prior_mean, u)
+
+
+@no_type_check  # validates its arguments
+def predict_k_step(
+    system: AbstractSystem,
+    data: Trajectories,
+    k: int,
+    *,
+    initial: GaussianPrior | None = None,
+) -> Array:
+    """k-step-ahead predictions ŷ_{t+k|t} of every output by the extended Kalman filter.
+
+    With x̂_{t|t} the EKF's filtered mean (:func:`ceemx.inference.ekf.ekf`, which has read y_0, …,
+    y_t) and x̂_{0|−1} its prior mean, the prediction of y_s is
+
+        x̂_{s|s−k} = f^k(x̂_{s−k|s−k})  (k noise-free steps under the inputs u_{s−k}, …, u_{s−1}),
+        ŷ_{s|s−k} = g(x̂_{s|s−k}, u_s, s)                                        for s ≥ k,
+
+    and for s < k (no output before s − k ≥ 0 exists) a free run from the prior mean,
+    ŷ_s = g(f^s(x̂_{0|−1}), u_s, s). So ŷ_s reads only y_{0:s−k+1}; k = 1 is the EKF's
+    ``predicted_obs`` (one-step prediction) and k ≥ T is :func:`free_run` from the prior mean.
+
+    Args:
+        system: the model; its noise models must be Gaussian (the filter's Q and R).
+        data: B trajectories of T steps.
+        k: the horizon, an integer ≥ 1 (values above T act as T).
+        initial: the filter's prior on x₁ (see :func:`ceemx.inference.ekf.ekf`).
+
+    Returns:
+        (B, T, m) predictions in the data's dtype; NaN from the step on where the filter of a
+        trajectory failed (its ``status``).
+
+    Raises:
+        TypeError / ValueError: as :func:`ceemx.inference.ekf.ekf`, and for ``k`` not an integer ≥
+        1.
+
+    Cost O(B·T·k) model evaluations; compiled once per shape and ``k`` (k is a loop length).
+    """
+    _check_system(system)
+    k = _check_int("k", k, 1)
+    sol = ekf(system, data, initial=initial)
+    k = min(k, data.num_steps)
+    means, prior_mean = sol.filtered_means, sol.predicted_means[:, 0]
+    return k_step_batch(strongly_typed(system), means, prior_mean, data.u, k)

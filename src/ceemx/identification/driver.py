@@ -1,0 +1,498 @@
+"""``fit``: the one host-side driver that runs any fit solver.
+
+The driver owns what every method needs — input validation, the initial states, dtype handling,
+the epoch loop with its history, callbacks, progress bar, timing and atomic checkpoints with
+resume — and delegates the mathematics to the solver object (:mod:`ceemx.identification.solvers`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+from jaxtyping import ArrayLike, PRNGKeyArray
+
+from ceemx.data.sharding import resolve_devices, shard_batch
+from ceemx.data.trajectories import Trajectories
+from ceemx.identification.health import OUTLIER_OPTIONS, trajectory_health
+from ceemx.identification.problem import FitProblem
+from ceemx.identification.solvers.alternating import Alternating
+from ceemx.identification.solvers.base import AbstractFitSolver, FitState, total_J
+from ceemx.identification.solvers.laplace import LaplaceEM
+from ceemx.identification.solvers.particle_em import ParticleEM
+from ceemx.inference.smoother import check_inputs, promote_inputs
+from ceemx.infra import checkpoint as ckpt
+from ceemx.infra.warn import warn
+from ceemx.lib.results import RESULTS, codes, from_codes, messages, select
+from ceemx.lib.tree import trace_numbers
+from ceemx.lib.typing import States, no_type_check
+from ceemx.models.system import AbstractSystem
+
+__all__ = ["EpochInfo", "FitResult", "fit", "particle_em"]
+
+
+@dataclasses.dataclass
+class EpochInfo:
+    """What a callback receives after each epoch.
+
+    Attributes:
+        epoch: 1-based epoch number.
+        system: the system after this epoch.
+        states: (B, T, n) states after this epoch.
+        record: this epoch's history record (a dict; callbacks may add entries to it).
+    """
+
+    epoch: int
+    system: AbstractSystem
+    states: States
+    record: dict
+
+
+class FitResult(eqx.Module):
+    """The outcome of :func:`fit`, the same for every solver.
+
+    Attributes:
+        system: the learned system.
+        states: (B, T, n) state trajectories at the end.
+        status: (B,) per-trajectory :class:`ceemx.RESULTS`.
+        history: one dict per epoch. Keys every solver has: ``epoch``, ``time`` (seconds of the
+            epoch), ``J`` (total log-likelihood, Eq. 9, over the trajectories taking part),
+            ``J_before``, ``J_per_trajectory``, ``dtheta_norm``, ``dx_norm``,
+            ``failed_trajectories``, ``converged``, ``stop``; plus the solver's own
+            (``type(solver).history_keys``) and whatever callbacks returned (e.g. ``eps``).
+        converged: whether the solver's stopping criterion was met (else ``max_epochs`` ran out,
+            a callback stopped the fit, or every trajectory failed).
+        solver: the solver that produced it.
+        initial_J: J at the initial (x, θ) (over the trajectories fitted).
+        excluded: indices of the trajectories the start-of-fit health test excluded
+            (:mod:`ceemx.identification.health`); their states are returned as given, their status
+            is ``outlier``, and ``history`` covers the others only.
+        start_mean_square: (B,) the health test's r_b, the mean squared whitened residual of
+            each trajectory at the start (``None`` with ``outliers="keep"``).
+        problem: the :class:`~ceemx.identification.problem.FitProblem` that was fitted (the
+            trajectories taking part; ``None`` for results built by hand).
+        theta: the final flat θ in the problem's unconstrained coordinates.
+        weights: the final (B',) trajectory weights of the fitted trajectories (0: failed).
+
+    Parameter uncertainty (:mod:`ceemx.identification.uncertainty`): :meth:`covariance`,
+    :meth:`standard_errors`, :meth:`parameter_estimates` — for the CE methods the Laplace
+    approximation of the joint posterior p(x, θ | y) (valid at a converged maximum of J); for
+    :class:`ceemx.LaplaceEM` the inverse observed information of the Laplace log-evidence, the
+    states integrated out (learned noise scales included).
+    """
+
+    system: AbstractSystem
+    states: States
+    status: RESULTS
+    history: list = eqx.field(static=True)
+    converged: bool = eqx.field(static=True)
+    solver: AbstractFitSolver
+    initial_J: float = eqx.field(static=True)
+    excluded: tuple = eqx.field(static=True, default=())
+    start_mean_square: tuple | None = eqx.field(static=True, default=None)
+    problem: FitProblem | None = None
+    theta: Any = None
+    weights: Any = None
+
+    @property
+    def epochs(self) -> int:
+        """Number of epochs run, including resumed ones."""
+        return len(self.history)
+
+    def history_array(self, name: str) -> np.ndarray:
+        """One history entry across epochs as an array."""
+        return np.asarray([h[name] for h in self.history])
+
+    def messages(self) -> list[str]:
+        """One status message per trajectory, consistent with :attr:`converged`.
+
+        A trajectory whose solver status is ``successful`` in a fit that did not converge (the
+        epoch bound ran out, a callback stopped it) reads "stopped before convergence".
+        """
+        out = messages(self.status)
+        if not self.converged:
+            ok = np.atleast_1d(codes(self.status)).reshape(-1) == int(codes(RESULTS.successful))
+            out = [
+                "stopped before convergence (max_epochs reached or stopped by a callback)"
+                if good
+                else text
+                for good, text in zip(ok, out, strict=True)
+            ]
+        return out
+
+    def _laplace_inputs(self):
+        if self.problem is None or self.theta is None:
+            raise ValueError("This FitResult holds no problem: parameter uncertainty needs `fit`.")
+        keep = np.setdiff1d(np.arange(self.states.shape[0]), np.asarray(self.excluded, int))
+        states = self.states if not self.excluded else self.states[jnp.asarray(keep)]
+        weights = self.weights
+        if weights is None:
+            weights = jnp.ones(states.shape[0], states.dtype)
+        return self.problem, self.theta, states, weights
+
+    def covariance(self, natural: bool = False):
+        """(P, P) Laplace covariance of the trainable θ (:mod:`ceemx.identification.uncertainty`).
+
+        Args:
+            natural: ``False`` (default): of the flat θ in the problem's unconstrained
+                coordinates (``FitResult.theta``); ``True``: in natural units by the delta method.
+
+        Returns:
+            The covariance; all NaN, with a warning, when the Schur complement is not positive
+            definite (not at a maximum, or a parameter is not identifiable).
+        """
+        from ceemx.identification.uncertainty import (
+            evidence_covariance,
+            natural_covariance,
+            parameter_covariance,
+        )
+
+        problem, theta, states, weights = self._laplace_inputs()
+        if isinstance(self.solver, LaplaceEM):
+            cov = evidence_covariance(problem, theta, states, weights, self.solver.smoother)
+        else:
+            cov = parameter_covariance(problem, theta, states, weights)
+        return natural_covariance(problem, theta, cov) if natural else cov
+
+    def standard_errors(self):
+        """Natural-unit standard errors (delta method), as a pytree like :attr:`system`.
+
+        Each trainable leaf holds its standard errors (same shape); every other leaf is ``None``.
+        """
+        from ceemx.identification.uncertainty import standard_errors
+
+        problem, theta, _, _ = self._laplace_inputs()
+        return standard_errors(problem, theta, self.covariance())
+
+    def parameter_estimates(self) -> dict[str, tuple[float, float]]:
+        """``name → (estimate, standard error)`` per trainable scalar, in natural units.
+
+        Names are key paths into the system (``.sigma[0]``, ``.A[0,1]``); the dict feeds
+        :func:`ceemx.evaluation.report.estimate_table`.
+        """
+        from ceemx.identification.uncertainty import standard_errors_by_name
+
+        problem, theta, _, _ = self._laplace_inputs()
+        return standard_errors_by_name(problem, theta, self.covariance())
+
+
+class _Progress:
+    def __init__(self, enabled: bool, total: int, initial: int, desc: str):
+        self.bar = None
+        if enabled:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, initial=initial, desc=desc, unit="epoch", leave=True)
+
+    def update(self, record):
+        if self.bar is not None:
+            self.bar.set_postfix(J=f"{record['J']:.6g}", t=f"{record['time']:.2f}s")
+            self.bar.update(1)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _check_max_epochs(max_epochs) -> int:
+    if isinstance(max_epochs, bool) or not isinstance(max_epochs, int | np.integer):
+        raise TypeError(f"`max_epochs` must be an int; got {max_epochs!r}.")
+    if max_epochs < 0:
+        raise ValueError(f"`max_epochs` must be >= 0; got {max_epochs}.")
+    return int(max_epochs)
+
+
+@no_type_check  # validates its arguments: check_inputs, solver and max_epochs checks
+def fit(
+    system: AbstractSystem,
+    data: Trajectories,
+    x_init: ArrayLike | None = None,
+    *,
+    solver: AbstractFitSolver | None = None,
+    trainable=None,
+    log_prior: Callable[[AbstractSystem], Any] | None = None,
+    max_epochs: int = 100,
+    callbacks: Sequence[Callable[[EpochInfo], Any]] = (),
+    progress: bool | None = None,
+    checkpoint: str | None = None,
+    checkpoint_mismatch: Literal["raise", "restart"] = "raise",
+    key: PRNGKeyArray | None = None,
+    outliers: str = "exclude",
+    devices: Literal["all"] | Mesh | None = None,
+) -> FitResult:
+    """Identify θ and the state trajectories by maximising the CE-EM objective J(x, θ) (Eq. 9).
+
+    Args:
+        system: the model at its initial θ.
+        data: B observed trajectories.
+        x_init: (B, T, n) initial states (``None``: the solver's ``initial_states`` —
+            :func:`ceemx.identification.initialize.warm_start`, least squares through the
+            observation map and a smoothing pass at the initial θ, for the CE methods).
+        solver: the method — :class:`ceemx.Alternating` (the paper's Algorithm 1, default),
+            :class:`ceemx.JointLM` (joint Levenberg–Marquardt on (x, θ)) or
+            :class:`ceemx.ParticleEM` (particle filter + FFBSi + SAEM) or
+            :class:`ceemx.LaplaceEM` (EM with a Gaussian E-step; learns noise covariances); its
+            tolerances decide convergence.
+        trainable: which leaves learn (``None``: all model arrays except noise and prior; a
+            callable ``where(system)`` or a boolean filter pytree). Noise models may be selected
+            only with :class:`ceemx.LaplaceEM`.
+        log_prior: optional ``system -> log p(θ)``.
+        max_epochs: bound on epochs (iterations of the solver).
+        callbacks: called with an :class:`EpochInfo` after every epoch; a dict returned by a
+            callback is merged into that epoch's history record; returning ``False`` stops.
+        progress: show a progress bar (``None``: only when stderr is a terminal).
+        checkpoint: folder; after every epoch the state is written there atomically, and an
+            existing checkpoint there is resumed from — only if it was written by the same fit
+            (data, system, method and options; see ``docs/guarantees.md``). The folder must be
+            writable (checked before any compute).
+        checkpoint_mismatch: what to do with a checkpoint that is another fit's, corrupt, or not
+            finite: ``"raise"`` a :class:`ceemx.infra.checkpoint.CheckpointError` naming what
+            differs, or ``"restart"`` (warn, start afresh, overwrite it).
+        key: PRNG key for stochastic solvers and learners (default ``PRNGKey(0)``).
+        outliers: the start-of-fit health test (:mod:`ceemx.identification.health`): ``"exclude"``
+            (default) fits without the trajectories whose residuals are far outside the noise model
+            compared with the others, naming them in a warning and in
+            :attr:`FitResult.excluded` (their states are returned as given, status
+            ``outlier``); ``"warn"`` only names them; ``"keep"`` skips the test.
+        devices: data parallelism over the trajectories (:mod:`ceemx.data.sharding`): ``None``
+            (default) places nothing; ``"all"`` splits the batch axis of the data and states over
+            all visible devices, a 1-D :class:`jax.sharding.Mesh` over its devices (of this
+            process only: a mesh across hosts is refused). When B is not divisible by the device
+            count the largest divisor of B devices is used. Results agree with ``None`` to
+            rounding; with one device it changes nothing.
+
+    Returns:
+        A :class:`FitResult`.
+
+    Raises:
+        ValueError, TypeError: on invalid inputs (before any compute).
+        ceemx.infra.checkpoint.CheckpointError: (a ``ValueError``) for an unwritable ``checkpoint``
+            folder (before any compute) or a checkpoint that cannot be resumed (see above).
+
+    Example:
+        >>> result = ceemx.fit(guess, data, solver=ceemx.JointLM(), trainable=lambda s: s.rho)
+        ... # doctest: +SKIP
+    """
+    solver = Alternating() if solver is None else solver
+    if not isinstance(solver, AbstractFitSolver):
+        raise TypeError(
+            f"`solver` must be a fit solver such as ceemx.Alternating() or ceemx.JointLM(); "
+            f"got {solver!r}."
+        )
+    max_epochs = _check_max_epochs(max_epochs)
+    if checkpoint is not None:
+        ckpt.check_folder(checkpoint, checkpoint_mismatch)
+    system, data, x_init = promote_inputs(system, data, x_init)
+    check_inputs(system, data)
+    if x_init is None:
+        x_init = solver.initial_states(system, data)
+    check_inputs(system, data, x_init)
+    states = jnp.asarray(x_init)
+    mesh = resolve_devices(devices)
+    if mesh is not None:
+        data, states = shard_batch(data, states, mesh)
+    solver = trace_numbers(solver, states.dtype)
+    key = jax.random.PRNGKey(0) if key is None else key
+    problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
+    noise = [f for f in ("process_noise", "obs_noise") if problem.trains(f)]
+    if noise and not solver.learns_noise:
+        raise ValueError(
+            f"`trainable` selects the noise model{'s' if len(noise) > 1 else ''} "
+            f"{', '.join('system.' + f for f in noise)}, but {type(solver).__name__} maximises "
+            "the certainty-equivalent J(x, θ), which grows without bound as a noise scale → 0 "
+            "(the states absorb the residuals): noise cannot be learned by it. Use "
+            "solver=ceemx.LaplaceEM(), which learns noise covariances by EM, or fix the noise."
+        )
+    all_states, excluded, health = states, np.zeros((data.batch_size,), bool), None
+    if outliers not in OUTLIER_OPTIONS:
+        raise ValueError(f"`outliers` must be one of {OUTLIER_OPTIONS}; got {outliers!r}.")
+    if outliers != "keep":
+        health = trajectory_health(problem, theta, states)
+        if not np.any(np.isfinite(health.mean_square)):
+            raise ValueError(
+                "no trajectory has a finite objective at the start: check the model's "
+                "parameters and noise, the inputs and `x_init` (J is not finite for all "
+                f"{data.batch_size} trajectories)."
+            )
+        bad = health.flagged & np.isfinite(health.mean_square)
+        if bad.any():
+            idx = np.flatnonzero(bad)
+            action = "excluded from the fit" if outliers == "exclude" else "kept (outliers='warn')"
+            warn(
+                f"trajectories {health.describe(idx)} have residuals far outside the noise model "
+                f"(mean squared whitened residual; median {health.median:.3g}): {action}. "
+                "Pass outliers='keep' to skip this test (ceemx.identification.health)."
+            )
+            if outliers == "exclude":
+                excluded = bad
+                keep = np.flatnonzero(~bad)
+                data, states = data[keep], states[keep]
+                problem, theta = FitProblem.create(
+                    system, data, trainable=trainable, log_prior=log_prior
+                )
+
+    state = solver.init(problem, theta, states, key)
+    initial_J = total_J(state)
+    history: list[dict] = []
+    fingerprint = None
+    if checkpoint is not None:
+        template = dataclasses.replace(state, cache=None)
+        fingerprint = ckpt.fingerprint(template, problem, theta, solver)
+        loaded = ckpt.load(checkpoint, template, fingerprint, mismatch=checkpoint_mismatch)
+        if loaded is not None:
+            state, history = loaded
+
+    show = sys.stderr.isatty() if progress is None else progress
+    bar = _Progress(show, max_epochs, len(history), type(solver).__name__)
+    converged = bool(history and history[-1].get("converged", False))
+    stopped = bool(history and history[-1].get("stop", False))
+    try:
+        while len(history) < max_epochs and not (converged or stopped):
+            epoch = len(history) + 1
+            t0 = time.perf_counter()
+            before = state
+            state, own = solver.step(problem, state)
+            elapsed = time.perf_counter() - t0
+            record = _record(epoch, before, state, elapsed, own)
+            stop, converged = solver.terminate(problem, before, state, record)
+            system_now = problem.build(state.theta)
+            info = EpochInfo(epoch, system_now, state.states, record)
+            stopped = _run_callbacks(callbacks, info) or stop
+            record["converged"] = converged
+            record["stop"] = converged or stopped
+            history.append(record)
+            bar.update(record)
+            if checkpoint is not None:
+                ckpt.save(checkpoint, dataclasses.replace(state, cache=None), history, fingerprint)
+    finally:
+        bar.close()
+    state = solver.postprocess(problem, state)
+    # Never "converged" when no trajectory took part or J is not finite.
+    took_part = bool(np.any(np.asarray(state.weights) > 0))
+    converged = bool(converged and took_part and np.isfinite(total_J(state)))
+    out_states, status = state.states, state.status
+    if excluded.any():
+        keep = jnp.asarray(np.flatnonzero(~excluded))
+        out_states = all_states.at[keep].set(state.states)
+        codes_all = np.full(excluded.shape, -1)
+        codes_all[~excluded] = np.asarray(codes(state.status)).reshape(-1)
+        status = select(
+            jnp.asarray(excluded), RESULTS.outlier, from_codes(np.maximum(codes_all, 0))
+        )
+    return FitResult(
+        problem.build(state.theta),
+        out_states,
+        status,
+        history,
+        converged,
+        solver,
+        initial_J,
+        tuple(int(b) for b in np.flatnonzero(excluded)),
+        None if health is None else tuple(float(r) for r in health.mean_square),
+        problem=problem,
+        theta=state.theta,
+        weights=state.weights,
+    )
+
+
+def _record(epoch: int, before: FitState, after: FitState, elapsed: float, own: dict) -> dict:
+    """The driver's history keys (see :class:`FitResult`) and the solver's own."""
+    ok = np.asarray(after.weights) > 0
+    dx = np.where(ok[:, None, None], np.asarray(after.states) - np.asarray(before.states), 0.0)
+    return {
+        "epoch": epoch,
+        "J_before": total_J(before),
+        "J": total_J(after),
+        "J_per_trajectory": np.asarray(after.J).tolist(),
+        "dtheta_norm": float(np.linalg.norm(np.asarray(after.theta) - np.asarray(before.theta))),
+        "dx_norm": float(np.linalg.norm(dx)),
+        "failed_trajectories": np.flatnonzero(~ok).tolist(),
+        "time": elapsed,
+        **own,
+    }
+
+
+def _run_callbacks(callbacks, info: EpochInfo) -> bool:
+    stop = False
+    for cb in callbacks:
+        out = cb(info)
+        if isinstance(out, dict):
+            info.record.update(out)
+        elif out is False:
+            stop = True
+    return stop
+
+
+@no_type_check  # validates its arguments through fit and ParticleEM
+def particle_em(
+    system: AbstractSystem,
+    data: Trajectories,
+    x_init: ArrayLike | None = None,
+    *,
+    n_particles: int = 100,
+    n_smoothed: int = 10,
+    learner=None,
+    burn_in: int = 5,
+    alpha: float = 0.7,
+    memory: int = 10,
+    initial=None,
+    trainable=None,
+    log_prior: Callable[[AbstractSystem], Any] | None = None,
+    max_epochs: int = 50,
+    callbacks: Sequence[Callable[[EpochInfo], Any]] = (),
+    progress: bool | None = None,
+    checkpoint: str | None = None,
+    key: PRNGKeyArray | None = None,
+    checkpoint_mismatch: str = "raise",
+    outliers: str = "exclude",
+    **options: Any,
+) -> FitResult:
+    """Particle EM (fully adapted particle filter, FFBSi, SAEM): ``fit`` with :class:`ParticleEM`.
+
+    ``system``, ``data``, ``trainable``, ``log_prior``, ``max_epochs``, ``callbacks``,
+    ``progress``, ``checkpoint``, ``key``, ``checkpoint_mismatch`` and ``outliers`` are as
+    for :func:`fit`; ``x_init`` only sets the
+    states reported before epoch 1. ``n_particles``, ``n_smoothed``, ``learner`` (``None``:
+    Levenberg–Marquardt), ``burn_in``, ``alpha``, ``memory``, ``initial`` and further
+    ``options`` (``proposal``, ``ess_threshold``, ``rho_theta``, ``rtol``, ``atol``) are the
+    :class:`ceemx.ParticleEM` options.
+
+    Returns:
+        A :class:`FitResult` whose history has :func:`fit`'s keys plus
+        ``ParticleEM.history_keys`` (the PF log-likelihood estimate and the SAEM objective per
+        epoch among them); ``states`` are the means of the last epoch's FFBSi draws.
+    """
+    kwargs = dict(
+        n_particles=n_particles,
+        n_smoothed=n_smoothed,
+        burn_in=burn_in,
+        alpha=alpha,
+        memory=memory,
+        initial=initial,
+        **options,
+    )
+    if learner is not None:
+        kwargs["learner"] = learner
+    return fit(
+        system,
+        data,
+        x_init,
+        solver=ParticleEM(**kwargs),
+        trainable=trainable,
+        log_prior=log_prior,
+        max_epochs=max_epochs,
+        callbacks=callbacks,
+        progress=progress,
+        checkpoint=checkpoint,
+        key=key,
+        checkpoint_mismatch=checkpoint_mismatch,  # pyright: ignore[reportArgumentType]
+        outliers=outliers,
+    )

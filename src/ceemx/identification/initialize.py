@@ -1,0 +1,134 @@
+"""Starting points of a fit: initial state trajectories and perturbed parameter guesses.
+
+- :func:`from_observations` — states by least squares through the observation map.
+- :func:`rollout` — states by simulating the dynamics from guessed initial states.
+- :func:`warm_start` — :func:`from_observations`, then a smoothing pass with weak dynamics weights.
+- :func:`perturb` — a randomly scaled copy of (part of) a pytree, e.g. a start guess of θ.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, TypeVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ceemx.data.trajectories import Trajectories, rollout_one
+from ceemx.models.system import AbstractSystem, with_noise
+
+if TYPE_CHECKING:
+    from ceemx.inference.smoother import LMSmoother
+
+__all__ = ["from_observations", "perturb", "rollout", "warm_start"]
+
+_T = TypeVar("_T")
+
+
+@eqx.filter_jit
+def from_observations(
+    system: AbstractSystem, data: Trajectories, x_guess=None, ridge: float = 1e-6
+):
+    """States by least squares through the observation map linearised at ``x_guess``.
+
+    Per step, x_t = x̄ + argmin_δ ‖S(y_t − g(x̄) − G δ)‖² + ridge·‖δ‖² over the observed
+    components, with G = ∂g/∂x at x̄ (``x_guess``, default zeros) and S the observation noise's
+    whitening. Unobservable directions stay at x̄ (minimum-norm solution). Use it to start the
+    smoother, which then reconciles the states with the dynamics.
+
+    Returns:
+        (B, T, n) states.
+    """
+    B, T, _ = data.y.shape
+    n = system.state_dim
+    dtype = data.y.dtype
+    xbar = jnp.zeros((n,), dtype) if x_guess is None else jnp.asarray(x_guess, dtype)
+
+    def one(y, u, mask, t):
+        g0 = system.observe(xbar, u, t)
+        G = jax.jacfwd(system.observe)(xbar, u, t)
+        S = system.obs_noise.sqrt_curvature(y - g0, mask)
+        A = S @ G
+        b = S @ jnp.where(mask, y - g0, 0.0)
+        lhs = (
+            A.T @ A
+            + ridge * jnp.trace(A.T @ A) / n * jnp.eye(n, dtype=dtype)
+            + 1e-30 * jnp.eye(n, dtype=dtype)
+        )
+        return xbar + jnp.linalg.solve(lhs, A.T @ b)
+
+    ts = jnp.broadcast_to(jnp.arange(T), (B, T))
+    return jax.vmap(jax.vmap(one))(data.y, data.u, data.mask, ts)
+
+
+@eqx.filter_jit
+def rollout(system: AbstractSystem, data: Trajectories, x1):
+    """States by simulating the noise-free dynamics from guessed initial states ``x1`` (B, n)."""
+    return jax.vmap(lambda x0, u: rollout_one(system, x0, u))(jnp.asarray(x1, data.y.dtype), data.u)
+
+
+def warm_start(
+    system: AbstractSystem,
+    data: Trajectories,
+    *,
+    process_noise: float = 1.0,
+    smoother: LMSmoother | None = None,
+) -> Float[Array, "B T n"]:
+    """Start states without knowing the true ones.
+
+    :func:`from_observations` (least squares through the observation map; the directions it does
+    not see are left at 0), then one smoothing pass of ``system`` at its current θ with the process
+    noise replaced by a diagonal Gaussian of scale ``process_noise`` (weak dynamics weights), which
+    fills in the unobserved directions from the dynamics. Smoothing with stiff dynamics weights
+    directly from the least-squares states often converges to a wrong basin on chaotic systems.
+
+    Args:
+        system: the model at its initial θ.
+        data: B observed trajectories.
+        process_noise: scale of the process noise during the smoothing pass.
+        smoother: the smoothing solver (default :class:`ceemx.LMSmoother`).
+
+    Returns:
+        (B, T, n) states.
+    """
+    from ceemx.inference.smoother import smooth  # imported here to avoid an import cycle
+
+    x0 = from_observations(system, data)
+    return smooth(with_noise(system, process_noise=process_noise), data, x0, smoother).states
+
+
+def perturb(
+    key: PRNGKeyArray,
+    tree: _T,
+    frac: float = 0.1,
+    where: Callable[[_T], object] | None = None,
+) -> _T:
+    """θ·(1 + U(−frac, frac)) elementwise on the floating-point array leaves of ``tree``.
+
+    Each leaf gets its own key (split from ``key`` in leaf order). Zeros stay zero (the
+    perturbation is multiplicative); integer and non-array leaves are unchanged.
+
+    Args:
+        key: PRNG key.
+        tree: any pytree, e.g. a system.
+        frac: half-width of the relative perturbation.
+        where: perturb only the sub-trees ``where(tree)`` returns (as in ``eqx.tree_at``), e.g.
+            ``lambda s: (s.sigma, s.rho, s.beta)``; ``None``: every leaf.
+
+    Returns:
+        A perturbed copy of ``tree``.
+    """
+    target = tree if where is None else where(tree)
+    leaves, treedef = jtu.tree_flatten(target)
+    keys = jax.random.split(key, max(len(leaves), 1))
+    out = [
+        leaf * (1.0 + jax.random.uniform(k, leaf.shape, leaf.dtype, -frac, frac))
+        if eqx.is_inexact_array(leaf)
+        else leaf
+        for k, leaf in zip(keys, leaves, strict=False)
+    ]
+    new = jtu.tree_unflatten(treedef, out)
+    return new if where is None else eqx.tree_at(where, tree, new)

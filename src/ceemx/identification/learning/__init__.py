@@ -1,0 +1,38 @@
+"""The learning step: θ given the smoothed states (paper Eq. 11)."""
+
+from ceemx.identification.learning.expected import (
+    ExpectedLearningProblem,
+    expected_learning_problem,
+)
+from ceemx.identification.learning.learners import (
+    AbstractLearner,
+    LBFGSLearner,
+    LearnInfo,
+    LMLearner,
+    NelderMeadLearner,
+    OptaxLearner,
+)
+from ceemx.identification.learning.problem import (
+    AbstractLearningProblem,
+    LearningProblem,
+    learning_problem,
+    make_problem,
+)
+from ceemx.identification.learning.step import learn, run_learner
+
+__all__ = [
+    "AbstractLearningProblem",
+    "ExpectedLearningProblem",
+    "expected_learning_problem",
+    "AbstractLearner",
+    "LBFGSLearner",
+    "LMLearner",
+    "LearnInfo",
+    "LearningProblem",
+    "NelderMeadLearner",
+    "OptaxLearner",
+    "learn",
+    "learning_problem",
+    "make_problem",
+    "run_learner",
+]

@@ -1,0 +1,264 @@
+"""The identification problem shared by every fit solver: data, the trainable split of θ, prior.
+
+A :class:`FitProblem` knows how to rebuild the system from the flat vector θ of its trainable
+leaves and how to evaluate the CE-EM objective −J(x, θ) (paper Eq. 9) and the log-prior. It holds no
+iterate: solvers keep (θ, x) in their state.
+
+θ is unconstrained. A leaf whose field declares a constraint (:func:`ceemx.param`) enters θ as
+z = inverse(x) and the system is rebuilt with x = forward(z) (:mod:`ceemx.models.constraints`), so
+every solver, learner and checkpoint — they all go through :meth:`FitProblem.create` and
+:meth:`FitProblem.build` — works in unconstrained coordinates, while systems (and so ``log_prior``,
+which is evaluated on the built system) are in natural units. The trust region ρ_θ‖θ − θᵏ‖² of the
+learners and the joint method, and the history's ``dtheta_norm``, measure θ, i.e. the
+unconstrained coordinates; ``log_prior`` is a density of the natural values maximised over θ with
+no change-of-variables term (a penalty in natural units, not a density of θ).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Float, PyTree
+
+from ceemx.data.trajectories import Trajectories
+from ceemx.inference.objective import neg_log_joint_single, nll_offset
+from ceemx.lib.dense import symmetrize
+from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
+from ceemx.models.constraints import (
+    AbstractConstraint,
+    Unconstrained,
+    check_constraints,
+    leaf_constraints,
+)
+from ceemx.models.system import AbstractSystem
+
+__all__ = [
+    "FitProblem",
+    "Trainable",
+    "per_trajectory_nll",
+    "per_trajectory_offset",
+    "split_system",
+    "trainable_mask",
+]
+
+Trainable = Callable[[AbstractSystem], Any] | PyTree | None
+"""Which leaves of a system learn: see :func:`trainable_mask`."""
+
+
+def trainable_mask(
+    system: AbstractSystem, trainable: Trainable = None, *, noise: bool = False
+) -> PyTree:
+    """A boolean pytree over ``system`` marking the leaves that learn.
+
+    Args:
+        system: the model.
+        trainable: ``None`` — every floating-point array of the model except its noise models and
+            initial-state prior; a callable ``where(system)`` returning the leaves or sub-trees to
+            learn (as in ``eqx.tree_at``), e.g. ``lambda s: (s.sigma, s.rho, s.beta)``; or a boolean
+            pytree with the structure of ``system`` (an Equinox filter spec).
+
+        noise: also mark the floating-point leaves of ``process_noise`` and ``obs_noise`` (for
+            :class:`ceemx.LaplaceEM`, which learns noise covariances:
+            ``fit(model, data, solver=ceemx.LaplaceEM(), trainable=trainable_mask(model,
+            noise=True))``).
+
+    Returns:
+        Booleans with the structure of ``system``. Leaves of fields declared
+        ``ceemx.param(fixed=True)`` are always ``False``, whatever ``trainable`` selects.
+    """
+    mask = _drop_fixed(system, _selected(system, trainable))
+    if noise:
+        on = tuple(
+            jtu.tree_map(eqx.is_inexact_array, getattr(system, f))
+            for f in ("process_noise", "obs_noise")
+        )
+        mask = eqx.tree_at(lambda s: (s.process_noise, s.obs_noise), mask, replace=on)
+    return mask
+
+
+def _selected(system: AbstractSystem, trainable: Trainable) -> PyTree:
+    if trainable is None:
+        mask = jtu.tree_map(eqx.is_inexact_array, system)
+        frozen = jtu.tree_map(
+            lambda _: False, (system.process_noise, system.obs_noise, system.initial_prior)
+        )
+        return eqx.tree_at(
+            lambda s: (s.process_noise, s.obs_noise, s.initial_prior),
+            mask,
+            replace=frozen,
+            is_leaf=lambda v: v is None,
+        )
+    if callable(trainable):
+        mask = jtu.tree_map(lambda _: False, system)
+
+        def where(s) -> tuple[Any, ...]:
+            picked = trainable(s)
+            return picked if isinstance(picked, tuple) else (picked,)
+
+        replace = tuple(jtu.tree_map(eqx.is_inexact_array, c) for c in where(system))
+        return eqx.tree_at(where, mask, replace=replace)
+    return trainable
+
+
+def _drop_fixed(system: AbstractSystem, mask: PyTree) -> PyTree:
+    """``mask`` (a filter spec, possibly a prefix of ``system``) per leaf, with fixed leaves off."""
+    leaves, treedef = jtu.tree_flatten(system)
+    if not leaves:
+        return mask
+
+    def broadcast(spec, sub):
+        return jtu.tree_map(lambda leaf: bool(spec(leaf) if callable(spec) else spec), sub)
+
+    full = jtu.tree_map(broadcast, mask, system, is_leaf=lambda v: v is None)
+    flags = treedef.flatten_up_to(full)
+    constraints = leaf_constraints(system)
+    kept = [bool(f) and c.trainable for f, c in zip(flags, constraints, strict=True)]
+    return jtu.tree_unflatten(treedef, kept)
+
+
+def split_system(
+    system: AbstractSystem, trainable: Trainable = None
+) -> tuple[Theta, PyTree, PyTree]:
+    """(θ flat, params template, static part) for the trainable leaves of ``system``.
+
+    Natural units: the leaves as the system holds them (:meth:`FitProblem.create` maps the
+    constrained ones to unconstrained coordinates).
+    """
+    params, static = eqx.partition(system, trainable_mask(system, trainable))
+    theta, _ = ravel_pytree(params)
+    return theta, params, static
+
+
+def _trainable_constraints(system: AbstractSystem, mask: PyTree) -> list[AbstractConstraint]:
+    """The constraint of each trainable leaf, in the order of the trainable sub-tree's leaves."""
+    flags = jtu.tree_structure(system).flatten_up_to(mask)
+    return [c for f, c in zip(flags, leaf_constraints(system), strict=True) if f]
+
+
+def _strong(a):
+    return jnp.asarray(a, dtype=jnp.result_type(a)) if eqx.is_array(a) else a
+
+
+class FitProblem(eqx.Module):
+    """Data, the model split into trainable θ and the rest, and an optional log-prior.
+
+    Attributes:
+        template: the trainable sub-tree in unconstrained coordinates (its structure and shapes
+            define the flat θ).
+        static: the rest of the system (natural units).
+        data: the observations.
+        log_prior: ``None`` or a callable on the system returning log p(θ) (natural units).
+        constraints: the constraint of each leaf of ``template``, in leaf order (θ's entries map
+            to natural values through their ``forward``).
+    """
+
+    template: Any
+    static: Any
+    data: Trajectories
+    log_prior: Callable[[AbstractSystem], Any] | None = eqx.field(static=True, default=None)
+    constraints: tuple[AbstractConstraint, ...] = eqx.field(static=True, default=())
+
+    @classmethod
+    def create(
+        cls,
+        system: AbstractSystem,
+        data: Trajectories,
+        *,
+        trainable: Trainable = None,
+        log_prior: Callable[[AbstractSystem], Any] | None = None,
+    ) -> tuple[FitProblem, Theta]:
+        """The problem and the flat, unconstrained θ of ``system``'s trainable leaves.
+
+        Raises:
+            ValueError: naming the field, when a parameter lies outside its declared constraint
+                (host-side; skipped for traced values); when ``trainable`` selects nothing.
+        """
+        check_constraints(system)
+        mask = trainable_mask(system, trainable)
+        params, static = eqx.partition(system, mask)
+        constraints = tuple(_trainable_constraints(system, mask))
+        # Strongly typed θ and template: a weakly typed leaf (e.g. from jnp.asarray(10.0)) would
+        # make the second epoch, whose θ comes back from a solver strongly typed, compile again.
+        leaves, treedef = jtu.tree_flatten(params)
+        unconstrained = [
+            c.inverse(_strong(leaf)) for c, leaf in zip(constraints, leaves, strict=True)
+        ]
+        template = jtu.tree_unflatten(treedef, unconstrained)
+        theta, _ = ravel_pytree(template)
+        if theta.size == 0:
+            raise ValueError(
+                "`trainable` selects no parameter to learn: it must pick at least one "
+                "floating-point array of the system that is not declared `ceemx.param(fixed=True)`."
+            )
+        return cls(template, static, data, log_prior, constraints), _strong(theta)
+
+    def build(self, theta: Theta) -> AbstractSystem:
+        """The system with trainable leaves set from the flat unconstrained vector θ."""
+        _, unravel = ravel_pytree(self.template)
+        params = unravel(theta)
+        if any(not isinstance(c, Unconstrained) for c in self.constraints):
+            leaves, treedef = jtu.tree_flatten(params)
+            natural = [c.forward(z) for c, z in zip(self.constraints, leaves, strict=True)]
+            params = jtu.tree_unflatten(treedef, natural)
+        return eqx.combine(params, self.static)
+
+    def trains(self, field: str) -> bool:
+        """Whether any leaf of the system's top-level ``field`` (e.g. ``"obs_noise"``) is in θ."""
+        sub = getattr(self.template, field, None)
+        return bool(jtu.tree_leaves(sub))
+
+    def per_trajectory(
+        self, theta: Theta, states: States, data: Trajectories | None = None
+    ) -> PerTrajectory:
+        """(B,) −J_b(x_b, θ), the negative log-likelihood of each trajectory (Eq. 9)."""
+        data = self.data if data is None else data
+        return jax.vmap(neg_log_joint_single, in_axes=(None, 0, 0, 0, 0))(
+            self.build(theta), states, data.y, data.u, data.mask
+        )
+
+    def offset(self, theta: Theta, weights: PerTrajectory) -> Scalar:
+        """Σ_b w_b·c_b, the x-independent constants of −J (see ``objective.nll_offset``).
+
+        −J − offset is ½‖whitened residuals‖² for Gaussian noise: the scale of every relative
+        tolerance (normalising constants can dwarf the fit).
+        """
+        c = nll_offset(self.build(theta), self.data)
+        return jnp.sum(jnp.where(weights > 0, weights * c, 0.0))
+
+    def neg_log_prior(self, theta: Theta) -> Scalar:
+        """−log p(θ) (zero without a prior)."""
+        if self.log_prior is None:
+            return jnp.zeros((), theta.dtype)
+        return -self.log_prior(self.build(theta))
+
+    def prior_terms(
+        self, theta: Theta
+    ) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
+        """(−log p(θ), its gradient, its symmetrised Hessian); zeros without a prior."""
+        P = theta.shape[0]
+        if self.log_prior is None:
+            zero = jnp.zeros((), theta.dtype)
+            return zero, jnp.zeros((P,), theta.dtype), jnp.zeros((P, P), theta.dtype)
+        value, grad = jax.value_and_grad(self.neg_log_prior)(theta)
+        return value, grad, symmetrize(jax.hessian(self.neg_log_prior)(theta))
+
+
+@eqx.filter_jit
+def per_trajectory_nll(problem: FitProblem, theta: Theta, states: States) -> PerTrajectory:
+    """(B,) −J_b(x_b, θ), compiled once per problem shape.
+
+    Shared by the solvers and the health test: one program, not an op-by-op evaluation.
+    """
+    return problem.per_trajectory(theta, states)
+
+
+@eqx.filter_jit
+def per_trajectory_offset(problem: FitProblem, theta: Theta) -> PerTrajectory:
+    """(B,) the x-independent constants of −J_b (see :meth:`FitProblem.offset`), compiled."""
+    return nll_offset(problem.build(theta), problem.data)

@@ -1,0 +1,190 @@
+"""The fit-solver interface: ``init / step / terminate / postprocess`` over a :class:`FitState`.
+
+A fit solver is an ``eqx.Module`` holding its options. The one host-side driver
+(:func:`ceemx.fit`) owns everything around it — validation, history, callbacks, progress,
+checkpoints, timing — and calls:
+
+- ``init(problem, theta, states, key) -> FitState`` once (skipped on resume);
+- ``step(problem, state) -> (state, record)`` once per epoch; ``record`` holds the solver's own
+  history entries (documented in its ``history_keys``);
+- ``terminate(problem, before, after, record) -> (stop, converged)`` after every epoch;
+- ``postprocess(problem, state) -> state`` once at the end.
+
+Heavy work inside ``step`` runs in ``eqx.filter_jit``-compiled functions whose arguments keep their
+shapes and dtypes across epochs, so an EM run compiles once. The driver converts the solver's
+Python floats to arrays (:func:`ceemx.lib.trace_numbers`) before ``init``: new tolerances or
+trust-region weights do not recompile either.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import PRNGKeyArray, PyTree
+
+from ceemx.identification.learning.learners import AbstractLearner
+from ceemx.identification.problem import FitProblem, per_trajectory_nll
+from ceemx.inference.smoother import LMSmoother
+from ceemx.lib.results import RESULTS, select
+from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
+
+__all__ = [
+    "AbstractFitSolver",
+    "check_alternation",
+    "FitState",
+    "improvement_converged",
+    "objective_scale",
+    "starting_state",
+    "total_J",
+    "trajectory_log_likelihood",
+]
+
+
+class FitState(eqx.Module):
+    """The iterate of a fit solver (what checkpoints hold, plus a transient cache).
+
+    Attributes:
+        theta: flat vector of the trainable parameters.
+        states: (B, T, n) state trajectories.
+        J: (B,) J_b(x_b, θ) (Eq. 9) of each trajectory at (``states``, ``theta``).
+        weights: (B,) 1 for trajectories taking part, 0 for excluded (failed) ones.
+        status: (B,) :class:`ceemx.RESULTS` per trajectory.
+        solver_state: the solver's own arrays that persist across epochs (checkpointed).
+        cache: recomputable data carried between epochs (e.g. a linearisation); never
+            checkpointed — a solver must rebuild it when it is ``None``.
+    """
+
+    theta: Theta
+    states: States
+    J: PerTrajectory
+    weights: PerTrajectory
+    status: RESULTS
+    solver_state: PyTree = None
+    cache: PyTree = None
+
+
+def trajectory_log_likelihood(problem: FitProblem, theta: Theta, states: States) -> PerTrajectory:
+    """(B,) J_b(x_b, θ), compiled once per problem shape (``problem.per_trajectory_nll``)."""
+    return -per_trajectory_nll(problem, theta, states)
+
+
+@eqx.filter_jit
+def _offset(problem: FitProblem, theta: Theta, weights: PerTrajectory) -> Scalar:
+    return problem.offset(theta, weights)
+
+
+def starting_state(
+    problem: FitProblem, theta: Theta, states: States, solver_state: PyTree = None
+) -> FitState:
+    """θ and x as given, every trajectory taking part and ``successful``, J evaluated."""
+    B = states.shape[0]
+    return FitState(
+        theta=theta,
+        states=states,
+        J=trajectory_log_likelihood(problem, theta, states),
+        weights=jnp.ones((B,), states.dtype),
+        status=select(jnp.zeros((B,), bool), RESULTS.nonfinite, RESULTS.successful),
+        solver_state=solver_state,
+    )
+
+
+def total_J(state: FitState) -> float:
+    """Σ_b J_b over the trajectories taking part (host-side)."""
+    w = np.asarray(state.weights)
+    return float(np.sum(np.where(w > 0, np.asarray(state.J), 0.0)))
+
+
+def improvement_converged(
+    problem: FitProblem, before: FitState, after: FitState, rtol, atol
+) -> bool:
+    """Algorithm 1's rule, made relative: J improved by at most ``rtol·|J + c| + atol``.
+
+    c is the sum of the noise models' −log p at zero residual, so |J + c| is ½‖whitened
+    residuals‖² for Gaussian noise: the tolerance is measured against the fit, not against
+    normalising constants that can dwarf it.
+    """
+    J_before, J_after = total_J(before), total_J(after)
+    if not np.isfinite(J_after):
+        return False
+    return bool(J_after - J_before <= float(rtol) * objective_scale(problem, after) + float(atol))
+
+
+def objective_scale(problem: FitProblem, state: FitState) -> float:
+    """|J + c| at ``state``: ½‖whitened residuals‖² for Gaussian noise (the scale of rtol)."""
+    return abs(total_J(state) + float(_offset(problem, state.theta, state.weights)))
+
+
+def check_alternation(smoother, learner, rho_theta) -> None:
+    """Validate the options of a smoothing + learning solver (Alternating, LaplaceEM)."""
+    if not isinstance(smoother, LMSmoother):
+        raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {smoother!r}.")
+    if not isinstance(learner, AbstractLearner):
+        raise TypeError(f"`learner` must be a ceemx learner; got {learner!r}.")
+    rho = np.asarray(rho_theta)
+    if not (np.all(np.isfinite(rho)) and np.all(rho >= 0)):
+        raise ValueError(f"`rho_theta` must be finite and >= 0; got {rho_theta}.")
+
+
+class AbstractFitSolver(eqx.Module):
+    """A method that maximises the CE-EM objective J(x, θ) epoch by epoch (see module docs).
+
+    Attributes:
+        rtol, atol: tolerances of the stopping rule (see each solver).
+    """
+
+    rtol: eqx.AbstractVar[float]
+    atol: eqx.AbstractVar[float]
+
+    #: The solver's own history entries: name → meaning (the driver adds ``epoch``, ``time``,
+    #: ``J``, ``J_before``, ``J_per_trajectory``, ``dtheta_norm``, ``dx_norm``,
+    #: ``failed_trajectories``, ``converged``, ``stop``).
+    history_keys: ClassVar[Mapping[str, str]] = {}
+
+    #: Whether the method can learn noise covariances (only :class:`ceemx.LaplaceEM`: the CE-EM
+    #: objective J grows without bound as a noise scale → 0, so CE methods refuse them).
+    learns_noise: ClassVar[bool] = False
+
+    def initial_states(self, system, data) -> States:
+        """The start states of ``fit(..., x_init=None)``: ``initialize.warm_start``.
+
+        Least squares through the observation map, then one smoothing pass at the initial θ
+        with weak dynamics weights, which fills in the unobserved directions from the dynamics
+        (a start at zero velocity, say, can lead a joint method to a poor stationary point).
+        A solver with its own ``smoother`` (Algorithm 1, Laplace EM) warm-starts in that
+        smoother's ``batch_chunk`` (memory bound for large n).
+        """
+        from ceemx.identification.initialize import (
+            warm_start,  # the initialiser smooths: imported at call time
+        )
+
+        own = getattr(self, "smoother", None)
+        chunk = own.batch_chunk if isinstance(own, LMSmoother) else None
+        return warm_start(system, data, smoother=LMSmoother(batch_chunk=chunk))
+
+    @abc.abstractmethod
+    def init(
+        self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
+    ) -> FitState:
+        """The initial state at (θ, x)."""
+
+    @abc.abstractmethod
+    def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict[str, Any]]:
+        """One epoch; returns the new state and the solver's history entries (JSON-able)."""
+
+    def terminate(
+        self, problem: FitProblem, before: FitState, after: FitState, record: dict[str, Any]
+    ) -> tuple[bool, bool]:
+        """(stop, converged) after an epoch. Default: :func:`improvement_converged`."""
+        if not np.any(np.asarray(after.weights) > 0):
+            return True, False  # every trajectory failed: nothing left to fit
+        converged = improvement_converged(problem, before, after, self.rtol, self.atol)
+        return converged, converged
+
+    def postprocess(self, problem: FitProblem, state: FitState) -> FitState:
+        """The final state (default: unchanged)."""
+        return state

@@ -1,0 +1,337 @@
+"""Parameter uncertainty from the Laplace approximation of the joint posterior p(x, θ | y).
+
+At an end point (x̂, θ̂) the Gauss–Newton Hessian of −J(x, θ) − log p(θ) (Eq. 9) is an arrowhead
+matrix: per trajectory a block-tridiagonal ``A_b`` (states), a border ``E_b`` (states × θ) and the
+shared θ-block ``D`` (:func:`ceemx.identification.solvers.joint.linearize_joint`). By the Schur
+complement identity the θ-block of its inverse is exactly ``S⁻¹`` with
+
+    ``S = D − Σ_b E_bᵀ A_b⁻¹ E_b``,
+
+so the Laplace covariance of θ is ``S⁻¹`` (no damping, no proximal terms); trajectories with
+weight 0 (excluded or failed) take no part.
+
+When it is valid:
+
+* at a converged maximum of J (elsewhere the gradient is not zero and ``S⁻¹`` is only the
+  curvature of a quadratic model, not a posterior covariance);
+* certainty-equivalent J ignores the volume of the state posterior, so ``S⁻¹`` is the θ-marginal of
+  the Laplace approximation of the *joint* posterior p(x, θ | y), conditional on the noise models
+  (noise covariances that are not trainable are treated as known); it is close to the marginal
+  posterior of θ when that joint posterior is near-Gaussian (informative data, mild
+  nonlinearity);
+* the same formula holds whichever solver reached the end point (:class:`ceemx.JointLM`,
+  :class:`ceemx.Alternating`); for :class:`ceemx.ParticleEM` it is evaluated at the returned
+  states and θ.
+
+θ is the flat vector of :class:`ceemx.identification.problem.FitProblem`, in *unconstrained*
+coordinates for
+constrained parameters (``θ = c.inverse(natural)``). Natural-unit uncertainties follow by the
+delta method: ``Cov_nat = J Cov_θ Jᵀ`` with ``J = diag(c.forward'(θ))`` (every transform acts
+elementwise, so ``J`` is diagonal).
+
+When ``S`` (or an ``A_b``) is not numerically positive definite — the end point is not a
+maximum, or a parameter is not identifiable from the data (e.g. has no effect on it) — every
+entry is NaN and a warning says so.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Bool, Float
+
+from ceemx.identification.problem import FitProblem
+from ceemx.identification.solvers.joint import linearize_joint
+from ceemx.infra.warn import warn
+from ceemx.lib.blocktri import cholesky, is_finite, solve
+from ceemx.lib.dense import symmetrize
+from ceemx.lib.typing import PerTrajectory, States, Theta
+
+__all__ = [
+    "evidence_covariance",
+    "natural_covariance",
+    "natural_jacobian",
+    "parameter_covariance",
+    "schur_complement",
+    "standard_errors",
+    "standard_errors_by_name",
+]
+
+_NOT_PD = (
+    "The Laplace covariance of θ is NaN: the Schur complement S = D − Σ_b E_bᵀ A_b⁻¹ E_b of the "
+    "joint Gauss–Newton matrix is not positive definite{which}. Either the end point is not a "
+    "maximum of J (the fit did not converge) or a parameter is not identifiable from the data "
+    "(e.g. it has no effect on the observations); fix or drop such parameters (`trainable`) or "
+    "add a prior (`log_prior`)."
+)
+
+
+@eqx.filter_jit
+def schur_complement(
+    problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory
+) -> tuple[Float[Array, "theta theta"], Bool[Array, ""]]:
+    """``(S, ok)``: the Schur complement of the joint Gauss–Newton matrix at (x, θ).
+
+    ``ok`` is False when some ``A_b`` factor is not finite (``S`` is then unreliable).
+    """
+    _, lin = linearize_joint(problem, weights, theta, states)
+    L = jax.vmap(cholesky)(lin.A)
+    a_ok = jnp.all(jax.vmap(is_finite)(L))
+    Z = jax.vmap(solve)(L, lin.E)  # A_b⁻¹ E_b, (B, T, n, P)
+    S = lin.D - jnp.sum(jnp.einsum("btnp,btnq->bpq", lin.E, Z), axis=0)
+    return symmetrize(S), a_ok
+
+
+@eqx.filter_jit
+def _laplace(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    weights: PerTrajectory,
+    keep: Float[Array, " theta"],
+) -> tuple[Float[Array, "theta theta"], Bool[Array, ""], Bool[Array, " theta"]]:
+    """``(S⁻¹ or NaN, ok, weak)``; ``weak`` flags the θ entries with a negligible pivot of S.
+
+    Entries with ``keep`` = 0 (learned noise scales) are held fixed: their rows and columns of S
+    are replaced by the identity, so the rest is the inverse of S restricted to the kept entries.
+    """
+    S, a_ok = schur_complement(problem, theta, states, weights)
+    P = S.shape[-1]
+    S = keep[:, None] * S * keep[None, :] + jnp.diag(1.0 - keep)
+    chol = jnp.linalg.cholesky(S)
+    pivots = jnp.diagonal(chol)
+    floor = P * jnp.finfo(S.dtype).eps * jnp.max(jnp.abs(jnp.diagonal(S)))
+    good = jnp.isfinite(pivots) & (pivots**2 > floor)
+    # Which entries are to blame: no curvature of their own, or a large loading on a near-null
+    # (or negative) direction of the diagonally scaled S.
+    d = jnp.diagonal(S)
+    flat = ~(d > floor)
+    scale = jnp.where(flat, 1.0, 1.0 / jnp.sqrt(jnp.where(flat, 1.0, d)))
+    eigval, eigvec = jnp.linalg.eigh(scale[:, None] * S * scale[None, :])
+    null = eigval <= P * jnp.finfo(S.dtype).eps * jnp.maximum(jnp.max(eigval), 1.0)
+    weak = flat | jnp.any(null[None, :] & (jnp.abs(eigvec) > 0.3), axis=1)
+    eye = jnp.eye(P, dtype=S.dtype)
+    cov = symmetrize(jax.scipy.linalg.cho_solve((chol, True), eye))
+    ok = a_ok & jnp.all(good) & jnp.all(jnp.isfinite(chol)) & jnp.all(jnp.isfinite(cov))
+    return jnp.where(ok, cov, jnp.nan), ok, weak
+
+
+def _names(problem: FitProblem) -> list[str]:
+    """One name per entry of θ, e.g. ``.A[0,0]`` or ``.sigma``."""
+    names = []
+    for path, leaf in jtu.tree_flatten_with_path(problem.template)[0]:
+        base = jtu.keystr(path)
+        shape = np.shape(leaf)
+        if shape == ():
+            names.append(base)
+        else:
+            names += [f"{base}[{','.join(map(str, i))}]" for i in np.ndindex(*shape)]
+    return names
+
+
+def parameter_covariance(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    weights: PerTrajectory | None = None,
+) -> Float[Array, "theta theta"]:
+    """Laplace covariance ``S⁻¹`` of the flat, unconstrained θ at the end point (x, θ).
+
+    Args:
+        problem: the fit problem (data, split system, prior).
+        theta: (P,) θ̂ in the problem's unconstrained coordinates.
+        states: (B, T, n) x̂, one trajectory per trajectory of ``problem.data``.
+        weights: (B,) trajectory weights; 0 excludes a trajectory (default: all ones).
+
+    Returns:
+        The (P, P) covariance; all NaN, with a warning, when ``S`` is not positive definite.
+        Learned noise scales (:class:`ceemx.LaplaceEM`) are held fixed in ``S`` (the rest is
+        conditional on them) and get the Gaussian Fisher variance σ²/(2N) of a scale estimated
+        from N residuals, uncorrelated with the rest (the Fisher information of a Gaussian is
+        block-diagonal between means and scales); NaN for full Cholesky factors.
+        See the module docstring for when it is valid. Not vmappable (the warning is host-side);
+        the compiled core is :func:`schur_complement`.
+    """
+    if weights is None:
+        weights = jnp.ones(states.shape[0], states.dtype)
+    noise, noise_var = _noise_variances(problem, theta, weights)
+    keep = jnp.where(noise, 0.0, 1.0).astype(theta.dtype)
+    cov, ok, weak = _laplace(problem, theta, states, weights, keep)
+    if not bool(ok):
+        flagged = [n for n, w in zip(_names(problem), np.asarray(weak), strict=True) if w]
+        which = f" (weakly determined: {', '.join(flagged)})" if flagged else ""
+        warn(_NOT_PD.format(which=which))
+    cov = jnp.where(noise[:, None] | noise[None, :], 0.0, cov)
+    return cov + jnp.diag(jnp.where(noise, noise_var, 0.0))
+
+
+def _noise_variances(
+    problem: FitProblem, theta: Theta, weights: PerTrajectory
+) -> tuple[Array, Array]:
+    """``(is_noise, var)`` over θ: which entries are learned noise, and their variances.
+
+    For Gaussian noise the Fisher information is block-diagonal between the mean parameters and
+    the scales, and a scale σ estimated from N residuals has variance σ²/(2N) (a scalar scale
+    shared by d components: N·d residuals). Entries of full covariance factors (CholeskyGaussian)
+    get NaN: no per-entry formula is given. Other entries: ``is_noise`` False, ``var`` 0.
+    """
+    from ceemx.models.noise import DiagonalGaussian
+
+    system = problem.build(theta)
+    data = problem.data
+    w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
+    flags = jtu.tree_map(lambda leaf: jnp.zeros(jnp.shape(leaf), theta.dtype), problem.template)
+    var = flags
+    counts = {
+        "process_noise": np.full(system.state_dim, w.sum() * (data.num_steps - 1)),
+        "obs_noise": np.einsum("b,btm->m", w, np.asarray(data.mask, float)),
+    }
+    for field, count in counts.items():
+        if not problem.trains(field):
+            continue
+        noise = getattr(system, field)
+        sub = getattr(flags, field)
+        flags = eqx.tree_at(
+            lambda t, f=field: getattr(t, f), flags, jtu.tree_map(jnp.ones_like, sub)
+        )
+        if isinstance(noise, DiagonalGaussian):
+            scale = jnp.asarray(noise.scale)
+            n_res = count.sum() if scale.ndim == 0 else count
+            v = scale**2 / (2.0 * jnp.asarray(np.maximum(n_res, 1.0), theta.dtype))
+            var = eqx.tree_at(lambda t, f=field: getattr(t, f).scale, var, v)
+        else:
+            nan = jtu.tree_map(lambda a: jnp.full_like(a, jnp.nan), sub)
+            var = eqx.tree_at(lambda t, f=field: getattr(t, f), var, nan)
+    return ravel_pytree(flags)[0] > 0, ravel_pytree(var)[0]
+
+
+def evidence_covariance(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    weights: PerTrajectory | None = None,
+    smoother=None,
+    *,
+    rel_step: float = 1e-3,
+) -> Float[Array, "theta theta"]:
+    """Inverse observed information of the Laplace log-evidence ℓ(θ) ≈ Σ_b log p(y_b | θ).
+
+    The covariance of a (Laplace-) EM estimate: the states are integrated out, so it accounts for
+    the states being unknown (the Schur complement of :func:`parameter_covariance` holds the noise
+    fixed and treats the states as parameters). ℓ is evaluated by a MAP smoothing and the
+    log-determinant of the Gauss–Newton matrix
+    (:func:`ceemx.inference.posterior.gaussian_posterior`)
+    at each θ of a central-difference stencil (steps ``rel_step·max(|θ_i|, 0.01)``), from the
+    given states; 2P² + 1 smoothings for P parameters, each compiled once. Learned noise scales
+    are included like any other entry of θ.
+
+    Returns:
+        The (P, P) covariance; all NaN, with a warning, when −∇²ℓ is not positive definite
+        (not at a maximum, or a parameter is not identifiable).
+    """
+    from ceemx.inference.posterior import gaussian_posterior
+    from ceemx.inference.smoother import LMSmoother
+    from ceemx.lib.tree import trace_numbers
+
+    if weights is None:
+        weights = jnp.ones(states.shape[0], states.dtype)
+    smoother = trace_numbers(LMSmoother(rtol=1e-14) if smoother is None else smoother, states.dtype)
+    w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
+    th0 = np.asarray(theta, dtype=np.float64)
+    P = th0.size
+    h = rel_step * np.maximum(np.abs(th0), 0.01)
+
+    def ell(offset: np.ndarray) -> float:
+        th = jnp.asarray(th0 + offset, theta.dtype)
+        post = gaussian_posterior(smoother, problem.build(th), states, problem.data)
+        return float(np.sum(w * np.asarray(post.log_evidence)))
+
+    f0 = ell(np.zeros(P))
+    eye = np.eye(P)
+    H = np.zeros((P, P))
+    for i in range(P):
+        ei = h[i] * eye[i]
+        H[i, i] = (ell(ei) - 2.0 * f0 + ell(-ei)) / h[i] ** 2
+        for j in range(i):
+            ej = h[j] * eye[j]
+            H[i, j] = H[j, i] = (ell(ei + ej) - ell(ei - ej) - ell(-ei + ej) + ell(-ei - ej)) / (
+                4.0 * h[i] * h[j]
+            )
+    info = -0.5 * (H + H.T)
+    try:
+        chol = np.linalg.cholesky(info)
+        cov = np.linalg.inv(info) if np.all(np.isfinite(chol)) else None
+    except np.linalg.LinAlgError:
+        cov = None
+    if cov is None:
+        warn(
+            "The evidence covariance of θ is NaN: the negative Hessian of the Laplace "
+            "log-evidence is not positive definite. Either the fit did not converge to a maximum "
+            "or a parameter is not identifiable from the data; fix or drop such parameters "
+            "(`trainable`) or add a prior (`log_prior`)."
+        )
+        return jnp.full((P, P), jnp.nan, theta.dtype)
+    return jnp.asarray(0.5 * (cov + cov.T), theta.dtype)
+
+
+def natural_jacobian(problem: FitProblem, theta: Theta) -> Float[Array, " theta"]:
+    """(P,) diagonal of d natural / dθ: each leaf's ``constraint.forward`` derivative."""
+    _, unravel = ravel_pytree(problem.template)
+    leaves, treedef = jtu.tree_flatten(unravel(theta))
+    if not problem.constraints:
+        return jnp.ones_like(theta)
+    derivs = [
+        jax.jvp(c.forward, (z,), (jnp.ones_like(z),))[1]
+        for c, z in zip(problem.constraints, leaves, strict=True)
+    ]
+    flat, _ = ravel_pytree(jtu.tree_unflatten(treedef, derivs))
+    return flat
+
+
+def natural_covariance(
+    problem: FitProblem, theta: Theta, covariance: Float[Array, "theta theta"]
+) -> Float[Array, "theta theta"]:
+    """Delta method: ``J Cov Jᵀ`` with ``J = diag(`` :func:`natural_jacobian` ``)``."""
+    j = natural_jacobian(problem, theta)
+    return j[:, None] * covariance * j[None, :]
+
+
+def standard_errors(
+    problem: FitProblem, theta: Theta, covariance: Float[Array, "theta theta"]
+) -> Any:
+    """Natural-unit standard errors as a pytree like the system.
+
+    Returns:
+        The system's structure with each trainable leaf replaced by its standard errors (same
+        shape) and ``None`` at every other leaf.
+    """
+    _, unravel = ravel_pytree(problem.template)
+    se = jnp.sqrt(jnp.diagonal(natural_covariance(problem, theta, covariance)))
+    return unravel(se)
+
+
+def standard_errors_by_name(
+    problem: FitProblem, theta: Theta, covariance: Float[Array, "theta theta"]
+) -> dict[str, tuple[float, float]]:
+    """``name → (estimate, standard error)`` per entry of θ, both in natural units."""
+    values, _ = ravel_pytree(_natural(problem, theta))  # natural values, in θ order
+    se = np.sqrt(np.diagonal(np.asarray(natural_covariance(problem, theta, covariance))))
+    return {
+        n: (float(v), float(s))
+        for n, v, s in zip(_names(problem), np.asarray(values), se, strict=True)
+    }
+
+
+def _natural(problem: FitProblem, theta: Theta) -> Any:
+    """The trainable sub-tree in natural units."""
+    _, unravel = ravel_pytree(problem.template)
+    leaves, treedef = jtu.tree_flatten(unravel(theta))
+    if problem.constraints:
+        leaves = [c.forward(z) for c, z in zip(problem.constraints, leaves, strict=True)]
+    return jtu.tree_unflatten(treedef, leaves)

@@ -1,0 +1,363 @@
+"""The CE-EM joint objective J(x, θ) (paper Eq. 9), its residuals and their linearisation.
+
+For one trajectory with observation residuals r^v_t = y_t − g_θ(x_t, u_t, t) and dynamics residuals
+r^w_t = x_{t+1} − f_θ(x_t, u_t, t):
+
+    −J(x, θ) = −log p(x₁) + Σ_t −log p_v(r^v_t | mask_t) + Σ_{t<T} −log p_w(r^w_t).
+
+Second-order solvers use, per factor, the noise model's curvature W = SᵀS (see
+:mod:`ceemx.models.noise`): the generalised Gauss–Newton matrix Σ J_rᵀ W J_r is block-tridiagonal
+in x (each factor touches at most x_t and x_{t+1}) and the gradient is Σ J_rᵀ ∇nll(r). For Gaussian
+noise S r are the whitened residuals and this is exactly Gauss–Newton on ½‖S r‖².
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ceemx.data.trajectories import Trajectories
+from ceemx.lib.blocktri import BlockTridiagonal
+from ceemx.lib.typing import PerTrajectory, Scalar, States, Trajectory
+from ceemx.models.system import AbstractSystem
+
+__all__ = [
+    "Linearization",
+    "expected_neg_log_joint_single",
+    "linearize",
+    "linearize_expected",
+    "log_joint",
+    "neg_log_joint_single",
+    "nll_offset",
+    "nll_offset_single",
+    "residuals",
+    "whitened_residuals",
+]
+
+
+def residuals(
+    system: AbstractSystem,
+    x: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+) -> tuple[Float[Array, "T m"], Float[Array, "T-1 n"]]:
+    """Observation residuals (T, m) and dynamics residuals (T−1, n) of one trajectory."""
+    T = x.shape[0]
+    ts = jnp.arange(T)
+    r_obs = y - jax.vmap(system.observe)(x, u, ts)
+    r_dyn = x[1:] - jax.vmap(system.dynamics)(x[:-1], u[:-1], ts[:-1])
+    return r_obs, r_dyn
+
+
+def neg_log_joint_single(
+    system: AbstractSystem,
+    x: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+) -> Scalar:
+    """−J(x, θ) of one trajectory (Eq. 9 with the initial-state prior when the system has one)."""
+    r_obs, r_dyn = residuals(system, x, y, u)
+    total = jnp.sum(jax.vmap(system.obs_noise.nll)(r_obs, mask))
+    total = total + jnp.sum(jax.vmap(system.process_noise.nll)(r_dyn))
+    if system.initial_prior is not None:
+        total = total + system.initial_prior.nll(x[0])
+    return total
+
+
+def nll_offset_single(system: AbstractSystem, mask: Bool[Array, "T m"], T: int, dtype) -> Scalar:
+    """The part of −J that does not depend on x: Σ of each factor's −log p at zero residual.
+
+    −J − offset is ½‖whitened residuals‖² for Gaussian noise; solvers use it as the scale of their
+    relative tolerances (the normalising constants can dwarf the fit, e.g. with unit weights).
+    """
+    m = mask.shape[-1]
+    n = system.state_dim
+    zeros_m = jnp.zeros((m,), dtype)
+    total = jnp.sum(jax.vmap(lambda mk: system.obs_noise.nll(zeros_m, mk))(mask))
+    total = total + (T - 1) * system.process_noise.nll(jnp.zeros((n,), dtype))
+    if system.initial_prior is not None:
+        total = total + system.initial_prior.noise.nll(jnp.zeros((n,), dtype))
+    return total
+
+
+def nll_offset(system: AbstractSystem, data: Trajectories) -> PerTrajectory:
+    """(B,) :func:`nll_offset_single` of each trajectory."""
+    T = data.num_steps
+    return jax.vmap(lambda mk: nll_offset_single(system, mk, T, data.y.dtype))(data.mask)
+
+
+def log_joint(system: AbstractSystem, x: States, data: Trajectories) -> PerTrajectory:
+    """J(x, θ) = log p(x, y | θ) of each trajectory (Eq. 9); shape (B,)."""
+    return -jax.vmap(neg_log_joint_single, in_axes=(None, 0, 0, 0, 0))(
+        system, x, data.y, data.u, data.mask
+    )
+
+
+def _whitened_single(system, x, y, u, mask):
+    for name, noise in (("obs_noise", system.obs_noise), ("process_noise", system.process_noise)):
+        if not noise.is_gaussian:
+            raise TypeError(
+                f"whitened residuals need Gaussian noise; system.{name} is {type(noise).__name__}"
+            )
+    r_obs, r_dyn = residuals(system, x, y, u)
+    parts = [
+        jax.vmap(system.obs_noise.whiten)(r_obs, mask).reshape(-1),
+        jax.vmap(system.process_noise.whiten)(r_dyn).reshape(-1),
+    ]
+    if system.initial_prior is not None:
+        parts.append(system.initial_prior.noise.whiten(x[0] - system.initial_prior.mean))
+    return jnp.concatenate(parts)
+
+
+def whitened_residuals(
+    system: AbstractSystem, x: States, data: Trajectories
+) -> Float[Array, "B _"]:
+    """Whitened residuals r̃ (B, R) with −J = ½‖r̃‖² + const for Gaussian noise models.
+
+    Order per trajectory: the T·m observation residuals (zeros where masked), the (T−1)·n dynamics
+    residuals, then the n prior residuals when the system has an initial-state prior.
+    """
+    return jax.vmap(_whitened_single, in_axes=(None, 0, 0, 0, 0))(
+        system, x, data.y, data.u, data.mask
+    )
+
+
+class Linearization(NamedTuple):
+    """Value, gradient and Gauss–Newton curvature of −J for one trajectory.
+
+    ``E``, ``D`` and ``grad_theta`` are present only when linearised with respect to θ too.
+    """
+
+    value: Array  # scalar −J
+    grad_x: Array | None  # (T, n)
+    hess_x: BlockTridiagonal | None  # GN blocks in x
+    grad_theta: Array | None = None  # (theta,)
+    E: Array | None = None  # (T, n, theta) cross blocks J_xᵀ W J_θ
+    D: Array | None = None  # (theta, theta) J_θᵀ W J_θ
+
+
+def _jac(fun, argnum, in_dim, out_dim):
+    """Jacobian by forward mode when the input is the smaller side, reverse mode otherwise."""
+    return jax.jacfwd(fun, argnums=argnum) if in_dim <= out_dim else jax.jacrev(fun, argnums=argnum)
+
+
+def linearize(
+    build: Callable[[Any], AbstractSystem],
+    theta: Any,
+    x: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+    *,
+    wrt_theta: bool = False,
+    wrt_x: bool = True,
+) -> Linearization:
+    """Linearise −J of one trajectory around (x, θ).
+
+    Args:
+        build: maps ``theta`` to the system (``lambda s: s`` when θ is the system itself).
+        theta: a flat parameter vector (theta,) when ``wrt_theta`` is True, otherwise any pytree.
+        x: one trajectory's states (T, n).
+        y: its observations (T, m).
+        u: its inputs (T, p).
+        mask: which observations are present (T, m).
+        wrt_theta: also return the θ-gradient, the cross blocks E and the θθ block D.
+        wrt_x: compute the x-gradient and x-blocks (and E); ``False`` for a θ-only linearisation.
+    """
+    system = build(theta)
+    T, n = x.shape
+    ts = jnp.arange(T)
+    dtype = x.dtype
+
+    def obs_res(xt, th, yt, ut, t):
+        return yt - build(th).observe(xt, ut, t)
+
+    def dyn_res(xt, th, ut, t):
+        return -build(th).dynamics(xt, ut, t)  # + x_{t+1}, whose Jacobian is the identity
+
+    m = y.shape[-1]
+    r_obs, r_dyn = residuals(system, x, y, u)
+    on, pn = system.obs_noise, system.process_noise
+    mT = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
+    # S_v @ A, S_w @ A, S_wᵀ @ A and S_wᵀ S_w per step; row scalings for diagonal noise.
+    if on.diagonal_curvature:
+        sv = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mask)  # (T,m)
+        Sv_mul = lambda a: sv[..., None] * a  # noqa: E731
+    else:
+        Sv = jax.vmap(on.sqrt_curvature)(r_obs, mask)  # (T,m,m)
+        Sv_mul = lambda a: Sv @ a  # noqa: E731
+    if pn.diagonal_curvature:
+        sw = jax.vmap(pn.sqrt_curvature_diagonal)(r_dyn)  # (T-1,n)
+        Sw_mul = SwT_mul = lambda a: sw[..., None] * a  # noqa: E731
+        SwT_Sw = jax.vmap(jnp.diag)(sw**2)
+    else:
+        Sw = jax.vmap(pn.sqrt_curvature)(r_dyn)  # (T-1,n,n)
+        Sw_mul = lambda a: Sw @ a  # noqa: E731
+        SwT_mul = lambda a: mT(Sw) @ a  # noqa: E731
+        SwT_Sw = mT(Sw) @ Sw
+    gv = jax.vmap(jax.grad(on.nll))(r_obs, mask)  # (T,m)
+    gw = jax.vmap(jax.grad(pn.nll))(r_dyn)  # (T-1,n)
+    value = jnp.sum(jax.vmap(on.nll)(r_obs, mask)) + jnp.sum(jax.vmap(pn.nll)(r_dyn))
+    prior = system.initial_prior
+    prior_x = None  # the prior's gradient and curvature in x₁
+    if prior is not None:
+        r0 = x[0] - prior.mean
+        value = value + prior.noise.nll(r0)
+        S0 = prior.noise.sqrt_curvature(r0)
+        prior_x = jax.grad(prior.noise.nll)(r0), S0.T @ S0
+
+    grad = hess = x_blocks = None
+    if wrt_x:
+        # Per-step Jacobians with respect to x_t.
+        G = jax.vmap(_jac(obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)
+        F = jax.vmap(jax.jacfwd(dyn_res, argnums=0), in_axes=(0, None, 0, 0))(
+            x[:-1], theta, u[:-1], ts[:-1]
+        )  # (T-1,n,n)
+        SG = Sv_mul(G)
+        SF = Sw_mul(F)
+        diag = mT(SG) @ SG
+        diag = diag.at[:-1].add(mT(SF) @ SF)
+        diag = diag.at[1:].add(SwT_Sw)
+        lower = SwT_mul(SF)  # block (t+1, t)
+        grad = jnp.einsum("tmn,tm->tn", G, gv)
+        grad = grad.at[:-1].add(jnp.einsum("tkn,tk->tn", F, gw))
+        grad = grad.at[1:].add(gw)
+        if prior_x is not None:
+            grad = grad.at[0].add(prior_x[0])
+            diag = diag.at[0].add(prior_x[1])
+        hess = BlockTridiagonal(diagonal=0.5 * (diag + mT(diag)), lower=lower)
+        x_blocks = SG, SF
+    if not wrt_theta:
+        return Linearization(value, grad, hess)
+
+    P = theta.shape[0]  # the length of θ
+    Gt = jax.vmap(_jac(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)  # (T,m,P)
+    Ft = jax.vmap(_jac(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(x[:-1], theta, u[:-1], ts[:-1])
+    SGt = Sv_mul(Gt)
+    SFt = Sw_mul(Ft)
+    D = jnp.einsum("tmp,tmq->pq", SGt, SGt) + jnp.einsum("tnp,tnq->pq", SFt, SFt)
+    grad_theta = jnp.einsum("tmp,tm->p", Gt, gv) + jnp.einsum("tnp,tn->p", Ft, gw)
+    E = None
+    if x_blocks is not None:
+        SG, SF = x_blocks
+        E = mT(SG) @ SGt
+        E = E.at[:-1].add(mT(SF) @ SFt)
+        E = E.at[1:].add(SwT_mul(SFt))
+        E = E.astype(dtype)
+    if prior is not None:  # a prior whose mean depends on θ
+
+        def prior_nll(x0, th):
+            pr = build(th).initial_prior
+            assert pr is not None  # θ does not decide whether there is a prior
+            return pr.nll(x0)
+
+        gp = jax.grad(prior_nll, argnums=1)(x[0], theta)
+        grad_theta = grad_theta + gp
+    return Linearization(value, grad, hess, grad_theta, E, 0.5 * (D + D.T))
+
+
+# --- The expected complete-data objective of Laplace EM -------------------------------------------
+#
+# Under a Gaussian state posterior q, E_q[−log p(x, y | θ)] is a sum of expectations over the
+# marginals of x_t (observation terms, the initial prior) and over the pairs (x_t, x_{t+1})
+# (dynamics terms). Each expectation is a cubature sum over equally weighted points
+# (:mod:`ceemx.lib.cubature`): ``points`` (T, K, n) of each x_t and ``pairs`` (T−1, K₂, 2n) of each
+# (x_t, x_{t+1}).
+
+
+def _expected_terms(theta_build, points, pairs, y, u, mask):
+    """Per-point residual functions of θ, flattened over (time, point): used by both functions."""
+    T, K1, n = points.shape
+    K2 = pairs.shape[1]
+    ts = jnp.arange(T)
+    obs_rows = (
+        points.reshape(T * K1, n),
+        jnp.repeat(y, K1, axis=0),
+        jnp.repeat(u, K1, axis=0),
+        jnp.repeat(mask, K1, axis=0),
+        jnp.repeat(ts, K1),
+    )
+    dyn_rows = (
+        pairs.reshape((T - 1) * K2, 2 * n),
+        jnp.repeat(u[:-1], K2, axis=0),
+        jnp.repeat(ts[:-1], K2),
+    )
+
+    def obs_res(th, x, yt, ut, mk, t):
+        return yt - theta_build(th).observe(x, ut, t)
+
+    def dyn_res(th, z, ut, t):
+        return z[n:] - theta_build(th).dynamics(z[:n], ut, t)
+
+    return obs_rows, dyn_rows, obs_res, dyn_res, 1.0 / K1, 1.0 / K2
+
+
+def expected_neg_log_joint_single(
+    system: AbstractSystem,
+    points: Float[Array, "T K n"],
+    pairs: Float[Array, "T-1 K2 n2"],
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+) -> Scalar:
+    """E_q[−log p(x, y | θ)] of one trajectory by cubature over marginal and pairwise points."""
+    ident = lambda th: th  # noqa: E731
+    obs_rows, dyn_rows, obs_res, dyn_res, c1, c2 = _expected_terms(ident, points, pairs, y, u, mask)
+    x, yy, uu, mk, t = obs_rows
+    r_obs = jax.vmap(obs_res, in_axes=(None, 0, 0, 0, 0, 0))(system, x, yy, uu, mk, t)
+    z, uw, tw = dyn_rows
+    r_dyn = jax.vmap(dyn_res, in_axes=(None, 0, 0, 0))(system, z, uw, tw)
+    total = c1 * jnp.sum(jax.vmap(system.obs_noise.nll)(r_obs, mk))
+    total = total + c2 * jnp.sum(jax.vmap(system.process_noise.nll)(r_dyn))
+    if system.initial_prior is not None:
+        total = total + jnp.mean(jax.vmap(system.initial_prior.nll)(points[0]))
+    return total
+
+
+def linearize_expected(
+    build: Callable[[Any], AbstractSystem],
+    theta: Float[Array, " theta"],
+    points: Float[Array, "T K n"],
+    pairs: Float[Array, "T-1 K2 n2"],
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
+    """(value, θ-gradient, Gauss–Newton matrix in θ) of :func:`expected_neg_log_joint_single`.
+
+    The Gauss–Newton matrix is Σ_points c·J_θᵀ W J_θ with each noise model's curvature W = SᵀS, as
+    for the CE learning step; for Gaussian noise and a model linear in θ it is the exact Hessian.
+    """
+    system = build(theta)
+    obs_rows, dyn_rows, obs_res, dyn_res, c1, c2 = _expected_terms(build, points, pairs, y, u, mask)
+    P = theta.shape[0]
+    m = y.shape[-1]
+    n = points.shape[-1]
+    on, pn = system.obs_noise, system.process_noise
+    x, yy, uu, mk, t = obs_rows
+    r_obs = jax.vmap(obs_res, in_axes=(None, 0, 0, 0, 0, 0))(theta, x, yy, uu, mk, t)
+    G = jax.vmap(_jac(obs_res, 0, P, m), in_axes=(None, 0, 0, 0, 0, 0))(theta, x, yy, uu, mk, t)
+    z, uw, tw = dyn_rows
+    r_dyn = jax.vmap(dyn_res, in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
+    F = jax.vmap(_jac(dyn_res, 0, P, n), in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
+    SG = jax.vmap(on.sqrt_curvature)(r_obs, mk) @ G
+    SF = jax.vmap(pn.sqrt_curvature)(r_dyn) @ F
+    value = c1 * jnp.sum(jax.vmap(on.nll)(r_obs, mk)) + c2 * jnp.sum(jax.vmap(pn.nll)(r_dyn))
+    grad = c1 * jnp.einsum("kmp,km->p", G, jax.vmap(jax.grad(on.nll))(r_obs, mk))
+    grad = grad + c2 * jnp.einsum("knp,kn->p", F, jax.vmap(jax.grad(pn.nll))(r_dyn))
+    D = c1 * jnp.einsum("kmp,kmq->pq", SG, SG) + c2 * jnp.einsum("knp,knq->pq", SF, SF)
+    if system.initial_prior is not None:
+
+        def prior_nll(th):
+            pr = build(th).initial_prior
+            assert pr is not None  # θ does not decide whether there is a prior
+            return jnp.mean(jax.vmap(pr.nll)(points[0]))
+
+        pv, gp = jax.value_and_grad(prior_nll)(theta)
+        value, grad = value + pv, grad + gp
+    return value, grad, 0.5 * (D + D.T)

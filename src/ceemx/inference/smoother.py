@@ -1,0 +1,397 @@
+"""The smoothing step (paper Eq. 10): batched Levenberg–Marquardt on x, block-tridiagonal solves."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.core import Tracer
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ceemx import lib
+from ceemx.data.trajectories import Trajectories, cast_checked
+from ceemx.inference.objective import linearize, nll_offset_single
+from ceemx.infra.warn import warn
+from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
+from ceemx.lib.results import RESULTS, messages
+from ceemx.lib.tree import trace_numbers
+from ceemx.lib.typing import PerTrajectory, States, Trajectory, no_type_check
+from ceemx.models.system import AbstractSystem, float_dtype
+
+__all__ = [
+    "LMSmoother",
+    "SmootherSolution",
+    "check_inputs",
+    "promote_inputs",
+    "smooth",
+    "smooth_batch",
+]
+
+
+class LMSmoother(eqx.Module):
+    """Levenberg–Marquardt smoother for Eq. 10 (Gauss–Newton for Gaussian noise, IRLS otherwise).
+
+    Minimises −J(x, θ) + ρ_x‖x − x_init‖² for each trajectory independently. Each iteration
+    linearises the residuals, assembles the block-tridiagonal Gauss–Newton matrix from per-step
+    Jacobian blocks, adds Marquardt damping λ·diag, factors it by a block Cholesky over time
+    (O(T n³)) and accepts the step when the actual decrease is a positive fraction of the
+    predicted one.
+
+    Attributes:
+        rho_x: trust-region weight ρ_x ≥ 0 towards the initial states (paper Eq. 10).
+        rtol: converged when the decrease of the objective, or the predicted decrease, is at most
+            ``rtol·|objective| + atol``.
+        atol: absolute tolerance on the objective.
+        max_steps: bound on iterations (accepted and rejected) per trajectory.
+        damping: initial Marquardt damping λ₀.
+        throw: raise (via ``eqx.error_if``) when any trajectory fails; otherwise report statuses.
+        batch_chunk: smooth at most this many trajectories at once (``None``: all of them).
+            Memory grows as (chunk)·T·n² (≈ 20 live (T, n, n) blocks per trajectory): a chunk
+            bounds it for large state dimensions; the answers are the same (each trajectory is
+            solved on its own either way).
+    """
+
+    rho_x: float = 0.0
+    rtol: float = 1e-10
+    atol: float = 0.0
+    max_steps: int = eqx.field(default=50, static=True)
+    damping: float = 1e-3
+    throw: bool = eqx.field(default=False, static=True)
+    batch_chunk: int | None = eqx.field(default=None, static=True)
+
+    def __check_init__(self):
+        for name in ("rho_x", "rtol", "atol", "damping"):
+            check_nonnegative(name, getattr(self, name))
+        k = self.max_steps
+        if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 0:
+            raise ValueError(f"`max_steps` must be an integer >= 0; got {k!r}.")
+        c = self.batch_chunk
+        if c is not None and (isinstance(c, bool) or not isinstance(c, int | np.integer) or c < 1):
+            raise ValueError(f"`batch_chunk` must be None or an integer >= 1; got {c!r}.")
+
+
+def check_nonnegative(name: str, value) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is finite and >= 0 (tracers pass)."""
+    if isinstance(value, Tracer):
+        return
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"`{name}` must be a real number; got {value!r}.") from None
+    if not (np.all(np.isfinite(v)) and np.all(v >= 0)):
+        raise ValueError(f"`{name}` must be finite and >= 0; got {value!r}.")
+
+
+class SmootherSolution(eqx.Module):
+    """Result of :func:`smooth`.
+
+    Attributes:
+        states: (B, T, n) MAP state trajectories (the initial states where a trajectory failed
+            with a non-finite objective).
+        objective: (B,) −J(x, θ) at ``states`` (without the ρ_x term).
+        iterations: (B,) iterations each trajectory took.
+        status: (B,) codes from :class:`RESULTS`.
+        covariances: (B, T, n, n) marginal covariances of x_t under the Laplace approximation
+            (inverse Gauss–Newton matrix of −J), or ``None`` unless requested.
+        cross_covariances: (B, T−1, n, n) Cov(x_{t+1}, x_t), or ``None``.
+        log_det: (B,) log det of the Gauss–Newton matrix of −J at ``states`` (with the
+            covariances), so the Laplace log-evidence is −objective + (Tn/2) log 2π − log_det/2.
+    """
+
+    states: States
+    objective: PerTrajectory
+    iterations: Int[Array, " B"]
+    status: RESULTS
+    covariances: Float[Array, "B T n n"] | None = None
+    cross_covariances: Float[Array, "B T-1 n n"] | None = None
+    log_det: PerTrajectory | None = None
+
+    @property
+    def converged(self) -> Bool[Array, " B"]:
+        """(B,) True where the trajectory converged."""
+        return self.status == RESULTS.successful
+
+    def messages(self) -> list[str]:
+        """One status message per trajectory (host-side)."""
+        return messages(self.status)
+
+
+def _smooth_one(
+    solver,  # an LMSmoother, or any object with its fields (a test harness traces max_steps)
+    system: AbstractSystem,
+    x0: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+):
+    rho = jnp.asarray(solver.rho_x, x0.dtype)
+    ident = lambda s: s  # noqa: E731
+
+    offset = nll_offset_single(
+        system, mask, x0.shape[0], x0.dtype
+    )  # tolerances are relative to −J − offset
+
+    def evaluate(x):
+        lin = linearize(ident, system, x, y, u, mask)
+        dx = x - x0
+        return lin.value - offset + rho * jnp.sum(dx**2), lin._replace(
+            grad_x=lin.grad_x + 2.0 * rho * dx
+        )
+
+    def solve(lin, lam):
+        h = lin.hess_x
+        d = jnp.diagonal(h.diagonal, axis1=-2, axis2=-1)
+        L = lib.cholesky(lib.add_to_diagonal(h, marquardt_scale(d, lam) + 2.0 * rho))
+        return -lib.solve(L, lin.grad_x), lib.is_finite(L)
+
+    def quad(lin, delta):
+        return jnp.sum(delta * lib.matvec(lin.hess_x, delta)) + 2.0 * rho * jnp.sum(delta**2)
+
+    out = levenberg_marquardt(
+        evaluate,
+        lambda lin: lin.grad_x,
+        solve,
+        quad,
+        x0,
+        rtol=solver.rtol,
+        atol=solver.atol,
+        max_steps=solver.max_steps,
+        damping=solver.damping,
+    )
+    return out.z, out.lin.value, out.steps, out.status, out.lin.hess_x
+
+
+@eqx.filter_jit
+def smooth_batch(
+    solver: LMSmoother,
+    system: AbstractSystem,
+    x_init: States,
+    data: Trajectories,
+    covariance: bool,
+) -> SmootherSolution:
+    """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced)."""
+    chunk = getattr(solver, "batch_chunk", None)
+
+    def batched(f, *args):
+        """``vmap`` over the trajectories, in chunks of ``solver.batch_chunk`` when set."""
+        if chunk is None or chunk >= x_init.shape[0]:
+            return jax.vmap(f)(*args)
+        return jax.lax.map(lambda a: f(*a), args, batch_size=chunk)
+
+    def one(x0, y, u, mask):
+        x, value, steps, status, hess = _smooth_one(solver, system, x0, y, u, mask)
+        if not covariance:
+            return x, value, steps, status, None
+        factor = lib.cholesky(hess)
+        sel = lib.selected_inverse(factor)
+        return x, value, steps, status, (sel.diagonal, sel.lower, lib.logdet(factor))
+
+    x, value, steps, status, sel = batched(one, x_init, data.y, data.u, data.mask)
+    cov = cross = log_det = None
+    if sel is not None:
+        cov, cross, log_det = sel
+    if solver.throw:
+        x = eqx.error_if(
+            x, jnp.any(status != RESULTS.successful), "smoothing failed on a trajectory"
+        )
+    return SmootherSolution(x, value, steps, status, cov, cross, log_det)
+
+
+def _working_dtype(system: AbstractSystem) -> np.dtype:
+    """The system's floating dtype (:func:`float_dtype`), refusing float16 and non-floats."""
+    dtype = np.dtype(float_dtype(system))
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(
+            f"the system's parameters have dtype {dtype}; ceemx works in float32 or float64 "
+            "(float16 is too coarse for its second-order solves): cast the parameters."
+        )
+    return dtype
+
+
+def _promote_array(name: str, x, dtype):
+    if x is None:
+        return None
+    if isinstance(x, Tracer):
+        return x.astype(dtype) if x.dtype != dtype else x
+    if isinstance(x, jax.Array) and x.dtype == dtype:
+        return x
+    try:
+        a = np.asarray(x)
+    except ValueError:  # a ragged nested sequence
+        raise ValueError(f"`{name}` must be a rectangular (B, T, n) array.") from None
+    if np.issubdtype(a.dtype, np.complexfloating):
+        raise TypeError(f"`{name}` must be real; got complex dtype {a.dtype}.")
+    if not (np.issubdtype(a.dtype, np.number) or a.dtype == np.bool_):
+        raise TypeError(f"`{name}` must be a numeric array; got dtype {a.dtype}.")
+    return jnp.asarray(cast_checked(name, a, dtype), dtype)
+
+
+def _promote_system(system: AbstractSystem, dtype) -> AbstractSystem:
+    def cast(leaf):
+        if eqx.is_inexact_array(leaf) and leaf.dtype != dtype:
+            return leaf.astype(dtype)
+        return leaf
+
+    return jax.tree_util.tree_map(cast, system)
+
+
+@no_type_check  # validates its arguments
+def promote_inputs(
+    system: AbstractSystem, data: Trajectories, x_init=None, *, name: str = "x_init"
+) -> tuple[AbstractSystem, Trajectories, Any]:
+    """Cast the data, ``x_init`` and all the system's floating arrays to ONE dtype: the system's.
+
+    The working dtype is that of the system's parameters θ
+    (:func:`ceemx.models.system.float_dtype`); its noise models and prior, ``data.y``,
+    ``data.u`` and ``x_init`` are cast to it, so mixed precision never reaches a compiled loop.
+    Arrays already in that dtype are returned as they are. Float16 data or states are
+    promoted; a float16 system is refused.
+
+    Args:
+        system: the model.
+        data: the observations.
+        x_init: (B, T, n) states, or ``None``.
+        name: the name of ``x_init`` in messages.
+
+    Returns:
+        ``(system, data, x_init)`` in the working dtype (``x_init`` stays ``None`` if it was).
+
+    Raises:
+        TypeError: ``data`` is not :class:`Trajectories`; ``x_init`` is complex or non-numeric.
+        ValueError: the system is not float32/float64; a finite value overflows the cast (e.g.
+            1e300 into float32), naming the argument and the index.
+    """
+    if not isinstance(data, Trajectories):
+        raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
+    dtype = _working_dtype(system)
+    system = _promote_system(system, dtype)
+    if data.y.dtype != dtype or data.u.dtype != dtype:
+        y, u, mask = data.y, data.u, data.mask
+        if all(not isinstance(a, Tracer) for a in (y, u, mask)):
+            y = jnp.asarray(cast_checked("data.y", np.asarray(y), dtype, np.asarray(mask)))
+            u = jnp.asarray(cast_checked("data.u", np.asarray(u), dtype))
+        data = eqx.tree_at(lambda d: (d.y, d.u), data, (y.astype(dtype), u.astype(dtype)))
+    return system, data, _promote_array(name, x_init, dtype)
+
+
+def _check_observation_matrix(system: AbstractSystem) -> None:
+    """Warn when a linear observation map C is rank-deficient or ill-conditioned (cheap, host)."""
+    try:
+        u = jnp.zeros((system.input_dim,), float_dtype(system))
+        lin = system.linear_observation(u, 0)
+        if lin is None or isinstance(lin[0], Tracer):
+            return
+        C = np.asarray(lin[0], dtype=np.float64)
+    except Exception:  # a diagnostic only: a system whose map needs real inputs is not checked
+        return
+    if C.ndim != 2 or C.size == 0 or C.shape[0] * C.shape[1] > 250_000:
+        return
+    sv = np.linalg.svd(C, compute_uv=False)
+    rank = int(np.sum(sv > sv[0] * max(C.shape) * np.finfo(np.float64).eps)) if sv[0] > 0 else 0
+    cond = sv[0] / sv[-1] if sv[-1] > 0 else np.inf
+    if rank < min(C.shape) or cond > 1e12:
+        warn(
+            f"the system's observation matrix C {C.shape} has rank {rank} and condition number "
+            f"{cond:.3g}: some state directions are (nearly) unobserved, so the states and θ may "
+            "be poorly identifiable."
+        )
+
+
+@no_type_check  # the validator itself
+def check_inputs(
+    system: AbstractSystem, data: Trajectories, x=None, *, name: str = "x_init"
+) -> None:
+    """Validate shapes, finiteness, noise parameters and dtype before any compute (host-side).
+
+    ``data.y`` and ``x`` must already have the system's dtype (see :func:`promote_inputs`); a
+    float32 identification warns. Without ``x`` it also warns when a linear observation matrix is
+    rank-deficient or has a condition number above 1e12.
+    """
+    if not isinstance(data, Trajectories):
+        raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
+    system.check()
+    dtype = _working_dtype(system)
+    if data.y.dtype != dtype:
+        raise ValueError(
+            f"`data.y` has dtype {data.y.dtype} but the system's parameters have dtype {dtype}: "
+            "give both one dtype (ceemx.inference.smoother.promote_inputs casts to the system's)."
+        )
+    if data.obs_dim != system.obs_dim:
+        raise ValueError(
+            f"`data.y` has m = {data.obs_dim} but the system observes m = {system.obs_dim}."
+        )
+    if data.input_dim != system.input_dim:
+        raise ValueError(
+            f"`data.u` has p = {data.input_dim} but the system takes p = {system.input_dim} inputs."
+        )
+    if x is None:
+        _check_observation_matrix(system)
+    else:
+        if not hasattr(x, "shape"):
+            x = np.asarray(_promote_array(name, x, dtype))
+        shape = (data.batch_size, data.num_steps, system.state_dim)
+        if tuple(x.shape) != shape:
+            raise ValueError(f"`{name}` must have shape (B, T, n) = {shape}; got {tuple(x.shape)}.")
+        xa = np.asarray(x)
+        if not (np.issubdtype(xa.dtype, np.floating) or np.issubdtype(xa.dtype, np.integer)):
+            raise TypeError(f"`{name}` must be a real array; got dtype {xa.dtype}.")
+        if not np.all(np.isfinite(xa)):
+            b, t, j = (int(i) for i in np.argwhere(~np.isfinite(xa))[0])
+            raise ValueError(f"`{name}` has a non-finite value at index [{b}, {t}, {j}].")
+        if xa.dtype != np.asarray(data.y).dtype:
+            raise ValueError(
+                f"`{name}` has dtype {xa.dtype} but `data.y` has dtype {data.y.dtype}."
+            )
+        if xa.dtype == np.float32 or xa.dtype == np.float16:
+            warn(
+                f"identifying in {xa.dtype}: CE-EM's second-order solves lose accuracy in single "
+                "precision; enable float64 with jax.config.update('jax_enable_x64', True)."
+            )
+
+
+@no_type_check  # validates its arguments: check_inputs
+def smooth(
+    system: AbstractSystem,
+    data: Trajectories,
+    x_init: ArrayLike,
+    solver: LMSmoother | None = None,
+    *,
+    covariance: bool = False,
+) -> SmootherSolution:
+    """MAP state trajectories for every trajectory of ``data`` (the CE-EM smoothing step, Eq. 10).
+
+    Args:
+        system: the model with its current parameters θ.
+        data: B trajectories of observations (and inputs, mask).
+        x_init: (B, T, n) initial state estimates; also the centre of the ρ_x trust region.
+        solver: the smoother configuration (default :class:`LMSmoother`).
+        covariance: also return the marginal covariances of each x_t (Laplace approximation), from
+            the selected inverse of the Gauss–Newton matrix at the solution.
+
+    Returns:
+        A :class:`SmootherSolution`; inspect ``status`` for per-trajectory failures (a failed
+        trajectory never changes the others' answers).
+
+    Raises:
+        ValueError: on mismatched shapes, non-finite ``x_init``, invalid noise parameters, or a
+            value that overflows the working dtype.
+        TypeError: on a ``data`` or ``solver`` of the wrong type, or a complex ``x_init``.
+
+    Data, ``x_init`` and the system's floating arrays are cast to the system's dtype
+    (:func:`promote_inputs`): the result is in the dtype of the system's parameters.
+
+    Trajectories are processed with ``vmap``; compiled once per shape and solver type: the
+    solver's numbers (``rho_x``, ``rtol``, ``atol``, ``damping``) are traced, so changing them does
+    not recompile.
+    """
+    solver = LMSmoother() if solver is None else solver
+    if not isinstance(solver, LMSmoother):
+        raise TypeError(f"`solver` must be a ceemx.LMSmoother; got {solver!r}.")
+    system, data, x_init = promote_inputs(system, data, x_init)
+    check_inputs(system, data)
+    check_inputs(system, data, x_init)
+    x_init = jnp.asarray(x_init)
+    return smooth_batch(trace_numbers(solver, x_init.dtype), system, x_init, data, covariance)
