@@ -281,6 +281,57 @@ def fit(
         >>> result = ceemx.fit(guess, data, solver=ceemx.JointLM(), trainable=lambda s: s.rho)
         ... # doctest: +SKIP
     """
+    solver, data, states, key, max_epochs = _prepare(
+        system, data, x_init, solver, max_epochs, checkpoint, checkpoint_mismatch, key, devices
+    )
+    problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
+    _check_noise_learnable(problem, solver)
+    all_states = states
+    excluded, health = _screen_outliers(problem, theta, states, outliers)
+    if excluded.any():
+        keep = np.flatnonzero(~excluded)
+        data, states = data[keep], states[keep]
+        problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
+
+    state = solver.init(problem, theta, states, key)
+    initial_J = total_J(state)
+    history: list[dict] = []
+    fingerprint = None
+    if checkpoint is not None:
+        template = dataclasses.replace(state, cache=None)
+        fingerprint = ckpt.fingerprint(template, problem, theta, solver)
+        loaded = ckpt.load(checkpoint, template, fingerprint, mismatch=checkpoint_mismatch)
+        if loaded is not None:
+            state, history = loaded
+
+    state, converged = _run_epochs(
+        solver, problem, state, history, max_epochs, callbacks, progress, checkpoint, fingerprint
+    )
+    state = solver.postprocess(problem, state)
+    # Never "converged" when no trajectory took part or J is not finite.
+    took_part = bool(np.any(np.asarray(state.weights) > 0))
+    converged = bool(converged and took_part and np.isfinite(total_J(state)))
+    out_states, status = _with_excluded(state, all_states, excluded)
+    return FitResult(
+        problem.build(state.theta),
+        out_states,
+        status,
+        history,
+        converged,
+        solver,
+        initial_J,
+        tuple(int(b) for b in np.flatnonzero(excluded)),
+        None if health is None else tuple(float(r) for r in health.mean_square),
+        problem=problem,
+        theta=state.theta,
+        weights=state.weights,
+    )
+
+
+def _prepare(
+    system, data, x_init, solver, max_epochs, checkpoint, checkpoint_mismatch, key, devices
+):
+    """Validate the inputs (before any compute); the solver, data and start states to fit."""
     solver = Alternating() if solver is None else solver
     if not isinstance(solver, AbstractFitSolver):
         raise TypeError(
@@ -301,7 +352,10 @@ def fit(
         data, states = shard_batch(data, states, mesh)
     solver = trace_numbers(solver, states.dtype)
     key = jax.random.PRNGKey(0) if key is None else key
-    problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
+    return solver, data, states, key, max_epochs
+
+
+def _check_noise_learnable(problem: FitProblem, solver: AbstractFitSolver) -> None:
     noise = [f for f in ("process_noise", "obs_noise") if problem.trains(f)]
     if noise and not solver.learns_noise:
         raise ValueError(
@@ -311,45 +365,40 @@ def fit(
             "(the states absorb the residuals): noise cannot be learned by it. Use "
             "solver=ceemx.LaplaceEM(), which learns noise covariances by EM, or fix the noise."
         )
-    all_states, excluded, health = states, np.zeros((data.batch_size,), bool), None
+
+
+def _screen_outliers(problem: FitProblem, theta, states, outliers: str):
+    """The start-of-fit health test: (trajectories to exclude, the health record or ``None``)."""
+    excluded = np.zeros((problem.data.batch_size,), bool)
     if outliers not in OUTLIER_OPTIONS:
         raise ValueError(f"`outliers` must be one of {OUTLIER_OPTIONS}; got {outliers!r}.")
-    if outliers != "keep":
-        health = trajectory_health(problem, theta, states)
-        if not np.any(np.isfinite(health.mean_square)):
-            raise ValueError(
-                "no trajectory has a finite objective at the start: check the model's "
-                "parameters and noise, the inputs and `x_init` (J is not finite for all "
-                f"{data.batch_size} trajectories)."
-            )
-        bad = health.flagged & np.isfinite(health.mean_square)
-        if bad.any():
-            idx = np.flatnonzero(bad)
-            action = "excluded from the fit" if outliers == "exclude" else "kept (outliers='warn')"
-            warn(
-                f"trajectories {health.describe(idx)} have residuals far outside the noise model "
-                f"(mean squared whitened residual; median {health.median:.3g}): {action}. "
-                "Pass outliers='keep' to skip this test (ceemx.identification.health)."
-            )
-            if outliers == "exclude":
-                excluded = bad
-                keep = np.flatnonzero(~bad)
-                data, states = data[keep], states[keep]
-                problem, theta = FitProblem.create(
-                    system, data, trainable=trainable, log_prior=log_prior
-                )
+    if outliers == "keep":
+        return excluded, None
+    health = trajectory_health(problem, theta, states)
+    if not np.any(np.isfinite(health.mean_square)):
+        raise ValueError(
+            "no trajectory has a finite objective at the start: check the model's "
+            "parameters and noise, the inputs and `x_init` (J is not finite for all "
+            f"{problem.data.batch_size} trajectories)."
+        )
+    bad = health.flagged & np.isfinite(health.mean_square)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        action = "excluded from the fit" if outliers == "exclude" else "kept (outliers='warn')"
+        warn(
+            f"trajectories {health.describe(idx)} have residuals far outside the noise model "
+            f"(mean squared whitened residual; median {health.median:.3g}): {action}. "
+            "Pass outliers='keep' to skip this test (ceemx.identification.health)."
+        )
+        if outliers == "exclude":
+            excluded = bad
+    return excluded, health
 
-    state = solver.init(problem, theta, states, key)
-    initial_J = total_J(state)
-    history: list[dict] = []
-    fingerprint = None
-    if checkpoint is not None:
-        template = dataclasses.replace(state, cache=None)
-        fingerprint = ckpt.fingerprint(template, problem, theta, solver)
-        loaded = ckpt.load(checkpoint, template, fingerprint, mismatch=checkpoint_mismatch)
-        if loaded is not None:
-            state, history = loaded
 
+def _run_epochs(
+    solver, problem, state, history, max_epochs, callbacks, progress, checkpoint, fingerprint
+):
+    """The epoch loop: step, record, stop rule, callbacks, progress, checkpoints (into history)."""
     show = sys.stderr.isatty() if progress is None else progress
     bar = _Progress(show, max_epochs, len(history), type(solver).__name__)
     converged = bool(history and history[-1].get("converged", False))
@@ -374,33 +423,19 @@ def fit(
                 ckpt.save(checkpoint, dataclasses.replace(state, cache=None), history, fingerprint)
     finally:
         bar.close()
-    state = solver.postprocess(problem, state)
-    # Never "converged" when no trajectory took part or J is not finite.
-    took_part = bool(np.any(np.asarray(state.weights) > 0))
-    converged = bool(converged and took_part and np.isfinite(total_J(state)))
-    out_states, status = state.states, state.status
-    if excluded.any():
-        keep = jnp.asarray(np.flatnonzero(~excluded))
-        out_states = all_states.at[keep].set(state.states)
-        codes_all = np.full(excluded.shape, -1)
-        codes_all[~excluded] = np.asarray(codes(state.status)).reshape(-1)
-        status = select(
-            jnp.asarray(excluded), RESULTS.outlier, from_codes(np.maximum(codes_all, 0))
-        )
-    return FitResult(
-        problem.build(state.theta),
-        out_states,
-        status,
-        history,
-        converged,
-        solver,
-        initial_J,
-        tuple(int(b) for b in np.flatnonzero(excluded)),
-        None if health is None else tuple(float(r) for r in health.mean_square),
-        problem=problem,
-        theta=state.theta,
-        weights=state.weights,
-    )
+    return state, converged
+
+
+def _with_excluded(state: FitState, all_states, excluded: np.ndarray):
+    """States and statuses of every trajectory: the excluded ones as given, status ``outlier``."""
+    if not excluded.any():
+        return state.states, state.status
+    keep = jnp.asarray(np.flatnonzero(~excluded))
+    out_states = all_states.at[keep].set(state.states)
+    codes_all = np.full(excluded.shape, -1)
+    codes_all[~excluded] = np.asarray(codes(state.status)).reshape(-1)
+    status = select(jnp.asarray(excluded), RESULTS.outlier, from_codes(np.maximum(codes_all, 0)))
+    return out_states, status
 
 
 def _record(epoch: int, before: FitState, after: FitState, elapsed: float, own: dict) -> dict:
