@@ -10,6 +10,9 @@ Usage (one process per measurement; the first ``cache`` run fills the folder, la
 Each run fits the friction model of ``tests/test_joint_guard.py`` (Coulomb + viscous friction,
 velocity hidden, 2000 samples, 30 Alternating epochs) twice in the same process and estimates
 its initial state twice: first minus second is the compile time. Record ``uptime`` beside it.
+
+Backs: ``docs/results.md`` ("Gray-box CE-EM on real benchmarks", compile time: "without the cache
+the first fit takes 9.7 s ... with the cache warm 5.2 s").
 """
 
 import sys

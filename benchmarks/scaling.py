@@ -1,5 +1,13 @@
 """Scaling of ceemx on coupled Lorenz problems: smoothing iterations, FLOP bound, fit iterations.
 
+Backs (quoted in ``benchmarks/README.md``, "Scaling, FLOP bound and K = 100"): "Log–log slopes
+of the median time per iteration: **T 1.00, B 1.19, n 2.25**", the FLOP-bound table ("Target
+(within 5× of the FLOP bound at n ≥ 18): not met") and the fit-iteration table
+(``benchmarks/results/scaling.json``, default grid plus the pinned K sweep); with ``--grid b8``
+the first smoother sweep quoted in ``README.md`` ("linear in T and B (log–log slopes 1.20,
+1.14), ≈ n² for n ≤ 60"), ``docs/results.md`` ("Smoother scaling") and ``benchmarks/README.md``
+("Smoother scaling: the first sweep").
+
 What is measured (float64, JAX on CPU; issue 12, item 7):
 
 1. **Smoothing** (``ceemx.smooth`` with ``LMSmoother(max_steps=s, rtol=0, atol=0)``, exactly ``s``
@@ -24,11 +32,17 @@ Usage::
     python benchmarks/scaling.py --quick              # ≈ 6 min under load
     python benchmarks/scaling.py --smoke --out x.json # seconds per case, a few tiny cases
     python benchmarks/scaling.py --only smooth        # or: fit
+    python benchmarks/scaling.py --grid b8 --out x.json  # the first smoother sweep (≈ 5 min)
     taskset -c 0 python benchmarks/scaling.py --only smooth --sweeps K \
         --variant pinned_one_core --out benchmarks/results/scaling.json  # add a pinned K sweep
     python benchmarks/scaling.py --k100 [k100 options]  # = python benchmarks/k100.py ...
 
-Writes ``--out`` (default ``benchmarks/results/scaling.json`` except with ``--smoke``).
+Writes ``--out`` (default ``benchmarks/results/scaling.json`` for the default and ``--quick``
+grids; no default with ``--smoke`` or ``--grid b8``).
+
+The ``b8`` grid is the first smoother sweep (2026-11-21; formerly ``smoother_scaling.py``): T ∈
+{128, …, 4096} and B ∈ {1, …, 64} around T = 128, B = 8, K = 6, and K ∈ {1, 2, 5, 10, 20} at
+T = 128, B = 8; 5 LM iterations per call at every n (``steps_for`` is not used), smoothing only.
 
 On a small machine shared with other jobs, XLA-CPU's intra-op thread hand-offs can stall for a
 scheduler time slice (≈ 8 ms) per small linear-algebra call, making some block sizes 10–1000×
@@ -54,11 +68,13 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
-from smoother_scaling import make_problem, slope  # noqa: E402
-
 import ceemx  # noqa: E402
+from ceemx.systems import (  # noqa: E402
+    CoupledLorenz,
+    initial_states,
+    random_coupling,
+    random_observation_matrix,
+)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "scaling.json")
@@ -93,7 +109,49 @@ GRIDS = {
         "fit": {"B": 2, "cases": [(32, 2)]},
         "fit_epochs": 3,
     },
+    # The first smoother sweep (formerly smoother_scaling.py): B = 8 in every sweep, K ≤ 20,
+    # a fixed 5 LM iterations per call, no fits.
+    "b8": {
+        "smooth": [
+            ("T", [128, 256, 512, 1024, 2048, 4096], {"T": 128, "B": 8, "K": 6}),
+            ("B", [1, 2, 4, 8, 16, 32, 64], {"T": 128, "B": 8, "K": 6}),
+            ("K", [1, 2, 5, 10, 20], {"T": 128, "B": 8, "K": 6}),
+        ],
+        "steps": 5,
+        "fit": None,
+        "fit_epochs": 0,
+    },
 }
+PERTURBATION = 0.1  # x_init = truth + PERTURBATION · N(0, 1)
+
+
+# --- problem ----------------------------------------------------------------------------------
+
+
+def make_problem(T: int, B: int, K: int, seed: int = 0):
+    """Truth, observations and a perturbed initial guess for one coupled-Lorenz case.
+
+    ``random_coupling(K)`` (Frobenius norm 5), ``random_observation_matrix(K)`` (m = 3K − 2),
+    ``initial_states(B, K)``; σ, ρ, β = 10, 28, 8/3, dt = 0.04, noise scales 0.01 / 0.01; the
+    data simulated without process noise; ``x_init = truth + PERTURBATION · N(0, 1)``, the same
+    size in every case so that the iterations do comparable work.
+    """
+    kH, kC, kx0, ksim, kpert = jax.random.split(jax.random.PRNGKey(seed), 5)
+    H = random_coupling(kH, K)
+    C = random_observation_matrix(kC, K)
+    ones = jnp.ones(K, jnp.float64)
+    system = CoupledLorenz(
+        10.0 * ones, 28.0 * ones, (8.0 / 3.0) * ones, C, H=H, process_noise=0.01, obs_noise=0.01
+    )
+    x0 = initial_states(kx0, B, K)
+    truth, data = ceemx.simulate(system, ksim, x0, T, process_noise=False)
+    x_init = truth + PERTURBATION * jax.random.normal(kpert, truth.shape, truth.dtype)
+    return system, data, jax.block_until_ready(x_init)
+
+
+def slope(xs, ys) -> float:
+    """Least-squares slope of log y against log x."""
+    return float(np.polyfit(np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float)), 1)[0])
 
 
 def steps_for(n: int) -> int:
@@ -119,6 +177,10 @@ def smoother_flops(n: int, m: int) -> dict[str, float]:
       2mn², ``(SF)ᵀSF`` 2n³, ``SwᵀSw`` 2n³, ``SwᵀSF`` 2n³, gradients 2mn + 2n²;
     * the Jacobians themselves: F by ``jacfwd`` through 4 RK4 stages, each multiplying the n×n
       coupling by n tangents: 8n³; G by ``jacrev`` of ``C x``: 2m²n.
+
+    The count is the code as it was when ``benchmarks/results/scaling.json`` was measured
+    (2026-11-24). Since 2fc3d60 diagonal noise scales rows instead of multiplying by the dense
+    S, so ``forming`` overstates today's code for these (diagonal-noise) problems.
 
     Returns a dict of per-trajectory-step counts: ``iteration`` (Cholesky + solves + quad +
     forming: the dense linear algebra of one iteration as the code does it — the bound the
@@ -391,6 +453,13 @@ def main(argv=None) -> dict:
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true", help="smaller grid (≈ 6 min under load)")
     mode.add_argument("--smoke", action="store_true", help="a few tiny cases (tests)")
+    mode.add_argument(
+        "--grid",
+        choices=sorted(GRIDS),
+        default=None,
+        help="a named grid; b8: the first smoother sweep (B = 8, K ≤ 20, 5 iterations per call, "
+        "no fits; ≈ 5 min)",
+    )
     p.add_argument("--out", type=str, default=None)
     p.add_argument("--only", choices=("smooth", "fit"), default=None)
     p.add_argument(
@@ -418,9 +487,9 @@ def main(argv=None) -> dict:
         print(json.dumps(fit_case(*args.worker_fit)))
         return {}
 
-    name = "smoke" if args.smoke else ("quick" if args.quick else "default")
+    name = "smoke" if args.smoke else ("quick" if args.quick else (args.grid or "default"))
     grid = GRIDS[name]
-    out_path = args.out if args.out else (None if args.smoke else DEFAULT_OUT)
+    out_path = args.out if args.out else (DEFAULT_OUT if name in ("default", "quick") else None)
     t_start = time.perf_counter()
     env = environment()
     print(
@@ -449,7 +518,7 @@ def main(argv=None) -> dict:
             rows = []
             for v in values:
                 cfg = dict(base, **{var: v})
-                steps = 2 if args.smoke else steps_for(3 * cfg["K"])
+                steps = 2 if args.smoke else grid.get("steps") or steps_for(3 * cfg["K"])
                 key = (cfg["T"], cfg["B"], cfg["K"], steps)
                 if key not in cache:
                     cache[key] = run_worker(
@@ -504,7 +573,7 @@ def main(argv=None) -> dict:
             "target_5x": target,
         }
 
-    if args.only in (None, "fit"):
+    if args.only in (None, "fit") and grid["fit"]:
         fg = grid["fit"]
         rows = []
         for T, K in fg["cases"]:

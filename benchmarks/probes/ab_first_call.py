@@ -6,9 +6,13 @@
 
 A/B against another commit: ``git worktree add /tmp/old REV`` and alternate
 ``PYTHONPATH=/tmp/old/src python benchmarks/probes/ab_first_call.py MODE`` with the current tree,
-each in a fresh process, ≥ 2 runs each, recording ``uptime`` (the figures quoted in
-benchmarks/README.md and docs/design.md for the one-copy LM programs and the diagonal-noise
-linearisation were measured this way; ``smoothK`` pinned with ``taskset -c 0``).
+each in a fresh process, ≥ 2 runs each, recording ``uptime``; ``smoothK`` pinned with
+``taskset -c 0``. It also runs on trees from before the package folders (b271a33).
+
+Backs: ``benchmarks/README.md`` ("ceemx vs the authors' code": "``smooth``'s first call 5.5 →
+3.9 s, steady +0–8 %", "first JointLM fit 15.5 → 12.4 s at load 3.5–3.9 (−20 %)") and
+``docs/design.md`` (the ``inference/objective.py`` row: "smoothing −10–12 % at n = 60–120",
+``smoothK 20|40``; "Joint method" notes: "``smooth``'s first call (16 × 128 Lorenz) 5.5 → 3.9 s").
 """
 
 import pathlib
@@ -37,9 +41,7 @@ def timed(call, repeats: int) -> tuple[float, float, object]:
 
 mode = sys.argv[1] if len(sys.argv) > 1 else "smooth"
 if mode == "smooth":
-    from compare_peers import problem
-
-    from ceemx.identification.initialize import from_observations
+    from compare_peers import from_observations, problem
 
     system, p = problem(16, 128)
     x0 = from_observations(system, p.data)
@@ -65,7 +67,7 @@ elif mode == "joint":
     first, steady, _ = timed(fit, 3)
     print(f"joint fit: first {first:.2f} s, steady {steady:.4f} s")
 elif mode == "smoothK":
-    from smoother_scaling import make_problem
+    from scaling import make_problem
 
     K = int(sys.argv[2]) if len(sys.argv) > 2 else 20
     system, data, x_init = make_problem(128, 2, K)

@@ -7,6 +7,11 @@ Run it on an idle machine and beside CPU hogs (e.g. ``yes > /dev/null &`` once p
 XLA's thread hand-offs stall under oversubscription (benchmarks/README.md, "Busy machines"):
 6 coupled Lorenz, B = 4, T = 128, warm start, 7 JointLM iterations called directly (the first
 compiles). Prints "wall/cpu" seconds per iteration.
+
+Backs: ``benchmarks/README.md`` ("Busy machines": "1.7–6.5 per iteration (two runs)" with 2
+threads, "0.57–0.99" pinned) and, with ``ceemx demo`` / ``ceemx --threads 1 demo``, the
+``infra/runtime.py`` row of ``docs/design.md`` ("0.9–2.4 s with 2 threads against 0.6–1.0 s
+with 1").
 """
 
 import resource

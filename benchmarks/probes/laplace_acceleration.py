@@ -4,6 +4,10 @@
 
 Per seed and acceleration: epochs to convergence (≤ 600), wall time (the first fit compiles),
 learned σ_w, σ_v and σ, ρ, β — the setting of ``ceemx experiment laplace``.
+
+Backs: ``docs/results.md`` ("Learned noise and calibrated intervals": "seed 45: 358 plain epochs
+in 15.3 s, first fit with compile, against 19 SQUAREM epochs in 1.3 s") and ``docs/design.md``
+(Laplace EM: "SQUAREM cuts that 5–20×").
 """
 
 import sys

@@ -5,6 +5,10 @@ ingredient at a time (docs/results.md, "Algorithm 1 on Table 1 and the authors' 
 
 Each line: integrator, x₁ spread, learner, ρ_θ, ρ_x → epochs, σ, ρ, β, final J (warm-started
 states, as our protocol).
+
+Backs: ``docs/results.md`` ("Algorithm 1 on Table 1 and the authors' protocol": "Nelder–Mead at
+its default tolerance (1e-8) ... stops after 6 epochs at σ = 10.83, β = 2.813", "the LM learner
+with ρ_θ = 0.01 reaches the optimum in 44").
 """
 
 import jax
