@@ -81,6 +81,9 @@ class FitResult(eqx.Module):
             trajectories taking part; ``None`` for results built by hand).
         theta: the final flat θ in the problem's unconstrained coordinates.
         weights: the final (B',) trajectory weights of the fitted trajectories (0: failed).
+        noise_rounds: with ``fit(..., noise="learn")``, one record per noise round (``round``,
+            ``process_noise_std``, ``obs_noise_std``, ``log_evidence``, ``epochs``,
+            ``converged``, ``change``; round 0 is the estimate at the start); else ``()``.
 
     Parameter uncertainty (:mod:`ceemx.identification.uncertainty`): :meth:`covariance`,
     :meth:`standard_errors`, :meth:`parameter_estimates` — for the CE methods the Laplace
@@ -101,6 +104,7 @@ class FitResult(eqx.Module):
     problem: FitProblem | None = None
     theta: Any = None
     weights: Any = None
+    noise_rounds: tuple = eqx.field(static=True, default=())
 
     @property
     def epochs(self) -> int:
@@ -227,6 +231,7 @@ def fit(
     key: PRNGKeyArray | None = None,
     outliers: str = "exclude",
     devices: Literal["all"] | Mesh | None = None,
+    noise: Literal["fixed", "learn"] = "fixed",
 ) -> FitResult:
     """Identify θ and the state trajectories by maximising the CE-EM objective J(x, θ) (Eq. 9).
 
@@ -268,6 +273,15 @@ def fit(
             process only: a mesh across hosts is refused). When B is not divisible by the device
             count the largest divisor of B devices is used. Results agree with ``None`` to
             rounding; with one device it changes nothing.
+        noise: ``"fixed"`` (default) fits at the system's noise models; ``"learn"`` learns one
+            factor on each — process and observation noise — from the data, for a user who does
+            not know the noise scales: CE fits alternated with the maximiser of the Laplace
+            log-evidence in the two factors, until they settle
+            (:func:`ceemx.identification.noise.fit_learning_noise`; the noise models' shape is
+            kept; ``FitResult.noise_rounds`` records the rounds; ``max_epochs`` bounds each
+            round's fit; not with ``checkpoint``). For the CE solvers (:class:`ceemx.Alternating`,
+            :class:`ceemx.JointLM`); :class:`ceemx.LaplaceEM` learns noise through
+            ``trainable``.
 
     Returns:
         A :class:`FitResult`.
@@ -281,6 +295,8 @@ def fit(
         >>> result = ceemx.fit(guess, data, solver=ceemx.JointLM(), trainable=lambda s: s.rho)
         ... # doctest: +SKIP
     """
+    if noise != "fixed":
+        return _fit_learning_noise(noise, solver, system, data, x_init, locals())
     solver, data, states, key, max_epochs = _prepare(
         system, data, x_init, solver, max_epochs, checkpoint, checkpoint_mismatch, key, devices
     )
@@ -326,6 +342,22 @@ def fit(
         theta=state.theta,
         weights=state.weights,
     )
+
+
+def _fit_learning_noise(noise, solver, system, data, x_init, arguments: dict) -> FitResult:
+    """``fit(..., noise="learn")``: validated here, run by the noise module's rounds."""
+    if noise != "learn":
+        raise ValueError(f"`noise` must be 'fixed' or 'learn'; got {noise!r}.")
+    if solver is not None and (solver.learns_noise or isinstance(solver, ParticleEM)):
+        raise ValueError(
+            f"fit(..., noise='learn') alternates certainty-equivalent fits (Alternating, "
+            f"JointLM) with noise estimates; {type(solver).__name__} is not one. LaplaceEM "
+            "learns noise itself: pass trainable=lambda s: (..., s.process_noise, s.obs_noise)."
+        )
+    from ceemx.identification.noise import fit_learning_noise
+
+    options = {k: v for k, v in arguments.items() if k not in ("system", "data", "x_init", "noise")}
+    return fit_learning_noise(system, data, x_init, **options)
 
 
 def _prepare(

@@ -136,7 +136,7 @@ def noise_second_moments(
     }
 
 
-def _updated_noise(noise, field: str, moments: dict[str, Array]):
+def updated_noise(noise, field: str, moments: dict[str, Array]):
     """The noise model of ``field`` set to its closed-form M-step (same class and leaf shapes)."""
     if field == "process_noise":
         cov = moments["dyn"] / moments["dyn_count"]
@@ -297,7 +297,7 @@ class LaplaceEM(AbstractFitSolver):
         if split.learned:
             moments = noise_second_moments(system, points, pairs, problem.data, weights)
             for field in split.learned:
-                noise = _updated_noise(getattr(system, field), field, moments)
+                noise = updated_noise(getattr(system, field), field, moments)
                 system = eqx.tree_at(lambda s, f=field: getattr(s, f), system, replace=noise)
         theta_new = split.join(theta_inner, system).astype(theta.dtype)
         record["learn_time"] += time.perf_counter() - t0

@@ -1,0 +1,478 @@
+"""The noise a record shows: realised residual second moments against the assumed noise model.
+
+A fit's answer depends on the noise scales (they weight dynamics against observations in J). What
+the data say about them is the EM noise update: under the Laplace posterior q = N(x̂, Σ̂) at θ
+(:func:`ceemx.inference.posterior.gaussian_posterior`), the expected residual second moments
+
+    S_w = mean_t E_q[w_t w_tᵀ],   w_t = x_{t+1} − f_θ(x_t, u_t),
+    S_v = mean_t E_q[v_t v_tᵀ],   v_t = y_t − g_θ(x_t, u_t)  (present components only),
+
+by cubature over the marginal and pairwise posteriors. The smoothed residuals alone (x = x̂) are
+biased low — the states absorb part of the noise — and the posterior spread is exactly the part
+they absorbed; with it, S equals the noise covariance in expectation at the truth (for a
+linear-Gaussian model it is the exact EM statistic). The ratio of S to the assumed covariance per
+component (whitened: diag L⁻¹ S L⁻ᵀ) is therefore ≈ 1 when the assumed noise is consistent with the
+record, and it is the factor to multiply the assumed variance by when it is not.
+
+- :func:`residual_moments` — S_w, S_v (and counts) at θ, from the given start states.
+- :func:`noise_ratios` — the per-component ratios realised / assumed.
+- :func:`with_noise_from_moments` — the system with its Gaussian noise set to S (the closed-form
+  M-step of Laplace EM; same classes and leaf shapes).
+- :func:`estimate_noise` — that update iterated at a fixed θ: noise scales from the data, for a
+  start (or a check) that does not depend on a guess.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+from ceemx.data.trajectories import Trajectories
+from ceemx.identification.learning.expected import cubature_points
+from ceemx.identification.solvers.laplace import noise_second_moments, updated_noise
+from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
+from ceemx.inference.smoother import LMSmoother, check_inputs, promote_inputs
+from ceemx.lib.results import RESULTS
+from ceemx.lib.tree import trace_numbers
+from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
+from ceemx.models.system import AbstractSystem
+
+__all__ = [
+    "NOISE_FIELDS",
+    "NoiseMoments",
+    "estimate_noise",
+    "noise_ratios",
+    "residual_moments",
+    "with_noise_from_moments",
+]
+
+NOISE_FIELDS = ("process_noise", "obs_noise")
+
+
+class NoiseMoments(eqx.Module):
+    """Expected residual second moments under the Laplace posterior (module docs).
+
+    Attributes:
+        moments: the sums of :func:`ceemx.identification.solvers.laplace.noise_second_moments`
+            (``dyn``, ``dyn_count``, ``obs_diag``, ``obs_count``, ``obs_full``, ...).
+        states: (B, T, n) the MAP trajectories they were computed at.
+        log_evidence: (B,) the Laplace log-evidence per trajectory at θ.
+        ok: (B,) whether the posterior of each trajectory was finite (the others are left out).
+    """
+
+    moments: dict[str, Array]
+    states: Array
+    log_evidence: Array
+    ok: Array
+
+    @property
+    def process_covariance(self) -> np.ndarray:
+        """(n, n) S_w: the mean expected process residual outer product."""
+        return np.asarray(self.moments["dyn"]) / float(self.moments["dyn_count"])
+
+    @property
+    def obs_variance(self) -> np.ndarray:
+        """(m,) the mean expected squared observation residual per component (present samples)."""
+        count = np.asarray(self.moments["obs_count"])
+        return np.asarray(self.moments["obs_diag"]) / np.where(count > 0, count, 1.0)
+
+
+@eqx.filter_jit
+def _moments(smoother: LMSmoother, system: AbstractSystem, x0, data: Trajectories):
+    post = gaussian_posterior(smoother, system, x0, data)
+    ok = post.status != RESULTS.nonfinite
+    weights = jnp.where(ok, 1.0, 0.0).astype(x0.dtype)
+    points, pairs = cubature_points(post.states, post.covariances, post.cross)
+    moments = noise_second_moments(system, points, pairs, data, weights)
+    return moments, post.states, post.log_evidence, ok
+
+
+def residual_moments(
+    system: AbstractSystem,
+    data: Trajectories,
+    states: ArrayLike | None = None,
+    *,
+    smoother: LMSmoother | None = None,
+) -> NoiseMoments:
+    """Expected residual second moments at the system's θ under the Laplace posterior.
+
+    Args:
+        system: the model (θ and the assumed noise).
+        data: B observed trajectories.
+        states: (B, T, n) start of the MAP smoothing (``None``: least squares through the
+            observation map and one smoothing pass, as a fit starts).
+        smoother: the MAP smoother (default: Laplace EM's E-step smoother, rtol 1e-14).
+
+    Returns:
+        A :class:`NoiseMoments`; trajectories whose posterior is not finite are left out
+        (``ok``).
+    """
+    system, data, states = promote_inputs(system, data, states)
+    check_inputs(system, data)
+    if states is None:
+        from ceemx.identification.initialize import warm_start
+
+        states = warm_start(system, data)
+    check_inputs(system, data, states)
+    x0 = jnp.asarray(states)
+    smoother = trace_numbers(E_STEP_SMOOTHER if smoother is None else smoother, x0.dtype)
+    moments, x_hat, log_ev, ok = _moments(smoother, system, x0, data)
+    return NoiseMoments(moments, x_hat, log_ev, ok)
+
+
+def _whitened_diagonal(noise, cov: np.ndarray) -> np.ndarray:
+    """diag(L⁻¹ S L⁻ᵀ) for the noise model's covariance LLᵀ (NaN for non-Gaussian models)."""
+    if isinstance(noise, DiagonalGaussian):
+        var = np.broadcast_to(np.asarray(noise.scale, float) ** 2, (noise.dim,))
+        return np.diagonal(cov) / var
+    if isinstance(noise, CholeskyGaussian):
+        L = np.asarray(noise.chol, float)
+        W = np.linalg.solve(L, np.linalg.solve(L, cov).T)
+        return np.diagonal(W)
+    return np.full(cov.shape[0], np.nan)
+
+
+def noise_ratios(system: AbstractSystem, nm: NoiseMoments) -> dict[str, np.ndarray]:
+    """Realised / assumed variance per component: ``{"process_noise": (n,), "obs_noise": (m,)}``.
+
+    Whitened by the assumed covariance for a full (Cholesky) model; NaN for a noise model that is
+    not Gaussian, and for an observation component that is never observed.
+    """
+    out = {"process_noise": _whitened_diagonal(system.process_noise, nm.process_covariance)}
+    obs = system.obs_noise
+    count = np.asarray(nm.moments["obs_count"])
+    if isinstance(obs, CholeskyGaussian):
+        full = np.asarray(nm.moments["obs_full"]) / float(nm.moments["obs_full_count"])
+        ratio = _whitened_diagonal(obs, full)
+    else:
+        ratio = _whitened_diagonal(obs, np.diag(nm.obs_variance))
+    out["obs_noise"] = np.where(count > 0, ratio, np.nan)
+    return out
+
+
+def with_noise_from_moments(
+    system: AbstractSystem, nm: NoiseMoments, fields: Sequence[str] = NOISE_FIELDS
+) -> AbstractSystem:
+    """The system with the noise models in ``fields`` set to the realised moments (closed form).
+
+    A scalar :class:`DiagonalGaussian` scale stays scalar (the pooled variance); a per-component
+    one gets one scale per component; a :class:`CholeskyGaussian` gets the full matrix. A
+    component never observed keeps its scale.
+    """
+    for field in fields:
+        noise = getattr(system, field)
+        if not isinstance(noise, DiagonalGaussian | CholeskyGaussian):
+            raise ValueError(
+                f"`system.{field}` is {type(noise).__name__}: noise is estimated in closed form "
+                "for DiagonalGaussian or CholeskyGaussian noise models only."
+            )
+        new = updated_noise(noise, field, nm.moments)
+        system = eqx.tree_at(lambda s, f=field: getattr(s, f), system, replace=new)
+    return system
+
+
+def estimate_noise(
+    system: AbstractSystem,
+    data: Trajectories,
+    states: ArrayLike | None = None,
+    *,
+    fields: Sequence[str] = NOISE_FIELDS,
+    per_component: bool = False,
+    search: bool = True,
+    max_evaluations: int = 60,
+    smoother: LMSmoother | None = None,
+) -> tuple[AbstractSystem, NoiseMoments, int]:
+    """Noise scales from the data at a fixed θ: the maximiser of the Laplace log-evidence.
+
+    The noise enters the marginal likelihood log p(y | θ, σ), here its Laplace approximation
+    (:func:`ceemx.inference.posterior.gaussian_posterior`), and its gradient in a log-scale is
+    free once the expected residual moments are known: ∂/∂ log σ_i = N_i·(ratio_i − 1),
+    ratio_i = E_q[r_i²]/σ_i² (:func:`noise_ratios`, whitened for a full covariance; N_i the
+    number of residuals of component i) — the statistic of the closed-form EM update. EM itself
+    creeps here: from too tight a process noise the states follow the dynamics, the observation
+    noise absorbs the misfit, and both ratios sit near 1 while the evidence still rises by
+    hundreds of nats along the ridge where process noise grows and observation noise shrinks.
+    So the scales are found by L-BFGS (SciPy, on the host; each evaluation one MAP smoothing and
+    its posterior, warm-started) on the log-evidence in log-scale, which follows such ridges.
+
+    By default each noise model keeps its shape and learns one factor (its covariance times c²):
+    the two factors of process and observation noise are what a guess gets wrong by orders of
+    magnitude, and the evidence determines them well. ``per_component=True`` learns every scale
+    of a :class:`DiagonalGaussian` instead — but in a partially observed model the evidence is
+    often flat along some of them (noise on a hidden state that the record cannot tell from noise
+    on its neighbour), and at a θ still far from the optimum the model error lands in whichever
+    scale absorbs it best, so use it at a fitted θ.
+
+    Args:
+        system: the model at the θ to estimate the noise for.
+        data: B observed trajectories.
+        states: start states of the first smoothing (``None``: as a fit starts).
+        fields: which noise models to estimate (``"process_noise"``, ``"obs_noise"``).
+        per_component: one factor per noise model (``False``) or one scale per component of
+            each diagonal model (``True``; a full covariance still takes one factor).
+        search: before L-BFGS, evaluate the factors on a grid of decades (10⁻³…10³ times the
+            start; every combination for up to two factors, one factor at a time beyond) and
+            start from the best point. The evidence has a second, degenerate maximum — all noise
+            in the process, the observations fitted exactly (σ_v → 0) — whose basin a start far
+            too loose in the process noise falls into; the grid finds the other basin when it
+            is higher. Only when every field takes one factor (``per_component=False``).
+        max_evaluations: bound on the posterior evaluations of the L-BFGS refinement (≥ 1).
+        smoother: the MAP smoother (default: Laplace EM's E-step smoother).
+
+    Returns:
+        ``(system, moments, evaluations)``: the system with the estimated noise, the moments
+        under it and the number of posterior evaluations made.
+
+    Raises:
+        ValueError: for an unknown field, a noise model that is not Gaussian, or an invalid
+            ``max_evaluations``.
+    """
+    from scipy.optimize import minimize
+
+    fields = tuple(dict.fromkeys(fields))
+    for field in fields:
+        if field not in NOISE_FIELDS:
+            raise ValueError(f"`fields` entries must be in {NOISE_FIELDS}; got {field!r}.")
+        noise = getattr(system, field)
+        if not isinstance(noise, DiagonalGaussian | CholeskyGaussian):
+            raise ValueError(
+                f"`system.{field}` is {type(noise).__name__}: noise is estimated for "
+                "DiagonalGaussian or CholeskyGaussian noise models only."
+            )
+    if isinstance(max_evaluations, bool) or not isinstance(max_evaluations, int | np.integer):
+        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
+    if max_evaluations < 1:
+        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
+    nm = residual_moments(system, data, states, smoother=smoother)
+    if not fields:
+        return system, nm, 1
+    layout = _ScaleLayout(system, fields, bool(per_component))
+    cache: dict[bytes, NoiseMoments] = {layout.z0.tobytes(): nm}
+    best = {"f": -_evidence(nm), "z": layout.z0.copy(), "nm": nm}
+
+    def objective(z):
+        key = z.tobytes()
+        if key not in cache:
+            trial = layout.system(system, z)
+            cache[key] = residual_moments(trial, data, best["nm"].states, smoother=smoother)
+        m = cache[key]
+        f = -_evidence(m)
+        if not np.isfinite(f):
+            return 1e300, np.zeros_like(z)
+        if f < best["f"]:
+            best.update(f=f, z=z.copy(), nm=m)
+        return f, -layout.gradient(layout.system(system, z), m)
+
+    start = layout.z0
+    if search and layout.factors_only:
+        for z in _grid(layout.z0):
+            f, _ = objective(z)
+        start = best["z"].copy()
+    minimize(
+        objective,
+        start,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(z - _LOG_RANGE, z + _LOG_RANGE) for z in layout.z0],
+        options={"maxfun": max_evaluations, "ftol": 1e-10, "gtol": 1e-2},
+    )
+    return layout.system(system, best["z"]), best["nm"], len(cache)
+
+
+def _grid(z0: np.ndarray) -> list[np.ndarray]:
+    """Points in decades of every factor (all combinations up to two factors, else one by one)."""
+    steps = np.log(10.0) * np.arange(-3.0, 4.0)
+    if z0.size <= 2:
+        mesh = np.meshgrid(*[z + steps for z in z0], indexing="ij")
+        return [np.array(p) for p in zip(*(m.ravel() for m in mesh), strict=True)]
+    out = []
+    for i in range(z0.size):
+        for s in steps:
+            z = z0.copy()
+            z[i] += s
+            out.append(z)
+    return out
+
+
+#: how far (in log-scale) from its start a scale may move in one estimate: a factor e^12 ≈ 1.6e5
+_LOG_RANGE = 12.0
+
+
+class _ScaleLayout:
+    """The log-scales (or log-factors) of the noise models in ``fields`` as one flat vector z."""
+
+    def __init__(self, system: AbstractSystem, fields: Sequence[str], per_component: bool):
+        self.fields = tuple(fields)
+        self.base = {f: getattr(system, f) for f in self.fields}
+        self.sizes = []
+        parts = []
+        for f in self.fields:
+            noise = self.base[f]
+            if per_component and isinstance(noise, DiagonalGaussian):
+                scale = np.asarray(noise.scale, float)
+                self.sizes.append(scale.size)
+                parts.append(np.log(scale).ravel())
+            else:  # one factor on the whole covariance, z = log c (start 0)
+                self.sizes.append(0)
+                parts.append(np.zeros(1))
+        self.z0 = np.concatenate(parts)
+        self.factors_only = not any(self.sizes)
+
+    def system(self, system: AbstractSystem, z: np.ndarray) -> AbstractSystem:
+        i = 0
+        for field, size in zip(self.fields, self.sizes, strict=True):
+            noise = self.base[field]
+            if size:
+                old = jnp.asarray(noise.scale)
+                scale = jnp.asarray(np.exp(z[i : i + size]).reshape(old.shape), old.dtype)
+                new = DiagonalGaussian(scale, noise.dim)
+                i += size
+            else:
+                c = float(np.exp(z[i]))
+                if isinstance(noise, DiagonalGaussian):
+                    new = DiagonalGaussian(jnp.asarray(noise.scale) * c, noise.dim)
+                else:
+                    new = CholeskyGaussian(jnp.asarray(noise.chol) * c)
+                i += 1
+            system = eqx.tree_at(lambda s, f=field: getattr(s, f), system, replace=new)
+        return system
+
+    def gradient(self, system: AbstractSystem, nm: NoiseMoments) -> np.ndarray:
+        """∂ log-evidence / ∂ z: N_i·(ratio_i − 1) per component, summed for a factor."""
+        ratios = noise_ratios(system, nm)
+        obs = system.obs_noise
+        obs_count = (
+            np.full(system.obs_dim, float(nm.moments["obs_full_count"]))
+            if isinstance(obs, CholeskyGaussian)
+            else np.asarray(nm.moments["obs_count"], float)
+        )
+        counts = {
+            "process_noise": np.full(system.state_dim, float(nm.moments["dyn_count"])),
+            "obs_noise": obs_count,
+        }
+        out = []
+        for field, size in zip(self.fields, self.sizes, strict=True):
+            g = counts[field] * np.nan_to_num(ratios[field] - 1.0)
+            if size:
+                scale = np.asarray(self.base[field].scale)
+                out.append(np.atleast_1d(g.sum()) if scale.ndim == 0 else g.reshape(-1))
+            else:
+                out.append(np.atleast_1d(g.sum()))
+        return np.concatenate(out)
+
+
+def _evidence(nm: NoiseMoments) -> float:
+    ok = np.asarray(nm.ok)
+    return float(np.sum(np.asarray(nm.log_evidence)[ok])) if ok.any() else -np.inf
+
+
+def _stds(system: AbstractSystem, fields: Sequence[str]) -> np.ndarray:
+    out = []
+    for field in fields:
+        noise = getattr(system, field)
+        out.append(np.sqrt(np.diagonal(np.asarray(noise.covariance(), float))))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+#: the largest change of a learned noise factor (relative) under which the rounds stop
+NOISE_ROUND_RTOL = 0.05
+
+
+def fit_learning_noise(
+    system: AbstractSystem,
+    data: Trajectories,
+    x_init: ArrayLike | None,
+    *,
+    max_rounds: int = 6,
+    **fit_options,
+):
+    """``fit(..., noise="learn")``: CE fits alternated with the noise the data show.
+
+    The user's noise models give the shape (which components are noisier, correlations); one
+    factor on each — process and observation — is learned, because those two factors are what a
+    guess gets wrong by orders of magnitude and what moves a CE fit (J weighs dynamics against
+    observations by them). Round 0 estimates the factors at the starting θ
+    (:func:`estimate_noise`: the Laplace log-evidence maximised, a grid of decades around the
+    guess first); a θ still far off then puts its model error into the process noise — a loose
+    process noise, the safe side for the CE fit that follows. Each round fits θ and the states
+    at the current noise (``fit`` with the given solver, warm-started), then re-estimates the
+    factors at the fitted θ, again from the user's guess (so a degenerate maximum found once is
+    not inherited); it stops when no factor changes by more than 5 % and the fit converged, or
+    after ``max_rounds`` rounds. The result is the last round's fit, at noise consistent with
+    its own residuals; ``FitResult.noise_rounds`` records each round.
+
+    Args:
+        system: the model at its initial θ, with the user's noise guess.
+        data: B observed trajectories.
+        x_init: start states (``None``: as ``fit`` starts).
+        max_rounds: bound on the CE fits.
+        **fit_options: the other ``fit`` options (solver, trainable, max_epochs per round, ...).
+
+    Returns:
+        The last round's :class:`ceemx.FitResult`, with ``noise_rounds`` filled in.
+    """
+    from ceemx.identification.driver import fit
+
+    if fit_options.get("checkpoint") is not None:
+        raise ValueError(
+            "fit(..., noise='learn') runs several fits (one per noise round) and does not "
+            "checkpoint; pass checkpoint=None, or learn the noise with "
+            "ceemx.estimate_noise(...) first and fit with noise='fixed' and a checkpoint."
+        )
+    if isinstance(max_rounds, bool) or not isinstance(max_rounds, int) or max_rounds < 1:
+        raise ValueError(f"`max_rounds` must be an integer ≥ 1; got {max_rounds!r}.")
+    guess = system
+    system, nm, _ = estimate_noise(guess, data, x_init)
+    states = nm.states
+    rounds: list[dict] = [_round_record(0, system, nm, None)]
+    result = None
+    last: list = []
+    for k in range(1, max_rounds + 1):
+        with warnings.catch_warnings(record=True) as caught:  # the last round's are re-issued
+            warnings.simplefilter("always")
+            result = fit(system, data, states, noise="fixed", **fit_options)
+        last = list(caught)
+        fitted = _with_noise_of(result.system, guess)
+        new, nm, _ = estimate_noise(fitted, data, result.states)
+        change = float(np.max(np.abs(_stds(new, NOISE_FIELDS) / _stds(system, NOISE_FIELDS) - 1)))
+        rounds.append(_round_record(k, new, nm, result, change))
+        if not np.isfinite(change):
+            break
+        settled = change <= NOISE_ROUND_RTOL
+        system, states = (result.system, result.states) if settled else (new, nm.states)
+        if settled and result.converged:
+            break
+    assert result is not None
+    for w in last:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return dataclasses.replace(result, noise_rounds=tuple(rounds))
+
+
+def _with_noise_of(system: AbstractSystem, other: AbstractSystem) -> AbstractSystem:
+    for field in NOISE_FIELDS:
+        system = eqx.tree_at(
+            lambda s, f=field: getattr(s, f), system, replace=getattr(other, field)
+        )
+    return system
+
+
+def _round_record(k: int, system: AbstractSystem, nm: NoiseMoments, result, change=None) -> dict:
+    return {
+        "round": k,
+        "process_noise_std": np.sqrt(np.diagonal(np.asarray(system.process_noise.covariance())))
+        .round(12)
+        .tolist(),
+        "obs_noise_std": np.sqrt(np.diagonal(np.asarray(system.obs_noise.covariance())))
+        .round(12)
+        .tolist(),
+        "log_evidence": _evidence(nm),
+        "epochs": None if result is None else result.epochs,
+        "converged": None if result is None else bool(result.converged),
+        "change": change,
+    }
