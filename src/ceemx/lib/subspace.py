@@ -239,6 +239,135 @@ def _initial_states(us, ys, A, B, C, D, k: int) -> np.ndarray:
     return x0
 
 
+def _trajectories(y, u) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """``y`` and ``u`` as lists of (T_b, m) and (T_b, p) float64 arrays of matching lengths."""
+    ys = _as_list("y", y, "m")
+    if u is None:
+        return ys, [np.zeros((a.shape[0], 0)) for a in ys]
+    us = _as_list("u", u, "p")
+    if len(us) != len(ys):
+        raise ValueError(f"`u` has {len(us)} trajectories but `y` has {len(ys)}.")
+    for b, (ub, yb) in enumerate(zip(us, ys, strict=True)):
+        if ub.shape[0] != yb.shape[0]:
+            raise ValueError(
+                f"`u[{b}]` has {ub.shape[0]} time steps but `y[{b}]` has {yb.shape[0]}."
+            )
+    return ys, us
+
+
+def _check_order(order, m: int, weighting: str) -> int:
+    """The number of states n = ``order``, checked with the outputs (m ≥ 1) and ``weighting``."""
+    if m == 0:
+        raise ValueError("`y` must have at least one output (m ≥ 1).")
+    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
+        raise ValueError(f"`order` must be a positive integer; got {order!r}.")
+    if weighting not in ("n4sid", "moesp", "cva"):
+        raise ValueError(f"`weighting` must be 'n4sid', 'moesp' or 'cva'; got {weighting!r}.")
+    return int(order)
+
+
+def _horizon(horizon, ys: list[np.ndarray], n: int, m: int) -> int:
+    """The horizon k: ``horizon`` checked against n and the lengths, or the default shortened."""
+    shortest = min(a.shape[0] for a in ys)
+    k_min = math.ceil(n / m) + 1
+    if horizon is None:
+        k = min(default_horizon(n, m), shortest // 2)
+        if k < k_min:
+            raise ValueError(
+                f"`order` = {n} needs a horizon k ≥ {k_min} (with m = {m} outputs) and so "
+                f"trajectories of at least {2 * k_min} steps; the shortest has {shortest}."
+            )
+        return k
+    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):
+        raise ValueError(f"`horizon` must be an integer; got {horizon!r}.")
+    k = int(horizon)
+    if (k - 1) * m < n:
+        raise ValueError(
+            f"`order` = {n} is too large for `horizon` = {k} with m = {m} outputs: N4SID "
+            f"needs (k − 1)·m ≥ n, i.e. k ≥ {k_min}."
+        )
+    for b, a in enumerate(ys):
+        if a.shape[0] < 2 * k:
+            raise ValueError(
+                f"trajectory {b} has {a.shape[0]} steps; `horizon` = {k} needs at least "
+                f"2k = {2 * k}."
+            )
+    return k
+
+
+def _num_windows(ys: list[np.ndarray], k: int, r: int) -> int:
+    """N, the windows of 2k steps over all trajectories (at least the r data rows)."""
+    N = sum(a.shape[0] - 2 * k + 1 for a in ys)
+    if N < r:
+        raise ValueError(
+            f"too few data: {N} windows of 2k = {2 * k} steps for r = 2k(m + p) = {r} data rows; "
+            "give more or longer trajectories or a smaller `horizon`."
+        )
+    return N
+
+
+@dataclasses.dataclass(frozen=True)
+class _Rows:
+    """The rows of L (H = L Q̃ᵀ) that stand for the block rows of U_{0|2k−1} and Y_{0|2k−1}."""
+
+    L: np.ndarray
+    k: int
+    p: int
+    m: int
+
+    def u(self, a: int, b: int) -> np.ndarray:
+        """U_{a|b−1}."""
+        return self.L[a * self.p : b * self.p]
+
+    def y(self, a: int, b: int) -> np.ndarray:
+        """Y_{a|b−1}."""
+        first = 2 * self.k * self.p
+        return self.L[first + a * self.m : first + b * self.m]
+
+    def past(self, b: int) -> np.ndarray:
+        """W_{0|b−1} = [U_{0|b−1}; Y_{0|b−1}]."""
+        return np.vstack([self.u(0, b), self.y(0, b)])
+
+
+def _cva_weights(Yf: np.ndarray, Uf: np.ndarray, scale: float, rcond: float):
+    """CVA's W₁ = (Y_f Π_{U_f⊥} Y_fᵀ / N)^{−1/2} and its inverse (pseudo-inverse roots)."""
+    yf_perp = _perp(Yf, Uf, rcond) * scale
+    evals, evecs = np.linalg.eigh(yf_perp @ yf_perp.T)
+    keep = evals > rcond * max(float(evals.max()), np.finfo(float).tiny)
+    root = np.sqrt(np.where(keep, evals, 0.0))
+    inv_root = np.where(keep, 1.0 / np.where(keep, root, 1.0), 0.0)
+    return (evecs * inv_root) @ evecs.T, (evecs * root) @ evecs.T
+
+
+def _observability(Ok, Uf, Yf, *, n: int, N: int, weighting: str, rcond: float):
+    """Γ_k from the SVD of W₁ O_k W₂ / √N truncated to n; returns (Γ_k, singular values)."""
+    scale = 1.0 / math.sqrt(N)
+    if weighting == "n4sid":
+        weighted, w1_inv = Ok * scale, None
+    else:
+        weighted = _perp(Ok, Uf, rcond) * scale
+        w1_inv = None
+        if weighting == "cva":
+            w1, w1_inv = _cva_weights(Yf, Uf, scale, rcond)
+            weighted = w1 @ weighted
+    U, sv, _ = np.linalg.svd(weighted, full_matrices=False)
+    gamma = U[:, :n] * np.sqrt(sv[:n])
+    if w1_inv is not None:
+        gamma = w1_inv @ gamma
+    return gamma, sv
+
+
+def _regression(Xk, Xk1, rows: _Rows, *, N: int, rcond: float):
+    """[[A, B], [C, D]] from [X_{k+1}; Y_{k|k}] ≈ Θ [X_k; U_{k|k}] and the residual covariance."""
+    k = rows.k
+    lhs = np.vstack([Xk1, rows.y(k, k + 1)])
+    rhs = np.vstack([Xk, rows.u(k, k + 1)])
+    theta = _coefficients(lhs, rhs, rcond)
+    resid = lhs - theta @ rhs
+    cov = resid @ resid.T / N
+    return theta, 0.5 * (cov + cov.T)
+
+
 def n4sid(
     y,
     u=None,
@@ -295,105 +424,23 @@ def n4sid(
         >>> bool(abs(res.A[0, 0] - 0.9) < 1e-8)
         True
     """
-    ys = _as_list("y", y, "m")
-    m = ys[0].shape[1]
-    if u is None:
-        us = [np.zeros((a.shape[0], 0)) for a in ys]
-    else:
-        us = _as_list("u", u, "p")
-        if len(us) != len(ys):
-            raise ValueError(f"`u` has {len(us)} trajectories but `y` has {len(ys)}.")
-        for b, (ub, yb) in enumerate(zip(us, ys, strict=True)):
-            if ub.shape[0] != yb.shape[0]:
-                raise ValueError(
-                    f"`u[{b}]` has {ub.shape[0]} time steps but `y[{b}]` has {yb.shape[0]}."
-                )
-    p = us[0].shape[1]
-    if m == 0:
-        raise ValueError("`y` must have at least one output (m ≥ 1).")
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
-        raise ValueError(f"`order` must be a positive integer; got {order!r}.")
-    n = int(order)
-    if weighting not in ("n4sid", "moesp", "cva"):
-        raise ValueError(f"`weighting` must be 'n4sid', 'moesp' or 'cva'; got {weighting!r}.")
-    shortest = min(a.shape[0] for a in ys)
-    k_min = math.ceil(n / m) + 1
-    if horizon is None:
-        k = min(default_horizon(n, m), shortest // 2)
-        if k < k_min:
-            raise ValueError(
-                f"`order` = {n} needs a horizon k ≥ {k_min} (with m = {m} outputs) and so "
-                f"trajectories of at least {2 * k_min} steps; the shortest has {shortest}."
-            )
-    else:
-        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)):
-            raise ValueError(f"`horizon` must be an integer; got {horizon!r}.")
-        k = int(horizon)
-        if (k - 1) * m < n:
-            raise ValueError(
-                f"`order` = {n} is too large for `horizon` = {k} with m = {m} outputs: N4SID "
-                f"needs (k − 1)·m ≥ n, i.e. k ≥ {k_min}."
-            )
-        for b, a in enumerate(ys):
-            if a.shape[0] < 2 * k:
-                raise ValueError(
-                    f"trajectory {b} has {a.shape[0]} steps; `horizon` = {k} needs at least "
-                    f"2k = {2 * k}."
-                )
+    ys, us = _trajectories(y, u)
+    m, p = ys[0].shape[1], us[0].shape[1]
+    n = _check_order(order, m, weighting)
+    k = _horizon(horizon, ys, n, m)
     r = 2 * k * (m + p)
-    N = sum(a.shape[0] - 2 * k + 1 for a in ys)
-    if N < r:
-        raise ValueError(
-            f"too few data: {N} windows of 2k = {2 * k} steps for r = 2k(m + p) = {r} data rows; "
-            "give more or longer trajectories or a smaller `horizon`."
-        )
+    N = _num_windows(ys, k, r)
     chunk = max(4 * r, 4096) if chunk_rows is None else max(int(chunk_rows), 1)
 
-    L = _compress(us, ys, k, r, chunk).T  # H = L Q̃ᵀ: the rows of L stand for the data rows
-
-    def urows(a: int, b: int) -> np.ndarray:
-        return L[a * p : b * p]
-
-    def yrows(a: int, b: int) -> np.ndarray:
-        return L[2 * k * p + a * m : 2 * k * p + b * m]
-
-    Uf, Yf = urows(k, 2 * k), yrows(k, 2 * k)
-    Wp = np.vstack([urows(0, k), yrows(0, k)])
-    Ok = _oblique(Yf, Uf, Wp, rcond)
-    Ok1 = _oblique(
-        yrows(k + 1, 2 * k),
-        urows(k + 1, 2 * k),
-        np.vstack([urows(0, k + 1), yrows(0, k + 1)]),
-        rcond,
-    )
-
-    scale = 1.0 / math.sqrt(N)
-    if weighting == "n4sid":
-        weighted, w1_inv = Ok * scale, None
-    else:
-        weighted = _perp(Ok, Uf, rcond) * scale
-        w1_inv = None
-        if weighting == "cva":
-            yf_perp = _perp(Yf, Uf, rcond) * scale
-            evals, evecs = np.linalg.eigh(yf_perp @ yf_perp.T)
-            keep = evals > rcond * max(float(evals.max()), np.finfo(float).tiny)
-            root = np.sqrt(np.where(keep, evals, 0.0))
-            inv_root = np.where(keep, 1.0 / np.where(keep, root, 1.0), 0.0)
-            w1_inv = (evecs * root) @ evecs.T
-            weighted = (evecs * inv_root) @ evecs.T @ weighted
-    U, sv, _ = np.linalg.svd(weighted, full_matrices=False)
-    gamma = U[:, :n] * np.sqrt(sv[:n])
-    if w1_inv is not None:
-        gamma = w1_inv @ gamma
+    rows = _Rows(_compress(us, ys, k, r, chunk).T, k, p, m)  # the rows of L stand for data rows
+    Uf, Yf = rows.u(k, 2 * k), rows.y(k, 2 * k)
+    Ok = _oblique(Yf, Uf, rows.past(k), rcond)
+    Ok1 = _oblique(rows.y(k + 1, 2 * k), rows.u(k + 1, 2 * k), rows.past(k + 1), rcond)
+    gamma, sv = _observability(Ok, Uf, Yf, n=n, N=N, weighting=weighting, rcond=rcond)
     Xk = np.linalg.pinv(gamma) @ Ok
     Xk1 = np.linalg.pinv(gamma[:-m]) @ Ok1
 
-    lhs = np.vstack([Xk1, yrows(k, k + 1)])
-    rhs = np.vstack([Xk, urows(k, k + 1)])
-    theta = _coefficients(lhs, rhs, rcond)
-    resid = lhs - theta @ rhs
-    cov = resid @ resid.T / N
-    cov = 0.5 * (cov + cov.T)
+    theta, cov = _regression(Xk, Xk1, rows, N=N, rcond=rcond)
     A, B = theta[:n, :n], theta[:n, n:]
     C, D = theta[n:, :n], theta[n:, n:]
     Q, R, S = cov[:n, :n], cov[n:, n:], cov[:n, n:]
