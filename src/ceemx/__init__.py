@@ -30,6 +30,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
     )
     from ceemx.evaluation.simulation import estimate_initial_state, free_run, predict_k_step
     from ceemx.identification import initialize
+    from ceemx.identification.diagnostics import ResidualDiagnostics, residual_diagnostics
     from ceemx.identification.driver import EpochInfo, FitResult, fit, particle_em
     from ceemx.identification.initialize import perturb, warm_start
     from ceemx.identification.learning import (
@@ -41,6 +42,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
         OptaxLearner,
         learn,
     )
+    from ceemx.identification.noise_check import NoiseCheck
     from ceemx.identification.problem import FitProblem
     from ceemx.identification.solvers import (
         AbstractFitSolver,
@@ -132,11 +134,13 @@ _LAZY = {
     "LearnInfo": ".identification.learning",
     "LessThan": ".models",
     "NelderMeadLearner": ".identification.learning",
+    "NoiseCheck": ".identification.noise_check",
     "OptaxLearner": ".identification.learning",
     "ParticleEM": ".identification.solvers",
     "ParticleFilterSolution": ".inference.particle",
     "Positive": ".models",
     "RESULTS": ".lib.results",
+    "ResidualDiagnostics": ".identification.diagnostics",
     "SmootherSolution": ".inference.smoother",
     "StudentT": ".models",
     "Trajectories": ".data.trajectories",
@@ -157,6 +161,7 @@ _LAZY = {
     "particle_filter": ".inference.particle",
     "perturb": ".identification.initialize",
     "predict_k_step": ".evaluation.simulation",
+    "residual_diagnostics": ".identification.diagnostics",
     "simulate": ".data.trajectories",
     "smooth": ".inference.smoother",
     "warm_start": ".identification.initialize",
@@ -222,11 +227,13 @@ __all__ = [
     "LearnInfo",
     "LessThan",
     "NelderMeadLearner",
+    "NoiseCheck",
     "OptaxLearner",
     "ParticleEM",
     "ParticleFilterSolution",
     "Positive",
     "RESULTS",
+    "ResidualDiagnostics",
     "SmootherSolution",
     "StudentT",
     "Trajectories",
@@ -254,6 +261,7 @@ __all__ = [
     "perturb",
     "predict_k_step",
     "prediction",
+    "residual_diagnostics",
     "report",
     "simulate",
     "simulation",

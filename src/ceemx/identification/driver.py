@@ -23,6 +23,7 @@ from jaxtyping import ArrayLike, PRNGKeyArray
 from ceemx.data.sharding import resolve_devices, shard_batch
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.health import OUTLIER_OPTIONS, trajectory_health
+from ceemx.identification.noise_check import NoiseCheck, noise_check
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver, FitState, total_J
@@ -81,6 +82,10 @@ class FitResult(eqx.Module):
             trajectories taking part; ``None`` for results built by hand).
         theta: the final flat θ in the problem's unconstrained coordinates.
         weights: the final (B',) trajectory weights of the fitted trajectories (0: failed).
+        noise_check: the end-of-fit noise check (:mod:`ceemx.identification.noise_check`): are
+            the residuals consistent with the assumed noise? (``None`` with
+            ``fit(..., diagnose=False)``, when no epoch ran, or for non-Gaussian noise.)
+            :meth:`diagnostics` gives the full report.
         noise_rounds: with ``fit(..., noise="learn")``, one record per noise round (``round``,
             ``process_noise_std``, ``obs_noise_std``, ``log_evidence``, ``epochs``,
             ``converged``, ``change``; round 0 is the estimate at the start); else ``()``.
@@ -104,6 +109,7 @@ class FitResult(eqx.Module):
     problem: FitProblem | None = None
     theta: Any = None
     weights: Any = None
+    noise_check: NoiseCheck | None = eqx.field(static=True, default=None)
     noise_rounds: tuple = eqx.field(static=True, default=())
 
     @property
@@ -119,7 +125,8 @@ class FitResult(eqx.Module):
         """One status message per trajectory, consistent with :attr:`converged`.
 
         A trajectory whose solver status is ``successful`` in a fit that did not converge (the
-        epoch bound ran out, a callback stopped it) reads "stopped before convergence".
+        epoch bound ran out, a callback stopped it) reads "stopped before convergence". When the
+        end-of-fit noise check failed, its message follows the per-trajectory ones.
         """
         out = messages(self.status)
         if not self.converged:
@@ -130,7 +137,26 @@ class FitResult(eqx.Module):
                 else text
                 for good, text in zip(ok, out, strict=True)
             ]
+        if self.noise_check is not None and self.noise_check.message:
+            out = [*out, self.noise_check.message]
         return out
+
+    def diagnostics(self, **options):
+        """Residual and noise diagnostics of the fitted model on the fitted trajectories.
+
+        :func:`ceemx.identification.diagnostics.residual_diagnostics` at the end point (noise
+        ratios and the noise the data say, the EKF prediction-error tests); ``options`` are its
+        keyword arguments (``lags``, ``estimate``, ``factor``, ``initial``).
+        """
+        from ceemx.identification.diagnostics import residual_diagnostics
+
+        problem, _, states, weights = self._laplace_inputs()
+        keep = np.flatnonzero(np.asarray(weights) > 0)
+        data = problem.data[keep] if keep.size < states.shape[0] else problem.data
+        states = states[jnp.asarray(keep)] if keep.size < states.shape[0] else states
+        return residual_diagnostics(
+            self.system, data, states, noise_check=self.noise_check, **options
+        )
 
     def _laplace_inputs(self):
         if self.problem is None or self.theta is None:
@@ -231,6 +257,7 @@ def fit(
     key: PRNGKeyArray | None = None,
     outliers: str = "exclude",
     devices: Literal["all"] | Mesh | None = None,
+    diagnose: bool = True,
     noise: Literal["fixed", "learn"] = "fixed",
 ) -> FitResult:
     """Identify θ and the state trajectories by maximising the CE-EM objective J(x, θ) (Eq. 9).
@@ -273,6 +300,10 @@ def fit(
             process only: a mesh across hosts is refused). When B is not divisible by the device
             count the largest divisor of B devices is used. Results agree with ``None`` to
             rounding; with one device it changes nothing.
+        diagnose: the end-of-fit noise check (:mod:`ceemx.identification.noise_check`, one
+            pass over the residuals): warns when the residuals are inconsistent with the assumed
+            noise (too tight or too loose by more than 2× in standard deviation) and stores it in
+            :attr:`FitResult.noise_check`; ``False`` skips it.
         noise: ``"fixed"`` (default) fits at the system's noise models; ``"learn"`` learns one
             factor on each — process and observation noise — from the data, for a user who does
             not know the noise scales: CE fits alternated with the maximiser of the Laplace
@@ -328,6 +359,7 @@ def fit(
     took_part = bool(np.any(np.asarray(state.weights) > 0))
     converged = bool(converged and took_part and np.isfinite(total_J(state)))
     out_states, status = _with_excluded(state, all_states, excluded)
+    check = _check_noise(problem, solver, state, converged) if diagnose and history else None
     return FitResult(
         problem.build(state.theta),
         out_states,
@@ -341,6 +373,7 @@ def fit(
         problem=problem,
         theta=state.theta,
         weights=state.weights,
+        noise_check=check,
     )
 
 
@@ -425,6 +458,23 @@ def _screen_outliers(problem: FitProblem, theta, states, outliers: str):
         if outliers == "exclude":
             excluded = bad
     return excluded, health
+
+
+def _check_noise(problem: FitProblem, solver, state: FitState, converged: bool):
+    """The end-of-fit noise check (:mod:`ceemx.identification.noise_check`); warns on failure."""
+    learned = tuple(f for f in ("process_noise", "obs_noise") if problem.trains(f))
+    check = noise_check(
+        problem.build(state.theta),
+        problem.data,
+        state.states,
+        weights=state.weights,
+        n_params=int(np.size(state.theta)),
+        learned=learned,
+        converged=converged,
+    )
+    if check is not None and check.message:
+        warn(check.message)
+    return check
 
 
 def _run_epochs(
@@ -520,13 +570,14 @@ def particle_em(
     key: PRNGKeyArray | None = None,
     checkpoint_mismatch: str = "raise",
     outliers: str = "exclude",
+    diagnose: bool = True,
     **options: Any,
 ) -> FitResult:
     """Particle EM (fully adapted particle filter, FFBSi, SAEM): ``fit`` with :class:`ParticleEM`.
 
     ``system``, ``data``, ``trainable``, ``log_prior``, ``max_epochs``, ``callbacks``,
-    ``progress``, ``checkpoint``, ``key``, ``checkpoint_mismatch`` and ``outliers`` are as
-    for :func:`fit`; ``x_init`` only sets the
+    ``progress``, ``checkpoint``, ``key``, ``checkpoint_mismatch``, ``outliers`` and ``diagnose``
+    are as for :func:`fit`; ``x_init`` only sets the
     states reported before epoch 1. ``n_particles``, ``n_smoothed``, ``learner`` (``None``:
     Levenberg–Marquardt), ``burn_in``, ``alpha``, ``memory``, ``initial`` and further
     ``options`` (``proposal``, ``ess_threshold``, ``rho_theta``, ``rtol``, ``atol``) are the
@@ -562,4 +613,5 @@ def particle_em(
         key=key,
         checkpoint_mismatch=checkpoint_mismatch,  # pyright: ignore[reportArgumentType]
         outliers=outliers,
+        diagnose=diagnose,
     )

@@ -1,0 +1,171 @@
+"""Residual and noise diagnostics (issue 21 item 3): the end-of-fit noise check warns when the
+assumed noise is inconsistent with the residuals, and ``FitResult.diagnostics()`` reports noise
+ratios, the EM noise estimate and the EKF prediction-error tests.
+
+One small linear-Gaussian problem (n = 2, m = 1, p = 1, σ_w = 0.1, σ_v = 0.03, B = 2, T = 200),
+fitted with one compiled program (JointLM, B trainable, started at the true states): every fit
+below differs only in array values (strongly typed, so none retraces).
+"""
+
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ceemx
+from ceemx.evaluation import report
+from ceemx.identification.diagnostics import residual_diagnostics
+from ceemx.identification.noise_check import LOWER, chi2_band, noise_check
+
+jax.config.update("jax_enable_x64", True)
+
+A = np.array([[0.95, 0.1], [-0.1, 0.9]])
+B_IN = np.array([[0.0], [0.5]])
+C = np.array([[1.0, 0.0]])
+Q_STD, R_STD = 0.1, 0.03
+B, T = 2, 200
+simulate = eqx.filter_jit(ceemx.simulate)
+
+
+def model(q_std=Q_STD, a=A):
+    f64 = lambda v: jnp.asarray(v, jnp.float64)  # noqa: E731 — strong types: one program
+    return ceemx.systems.LinearSystem(
+        f64(a), f64(C), f64(B_IN), process_noise=f64(q_std), obs_noise=f64(R_STD)
+    )
+
+
+def record(seed):
+    u = jnp.repeat(jax.random.normal(jax.random.PRNGKey(1000 + seed), (B, T // 10, 1)), 10, 1)
+    x, data = simulate(model(), jax.random.PRNGKey(seed), jnp.zeros((B, 2)), T, u)
+    return data, x
+
+
+def fit(data, x, q_std=Q_STD, **kw):
+    guess = eqx.tree_at(lambda s: s.B, model(q_std), jnp.asarray(1.3 * B_IN))
+    return ceemx.fit(
+        guess, data, x, solver=ceemx.JointLM(), trainable=lambda s: s.B, max_epochs=30, **kw
+    )
+
+
+@pytest.fixture(scope="module")
+def problem():
+    data, x = record(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the true noise: no warning
+        res = fit(data, x)
+    return data, x, res
+
+
+def test_true_noise_is_consistent_and_rho_is_chi2(problem):
+    """ρ = Σ r̂² / (N_res − B·T·n − P) has mean 1 and sd √(2/d): a few records, no warning.
+
+    The model is linear in (x, B) jointly, so Σ r̂² at the joint optimum is exactly χ²(d).
+    """
+    _, _, res = problem
+    check = res.noise_check
+    assert res.converged and check is not None and check.consistent
+    assert check.message is None and not any("assumed noise" in m for m in res.messages())
+    d = B * ((T - 1) * 2 + T) - B * T * 2 - 2
+    assert check.dof == d and check.residuals == B * ((T - 1) * 2 + T)
+    rhos = [check.ratio]
+    for seed in range(1, 8):
+        data, x = record(seed)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            rhos.append(fit(data, x).noise_check.ratio)  # pyright: ignore[reportOptionalMemberAccess]
+    sd = np.sqrt(2.0 / d)
+    assert np.all(np.abs(np.array(rhos) - 1.0) < 4 * sd), rhos
+    assert abs(np.mean(rhos) - 1.0) < 3.5 * sd / np.sqrt(len(rhos)), rhos
+
+
+def test_process_noise_too_tight_warns(problem):
+    data, x, _ = problem
+    with pytest.warns(UserWarning, match="too tight.*observation residuals carry it") as rec:
+        res = fit(data, x, q_std=Q_STD / 10)  # 100× too tight in variance
+    assert "noise='learn'" in str(rec[0].message) and "estimate_noise" in str(rec[0].message)
+    assert res.noise_check is not None and res.noise_check.ratio > 4
+    assert res.messages()[-1] == res.noise_check.message
+
+
+def test_process_noise_too_loose_warns(problem):
+    data, x, _ = problem
+    with pytest.warns(UserWarning, match="too loose") as rec:
+        res = fit(data, x, q_std=Q_STD * 10)  # 100× too loose in variance
+    assert "the process residuals" in str(rec[0].message)
+    assert res.noise_check is not None and res.noise_check.ratio < LOWER
+
+
+def test_diagnose_false_skips_the_check(problem):
+    data, x, _ = problem
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = fit(data, x, q_std=Q_STD / 10, diagnose=False)
+    assert res.noise_check is None and not any("assumed noise" in m for m in res.messages())
+
+
+def test_noise_check_bands_and_hand_built_results(problem):
+    _, _, res = problem
+    assert noise_check(ceemx.with_noise(res.system, obs_noise=ceemx.StudentT(0.03, 4.0, 1)),
+                       res.problem.data, res.states) is None  # fmt: skip
+    lo, hi = chi2_band(10.0)  # small d.o.f.: the χ² quantiles widen the band
+    assert lo < 0.2 and hi > 2.5
+    hand = ceemx.FitResult(res.system, res.states, res.status, [], True, res.solver, 0.0)
+    assert hand.noise_check is None and len(hand.messages()) == B
+
+
+def test_diagnostics_pass_at_the_truth_with_laplace_ratios_near_one(problem, tmp_path):
+    _, _, res = problem
+    diag = res.diagnostics()
+    assert diag.ok, diag.summary()
+    for name in ("process_noise", "obs_noise"):
+        np.testing.assert_allclose(diag.noise_ratios[name], 1.0, atol=0.25)
+        assert diag.estimated_std is not None
+        np.testing.assert_allclose(diag.estimated_std[name], diag.assumed_std[name], rtol=0.2)
+    np.testing.assert_allclose(diag.nis, 1.0, atol=4 * np.sqrt(2 / (B * T)))
+    assert diag.white.all() and diag.independent.all()
+    assert diag.autocorrelation.shape == (1, 26) and diag.cross_correlation.shape == (1, 1, 51)
+    assert "no problem found" in diag.summary() and "rho = " in diag.summary()
+    path = report.plot_residual_diagnostics(diag, tmp_path / "diag.png")
+    assert path.stat().st_size > 0
+
+
+def test_whiteness_flags_missing_dynamics(problem):
+    """The model with the wrong transition matrix: correlated one-step prediction errors."""
+    data, x, _ = problem
+    diag = residual_diagnostics(model(a=0.5 * A), data, x, estimate=False)
+    assert not diag.white[0] and diag.box_pierce_p[0] < 1e-6
+    assert any("correlated at lags 1" in p and "misses dynamics" in p for p in diag.problems)
+
+
+def test_diagnostics_name_the_wrong_scale(problem):
+    """Too tight process noise: the noise estimate recovers the true scale and flags it."""
+    data, x, _ = problem
+    diag = residual_diagnostics(model(Q_STD / 100), data, x)
+    assert diag.estimated_std is not None
+    np.testing.assert_allclose(diag.estimated_std["process_noise"], Q_STD, rtol=0.2)
+    assert not diag.ratio_ok["process_noise"].any() and diag.ratio_ok["obs_noise"].all()
+    assert any(p.startswith("process_noise (state 1)") and "too tight" in p for p in diag.problems)
+    assert diag.nis[0] > 4 and not diag.nis_ok[0]
+
+
+@pytest.mark.slow
+def test_laplace_em_with_learned_noise_does_not_warn(problem):
+    """Both noise models learned from a 100× too tight start: recorded, consistent, silent."""
+    data, x, _ = problem
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = ceemx.fit(
+            model(Q_STD / 10),
+            data,
+            x,
+            solver=ceemx.LaplaceEM(),
+            trainable=lambda s: (s.B, s.process_noise, s.obs_noise),
+            max_epochs=200,
+        )
+    check = res.noise_check
+    assert check is not None and check.learned == ("process_noise", "obs_noise")
+    assert check.message is None and abs(check.ratio - 1) < 4 * np.sqrt(2 / check.dof)
+    np.testing.assert_allclose(res.system.process_noise.scale, Q_STD, rtol=0.2)
