@@ -32,6 +32,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
     from ceemx.identification import initialize
     from ceemx.identification.diagnostics import ResidualDiagnostics, residual_diagnostics
     from ceemx.identification.driver import EpochInfo, FitResult, fit, particle_em
+    from ceemx.identification.identifiability import Identifiability
     from ceemx.identification.initialize import perturb, warm_start
     from ceemx.identification.learning import (
         AbstractLearner,
@@ -125,6 +126,7 @@ _LAZY = {
     "Fixed": ".models",
     "GaussianPrior": ".models",
     "GreaterThan": ".models",
+    "Identifiability": ".identification.identifiability",
     "Interval": ".models",
     "JointLM": ".identification.solvers",
     "LaplaceEM": ".identification.solvers",
@@ -218,6 +220,7 @@ __all__ = [
     "Fixed",
     "GaussianPrior",
     "GreaterThan",
+    "Identifiability",
     "Interval",
     "JointLM",
     "LaplaceEM",

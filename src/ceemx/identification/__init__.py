@@ -5,7 +5,9 @@ The fit problem (θ ⇄ system, −J, prior; :mod:`~ceemx.identification.problem
 (:mod:`~ceemx.identification.solvers`: Algorithm 1, the joint method, Laplace EM, Particle EM),
 the learning step (:mod:`~ceemx.identification.learning`), start states
 (:mod:`~ceemx.identification.initialize`), the start-of-fit health test
-(:mod:`~ceemx.identification.health`) and parameter uncertainty
-(:mod:`~ceemx.identification.uncertainty`). Layer rule: may import everything below it
-(lib, infra, models, data, systems, inference); never evaluation, baselines or experiments.
+(:mod:`~ceemx.identification.health`), parameter uncertainty
+(:mod:`~ceemx.identification.uncertainty`) and identifiability — which parameter combinations
+the data determine (:mod:`~ceemx.identification.identifiability`). Layer rule: may import
+everything below it (lib, infra, models, data, systems, inference); never evaluation, baselines
+or experiments.
 """

@@ -23,6 +23,7 @@ from jaxtyping import ArrayLike, PRNGKeyArray
 from ceemx.data.sharding import resolve_devices, shard_batch
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.health import OUTLIER_OPTIONS, trajectory_health
+from ceemx.identification.identifiability import Identifiability
 from ceemx.identification.noise_check import NoiseCheck, noise_check
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.alternating import Alternating
@@ -70,7 +71,8 @@ class FitResult(eqx.Module):
             ``failed_trajectories``, ``converged``, ``stop``; plus the solver's own
             (``type(solver).history_keys``) and whatever callbacks returned (e.g. ``eps``).
         converged: whether the solver's stopping criterion was met (else ``max_epochs`` ran out,
-            a callback stopped the fit, or every trajectory failed).
+            a callback stopped the fit, or every trajectory failed). With ``identifiability``
+            stopped, it means converged in what the data determine.
         solver: the solver that produced it.
         initial_J: J at the initial (x, θ) (over the trajectories fitted).
         excluded: indices of the trajectories the start-of-fit health test excluded
@@ -78,6 +80,12 @@ class FitResult(eqx.Module):
             is ``outlier``, and ``history`` covers the others only.
         start_mean_square: (B,) the health test's r_b, the mean squared whitened residual of
             each trajectory at the start (``None`` with ``outliers="keep"``).
+        identifiability: the parameter combinations the data do not determine, named
+            (:class:`~ceemx.identification.identifiability.Identifiability`: ``message``,
+            ``determined`` such as ``("a·b", "a·c")``, ``stopped``), as the solver found them —
+            :class:`ceemx.JointLM` during the fit; :class:`ceemx.Alternating` and JointLM at the
+            end point of a fit that did not converge in 20 epochs or more — else ``None``;
+            :meth:`check_identifiability` runs the analysis on demand.
         problem: the :class:`~ceemx.identification.problem.FitProblem` that was fitted (the
             trajectories taking part; ``None`` for results built by hand).
         theta: the final flat θ in the problem's unconstrained coordinates.
@@ -106,6 +114,7 @@ class FitResult(eqx.Module):
     initial_J: float = eqx.field(static=True)
     excluded: tuple = eqx.field(static=True, default=())
     start_mean_square: tuple | None = eqx.field(static=True, default=None)
+    identifiability: Identifiability | None = eqx.field(static=True, default=None)
     problem: FitProblem | None = None
     theta: Any = None
     weights: Any = None
@@ -137,6 +146,8 @@ class FitResult(eqx.Module):
                 else text
                 for good, text in zip(ok, out, strict=True)
             ]
+        if self.identifiability is not None:  # what the data do not determine, after them
+            out = [*out, self.identifiability.message]
         if self.noise_check is not None and self.noise_check.message:
             out = [*out, self.noise_check.message]
         return out
@@ -157,6 +168,22 @@ class FitResult(eqx.Module):
         return residual_diagnostics(
             self.system, data, states, noise_check=self.noise_check, **options
         )
+
+    def check_identifiability(self) -> Identifiability | None:
+        """:attr:`identifiability`, or the analysis at the end point when the fit found none.
+
+        One joint linearisation and Schur complement (compiled once per problem shape) and a host
+        eigen-analysis (:mod:`ceemx.identification.identifiability`); ``None`` when the data
+        determine every parameter.
+        """
+        from ceemx.identification.solvers.base import FitState
+        from ceemx.identification.solvers.joint import identifiability_at
+
+        if self.identifiability is not None:
+            return self.identifiability
+        problem, theta, states, weights = self._laplace_inputs()
+        state = FitState(theta, states, jnp.zeros_like(weights), weights, RESULTS.successful)
+        return identifiability_at(problem, state)
 
     def _laplace_inputs(self):
         if self.problem is None or self.theta is None:
@@ -358,6 +385,7 @@ def fit(
     # Never "converged" when no trajectory took part or J is not finite.
     took_part = bool(np.any(np.asarray(state.weights) > 0))
     converged = bool(converged and took_part and np.isfinite(total_J(state)))
+    found = solver.identifiability(problem, state, history, converged) if took_part else None
     out_states, status = _with_excluded(state, all_states, excluded)
     check = _check_noise(problem, solver, state, converged) if diagnose and history else None
     return FitResult(
@@ -373,6 +401,7 @@ def fit(
         problem=problem,
         theta=state.theta,
         weights=state.weights,
+        identifiability=found,
         noise_check=check,
     )
 

@@ -16,6 +16,7 @@ no change-of-variables term (a penalty in natural units, not a density of θ).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from typing import Any
 
@@ -207,6 +208,44 @@ class FitProblem(eqx.Module):
             natural = [c.forward(z) for c, z in zip(self.constraints, leaves, strict=True)]
             params = jtu.tree_unflatten(treedef, natural)
         return eqx.combine(params, self.static)
+
+    def natural(self, theta: Theta) -> Float[Array, " theta"]:
+        """The flat θ in natural units: each entry through its constraint's ``forward``."""
+        flat, _ = ravel_pytree(self._leafwise(theta, lambda c, z: c.forward(z)))
+        return flat
+
+    def natural_jacobian(self, theta: Theta) -> Float[Array, " theta"]:
+        """(P,) d natural / dθ, elementwise (every constraint acts entry by entry)."""
+
+        def slope(c: AbstractConstraint, z):
+            return jax.jvp(c.forward, (z,), (jnp.ones_like(z),))[1]
+
+        flat, _ = ravel_pytree(self._leafwise(theta, slope))
+        return flat
+
+    def _leafwise(self, theta: Theta, fn) -> Any:
+        _, unravel = ravel_pytree(self.template)
+        leaves, treedef = jtu.tree_flatten(unravel(theta))
+        if self.constraints:
+            leaves = [fn(c, z) for c, z in zip(self.constraints, leaves, strict=True)]
+        else:  # a problem built by hand: every entry unconstrained
+            leaves = [fn(Unconstrained(), z) for z in leaves]
+        return jtu.tree_unflatten(treedef, leaves)
+
+    def parameter_names(self) -> list[str]:
+        """One name per entry of θ, as the user wrote the field: ``k``, ``H[2,3]``, ``sub.k``."""
+        names = []
+        for path, leaf in jtu.tree_flatten_with_path(self.template)[0]:
+            base = jtu.keystr(path).removeprefix(".")
+            shape = jnp.shape(leaf)
+            if shape == ():
+                names.append(base)
+            else:
+                names += [
+                    f"{base}[{','.join(map(str, i))}]"
+                    for i in itertools.product(*map(range, shape))
+                ]
+        return names
 
     def trains(self, field: str) -> bool:
         """Whether any leaf of the system's top-level ``field`` (e.g. ``"obs_noise"``) is in θ."""

@@ -47,9 +47,8 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
 from ceemx.identification.problem import FitProblem
-from ceemx.identification.solvers.joint import linearize_joint
+from ceemx.identification.solvers.joint import schur_complement
 from ceemx.infra.warn import warn
-from ceemx.lib.blocktri import cholesky, is_finite, solve
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, States, Theta
 
@@ -70,22 +69,6 @@ _NOT_PD = (
     "(e.g. it has no effect on the observations); fix or drop such parameters (`trainable`) or "
     "add a prior (`log_prior`)."
 )
-
-
-@eqx.filter_jit
-def schur_complement(
-    problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory
-) -> tuple[Float[Array, "theta theta"], Bool[Array, ""]]:
-    """``(S, ok)``: the Schur complement of the joint Gauss–Newton matrix at (x, θ).
-
-    ``ok`` is False when some ``A_b`` factor is not finite (``S`` is then unreliable).
-    """
-    _, lin = linearize_joint(problem, weights, theta, states)
-    L = jax.vmap(cholesky)(lin.A)
-    a_ok = jnp.all(jax.vmap(is_finite)(L))
-    Z = jax.vmap(solve)(L, lin.E)  # A_b⁻¹ E_b, (B, T, n, P)
-    S = lin.D - jnp.sum(jnp.einsum("btnp,btnq->bpq", lin.E, Z), axis=0)
-    return symmetrize(S), a_ok
 
 
 @eqx.filter_jit
@@ -123,16 +106,8 @@ def _laplace(
 
 
 def _names(problem: FitProblem) -> list[str]:
-    """One name per entry of θ, e.g. ``.A[0,0]`` or ``.sigma``."""
-    names = []
-    for path, leaf in jtu.tree_flatten_with_path(problem.template)[0]:
-        base = jtu.keystr(path)
-        shape = np.shape(leaf)
-        if shape == ():
-            names.append(base)
-        else:
-            names += [f"{base}[{','.join(map(str, i))}]" for i in np.ndindex(*shape)]
-    return names
+    """One name per entry of θ as a key path, e.g. ``.A[0,0]`` or ``.sigma``."""
+    return [f".{name}" for name in problem.parameter_names()]
 
 
 def parameter_covariance(
@@ -282,16 +257,7 @@ def evidence_covariance(
 
 def natural_jacobian(problem: FitProblem, theta: Theta) -> Float[Array, " theta"]:
     """(P,) diagonal of d natural / dθ: each leaf's ``constraint.forward`` derivative."""
-    _, unravel = ravel_pytree(problem.template)
-    leaves, treedef = jtu.tree_flatten(unravel(theta))
-    if not problem.constraints:
-        return jnp.ones_like(theta)
-    derivs = [
-        jax.jvp(c.forward, (z,), (jnp.ones_like(z),))[1]
-        for c, z in zip(problem.constraints, leaves, strict=True)
-    ]
-    flat, _ = ravel_pytree(jtu.tree_unflatten(treedef, derivs))
-    return flat
+    return problem.natural_jacobian(theta)
 
 
 def natural_covariance(
@@ -320,18 +286,9 @@ def standard_errors_by_name(
     problem: FitProblem, theta: Theta, covariance: Float[Array, "theta theta"]
 ) -> dict[str, tuple[float, float]]:
     """``name → (estimate, standard error)`` per entry of θ, both in natural units."""
-    values, _ = ravel_pytree(_natural(problem, theta))  # natural values, in θ order
+    values = problem.natural(theta)  # natural values, in θ order
     se = np.sqrt(np.diagonal(np.asarray(natural_covariance(problem, theta, covariance))))
     return {
         n: (float(v), float(s))
         for n, v, s in zip(_names(problem), np.asarray(values), se, strict=True)
     }
-
-
-def _natural(problem: FitProblem, theta: Theta) -> Any:
-    """The trainable sub-tree in natural units."""
-    _, unravel = ravel_pytree(problem.template)
-    leaves, treedef = jtu.tree_flatten(unravel(theta))
-    if problem.constraints:
-        leaves = [c.forward(z) for c, z in zip(problem.constraints, leaves, strict=True)]
-    return jtu.tree_unflatten(treedef, leaves)

@@ -10,6 +10,8 @@ Nothing here knows about EM, systems or data; the user-facing layer (``ceemx``) 
 - :mod:`~ceemx.lib.lm` — a bounded, vmap-safe Levenberg–Marquardt driver.
 - :mod:`~ceemx.lib.kalman` — linear-Gaussian conditioning (Kalman update) with masks.
 - :mod:`~ceemx.lib.particles` — log-weights, ESS, systematic resampling, FFBSi index draws.
+- :mod:`~ceemx.lib.nullspace` — near-null directions of a curvature matrix (host NumPy) and the
+  small-integer monomials they leave determined ("only a·b and a·c").
 - :mod:`~ceemx.lib.results` — :class:`RESULTS`, the solvers' status codes.
 - :mod:`~ceemx.lib.tree` — pytree utilities for solver objects.
 """

@@ -20,6 +20,7 @@ from ceemx.identification.solvers.base import (
     starting_state,
     trajectory_log_likelihood,
 )
+from ceemx.identification.solvers.joint import end_point_identifiability
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes
@@ -35,7 +36,9 @@ class Alternating(AbstractFitSolver):
     region ρ_x), then learns θ on the smoothed states (``learner``, Eq. 11, with the trust region
     ``rho_theta`` and the problem's log-prior). Trajectories whose smoothing fails (non-finite
     objective) are excluded from learning and reported. Stops when J improves by at most
-    ``rtol·|J + c| + atol`` in an epoch (c: the noise models' normalising constants).
+    ``rtol·|J + c| + atol`` in an epoch (c: the noise models' normalising constants). A fit that
+    did not converge in at least 20 epochs is analysed at its end point for parameters the data
+    do not determine (:attr:`ceemx.FitResult.identifiability`).
 
     Attributes:
         smoother: the smoothing-step solver (:class:`ceemx.LMSmoother`).
@@ -107,3 +110,7 @@ class Alternating(AbstractFitSolver):
             "learner_status": int(codes(info.status)),
         }
         return new, record
+
+    def identifiability(self, problem, state, history, converged):
+        """At the end of a fit that did not converge: :func:`~.joint.end_point_identifiability`."""
+        return end_point_identifiability(problem, state, history, converged)

@@ -8,7 +8,8 @@ checkpoints, timing — and calls:
 - ``step(problem, state) -> (state, record)`` once per epoch; ``record`` holds the solver's own
   history entries (documented in its ``history_keys``);
 - ``terminate(problem, before, after, record) -> (stop, converged)`` after every epoch;
-- ``postprocess(problem, state) -> state`` once at the end.
+- ``postprocess(problem, state) -> state`` once at the end;
+- ``identifiability(problem, state, history, converged)`` once after it (default ``None``).
 
 Heavy work inside ``step`` runs in ``eqx.filter_jit``-compiled functions whose arguments keep their
 shapes and dtypes across epochs, so an EM run compiles once. The driver converts the solver's
@@ -27,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray, PyTree
 
+from ceemx.identification.identifiability import Identifiability
 from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
 from ceemx.inference.smoother import LMSmoother
@@ -188,3 +190,13 @@ class AbstractFitSolver(eqx.Module):
     def postprocess(self, problem: FitProblem, state: FitState) -> FitState:
         """The final state (default: unchanged)."""
         return state
+
+    def identifiability(
+        self, problem: FitProblem, state: FitState, history: list, converged: bool
+    ) -> Identifiability | None:
+        """What the fit found about the parameters the data do not determine (default: nothing).
+
+        Called once by :func:`ceemx.fit` after ``postprocess``; the result is
+        :attr:`ceemx.FitResult.identifiability`.
+        """
+        return None

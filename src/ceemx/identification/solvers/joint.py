@@ -29,19 +29,33 @@ propose a step that moves a log-parameter by hundreds):
   ``check_rtol·|J + c|``, its states are taken and the iterations go on (history key
   ``smoothing_gain``), so a point that the alternating method's own smoothing step would leave
   is never reported as converged.
+
+A third guard stops it from wandering where the data say nothing: when J has stopped improving
+materially but θ still moves, the Schur complement S at the new point tells whether the step lies
+in directions the data do not determine (``check_identifiability``,
+:mod:`ceemx.identification.identifiability`); if so the fit stops, converged in what the data
+determine, and the result names it ("only a·b and a·c are determined by the data").
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ceemx import lib
+from ceemx.identification.identifiability import (
+    MAX_P,
+    MIN_EPOCHS,
+    NOT_SHRINKING,
+    Identifiability,
+    analyse,
+)
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.base import (
     AbstractFitSolver,
@@ -54,13 +68,20 @@ from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.objective import linearize
 from ceemx.infra.memory import check_fits
 from ceemx.infra.warn import warn
-from ceemx.lib.blocktri import BlockTridiagonal
+from ceemx.lib.blocktri import BlockTridiagonal, cholesky, is_finite, solve
+from ceemx.lib.dense import symmetrize
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, codes, select
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 
-__all__ = ["JointLM", "JointLinearization"]
+__all__ = [
+    "JointLM",
+    "JointLinearization",
+    "end_point_identifiability",
+    "identifiability_at",
+    "schur_complement",
+]
 
 
 class JointLM(AbstractFitSolver):
@@ -69,8 +90,10 @@ class JointLM(AbstractFitSolver):
     On strongly coupled problems (coupled Lorenz) it reaches in a handful of iterations what
     Algorithm 1 needs hundreds of epochs for. One epoch is one accepted LM step. Stops when J
     improves by at most ``rtol·|J + c| + atol`` (Algorithm 1's rule), when the model predicts no
-    further decrease, or when no step is accepted within ``max_trials`` (reported by status).
-    Trajectories whose objective is not finite at the start take no part (status ``nonfinite``).
+    further decrease, or when no step is accepted within ``max_trials`` (reported by status), or
+    — converged in what the data determine — when θ moves only along directions the data do not
+    determine (``check_identifiability``). Trajectories whose objective is not finite at the
+    start take no part (status ``nonfinite``).
 
     Attributes:
         rho_x: proximal weight on the states (adds 2ρ_x to their curvature every iteration).
@@ -87,7 +110,12 @@ class JointLM(AbstractFitSolver):
             ``max_theta_step·max(|θ_i|, 1)`` (``inf``: unbounded).
         check_smoothing: before stopping, try one smoothing pass at the end θ and go on if it
             raises J by more than ``check_rtol·|J + c|`` (see the module notes).
-        check_rtol: the material improvement of that check.
+        check_rtol: the material improvement of J, relative to |J + c|: of the smoothing check,
+            and below which the identifiability check looks at the step.
+        check_identifiability: when J improved by at most ``check_rtol·|J + c|`` in an epoch but
+            θ still moved, form S at the new point and stop if the step lies in directions the
+            data do not determine (:mod:`ceemx.identification.identifiability`: thresholds and
+            why; skipped above P = 2000). The result's ``identifiability`` names them.
     """
 
     rho_x: float = 0.0
@@ -103,6 +131,7 @@ class JointLM(AbstractFitSolver):
     max_theta_step: float = 1.0
     check_smoothing: bool = eqx.field(default=True, static=True)
     check_rtol: float = 1e-6
+    check_identifiability: bool = eqx.field(default=True, static=True)
 
     history_keys = {
         "trials": "LM trials in this iteration (accepted and rejected)",
@@ -110,6 +139,10 @@ class JointLM(AbstractFitSolver):
         "damping": "Marquardt λ after the iteration",
         "lm_status": "the LM driver's RESULTS code for the iteration",
         "smoothing_gain": "J gained by the smoothing check before stopping (0: none tried)",
+        "identifiability_checked": "whether the identifiability check formed S in this epoch",
+        "identifiability": "None, or what that check found: directions the data do not "
+        "determine (Identifiability.to_record(): message, determined, undetermined, eigenvalues, "
+        "step_share, stopped)",
     }
 
     def __check_init__(self):
@@ -176,8 +209,16 @@ class JointLM(AbstractFitSolver):
             "damping": float(lam),
             "lm_status": int(codes(code)),
             "smoothing_gain": 0.0,
+            "identifiability_checked": False,
+            "identifiability": None,
         }
         stop, _ = self._stopping(problem, state, new, record)
+        if not stop and accepted:
+            new, checked, found = self._identifiability_check(problem, state, new)
+            record["identifiability_checked"] = checked
+            if found is not None:
+                record["identifiability"] = found.to_record()
+                stop = found.stopped
         if stop and self.check_smoothing and np.any(np.asarray(ok)):
             new, record["smoothing_gain"] = self._smoothing_check(problem, new)
         return new, record
@@ -195,6 +236,33 @@ class JointLM(AbstractFitSolver):
         # No accepted step: converged if the model predicted no decrease, else damping exhausted
         # or non-finite trials — stop either way.
         return True, lm_converged
+
+    def _identifiability_check(
+        self, problem: FitProblem, before: FitState, after: FitState
+    ) -> tuple[FitState, bool, Identifiability | None]:
+        """S at ``after`` when J improved immaterially: the first time, and while θ still moves.
+
+        Returns the state (with ``cache`` updated), whether S was formed, and what it showed.
+
+        ``cache`` carries the scaled length of the θ-step and whether a check ran to the next
+        epoch (lost on a resume: the next check is then a first one again).
+        """
+        th0, th1 = np.asarray(before.theta), np.asarray(after.theta)
+        step = th1 - th0
+        size = float(np.linalg.norm(step / np.maximum(np.abs(th1), 1.0)))
+        last = before.cache if isinstance(before.cache, dict) else {"step": None, "checked": False}
+        moving = last["step"] is not None and size >= NOT_SHRINKING * float(last["step"])
+        due = size > 0.0 and (moving or not last["checked"])
+        check = (
+            self.check_identifiability
+            and due
+            and th1.size <= MAX_P
+            and improvement_converged(problem, before, after, self.check_rtol, 0.0)
+        )
+        after = dataclasses.replace(
+            after, cache={"step": size, "checked": last["checked"] or check}
+        )
+        return after, check, identifiability_at(problem, after, step) if check else None
 
     def _smoothing_check(self, problem: FitProblem, state: FitState) -> tuple[FitState, float]:
         """One smoothing pass at the end θ; its states if it raises J materially."""
@@ -222,6 +290,7 @@ class JointLM(AbstractFitSolver):
                 weights=state.weights,
                 status=state.status,
                 solver_state=state.solver_state,
+                cache=state.cache,
             ),
             gain,
         )
@@ -233,7 +302,17 @@ class JointLM(AbstractFitSolver):
         """
         if record.get("smoothing_gain", 0.0) > 0.0:
             return False, False
+        found = record.get("identifiability")
+        if found is not None and found["stopped"]:
+            return True, True
         return self._stopping(problem, before, after, record)
+
+    def identifiability(self, problem, state, history, converged):
+        """The last identifiability check's finding, else :func:`end_point_identifiability`."""
+        for record in reversed(history):
+            if record.get("identifiability") is not None:
+                return Identifiability.from_record(record["identifiability"])
+        return end_point_identifiability(problem, state, history, converged)
 
 
 class JointLinearization(NamedTuple):
@@ -295,6 +374,55 @@ def linearize_joint(
     """(value, :class:`JointLinearization`) at (x, θ) (the standard errors' Schur complement)."""
     offset = problem.offset(theta, weights)
     return _evaluator(problem, weights, offset)((states, theta))
+
+
+@eqx.filter_jit
+def schur_complement(
+    problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory
+) -> tuple[Float[Array, "theta theta"], Bool[Array, ""]]:
+    """``(S, ok)``: the Schur complement of the joint Gauss–Newton matrix at (x, θ).
+
+    S = D − Σ_b E_bᵀ A_b⁻¹ E_b (no damping, no proximal terms; weight-0 trajectories take no
+    part): the Gauss–Newton curvature of −J in θ with the states eliminated. ``ok`` is False when
+    some ``A_b`` factor is not finite (``S`` is then unreliable). The factorisation precedes the
+    solves that read it: no two LAPACK calls are independent in this program.
+    """
+    _, lin = linearize_joint(problem, weights, theta, states)
+    L = jax.vmap(cholesky)(lin.A)
+    a_ok = jnp.all(jax.vmap(is_finite)(L))
+    Z = jax.vmap(solve)(L, lin.E)  # A_b⁻¹ E_b, (B, T, n, P)
+    S = lin.D - jnp.sum(jnp.einsum("btnp,btnq->bpq", lin.E, Z), axis=0)
+    return symmetrize(S), a_ok
+
+
+def identifiability_at(
+    problem: FitProblem, state: FitState, step: Theta | np.ndarray | None = None
+) -> Identifiability | None:
+    """:func:`ceemx.identification.identifiability.analyse` of S at the state's (x, θ).
+
+    ``None`` when every direction is determined, P > ``MAX_P`` (2000: the dense eigen-analysis
+    is skipped) or S is unreliable. Costs one joint linearisation and Schur complement (about one
+    epoch of the joint method; compiled once per problem shape) and a host P × P eigen-analysis.
+    """
+    if state.theta.shape[0] > MAX_P:
+        return None
+    S, ok = schur_complement(problem, state.theta, state.states, state.weights)
+    if not bool(ok):
+        return None
+    return analyse(problem, state.theta, np.asarray(S), step)
+
+
+def end_point_identifiability(
+    problem: FitProblem, state: FitState, history: list, converged: bool
+) -> Identifiability | None:
+    """The end-point analysis of a fit that did not converge after at least ``MIN_EPOCHS`` epochs.
+
+    Shorter or converged fits are not analysed (``FitResult.check_identifiability`` does it on
+    demand): the analysis costs about one epoch, ≤ 5 % of such a fit.
+    """
+    if converged or len(history) < MIN_EPOCHS or not np.any(np.asarray(state.weights) > 0):
+        return None
+    return identifiability_at(problem, state)
 
 
 def _value(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
