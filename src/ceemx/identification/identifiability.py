@@ -124,8 +124,9 @@ class Identifiability:
 def relative_scale(problem: FitProblem, theta: Theta) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(scale, loggable, natural_per_unit)`` of the relative coordinates r = θ / scale.
 
-    ``loggable``: the natural value is nonzero and finite with a nonzero forward derivative, so a
-    unit of r is a unit of log|θ_nat| (scale = |θ_nat| / |θ_nat'(z)|); otherwise scale =
+    ``loggable``: the natural value is nonzero and finite with a nonzero forward derivative, and
+    either its constraint keeps it off zero (:meth:`FitProblem.sign_definite`) or |θ_nat| ≥ 1, so
+    a unit of r is a unit of log|θ_nat| (scale = |θ_nat| / |θ_nat'(z)|); otherwise scale =
     max(|z|, 1). ``natural_per_unit``: the change of the natural value per unit of r.
     """
     z = np.asarray(theta, dtype=np.float64)
@@ -133,6 +134,10 @@ def relative_scale(problem: FitProblem, theta: Theta) -> tuple[np.ndarray, np.nd
     slope = np.asarray(problem.natural_jacobian(theta), dtype=np.float64)
     tiny = np.finfo(np.float64).tiny
     loggable = np.isfinite(nat) & np.isfinite(slope) & (np.abs(nat) > tiny) & (np.abs(slope) > tiny)
+    # A parameter that may change sign is measured relatively only where it is not small: a gain
+    # fitted at 0.001 whose truth is 0 is determined to ±0.01, yet a factor e on it changes
+    # nothing — in log units it would read "not determined". Below 1 it gets the unit scale.
+    loggable &= problem.sign_definite(theta) | (np.abs(nat) >= 1.0)
     scale = np.where(
         loggable, np.abs(nat) / np.where(loggable, np.abs(slope), 1.0), np.maximum(np.abs(z), 1.0)
     )

@@ -24,6 +24,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float, PyTree
 
@@ -33,6 +34,7 @@ from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 from ceemx.models.constraints import (
     AbstractConstraint,
+    Positive,
     Unconstrained,
     check_constraints,
     leaf_constraints,
@@ -222,6 +224,26 @@ class FitProblem(eqx.Module):
 
         flat, _ = ravel_pytree(self._leafwise(theta, slope))
         return flat
+
+    def sign_definite(self, theta: Theta) -> np.ndarray:
+        """(P,) bool: whether each entry's constraint keeps its natural value off zero's far side.
+
+        True for :class:`Positive`, ``GreaterThan(lower ≥ 0)``, ``LessThan(upper ≤ 0)`` and an
+        ``Interval`` that does not contain 0 in its interior: such a parameter never changes sign,
+        so relative (log) changes are its natural unit.
+        """
+
+        def definite(c: AbstractConstraint, z):
+            lower, upper = getattr(c, "lower", None), getattr(c, "upper", None)
+            yes = (
+                isinstance(c, Positive)
+                or (lower is not None and lower >= 0)
+                or (upper is not None and upper <= 0)
+            )
+            return jnp.full(jnp.shape(z), 1.0 if yes else 0.0)
+
+        flat, _ = ravel_pytree(self._leafwise(theta, definite))
+        return np.asarray(flat) > 0.5
 
     def _leafwise(self, theta: Theta, fn) -> Any:
         _, unravel = ravel_pytree(self.template)
