@@ -43,6 +43,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
         OptaxLearner,
         learn,
     )
+    from ceemx.identification.noise import estimate_noise
     from ceemx.identification.noise_check import NoiseCheck
     from ceemx.identification.problem import FitProblem
     from ceemx.identification.solvers import (
@@ -151,6 +152,7 @@ _LAZY = {
     "ekf": ".inference.ekf",
     "enable_compilation_cache": ".infra.compilation",
     "estimate_initial_state": ".evaluation.simulation",
+    "estimate_noise": ".identification.noise",
     "ffbsi": ".inference.particle",
     "fit": ".identification.driver",
     "foh_inputs": ".data.trajectories",
@@ -246,6 +248,7 @@ __all__ = [
     "ekf",
     "enable_compilation_cache",
     "estimate_initial_state",
+    "estimate_noise",
     "evaluate",
     "ffbsi",
     "filtering",

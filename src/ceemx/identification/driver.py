@@ -90,13 +90,13 @@ class FitResult(eqx.Module):
             trajectories taking part; ``None`` for results built by hand).
         theta: the final flat θ in the problem's unconstrained coordinates.
         weights: the final (B',) trajectory weights of the fitted trajectories (0: failed).
+        noise_rounds: with ``fit(..., noise="learn")``, one record per noise round (``round``,
+            ``process_noise_std``, ``obs_noise_std``, ``log_evidence``, ``epochs``,
+            ``converged``, ``change``; round 0 is the estimate at the start); else ``()``.
         noise_check: the end-of-fit noise check (:mod:`ceemx.identification.noise_check`): are
             the residuals consistent with the assumed noise? (``None`` with
             ``fit(..., diagnose=False)``, when no epoch ran, or for non-Gaussian noise.)
             :meth:`diagnostics` gives the full report.
-        noise_rounds: with ``fit(..., noise="learn")``, one record per noise round (``round``,
-            ``process_noise_std``, ``obs_noise_std``, ``log_evidence``, ``epochs``,
-            ``converged``, ``change``; round 0 is the estimate at the start); else ``()``.
 
     Parameter uncertainty (:mod:`ceemx.identification.uncertainty`): :meth:`covariance`,
     :meth:`standard_errors`, :meth:`parameter_estimates` — for the CE methods the Laplace
