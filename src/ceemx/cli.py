@@ -164,39 +164,24 @@ def _threads(text: str) -> int:
     return n
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser (exposed for documentation and tests)."""
-    from ceemx.experiments import EXPERIMENTS
-    from ceemx.experiments.common import METHODS
-
-    parser = _Parser(
-        prog="ceemx",
-        description="Certainty-equivalent EM system identification in JAX.",
-    )
-    parser.add_argument("--version", action="version", version=f"ceemx {_version()}")
-    parser.add_argument(
-        "--threads",
-        type=_threads,
-        default=None,
-        metavar="N",
-        help="CPU threads for JAX (default: CEEMX_THREADS, else all cores); 1 is often faster "
-        "on a machine busy with other work",
-    )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
+def _add_demo(sub, methods: Sequence[str]) -> None:
+    """The ``demo`` command and its options."""
     demo = sub.add_parser(
         "demo", help="identify six coupled Lorenz attractors; writes a figure and tables"
     )
     demo.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
     demo.add_argument("--out", default="ceemx-demo", help="output folder (default: ./ceemx-demo)")
-    demo.add_argument("--method", choices=METHODS, default=None, help="default: joint")
+    demo.add_argument("--method", choices=methods, default=None, help="default: joint")
     demo.add_argument("--max-epochs", type=int, default=None, help="bound on iterations")
 
+
+def _add_experiment(sub, experiments: Sequence[str], methods: Sequence[str]):
+    """The ``experiment`` command with the options every experiment takes; returns its parser."""
     exp = sub.add_parser(
         "experiment",
         help="run an experiment (table1, figure2, figure3, figure4, benchmarks, laplace)",
     )
-    exp.add_argument("name", choices=EXPERIMENTS, help="which experiment")
+    exp.add_argument("name", choices=experiments, help="which experiment")
     exp.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
     exp.add_argument(
         "--seeds",
@@ -210,13 +195,18 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--out", default=None, help="output folder (default: ./results/NAME)")
     exp.add_argument(
         "--method",
-        choices=METHODS,
+        choices=methods,
         default=None,
         help="joint (x, θ) LM, Algorithm 1, Particle EM (figure3), or Laplace EM (table1: EM "
         "with a Gaussian E-step, likelihood weighting; figure2 runs CE-EM and "
         "Particle EM; figure4: the NL model's CE-EM solver, alternate or joint) (default: "
         "table1 alternate, figure3 joint, figure4 alternate)",
     )
+    return exp
+
+
+def _add_experiment_options(exp) -> None:
+    """The ``experiment`` options that only some experiments take."""
     exp.add_argument(
         "--protocol",
         choices=("ours", "authors"),
@@ -249,6 +239,29 @@ def build_parser() -> argparse.ArgumentParser:
         help="figure4: run the five models on windows of a real benchmark record; "
         "benchmarks: only this dataset (default: all three)",
     )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser (exposed for documentation and tests)."""
+    from ceemx.experiments import EXPERIMENTS
+    from ceemx.experiments.common import METHODS
+
+    parser = _Parser(
+        prog="ceemx",
+        description="Certainty-equivalent EM system identification in JAX.",
+    )
+    parser.add_argument("--version", action="version", version=f"ceemx {_version()}")
+    parser.add_argument(
+        "--threads",
+        type=_threads,
+        default=None,
+        metavar="N",
+        help="CPU threads for JAX (default: CEEMX_THREADS, else all cores); 1 is often faster "
+        "on a machine busy with other work",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    _add_demo(sub, METHODS)
+    _add_experiment_options(_add_experiment(sub, EXPERIMENTS, METHODS))
     return parser
 
 
@@ -293,20 +306,18 @@ def _check_out(parser: argparse.ArgumentParser, out: str | None, default: str) -
         parser.error(f"--out {where}: cannot write there ({e.strerror or e})")
 
 
-def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 2
+def _default_out(args: argparse.Namespace) -> str:
+    """The output folder a command writes to when ``--out`` is not given."""
     if args.command == "demo":
-        _check_out(parser, args.out, "ceemx-demo")
-    else:
-        default = f"results/{args.name}"
-        if args.name == "figure4" and args.dataset is not None:
-            default += f"-{args.dataset}"
-        _check_out(parser, args.out, default)
+        return "ceemx-demo"
+    default = f"results/{args.name}"
+    if args.name == "figure4" and args.dataset is not None:
+        default += f"-{args.dataset}"
+    return default
 
+
+def _limit_threads(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Size JAX's CPU thread pool from ``--threads`` or ``CEEMX_THREADS`` (before JAX starts)."""
     threads = args.threads
     if threads is None and os.environ.get("CEEMX_THREADS", "").strip():
         try:
@@ -318,25 +329,20 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
 
         limit_cpu_threads(threads)  # before JAX starts: XLA sizes its thread pool then
 
+
+def _start_jax() -> None:
+    """Turn on float64 and the persistent compilation cache."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from ceemx.evaluation import report
     from ceemx.infra.compilation import enable_compilation_cache
 
     # Compiled programs persist across runs (CEEMX_COMPILATION_CACHE=0 turns this off).
     enable_compilation_cache()
 
-    if args.command == "demo":
-        from ceemx.experiments import demo
 
-        with report.deferred_writes() as held:
-            demo.run(smoke=args.smoke, out=args.out, method=args.method, max_epochs=args.max_epochs)
-        return _commit(held, interrupts)
-
-    from ceemx.experiments import get
-
-    module = get(args.name)
+def _experiment_kwargs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict:
+    """The keyword arguments of ``run`` for ``ceemx experiment NAME`` (usage errors exit 2)."""
     kwargs = dict(
         smoke=args.smoke,
         seeds=args.seeds,
@@ -363,6 +369,32 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
         kwargs["dataset"] = args.dataset
     elif args.data is not None or args.dataset is not None:
         parser.error("--data applies to figure4 only, --dataset to figure4 and benchmarks")
+    return kwargs
+
+
+def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
+    """Parse and check the arguments, start JAX, run the command; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    _check_out(parser, args.out, _default_out(args))
+    _limit_threads(parser, args)
+    _start_jax()
+    from ceemx.evaluation import report
+
+    if args.command == "demo":
+        from ceemx.experiments import demo
+
+        with report.deferred_writes() as held:
+            demo.run(smoke=args.smoke, out=args.out, method=args.method, max_epochs=args.max_epochs)
+        return _commit(held, interrupts)
+
+    from ceemx.experiments import get
+
+    module = get(args.name)
+    kwargs = _experiment_kwargs(parser, args)
     with report.deferred_writes() as held:
         module.run(**kwargs)
     return _commit(held, interrupts)
