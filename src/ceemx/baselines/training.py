@@ -250,6 +250,55 @@ def _check(
 # ---- the training loop ----------------------------------------------------------------------
 
 
+def _param_dtype(model: LagRegressor | LSTMRegressor):
+    """The dtype of a regressor's parameters."""
+    if isinstance(model, LSTMRegressor):
+        return model.head.weight.dtype
+    return model.mlp.layers[0].weight.dtype
+
+
+def _cast_data(train: Trajectories, valid: Trajectories, lags: int | None, dtype):
+    """(u, y, mask) of ``train`` and the ``valid`` data in ``dtype``; a lag model's u is padded.
+
+    The padding is H − 1 leading copies of u₀, so that the window of step t is u[b, t:t+H].
+    """
+    u = train.u.astype(dtype)
+    if lags is not None:
+        u = jnp.concatenate([jnp.repeat(u[:, :1], lags - 1, axis=1), u], axis=1)
+    arrays = (u, train.y.astype(dtype), train.mask)
+    return arrays, Trajectories(valid.y.astype(dtype), valid.u.astype(dtype), valid.mask)
+
+
+def _train_epochs(run_epoch, params, opt_state, key, epochs: int):
+    """``epochs`` epochs of ``run_epoch``; returns the best-validation parameters and the record.
+
+    The parameters returned are those after the epoch with the lowest finite validation loss, or
+    the last ones when no validation loss was finite.
+    """
+    traces0 = _TRACES["epoch"]
+    train_losses, valid_losses, epoch_s = [], [], []
+    best_params, best_loss, best_epoch = params, math.inf, -1
+    t_start = time.perf_counter()
+    for e, k in enumerate(jax.random.split(key, epochs)):
+        t0 = time.perf_counter()
+        params, opt_state, train_loss, v = run_epoch(params, opt_state, e, k)
+        train_loss, v = float(train_loss), float(v)
+        train_losses.append(train_loss)
+        valid_losses.append(v)
+        epoch_s.append(time.perf_counter() - t0)
+        if math.isfinite(v) and v < best_loss:
+            best_loss, best_params, best_epoch = v, params, e
+    info = TrainInfo(
+        train_losses,
+        valid_losses,
+        best_epoch,
+        time.perf_counter() - t_start,
+        epoch_s,
+        _TRACES["epoch"] - traces0,
+    )
+    return (best_params if best_epoch >= 0 else params), info
+
+
 @no_type_check
 def train_regressor(
     model: LagRegressor | LSTMRegressor,
@@ -322,30 +371,17 @@ def train_regressor(
         scale=scale,
         valid_start=valid_start,
     )
-    if isinstance(model, LSTMRegressor):
-        dtype = model.head.weight.dtype
-    else:
-        dtype = model.mlp.layers[0].weight.dtype
+    dtype = _param_dtype(model)
     scale_arr = jnp.asarray(c.scale, dtype)
     batch = min(c.batch_size, c.samples.shape[0])
     steps = c.steps_per_epoch or math.ceil(c.samples.shape[0] / batch)
-    u = train.u.astype(dtype)
-    if lags is not None:
-        u = jnp.concatenate([jnp.repeat(u[:, :1], lags - 1, axis=1), u], axis=1)
-    arrays = (u, train.y.astype(dtype), train.mask)
-    valid = Trajectories(valid.y.astype(dtype), valid.u.astype(dtype), valid.mask)
+    arrays, valid = _cast_data(train, valid, lags, dtype)
     samples = jnp.asarray(c.samples)
-
     params, static = eqx.partition(model, eqx.is_inexact_array)
-    opt_state = _ADAM.init(params)
-    traces0 = _TRACES["epoch"]
-    train_losses, valid_losses, epoch_s = [], [], []
-    best_params, best_loss, best_epoch = params, math.inf, -1
-    t_start = time.perf_counter()
-    for e, k in enumerate(jax.random.split(key, c.epochs)):
-        t0 = time.perf_counter()
+
+    def run_epoch(params, opt_state, e, k):
         rate = jnp.asarray(lr * lr_decay / (lr_decay + e), dtype)
-        params, opt_state, train_loss, v = _epoch(
+        return _epoch(
             params,
             static,
             opt_state,
@@ -360,21 +396,9 @@ def train_regressor(
             loss=loss,
             start=c.valid_start,
         )
-        train_loss, v = float(train_loss), float(v)
-        train_losses.append(train_loss)
-        valid_losses.append(v)
-        epoch_s.append(time.perf_counter() - t0)
-        if math.isfinite(v) and v < best_loss:
-            best_loss, best_params, best_epoch = v, params, e
-    info = TrainInfo(
-        train_losses,
-        valid_losses,
-        best_epoch,
-        time.perf_counter() - t_start,
-        epoch_s,
-        _TRACES["epoch"] - traces0,
-    )
-    return eqx.combine(best_params if best_epoch >= 0 else params, static), info
+
+    best_params, info = _train_epochs(run_epoch, params, _ADAM.init(params), key, c.epochs)
+    return eqx.combine(best_params, static), info
 
 
 # ---- the paper's baselines ------------------------------------------------------------------
