@@ -32,9 +32,9 @@ minibatches of trajectories, with the same clipping.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -68,6 +68,9 @@ START = 25  # first scored step (the H25 model needs 25 inputs)
 #: (r = 0.1 → ρ_x = r²/2 in ours); the learner's is added as r·‖θ − θ_k‖² (r = 0.5 → ρ_θ = 0.5).
 RHO_X = 0.5 * 0.1**2
 RHO_THETA = 0.5
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 
 @dataclass(frozen=True)
@@ -148,11 +151,16 @@ def load_splits(*, data: str | None, dataset: str | None, smoke: bool, seed: int
     )
 
 
-def group_learning_rates(system, lr_dynamics: float, lr_observation: float) -> jnp.ndarray:
-    """The flat per-parameter learning rates: dynamics (A, B) and observation model (C, D, NN)."""
-    params = jax.tree_util.tree_map(
+def _trainable_params(system):
+    """The system's trainable leaves, the others ``None`` (the pytree that θ flattens)."""
+    return jax.tree_util.tree_map(
         lambda keep, leaf: leaf if keep else None, trainable_mask(system), system
     )
+
+
+def group_learning_rates(system, lr_dynamics: float, lr_observation: float) -> jnp.ndarray:
+    """The flat per-parameter learning rates: dynamics (A, B) and observation model (C, D, NN)."""
+    params = _trainable_params(system)
     dyn = {id(system.A), id(system.B)}
     rates = jax.tree_util.tree_map(
         lambda leaf: jnp.full(leaf.shape, lr_dynamics if id(leaf) in dyn else lr_observation),
@@ -160,6 +168,47 @@ def group_learning_rates(system, lr_dynamics: float, lr_observation: float) -> j
     )
     flat, _ = ravel_pytree(rates)
     return flat
+
+
+def _nl_solver(system, *, method: str, settings: Settings, batch: int):
+    """The NL model's CE-EM solver: Algorithm 1 with the authors' Adam, or the joint LM."""
+    if method == "alternate":
+        rates = group_learning_rates(system, 1e-3, 5e-4)
+        # The authors: Adam per parameter group, gradients clipped to norm 1 (torch_minimize).
+        transform = optax.chain(
+            optax.clip_by_global_norm(1.0),
+            optax.scale_by_adam(),
+            optax.scale(-1.0),
+            optax.scale(rates),
+        )
+        return Alternating(
+            smoother=LMSmoother(rho_x=RHO_X, max_steps=20),
+            learner=OptaxLearner(
+                transform, steps=settings.nl_steps, batch_size=min(settings.nl_batch, batch)
+            ),
+            rho_theta=RHO_THETA,
+            rtol=0.0,
+        )
+    if method == "joint":
+        return JointLM(rho_theta=RHO_THETA, rtol=1e-10)
+    raise ValueError(f"unknown method {method!r} for figure4; use 'alternate' or 'joint'.")
+
+
+def _nl_record(result, best: BestValidation, system, *, method: str, batch: int, wall: float):
+    """The JSON-able record of an NL fit: epochs, best epoch, J, timings, parameter count."""
+    epoch_times = [h["time"] for h in result.history]
+    return {
+        "method": method,
+        "trajectories": int(batch),
+        "epochs": len(result.history),
+        "best_epoch": best.best_epoch,
+        "val_rmse": best.rmse,
+        "J": [float(h["J"]) for h in result.history],
+        "first_epoch_s": epoch_times[0] if epoch_times else float("nan"),
+        "per_epoch_s": float(np.median(epoch_times[1:])) if len(epoch_times) > 1 else float("nan"),
+        "wall_s": wall,
+        "parameters": int(ravel_pytree(_trainable_params(system))[0].shape[0]),
+    }
 
 
 def fit_nl(
@@ -184,27 +233,7 @@ def fit_nl(
     B, T, _ = data.y.shape
     x0 = 0.01 * jax.random.normal(k_x, (B, T, system.state_dim), data.y.dtype)
     best = BestValidation(r_valid, start=START, scale=y_std, initial_system=system)
-    if method == "alternate":
-        rates = group_learning_rates(system, 1e-3, 5e-4)
-        # The authors: Adam per parameter group, gradients clipped to norm 1 (torch_minimize).
-        transform = optax.chain(
-            optax.clip_by_global_norm(1.0),
-            optax.scale_by_adam(),
-            optax.scale(-1.0),
-            optax.scale(rates),
-        )
-        solver = Alternating(
-            smoother=LMSmoother(rho_x=RHO_X, max_steps=20),
-            learner=OptaxLearner(
-                transform, steps=settings.nl_steps, batch_size=min(settings.nl_batch, B)
-            ),
-            rho_theta=RHO_THETA,
-            rtol=0.0,
-        )
-    elif method == "joint":
-        solver = JointLM(rho_theta=RHO_THETA, rtol=1e-10)
-    else:
-        raise ValueError(f"unknown method {method!r} for figure4; use 'alternate' or 'joint'.")
+    solver = _nl_solver(system, method=method, settings=settings, batch=B)
     t0 = time.perf_counter()
     result = fit(
         system,
@@ -216,25 +245,7 @@ def fit_nl(
         key=k_learn,
     )
     wall = time.perf_counter() - t0
-    epoch_times = [h["time"] for h in result.history]
-    record = {
-        "method": method,
-        "trajectories": int(B),
-        "epochs": len(result.history),
-        "best_epoch": best.best_epoch,
-        "val_rmse": best.rmse,
-        "J": [float(h["J"]) for h in result.history],
-        "first_epoch_s": epoch_times[0] if epoch_times else float("nan"),
-        "per_epoch_s": float(np.median(epoch_times[1:])) if len(epoch_times) > 1 else float("nan"),
-        "wall_s": wall,
-        "parameters": int(
-            ravel_pytree(
-                jax.tree_util.tree_map(
-                    lambda keep, leaf: leaf if keep else None, trainable_mask(system), system
-                )
-            )[0].shape[0]
-        ),
-    }
+    record = _nl_record(result, best, system, method=method, batch=B, wall=wall)
     if verbose:
         print(
             f"[NL/{method}] {record['epochs']} epochs on B = {B}, best epoch {best.best_epoch} "
@@ -255,6 +266,270 @@ def paper_ordering(means: dict[str, float]) -> bool:
     """Whether NL < SID < H25 < LSTM < naive holds for the mean test RMSE."""
     order = ("NL", "SID", "H25", "LSTM", "naive")
     return all(means[a] < means[b] for a, b in zip(order, order[1:], strict=False))
+
+
+# ---- the steps of a run -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Trained:
+    """The five fitted models, their training records and seconds per model (``train_s``)."""
+
+    naive: Any
+    h25: Any
+    lstm: ResidualPredictor
+    sids: list
+    sid_valid: list[float]
+    nl: ResidualPredictor
+    nl_record: dict[str, Any]
+    nn_history: dict[str, list[float]]
+    train_s: dict[str, float]
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Test predictions, their RMSE (Eq. 15) per trajectory, and the summary statistics."""
+
+    preds: dict[str, Any]
+    rmse: dict[str, np.ndarray]
+    sid_model_means: np.ndarray
+    mean: dict[str, float]
+    median: dict[str, float]
+    wins: dict[str, int]
+    ordering: bool
+
+
+def _printer(verbose: bool) -> Callable[[str], None]:
+    """``print`` (flushed) when ``verbose``, else a no-op."""
+
+    def say(text: str) -> None:
+        if verbose:
+            print(text, flush=True)
+
+    return say
+
+
+def _timed(fn: Callable[_P, _R], *args: _P.args, **kwargs: _P.kwargs) -> tuple[_R, float]:
+    """``fn(*args, **kwargs)`` and its wall time in seconds."""
+    t0 = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t0
+
+
+def _mean_rmse(predictor, data: Trajectories, y_std) -> float:
+    """A predictor's RMSE (Eq. 15) on ``data``, averaged over trajectories (NaN ignored)."""
+    rmse = prediction_rmse(predictor.predict(data), data, start=START, scale=y_std)
+    return float(np.nanmean(rmse))
+
+
+def _fit_lstm_model(naive, r_train, r_valid, settings: Settings, *, y_std, key):
+    """The LSTM model: the naive model plus an LSTM of its residual; returns (model, info)."""
+    lstm_res, info = fit_lstm(
+        r_train, r_valid, epochs=settings.lstm_epochs, key=key, lr=settings.lstm_lr, scale=y_std
+    )
+    return ResidualPredictor(naive, lstm_res), info
+
+
+def _fit_sid_models(r_train: Trajectories, settings: Settings, *, seed: int) -> list:
+    """The SID models of the residual, one per random subset of training trajectories."""
+    fitted = fit_sid(
+        r_train,
+        state_dim=settings.state_dim,
+        subsets=settings.sid_subsets,
+        subset_size=min(settings.sid_subset_size, r_train.batch_size),
+        seed=seed,
+        noise="unit",  # the authors' EKF evaluation: Q = R = I
+    )
+    return fitted if isinstance(fitted, list) else [fitted]
+
+
+def train_models(
+    s: Splits, settings: Settings, *, method: str, seed: int, verbose: bool
+) -> Trained:
+    """Train naive, H25, LSTM, SID and NL (in this order, the later on the naive residual)."""
+    k_naive, k_h25, k_lstm, k_nl = jax.random.split(jax.random.PRNGKey(seed), 4)
+    say = _printer(verbose)
+    train_s: dict[str, float] = {}
+    # The authors' loss is in physical units (per-output factors y_std); their 5000 epochs at
+    # lr 1e-4 are out of our budget: at 60 epochs lr 1e-3 validates better (docs/results.md).
+    nn = {"epochs": settings.nn_epochs, "batch_size": settings.nn_batch}
+    nn_opts = {"lr": settings.nn_lr, "scale": s.y_std}
+    (naive, naive_info), train_s["naive"] = _timed(
+        fit_naive, s.train, s.valid, **nn, key=k_naive, **nn_opts
+    )
+    say(f"[naive] {train_s['naive']:.1f} s")
+    (h25, h25_info), train_s["H25"] = _timed(
+        fit_lag, s.train, s.valid, lags=25, **nn, key=k_h25, **nn_opts
+    )
+    say(f"[H25] {train_s['H25']:.1f} s")
+
+    r_train = residual_data(s.train, naive.predict(s.train))
+    r_valid = residual_data(s.valid, naive.predict(s.valid))
+    (lstm, lstm_info), train_s["LSTM"] = _timed(
+        _fit_lstm_model, naive, r_train, r_valid, settings, y_std=s.y_std, key=k_lstm
+    )
+    say(f"[LSTM] {train_s['LSTM']:.1f} s")
+    sids, train_s["SID"] = _timed(_fit_sid_models, r_train, settings, seed=seed)
+    sid_valid = [_mean_rmse(StateSpacePredictor(m), r_valid, s.y_std) for m in sids]
+    best_sid = sids[int(np.nanargmin(sid_valid))]
+    say(f"[SID] {len(sids)} models in {train_s['SID']:.1f} s; validation RMSE {sid_valid}")
+    (nl_system, nl_record), train_s["NL"] = _timed(
+        fit_nl,
+        best_sid,
+        r_train,
+        r_valid,
+        y_std=s.y_std,
+        settings=settings,
+        method=method,
+        key=k_nl,
+        verbose=verbose,
+    )
+    return Trained(
+        naive=naive,
+        h25=h25,
+        lstm=lstm,
+        sids=sids,
+        sid_valid=sid_valid,
+        nl=ResidualPredictor(naive, StateSpacePredictor(nl_system)),
+        nl_record=nl_record,
+        nn_history={
+            "naive": naive_info.valid_loss,
+            "H25": h25_info.valid_loss,
+            "LSTM": lstm_info.valid_loss,
+        },
+        train_s=train_s,
+    )
+
+
+def score_models(trained: Trained, test: Trajectories, y_std) -> Scores:
+    """Predict the test trajectories with every model and score them (Eq. 15, physical units)."""
+    preds = {
+        "naive": trained.naive.predict(test),
+        "LSTM": trained.lstm.predict(test),
+        "H25": trained.h25.predict(test),
+        "NL": trained.nl.predict(test),
+    }
+    rmse = {k: prediction_rmse(v, test, start=START, scale=y_std) for k, v in preds.items()}
+    sid_rmse = np.stack(
+        [
+            prediction_rmse(
+                ResidualPredictor(trained.naive, StateSpacePredictor(m)).predict(test),
+                test,
+                start=START,
+                scale=y_std,
+            )
+            for m in trained.sids
+        ]
+    )
+    rmse["SID"] = sid_rmse.mean(axis=0)  # per trajectory, averaged over the SID models
+    means = {k: float(np.mean(rmse[k])) for k in MODELS}
+    return Scores(
+        preds=preds,
+        rmse=rmse,
+        sid_model_means=sid_rmse.mean(axis=1),
+        mean=means,
+        median={k: float(np.median(rmse[k])) for k in MODELS},
+        wins=win_counts(rmse),
+        ordering=paper_ordering(means),
+    )
+
+
+def _table_rows(scores: Scores, train_s, *, n_test: int, show_paper: bool) -> list[list[str]]:
+    """One row per model: mean (SID: the range over its models), median, NL wins, paper, time."""
+    rows = []
+    for k in MODELS:
+        extra = ""
+        if k == "SID":
+            sid = scores.sid_model_means
+            extra = f" (models {sid.min():.3f}–{sid.max():.3f})"
+        rows.append(
+            [
+                k,
+                f"{scores.mean[k]:.3f}{extra}",
+                f"{scores.median[k]:.3f}",
+                "—" if k == "NL" else f"{scores.wins[k]}/{n_test}",
+                PAPER[k] if show_paper else "—",
+                f"{train_s[k]:.1f}",
+            ]
+        )
+    return rows
+
+
+def make_table(
+    scores: Scores,
+    trained: Trained,
+    *,
+    source: str,
+    seed: int,
+    method: str,
+    n_test: int,
+    show_paper: bool,
+    total: float,
+) -> str:
+    """Markdown: the results table, whether the paper's ordering holds, the NL fit and wall time."""
+    header = [
+        "model",
+        "mean test RMSE",
+        "median",
+        "NL better on",
+        "paper (mean)",
+        "train s",
+    ]
+    rows = _table_rows(scores, trained.train_s, n_test=n_test, show_paper=show_paper)
+    title = (
+        f"## Figure 4 — one-step prediction RMSE (Eq. 15, steps ≥ {START}, physical units), "
+        f"{source}, seed {seed}, NL by {method}"
+    )
+    means, nl_record = scores.mean, trained.nl_record
+    lines = [
+        title,
+        "",
+        report.markdown_table(header, rows),
+        "",
+        f"Paper ordering NL < SID < H25 < LSTM < naive holds: "
+        f"**{'yes' if scores.ordering else 'no'}**"
+        f" (ours: {' < '.join(sorted(MODELS, key=lambda k: means[k]))}). {PAPER_NOTE}.",
+        f"NL model: {nl_record['epochs']} CE-EM epochs ({nl_record['per_epoch_s']:.2f} s/epoch, "
+        f"first {nl_record['first_epoch_s']:.1f} s incl. compile), best validation epoch "
+        f"{nl_record['best_epoch']}, {nl_record['parameters']} parameters. "
+        f"Total wall time {total:.1f} s.",
+    ]
+    return "\n".join(lines)
+
+
+def _summary(
+    s: Splits,
+    trained: Trained,
+    scores: Scores,
+    *,
+    seed: int,
+    method: str,
+    settings: Settings,
+    total: float,
+    table: str,
+) -> dict[str, Any]:
+    """The results of a run as ``results.json`` holds them."""
+    return {
+        "experiment": NAME,
+        "source": s.source,
+        "seed": seed,
+        "method": method,
+        "settings": settings.__dict__,
+        "sizes": [s.train.batch_size, s.valid.batch_size, s.test.batch_size],
+        "rmse": {k: scores.rmse[k].tolist() for k in MODELS},
+        "sid_model_means": scores.sid_model_means.tolist(),
+        "sid_valid": trained.sid_valid,
+        "mean": scores.mean,
+        "median": scores.median,
+        "nl_better_on": scores.wins,
+        "paper_ordering": scores.ordering,
+        "train_s": trained.train_s,
+        "nn_history": trained.nn_history,
+        "nl": trained.nl_record,
+        "wall_s": total,
+        "paper": PAPER,
+        "table": table,
+    }
 
 
 def run(
@@ -297,199 +572,40 @@ def run(
         settings = Settings(**{**settings.__dict__, "nl_epochs": max_epochs})
     default_out = "results/figure4" + ("" if dataset is None else f"-{dataset}")
     outdir = report.output_dir(out, default_out)
-    key = jax.random.PRNGKey(seed)
-    k_naive, k_h25, k_lstm, k_nl = jax.random.split(key, 4)
     t_start = time.perf_counter()
     s = load_splits(data=data, dataset=dataset, smoke=smoke, seed=seed)
-    y_std = s.y_std
-    train_time: dict[str, float] = {}
-
-    def say(text):
-        if verbose:
-            print(text, flush=True)
-
+    say = _printer(verbose)
     say(
         f"[figure4] data: {s.source}; train/valid/test = {s.train.batch_size}/"
         f"{s.valid.batch_size}/{s.test.batch_size} trajectories of {s.train.y.shape[1]} steps"
     )
-    t0 = time.perf_counter()
-    # The authors' loss is in physical units (per-output factors y_std); their 5000 epochs at
-    # lr 1e-4 are out of our budget: at 60 epochs lr 1e-3 validates better (docs/results.md).
-    nn_opts = {"lr": settings.nn_lr, "scale": y_std}
-    naive, naive_info = fit_naive(
-        s.train,
-        s.valid,
-        epochs=settings.nn_epochs,
-        batch_size=settings.nn_batch,
-        key=k_naive,
-        **nn_opts,
-    )
-    train_time["naive"] = time.perf_counter() - t0
-    say(f"[naive] {train_time['naive']:.1f} s")
-    t0 = time.perf_counter()
-    h25, h25_info = fit_lag(
-        s.train,
-        s.valid,
-        lags=25,
-        epochs=settings.nn_epochs,
-        batch_size=settings.nn_batch,
-        key=k_h25,
-        **nn_opts,
-    )
-    train_time["H25"] = time.perf_counter() - t0
-    say(f"[H25] {train_time['H25']:.1f} s")
-
-    r_train = residual_data(s.train, naive.predict(s.train))
-    r_valid = residual_data(s.valid, naive.predict(s.valid))
-
-    t0 = time.perf_counter()
-    lstm_res, lstm_info = fit_lstm(
-        r_train,
-        r_valid,
-        epochs=settings.lstm_epochs,
-        key=k_lstm,
-        lr=settings.lstm_lr,
-        scale=y_std,
-    )
-    lstm = ResidualPredictor(naive, lstm_res)
-    train_time["LSTM"] = time.perf_counter() - t0
-    say(f"[LSTM] {train_time['LSTM']:.1f} s")
-
-    t0 = time.perf_counter()
-    fitted = fit_sid(
-        r_train,
-        state_dim=settings.state_dim,
-        subsets=settings.sid_subsets,
-        subset_size=min(settings.sid_subset_size, r_train.batch_size),
-        seed=seed,
-        noise="unit",  # the authors' EKF evaluation: Q = R = I
-    )
-    sids = fitted if isinstance(fitted, list) else [fitted]
-    train_time["SID"] = time.perf_counter() - t0
-    sid_valid = [
-        float(
-            np.nanmean(
-                prediction_rmse(
-                    StateSpacePredictor(m).predict(r_valid), r_valid, start=START, scale=y_std
-                )
-            )
-        )
-        for m in sids
-    ]
-    best_sid = sids[int(np.nanargmin(sid_valid))]
-    say(f"[SID] {len(sids)} models in {train_time['SID']:.1f} s; validation RMSE {sid_valid}")
-
-    t0 = time.perf_counter()
-    nl_system, nl_record = fit_nl(
-        best_sid,
-        r_train,
-        r_valid,
-        y_std=y_std,
-        settings=settings,
-        method=method,
-        key=k_nl,
-        verbose=verbose,
-    )
-    train_time["NL"] = time.perf_counter() - t0
-    nl = ResidualPredictor(naive, StateSpacePredictor(nl_system))
-
-    # ---- evaluation on the test trajectories --------------------------------------------------
-    test = s.test
-    preds = {
-        "naive": naive.predict(test),
-        "LSTM": lstm.predict(test),
-        "H25": h25.predict(test),
-        "NL": nl.predict(test),
-    }
-    rmse = {k: prediction_rmse(v, test, start=START, scale=y_std) for k, v in preds.items()}
-    sid_rmse = np.stack(
-        [
-            prediction_rmse(
-                ResidualPredictor(naive, StateSpacePredictor(m)).predict(test),
-                test,
-                start=START,
-                scale=y_std,
-            )
-            for m in sids
-        ]
-    )
-    rmse["SID"] = sid_rmse.mean(axis=0)  # per trajectory, averaged over the SID models
-    sid_model_means = sid_rmse.mean(axis=1)
-    means = {k: float(np.mean(rmse[k])) for k in MODELS}
-    medians = {k: float(np.median(rmse[k])) for k in MODELS}
-    wins = win_counts(rmse)
-    ordering = paper_ordering(means)
+    trained = train_models(s, settings, method=method, seed=seed, verbose=verbose)
+    scores = score_models(trained, s.test, s.y_std)
     total = time.perf_counter() - t_start
-
-    rows = []
-    for k in MODELS:
-        extra = ""
-        if k == "SID":
-            extra = f" (models {sid_model_means.min():.3f}–{sid_model_means.max():.3f})"
-        rows.append(
-            [
-                k,
-                f"{means[k]:.3f}{extra}",
-                f"{medians[k]:.3f}",
-                "—" if k == "NL" else f"{wins[k]}/{test.batch_size}",
-                PAPER[k] if data is not None or dataset is None else "—",
-                f"{train_time[k]:.1f}",
-            ]
-        )
-    header = [
-        "model",
-        "mean test RMSE",
-        "median",
-        "NL better on",
-        "paper (mean)",
-        "train s",
-    ]
-    title = (
-        f"## Figure 4 — one-step prediction RMSE (Eq. 15, steps ≥ {START}, physical units), "
-        f"{s.source}, seed {seed}, NL by {method}"
+    table = make_table(
+        scores,
+        trained,
+        source=s.source,
+        seed=seed,
+        method=method,
+        n_test=s.test.batch_size,
+        show_paper=data is not None or dataset is None,
+        total=total,
     )
-    lines = [
-        title,
-        "",
-        report.markdown_table(header, rows),
-        "",
-        f"Paper ordering NL < SID < H25 < LSTM < naive holds: **{'yes' if ordering else 'no'}**"
-        f" (ours: {' < '.join(sorted(MODELS, key=lambda k: means[k]))}). {PAPER_NOTE}.",
-        f"NL model: {nl_record['epochs']} CE-EM epochs ({nl_record['per_epoch_s']:.2f} s/epoch, "
-        f"first {nl_record['first_epoch_s']:.1f} s incl. compile), best validation epoch "
-        f"{nl_record['best_epoch']}, {nl_record['parameters']} parameters. "
-        f"Total wall time {total:.1f} s.",
-    ]
-    table = "\n".join(lines)
-    summary = {
-        "experiment": NAME,
-        "source": s.source,
-        "seed": seed,
-        "method": method,
-        "settings": settings.__dict__,
-        "sizes": [s.train.batch_size, s.valid.batch_size, s.test.batch_size],
-        "rmse": {k: rmse[k].tolist() for k in MODELS},
-        "sid_model_means": sid_model_means.tolist(),
-        "sid_valid": sid_valid,
-        "mean": means,
-        "median": medians,
-        "nl_better_on": wins,
-        "paper_ordering": ordering,
-        "train_s": train_time,
-        "nn_history": {
-            "naive": naive_info.valid_loss,
-            "H25": h25_info.valid_loss,
-            "LSTM": lstm_info.valid_loss,
-        },
-        "nl": nl_record,
-        "wall_s": total,
-        "paper": PAPER,
-        "table": table,
-    }
+    summary = _summary(
+        s, trained, scores, seed=seed, method=method, settings=settings, total=total, table=table
+    )
     report.save_json(outdir / "results.json", summary)
     report.save_text(outdir / "table.md", table)
-    plot_bars(rmse, sid_model_means, outdir / "figure4a.png", s.source)
-    plot_trace(test, preds, rmse, (s.y_mean, y_std), s.output_names, outdir / "figure4b.png")
+    plot_bars(scores.rmse, scores.sid_model_means, outdir / "figure4a.png", s.source)
+    plot_trace(
+        s.test,
+        scores.preds,
+        scores.rmse,
+        (s.y_mean, s.y_std),
+        s.output_names,
+        outdir / "figure4b.png",
+    )
     say(table)
     return summary
 
