@@ -11,6 +11,8 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -35,6 +37,125 @@ def parameter_rows(true, init, learned) -> list[list[str]]:
             row += [f"{float(getattr(s, p)[k]):.4f}" for s in (true, init, learned)]
         rows.append(row)
     return rows
+
+
+@dataclass(frozen=True)
+class Identified:
+    """A demo fit: the result, ε(θ) before and after every iteration, seconds per iteration."""
+
+    result: Any
+    eps: list[float]
+    epoch_s: list[float]
+
+
+def identify(true, problem, *, method: str, max_epochs: int, say) -> Identified:
+    """Warm-start the states and fit θ = (σ, ρ, β, H) by CE-EM, printing ε(θ) per iteration."""
+    # Fit with the observation noise σ_v = 0.01 and a small process noise (the data are
+    # deterministic; a zero process noise has no density).
+    system = with_noise(problem.init_system, 0.01, 0.01)
+    x_init = warm_start(system, problem.data)
+
+    def show(info, eps):
+        say(
+            f"  iteration {info.epoch:3d}   ε(θ) = {eps:.6g}   J = {info.record['J']:.10g}",
+            flush=True,
+        )
+
+    record_eps = ev.DynamicsErrorCallback(true, printer=show)
+    eps0 = record_eps.error(system)
+    rmse0 = float(jnp.sqrt(jnp.mean((x_init - problem.states) ** 2)))
+    say(f"start: ε(θ) = {eps0:.6g}, state RMSE {rmse0:.4g}")
+    timer = ev.FitTimer().start()
+    res = fit(
+        system,
+        problem.data,
+        x_init,
+        solver=common.make_solver(method, rtol=1e-10),
+        trainable=common.LORENZ_PARAMS_H,
+        max_epochs=max_epochs,
+        callbacks=[record_eps, timer],
+        progress=False,
+    )
+    assert isinstance(res.system, CoupledLorenz)
+    return Identified(res, [eps0] + [h["eps"] for h in res.history], timer.per_epoch())
+
+
+def coupling_errors(true, problem, learned) -> dict[str, float]:
+    """‖H − H_true‖_F of the initial guess and of the learned system (own blocks ignored)."""
+    H_true = true.effective_coupling()
+    return {
+        "initial": float(jnp.linalg.norm(problem.init_system.effective_coupling() - H_true)),
+        "learned": float(jnp.linalg.norm(learned.effective_coupling() - H_true)),
+    }
+
+
+def state_rmse(problem, states) -> float:
+    """RMS error of the smoothed states against the true ones."""
+    return float(jnp.sqrt(jnp.mean((states - problem.states) ** 2)))
+
+
+def make_table(true, problem, fitted: Identified, *, method: str) -> str:
+    """Markdown: true / initial / learned σ, ρ, β per attractor; H, ε, state error and timings."""
+    res, eps = fitted.result, fitted.eps
+    H_err = coupling_errors(true, problem, res.system)
+    rmse = state_rmse(problem, res.states)
+    fit_s = sum(fitted.epoch_s)
+    first_s = fitted.epoch_s[0] if res.epochs else 0.0
+    header = [
+        "k",
+        "σ true",
+        "σ init",
+        "σ learned",
+        "ρ true",
+        "ρ init",
+        "ρ learned",
+        "β true",
+        "β init",
+        "β learned",
+    ]
+    table = report.markdown_table(header, parameter_rows(true, problem.init_system, res.system))
+    table += (
+        f"\n‖H − H_true‖_F: initial {H_err['initial']:.4g}, learned {H_err['learned']:.4g} "
+        f"(‖H_true‖_F = {float(jnp.linalg.norm(true.effective_coupling())):.4g}).\n"
+        f"ε(θ): initial {eps[0]:.4g}, learned {eps[-1]:.4g} after {res.epochs} iterations "
+        f"({method}); smoothed-state RMSE {rmse:.4g}; fit {fit_s:.1f} s "
+        f"(first iteration, with JIT compilation, {first_s:.1f} s).\n"
+    )
+    return table
+
+
+def plot(true, problem, fitted: Identified, path) -> None:
+    """ε(θ) per iteration (log scale) and attractor 1 of trajectory 1, true against smoothed."""
+    plt = report.plt()
+    eps, states = fitted.eps, fitted.result.states
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    axes[0].semilogy(np.arange(len(eps)), eps, "o-")
+    axes[0].set_xlabel("iteration")
+    axes[0].set_ylabel("ε(θ)")
+    axes[0].set_title("error in the estimated dynamics")
+    axes[0].grid(True, which="both", alpha=0.3)
+    t = np.arange(problem.states.shape[1]) * true.dt
+    for j, c in zip(range(3), ("tab:blue", "tab:orange", "tab:green"), strict=False):
+        axes[1].plot(
+            t,
+            np.asarray(problem.states[0, :, j]),
+            color=c,
+            lw=2.5,
+            alpha=0.35,
+            label=f"x{j + 1},1 true",
+        )
+        axes[1].plot(
+            t, np.asarray(states[0, :, j]), color=c, lw=1, ls="--", label=f"x{j + 1},1 smoothed"
+        )
+    axes[1].set_xlabel("time [s]")
+    axes[1].set_title("attractor 1, trajectory 1: true vs smoothed")
+    axes[1].legend(fontsize=7, ncol=3)
+    report.save_figure(fig, path)
+
+
+def _parameters(system) -> dict[str, np.ndarray]:
+    """σ, ρ, β of a system as NumPy arrays."""
+    return {p: np.asarray(getattr(system, p)) for p in ("sigma", "rho", "beta")}
 
 
 def run(
@@ -73,95 +194,16 @@ def run(
 
     true = common.true_lorenz(K, key=jax.random.PRNGKey(4), obs_noise=0.01)
     problem = common.lorenz_problem(seed, true, B=B, T=T, sigma_w=0.0, sigma_v=0.01, coupling=True)
-    # Fit with the observation noise σ_v = 0.01 and a small process noise (the data are
-    # deterministic; a zero process noise has no density).
-    system = with_noise(problem.init_system, 0.01, 0.01)
     say(
         f"{K} coupled Lorenz attractors: n = {true.state_dim}, m = {true.obs_dim}, B = {B}, "
         f"T = {T}, "
         f"{3 * K + (3 * K) ** 2} parameters (σ, ρ, β per attractor and H)"
     )
-    x_init = warm_start(system, problem.data)
-
-    def show(info, eps):
-        say(
-            f"  iteration {info.epoch:3d}   ε(θ) = {eps:.6g}   J = {info.record['J']:.10g}",
-            flush=True,
-        )
-
-    record_eps = ev.DynamicsErrorCallback(true, printer=show)
-    eps0 = record_eps.error(system)
-    rmse0 = float(jnp.sqrt(jnp.mean((x_init - problem.states) ** 2)))
-    say(f"start: ε(θ) = {eps0:.6g}, state RMSE {rmse0:.4g}")
-
-    timer = ev.FitTimer().start()
-    res = fit(
-        system,
-        problem.data,
-        x_init,
-        solver=common.make_solver(method, rtol=1e-10),
-        trainable=common.LORENZ_PARAMS_H,
-        max_epochs=max_epochs,
-        callbacks=[record_eps, timer],
-        progress=False,
-    )
-    fit_s = sum(timer.per_epoch())
-    first_s = timer.per_epoch()[0] if res.epochs else 0.0
-    learned = res.system
-    assert isinstance(learned, CoupledLorenz)
-    eps = [eps0] + [h["eps"] for h in res.history]
-    H0 = float(
-        jnp.linalg.norm(problem.init_system.effective_coupling() - true.effective_coupling())
-    )
-    H1 = float(jnp.linalg.norm(learned.effective_coupling() - true.effective_coupling()))
-    state_rmse = float(jnp.sqrt(jnp.mean((res.states - problem.states) ** 2)))
-
-    header = [
-        "k",
-        "σ true",
-        "σ init",
-        "σ learned",
-        "ρ true",
-        "ρ init",
-        "ρ learned",
-        "β true",
-        "β init",
-        "β learned",
-    ]
-    table = report.markdown_table(header, parameter_rows(true, problem.init_system, learned))
-    table += (
-        f"\n‖H − H_true‖_F: initial {H0:.4g}, learned {H1:.4g} (‖H_true‖_F = "
-        f"{float(jnp.linalg.norm(true.effective_coupling())):.4g}).\n"
-        f"ε(θ): initial {eps0:.4g}, learned {eps[-1]:.4g} after {res.epochs} iterations "
-        f"({method}); smoothed-state RMSE {state_rmse:.4g}; fit {fit_s:.1f} s "
-        f"(first iteration, with JIT compilation, {first_s:.1f} s).\n"
-    )
+    fitted = identify(true, problem, method=method, max_epochs=max_epochs, say=say)
+    res = fitted.result
+    table = make_table(true, problem, fitted, method=method)
     say(table)
-
-    plt = report.plt()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
-    axes[0].semilogy(np.arange(len(eps)), eps, "o-")
-    axes[0].set_xlabel("iteration")
-    axes[0].set_ylabel("ε(θ)")
-    axes[0].set_title("error in the estimated dynamics")
-    axes[0].grid(True, which="both", alpha=0.3)
-    t = np.arange(T) * true.dt
-    for j, c in zip(range(3), ("tab:blue", "tab:orange", "tab:green"), strict=False):
-        axes[1].plot(
-            t,
-            np.asarray(problem.states[0, :, j]),
-            color=c,
-            lw=2.5,
-            alpha=0.35,
-            label=f"x{j + 1},1 true",
-        )
-        axes[1].plot(
-            t, np.asarray(res.states[0, :, j]), color=c, lw=1, ls="--", label=f"x{j + 1},1 smoothed"
-        )
-    axes[1].set_xlabel("time [s]")
-    axes[1].set_title("attractor 1, trajectory 1: true vs smoothed")
-    axes[1].legend(fontsize=7, ncol=3)
-    report.save_figure(fig, outdir / "demo.png")
+    plot(true, problem, fitted, outdir / "demo.png")
 
     summary = {
         "experiment": NAME,
@@ -170,18 +212,16 @@ def run(
         "B": B,
         "T": T,
         "seed": seed,
-        "eps": eps,
+        "eps": fitted.eps,
         "epochs": res.epochs,
         "converged": bool(res.converged),
         "monotone": ev.is_monotone(res.initial_J, res.history),
-        "H_error": {"initial": H0, "learned": H1},
-        "state_rmse": state_rmse,
-        "true": {p: np.asarray(getattr(true, p)) for p in ("sigma", "rho", "beta")},
-        "initial": {
-            p: np.asarray(getattr(problem.init_system, p)) for p in ("sigma", "rho", "beta")
-        },
-        "learned": {p: np.asarray(getattr(learned, p)) for p in ("sigma", "rho", "beta")},
-        "epoch_s": timer.per_epoch(),
+        "H_error": coupling_errors(true, problem, res.system),
+        "state_rmse": state_rmse(problem, res.states),
+        "true": _parameters(true),
+        "initial": _parameters(problem.init_system),
+        "learned": _parameters(res.system),
+        "epoch_s": fitted.epoch_s,
         "wall_s": time.perf_counter() - t_start,
         "table": table,
     }
