@@ -137,6 +137,51 @@ def _fit_linear(train, order: int):
     return model, {"wall_s": time.perf_counter() - t0}
 
 
+def _test_records(ds, settings: Settings) -> dict:
+    """The official test records, cut to ``settings.test_samples`` when set."""
+    tests = dict(ds.tests)
+    if settings.test_samples is not None:
+        tests = {k: v[:, : settings.test_samples] for k, v in tests.items()}
+    return tests
+
+
+def _score_test(system, linear, test, test_name: str, ds) -> dict[str, Any]:
+    """The gray-box and linear models' free-run scores on one test record, the published beside."""
+    ours, score_s = _score(system, test, ds.n_init, ds.score_scale)
+    entry: dict[str, Any] = {
+        "graybox_rmse": float(ours.rmse[0, 0]),
+        "graybox_fit_percent": float(ours.fit_percent[0, 0]),
+        "score_s": score_s,
+        "y": np.asarray(test.y[0, :, 0]),
+        "y_sim": np.asarray(ours.y_sim[0, :, 0]),
+        "x_sim": np.asarray(ours.x_sim[0]),
+    }
+    if linear is not None:
+        lin, _ = _score(linear, test, ds.n_init, ds.score_scale)
+        entry["linear_rmse"] = float(lin.rmse[0, 0])
+        entry["linear_y_sim"] = np.asarray(lin.y_sim[0, :, 0])
+    else:
+        entry["linear_rmse"] = math.nan
+    entry["published"] = [
+        f"{p.rmse[test_name]:g} ({p.method.split(' (')[0]})"
+        for p in ds.published
+        if test_name in p.rmse
+    ]
+    return entry
+
+
+def _table_row(name: str, test_name: str, entry: dict[str, Any], unit: str) -> list[str]:
+    """One row of the results table: both models' RMSE and up to three published ones."""
+    return [
+        name,
+        test_name,
+        f"{entry['graybox_rmse']:.4g}",
+        f"{entry['linear_rmse']:.4g}",
+        "; ".join(entry["published"][:3]) or "—",
+        unit,
+    ]
+
+
 def run_dataset(name: str, *, settings: Settings, method: str, verbose: bool) -> dict[str, Any]:
     """Fit, score and tabulate one dataset; returns its results (figure data included)."""
     import jax.numpy as jnp
@@ -145,46 +190,10 @@ def run_dataset(name: str, *, settings: Settings, method: str, verbose: bool) ->
 
     ds = getattr(datasets, name)()
     train = _training_data(name, ds, settings)
-    tests = dict(ds.tests)
-    if settings.test_samples is not None:
-        tests = {k: v[:, : settings.test_samples] for k, v in tests.items()}
-    dtype = jnp.float64
-    result, fit_info = _fit_graybox(name, train, settings, method, dtype)
+    tests = _test_records(ds, settings)
+    result, fit_info = _fit_graybox(name, train, settings, method, jnp.float64)
     linear, lin_info = _fit_linear(train, result.system.state_dim)
-    rows, per_test = [], {}
-    for test_name, test in tests.items():
-        ours, score_s = _score(result.system, test, ds.n_init, ds.score_scale)
-        entry: dict[str, Any] = {
-            "graybox_rmse": float(ours.rmse[0, 0]),
-            "graybox_fit_percent": float(ours.fit_percent[0, 0]),
-            "score_s": score_s,
-            "y": np.asarray(test.y[0, :, 0]),
-            "y_sim": np.asarray(ours.y_sim[0, :, 0]),
-            "x_sim": np.asarray(ours.x_sim[0]),
-        }
-        if linear is not None:
-            lin, _ = _score(linear, test, ds.n_init, ds.score_scale)
-            entry["linear_rmse"] = float(lin.rmse[0, 0])
-            entry["linear_y_sim"] = np.asarray(lin.y_sim[0, :, 0])
-        else:
-            entry["linear_rmse"] = math.nan
-        published = [
-            f"{p.rmse[test_name]:g} ({p.method.split(' (')[0]})"
-            for p in ds.published
-            if test_name in p.rmse
-        ]
-        entry["published"] = published
-        per_test[test_name] = entry
-        rows.append(
-            [
-                name,
-                test_name,
-                f"{entry['graybox_rmse']:.4g}",
-                f"{entry['linear_rmse']:.4g}",
-                "; ".join(published[:3]) or "—",
-                ds.score_unit,
-            ]
-        )
+    per_test = {t: _score_test(result.system, linear, test, t, ds) for t, test in tests.items()}
     out = {
         "dataset": name,
         "train_shape": list(train.y.shape),
@@ -192,7 +201,7 @@ def run_dataset(name: str, *, settings: Settings, method: str, verbose: bool) ->
         "fit": fit_info,
         "linear": lin_info,
         "tests": per_test,
-        "rows": rows,
+        "rows": [_table_row(name, t, e, ds.score_unit) for t, e in per_test.items()],
         "unit": ds.score_unit,
     }
     if verbose:
@@ -236,6 +245,57 @@ def _plot(results: list[dict], path) -> None:
     plt.close(fig)
 
 
+def _dataset_names(dataset: str | None) -> tuple[str, ...]:
+    """The datasets of a run: all three, or ``dataset`` (checked)."""
+    names = DATASETS if dataset is None else (dataset,)
+    for n in names:
+        if n not in DATASETS:
+            raise ValueError(f"unknown dataset {n!r}; choose from {', '.join(DATASETS)}.")
+    return names
+
+
+def make_tables(results: list[dict], *, method: str, wall: float) -> str:
+    """Markdown: the scores beside the published ones, then each fit's epochs, time, parameters."""
+    from ceemx.evaluation import report
+
+    header = ["dataset", "test", "gray-box CE-EM RMSE", "N4SID RMSE", "published", "unit"]
+    table = report.markdown_table(header, [row for r in results for row in r["rows"]])
+    fits = report.markdown_table(
+        ["dataset", "epochs", "converged", "fit s (compile incl.)", "s/epoch after the first",
+         "parameters"],
+        [
+            [
+                r["dataset"],
+                r["fit"]["epochs"],
+                r["fit"]["converged"],
+                f"{r['fit']['wall_s']:.1f}",
+                f"{r['fit']['steady_epoch_s']:.3f}",
+                ", ".join(f"{k} = {v:.4g}" for k, v in r["fit"]["parameters"].items()),
+            ]
+            for r in results
+        ],
+    )  # fmt: skip
+    return (
+        f"## Gray-box CE-EM on real benchmarks (method {method}; official protocol: free-run "
+        f"simulation RMSE after n_init test samples)\n\n{table}\n\n{fits}\n\n"
+        f"Total wall time {wall:.1f} s."
+    )
+
+
+def _json_datasets(results: list[dict]) -> list[dict]:
+    """The per-dataset results without the figure's arrays (as ``results.json`` holds them)."""
+    return [
+        {
+            **{k: v for k, v in r.items() if k != "tests"},
+            "tests": {
+                t: {k: v for k, v in e.items() if not isinstance(v, np.ndarray)}
+                for t, e in r["tests"].items()
+            },
+        }
+        for r in results
+    ]
+
+
 def run(
     *,
     smoke: bool = False,
@@ -266,55 +326,22 @@ def run(
     method = "joint" if method is None else method
     if method not in ("joint", "alternate"):
         raise ValueError(f"benchmarks: `method` must be 'joint' or 'alternate'; got {method!r}.")
-    names = DATASETS if dataset is None else (dataset,)
-    for n in names:
-        if n not in DATASETS:
-            raise ValueError(f"unknown dataset {n!r}; choose from {', '.join(DATASETS)}.")
+    names = _dataset_names(dataset)
     settings = settings or (SMOKE if smoke else Settings())
     if max_epochs is not None:
         settings = Settings(**{**settings.__dict__, "max_epochs": max_epochs})
     outdir = report.output_dir(out, "results/benchmarks")
     t0 = time.perf_counter()
     results = [run_dataset(n, settings=settings, method=method, verbose=verbose) for n in names]
-    header = ["dataset", "test", "gray-box CE-EM RMSE", "N4SID RMSE", "published", "unit"]
-    table = report.markdown_table(header, [row for r in results for row in r["rows"]])
-    fits = report.markdown_table(
-        ["dataset", "epochs", "converged", "fit s (compile incl.)", "s/epoch after the first",
-         "parameters"],
-        [
-            [
-                r["dataset"],
-                r["fit"]["epochs"],
-                r["fit"]["converged"],
-                f"{r['fit']['wall_s']:.1f}",
-                f"{r['fit']['steady_epoch_s']:.3f}",
-                ", ".join(f"{k} = {v:.4g}" for k, v in r["fit"]["parameters"].items()),
-            ]
-            for r in results
-        ],
-    )  # fmt: skip
     wall = time.perf_counter() - t0
-    text = (
-        f"## Gray-box CE-EM on real benchmarks (method {method}; official protocol: free-run "
-        f"simulation RMSE after n_init test samples)\n\n{table}\n\n{fits}\n\n"
-        f"Total wall time {wall:.1f} s."
-    )
+    text = make_tables(results, method=method, wall=wall)
     _plot(results, outdir / "benchmarks.png")
     summary = {
         "experiment": NAME,
         "method": method,
         "settings": settings.__dict__,
         "wall_s": wall,
-        "datasets": [
-            {
-                **{k: v for k, v in r.items() if k != "tests"},
-                "tests": {
-                    t: {k: v for k, v in e.items() if not isinstance(v, np.ndarray)}
-                    for t, e in r["tests"].items()
-                },
-            }
-            for r in results
-        ],
+        "datasets": _json_datasets(results),
         "table": text,
     }
     report.save_json(outdir / "results.json", summary)

@@ -211,6 +211,31 @@ def plot(runs: Sequence[dict], path, title: str) -> None:
     report.save_figure(fig, path)
 
 
+def particle_options(
+    *, smoke: bool, n_particles: int, n_smoothed: int, burn_in: int, alpha: float, memory: int
+) -> dict:
+    """Particle EM's options (smoke: 20 particles, 3 draws, burn-in 1, memory 2)."""
+    return dict(
+        n_particles=20 if smoke else n_particles,
+        n_smoothed=3 if smoke else n_smoothed,
+        burn_in=1 if smoke else burn_in,
+        alpha=alpha,
+        memory=2 if smoke else memory,
+        learner=LMLearner(),
+    )
+
+
+def _note(*, B: int, T: int, n_seeds: int, pem_options: dict, total: float) -> str:
+    """The table's heading: the problem, Particle EM's options, the wall time."""
+    return (
+        f"## Figure 2 — single Lorenz, σ_w = {SIGMA_W}, σ_v = {SIGMA_V}, B = {B}, T = {T}, "
+        f"{n_seeds} seeds; Particle EM N_p = {pem_options['n_particles']}, "
+        f"N_s = {pem_options['n_smoothed']}, burn-in {pem_options['burn_in']}, "
+        f"α = {pem_options['alpha']}, memory {pem_options['memory']}; "
+        f"total wall time {total:.1f} s"
+    )
+
+
 def run(
     *,
     smoke: bool = False,
@@ -252,13 +277,13 @@ def run(
     B, T = (2, 32) if smoke else (4, 128)
     pem_epochs = (3 if smoke else 50) if max_epochs is None else max_epochs
     ce_epochs = (3 if smoke else 30) if ce_epochs is None else ce_epochs
-    pem_options = dict(
-        n_particles=20 if smoke else n_particles,
-        n_smoothed=3 if smoke else n_smoothed,
-        burn_in=1 if smoke else burn_in,
+    pem_options = particle_options(
+        smoke=smoke,
+        n_particles=n_particles,
+        n_smoothed=n_smoothed,
+        burn_in=burn_in,
         alpha=alpha,
-        memory=2 if smoke else memory,
-        learner=LMLearner(),
+        memory=memory,
     )
     outdir = report.output_dir(out, "results/figure2")
     true = common.true_lorenz(
@@ -281,12 +306,7 @@ def run(
     total = time.perf_counter() - t0
     ce_check = min(5, ce_epochs)
     pem_check = pem_epochs
-    note = (
-        f"## Figure 2 — single Lorenz, σ_w = {SIGMA_W}, σ_v = {SIGMA_V}, B = {B}, T = {T}, "
-        f"{len(seeds)} seeds; Particle EM N_p = {pem_options['n_particles']}, "
-        f"N_s = {pem_options['n_smoothed']}, burn-in {pem_options['burn_in']}, α = {alpha}, "
-        f"memory {pem_options['memory']}; total wall time {total:.1f} s"
-    )
+    note = _note(B=B, T=T, n_seeds=len(seeds), pem_options=pem_options, total=total)
     table = make_table(runs, note, ce_check, pem_check)
     summary = {
         "experiment": NAME,

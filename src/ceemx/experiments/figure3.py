@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import Any
+from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
@@ -77,15 +77,14 @@ def make_learner(name: str):
     raise ValueError(f"unknown learner {name!r}; use 'lm' or 'lbfgs'.")
 
 
-def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, rtol, verbose):
-    """One identification; returns a JSON-able record with ε per epoch and timings."""
-    problem = common.lorenz_problem(
-        seed, true, B=B, T=T, sigma_w=0.0, sigma_v=SIGMA_V, coupling=True
-    )
-    pn, on, rho_x = fit_setup("likelihood" if method == "particle" else weighting)
-    system = with_noise(problem.init_system, pn, on)
+def _noisy_states(problem, seed: int):
+    """Start states: the true states plus N(0, 1) noise (the authors' script), keyed by the seed."""
     k_x = jax.random.fold_in(jax.random.PRNGKey(seed), 1)
-    x_init = problem.states + jax.random.normal(k_x, problem.states.shape, problem.states.dtype)
+    return problem.states + jax.random.normal(k_x, problem.states.shape, problem.states.dtype)
+
+
+def _epoch_printer(B: int, seed: int):
+    """The per-epoch progress line of one run (a :class:`DynamicsErrorCallback` printer)."""
 
     def show(info, eps):
         print(
@@ -94,30 +93,11 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, rtol, v
             flush=True,
         )
 
-    record_eps = ev.DynamicsErrorCallback(true, printer=show if verbose else None)
-    eps0 = record_eps.error(system)
-    solver = common.make_solver(
-        method,
-        rho_x=rho_x,
-        learner=make_learner(learner),
-        rtol=rtol,
-        initial=common.lorenz_initial_prior(true.K),  # used by Particle EM only
-        particle_options=PARTICLE_OPTIONS,
-    )
-    timer = ev.FitTimer().start()
-    res = fit(
-        system,
-        problem.data,
-        x_init,
-        solver=solver,
-        trainable=common.LORENZ_PARAMS_H,
-        max_epochs=max_epochs,
-        callbacks=[record_eps, timer],
-        progress=False,
-        key=jax.random.PRNGKey(seed),
-    )
-    times = timer.per_epoch()
-    keep = (*HISTORY_KEYS, *solver.history_keys)
+    return show
+
+
+def _record(res, true, *, B: int, seed: int, eps0: float, times, keep) -> dict:
+    """The JSON-able record of one run: ε and J per epoch, timings, learned parameters."""
     eps = [eps0] + [h["eps"] for h in res.history]
     learned = res.system
     assert isinstance(learned, CoupledLorenz)
@@ -140,6 +120,42 @@ def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, rtol, v
         "status": res.messages(),
         "history": [{k: h[k] for k in keep if k in h} for h in res.history],
     }
+
+
+def run_one(true, seed, B, *, T, method, weighting, learner, max_epochs, rtol, verbose):
+    """One identification; returns a JSON-able record with ε per epoch and timings."""
+    problem = common.lorenz_problem(
+        seed, true, B=B, T=T, sigma_w=0.0, sigma_v=SIGMA_V, coupling=True
+    )
+    pn, on, rho_x = fit_setup("likelihood" if method == "particle" else weighting)
+    system = with_noise(problem.init_system, pn, on)
+    x_init = _noisy_states(problem, seed)
+    record_eps = ev.DynamicsErrorCallback(
+        true, printer=_epoch_printer(B, seed) if verbose else None
+    )
+    eps0 = record_eps.error(system)
+    solver = common.make_solver(
+        method,
+        rho_x=rho_x,
+        learner=make_learner(learner),
+        rtol=rtol,
+        initial=common.lorenz_initial_prior(true.K),  # used by Particle EM only
+        particle_options=PARTICLE_OPTIONS,
+    )
+    timer = ev.FitTimer().start()
+    res = fit(
+        system,
+        problem.data,
+        x_init,
+        solver=solver,
+        trainable=common.LORENZ_PARAMS_H,
+        max_epochs=max_epochs,
+        callbacks=[record_eps, timer],
+        progress=False,
+        key=jax.random.PRNGKey(seed),
+    )
+    keep = (*HISTORY_KEYS, *solver.history_keys)
+    return _record(res, true, B=B, seed=seed, eps0=eps0, times=timer.per_epoch(), keep=keep)
 
 
 def make_table(runs: Sequence[dict], header_note: str) -> str:
@@ -206,6 +222,126 @@ def plot(runs: Sequence[dict], path, title: str) -> None:
     report.save_figure(fig, path)
 
 
+@dataclass(frozen=True)
+class Config:
+    """The settings of one weighting's run, defaults filled in (Particle EM's applied)."""
+
+    method: str
+    weighting: str
+    learner: str
+    seeds: list[int]
+    batch_sizes: tuple[int, ...]
+    K: int
+    T: int
+    max_epochs: int
+    rtol: float
+
+
+def configure(
+    *,
+    smoke: bool,
+    seeds,
+    method: str | None,
+    weighting: str,
+    learner: str,
+    max_epochs: int | None,
+    batch_sizes: Sequence[int] | None,
+    K: int | None,
+    T: int | None,
+    rtol: float | None,
+) -> Config:
+    """:func:`run`'s arguments with their defaults (smoke or paper scale) filled in."""
+    method = "joint" if method is None else method
+    if method == "particle":
+        weighting = "likelihood"
+        learner = "lbfgs"
+        batch_sizes = batch_sizes or ((2,) if smoke else (8,))
+        max_epochs = (3 if smoke else 50) if max_epochs is None else max_epochs
+    if rtol is None:
+        rtol = 1e-10 if method == "joint" else 0.0
+    return Config(
+        method=method,
+        weighting=weighting,
+        learner=learner,
+        seeds=common.seed_list(seeds, first=FIRST_SEED, default=1 if smoke else 4),
+        batch_sizes=tuple(batch_sizes or ((2,) if smoke else BATCH_SIZES)),
+        K=(2 if smoke else 6) if K is None else K,
+        T=(32 if smoke else 128) if T is None else T,
+        max_epochs=(3 if smoke else 200) if max_epochs is None else max_epochs,
+        rtol=rtol,
+    )
+
+
+def run_all(true, c: Config, *, verbose: bool) -> list[dict]:
+    """Every (B, seed) identification, in order, with a one-line summary of each."""
+    runs = []
+    for B in c.batch_sizes:
+        for seed in c.seeds:
+            r = run_one(
+                true,
+                seed,
+                B,
+                T=c.T,
+                method=c.method,
+                weighting=c.weighting,
+                learner=c.learner,
+                max_epochs=c.max_epochs,
+                rtol=c.rtol,
+                verbose=verbose,
+            )
+            runs.append(r)
+            if verbose:
+                print(
+                    f"[B={B} seed={seed}] ε {r['eps'][0]:.4g} → {r['eps'][-1]:.4g} "
+                    f"after {r['epochs']} epochs; "
+                    f"J monotone: {r['monotone']}; first epoch {r['first_epoch_s']:.2f}s, then "
+                    f"{r['per_epoch_s']:.3f}s/epoch; ‖H − H_true‖ = {r['H_error']:.4g}",
+                    flush=True,
+                )
+    return runs
+
+
+def _note(c: Config, total: float) -> str:
+    """The table's heading: the problem, the method and its settings, the wall time."""
+    note = (
+        f"## Figure 3 — {c.K} coupled Lorenz (n = {3 * c.K}), T = {c.T}, σ_v = {SIGMA_V}, "
+        f"method = {c.method}"
+        + (f" (learner {c.learner})" if c.method == "alternate" else "")
+        + f", weighting = {c.weighting}, max_epochs = {c.max_epochs}; "
+        f"total wall time {total:.1f} s"
+    )
+    if c.method == "particle":
+        note += "\n\n" + PARTICLE_NOTE
+    return note
+
+
+def _summary(c: Config, runs: list[dict], *, total: float, table: str) -> dict:
+    """The results of a run as ``results.json`` holds them."""
+    return {
+        "experiment": NAME,
+        "method": c.method,
+        "weighting": c.weighting,
+        "learner": c.learner,
+        "K": c.K,
+        "T": c.T,
+        "sigma_v": SIGMA_V,
+        "seeds": c.seeds,
+        "rtol": c.rtol,
+        "batch_sizes": list(c.batch_sizes),
+        "max_epochs": c.max_epochs,
+        "runs": runs,
+        "wall_s": total,
+        "reference": REFERENCE,
+        "table": table,
+    }
+
+
+def _run_weightings(out, **kwargs) -> dict:
+    """:func:`run` for the paper and the likelihood weighting, each in its subfolder of ``out``."""
+    base = report.output_dir(out, "results/figure3")
+    return {w: run(out=base / w, weighting=w, **kwargs) for w in ("paper", "likelihood")}
+
+
 def run(
     *,
     smoke: bool = False,
@@ -248,92 +384,42 @@ def run(
     """
     common.enable_x64()
     if weighting == "both":
-        base = report.output_dir(out, "results/figure3")
-        kw: dict[str, Any] = {
-            "smoke": smoke,
-            "seeds": seeds,
-            "method": method,
-            "learner": learner,
-            "max_epochs": max_epochs,
-            "batch_sizes": batch_sizes,
-            "K": K,
-            "T": T,
-            "rtol": rtol,
-            "verbose": verbose,
-        }
-        return {w: run(out=base / w, weighting=w, **kw) for w in ("paper", "likelihood")}
-    method = "joint" if method is None else method
-    if method == "particle":
-        weighting = "likelihood"
-        learner = "lbfgs"
-        batch_sizes = batch_sizes or ((2,) if smoke else (8,))
-        max_epochs = (3 if smoke else 50) if max_epochs is None else max_epochs
-    if rtol is None:
-        rtol = 1e-10 if method == "joint" else 0.0
-    seeds = common.seed_list(seeds, first=FIRST_SEED, default=1 if smoke else 4)
-    batch_sizes = tuple(batch_sizes or ((2,) if smoke else BATCH_SIZES))
-    K = (2 if smoke else 6) if K is None else K
-    T = (32 if smoke else 128) if T is None else T
-    max_epochs = (3 if smoke else 200) if max_epochs is None else max_epochs
-    outdir = report.output_dir(out, "results/figure3")
-    true = common.true_lorenz(K, key=jax.random.PRNGKey(4), obs_noise=SIGMA_V)
-    t_start = time.perf_counter()
-    runs = []
-    for B in batch_sizes:
-        for seed in seeds:
-            r = run_one(
-                true,
-                seed,
-                B,
-                T=T,
-                method=method,
-                weighting=weighting,
-                learner=learner,
-                max_epochs=max_epochs,
-                rtol=rtol,
-                verbose=verbose,
-            )
-            runs.append(r)
-            if verbose:
-                print(
-                    f"[B={B} seed={seed}] ε {r['eps'][0]:.4g} → {r['eps'][-1]:.4g} "
-                    f"after {r['epochs']} epochs; "
-                    f"J monotone: {r['monotone']}; first epoch {r['first_epoch_s']:.2f}s, then "
-                    f"{r['per_epoch_s']:.3f}s/epoch; ‖H − H_true‖ = {r['H_error']:.4g}",
-                    flush=True,
-                )
-    total = time.perf_counter() - t_start
-    note = (
-        f"## Figure 3 — {K} coupled Lorenz (n = {3 * K}), T = {T}, σ_v = {SIGMA_V}, "
-        f"method = {method}"
-        + (f" (learner {learner})" if method == "alternate" else "")
-        + f", weighting = {weighting}, max_epochs = {max_epochs}; total wall time {total:.1f} s"
+        return _run_weightings(
+            out,
+            smoke=smoke,
+            seeds=seeds,
+            method=method,
+            learner=learner,
+            max_epochs=max_epochs,
+            batch_sizes=batch_sizes,
+            K=K,
+            T=T,
+            rtol=rtol,
+            verbose=verbose,
+        )
+    c = configure(
+        smoke=smoke,
+        seeds=seeds,
+        method=method,
+        weighting=weighting,
+        learner=learner,
+        max_epochs=max_epochs,
+        batch_sizes=batch_sizes,
+        K=K,
+        T=T,
+        rtol=rtol,
     )
-    if method == "particle":
-        note += "\n\n" + PARTICLE_NOTE
-    table = make_table(runs, note)
-    summary = {
-        "experiment": NAME,
-        "method": method,
-        "weighting": weighting,
-        "learner": learner,
-        "K": K,
-        "T": T,
-        "sigma_v": SIGMA_V,
-        "seeds": seeds,
-        "rtol": rtol,
-        "batch_sizes": list(batch_sizes),
-        "max_epochs": max_epochs,
-        "runs": runs,
-        "wall_s": total,
-        "reference": REFERENCE,
-        "table": table,
-    }
+    outdir = report.output_dir(out, "results/figure3")
+    true = common.true_lorenz(c.K, key=jax.random.PRNGKey(4), obs_noise=SIGMA_V)
+    t_start = time.perf_counter()
+    runs = run_all(true, c, verbose=verbose)
+    total = time.perf_counter() - t_start
+    table = make_table(runs, _note(c, total))
+    summary = _summary(c, runs, total=total, table=table)
     report.save_json(outdir / "results.json", summary)
     report.save_text(outdir / "table.md", table)
-    plot(
-        runs, outdir / "figure3.png", f"{K} coupled Lorenz: ε(θ) per epoch ({method}, {weighting})"
-    )
+    title = f"{c.K} coupled Lorenz: ε(θ) per epoch ({c.method}, {c.weighting})"
+    plot(runs, outdir / "figure3.png", title)
     if verbose:
         print(table)
     return summary
