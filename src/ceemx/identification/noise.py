@@ -465,12 +465,8 @@ def _with_noise_of(system: AbstractSystem, other: AbstractSystem) -> AbstractSys
 def _round_record(k: int, system: AbstractSystem, nm: NoiseMoments, result, change=None) -> dict:
     return {
         "round": k,
-        "process_noise_std": np.sqrt(np.diagonal(np.asarray(system.process_noise.covariance())))
-        .round(12)
-        .tolist(),
-        "obs_noise_std": np.sqrt(np.diagonal(np.asarray(system.obs_noise.covariance())))
-        .round(12)
-        .tolist(),
+        "process_noise_std": _stds(system, ("process_noise",)).round(12).tolist(),
+        "obs_noise_std": _stds(system, ("obs_noise",)).round(12).tolist(),
         "log_evidence": _evidence(nm),
         "epochs": None if result is None else result.epochs,
         "converged": None if result is None else bool(result.converged),
