@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.smoother import check_inputs
 from ceemx.lib import kalman
-from ceemx.lib.dense import symmetrize
+from ceemx.lib.dense import cholesky, symmetrize
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import Observations, PerTrajectory, Scalar, States, no_type_check
 from ceemx.models.noise import AbstractGaussianNoise, DiagonalGaussian
@@ -101,7 +101,7 @@ def _ekf_one(
         yt, ut, mt, t = inp
         y_hat, G = _value_and_jacobian(lambda x: system.observe(x, ut, t), x_pred)
         y_hat, G = y_hat.astype(dtype), G.astype(dtype)
-        chol_S = jnp.linalg.cholesky(symmetrize(G @ P_pred @ G.T + R))
+        chol_S = cholesky(symmetrize(G @ P_pred @ G.T + R))
         up = kalman.gaussian_update(P_pred, G, L_R, mt)
         # gaussian_update's mean is μ + K (y − G μ): pass y − ŷ + G μ for K (y − ŷ).
         y_eff = yt - y_hat + G @ x_pred

@@ -345,8 +345,15 @@ def linearize_expected(
     z, uw, tw = dyn_rows
     r_dyn = jax.vmap(dyn_res, in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
     F = jax.vmap(_jac(dyn_res, 0, P, n), in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
-    SG = jax.vmap(on.sqrt_curvature)(r_obs, mk) @ G
-    SF = jax.vmap(pn.sqrt_curvature)(r_dyn) @ F
+    # Row scalings for diagonal noise (as in `linearize`): no d × d product per cubature point.
+    if on.diagonal_curvature:
+        SG = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mk)[..., None] * G
+    else:
+        SG = jax.vmap(on.sqrt_curvature)(r_obs, mk) @ G
+    if pn.diagonal_curvature:
+        SF = jax.vmap(pn.sqrt_curvature_diagonal)(r_dyn)[..., None] * F
+    else:
+        SF = jax.vmap(pn.sqrt_curvature)(r_dyn) @ F
     value = c1 * jnp.sum(jax.vmap(on.nll)(r_obs, mk)) + c2 * jnp.sum(jax.vmap(pn.nll)(r_dyn))
     grad = c1 * jnp.einsum("kmp,km->p", G, jax.vmap(jax.grad(on.nll))(r_obs, mk))
     grad = grad + c2 * jnp.einsum("knp,kn->p", F, jax.vmap(jax.grad(pn.nll))(r_dyn))

@@ -25,8 +25,12 @@ from ceemx.models.system import AbstractSystem
 __all__ = ["E_STEP_SMOOTHER", "GaussianPosterior", "gaussian_posterior"]
 
 # The E-step's MAP must be converged well past CE-EM's needs: the posterior mean and covariance
-# are evaluated at it, and EM's convergence is measured in the change of the evidence.
-E_STEP_SMOOTHER = smoothing_solver.LMSmoother(rtol=1e-14)
+# are evaluated at it, and EM's convergence is measured in the change of the evidence. It starts
+# from the previous E-step's MAP, so its first Gauss–Newton step is nearly exact: a small initial
+# Marquardt damping (1e-6, not the smoother's 1e-3, which shrinks each step's progress to ~λ) takes
+# 2–3 iterations instead of 6–7 to rtol 1e-14 (mass–spring–damper, T = 25 000; the same evidence
+# to 10 digits); the damping still grows on a rejected step, so cold starts are unaffected.
+E_STEP_SMOOTHER = smoothing_solver.LMSmoother(rtol=1e-14, damping=1e-6)
 
 
 class GaussianPosterior(eqx.Module):

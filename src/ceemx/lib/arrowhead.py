@@ -28,7 +28,7 @@ from ceemx.lib.blocktri import (
     is_finite,
     solve,
 )
-from ceemx.lib.dense import cholesky_solve
+from ceemx.lib.dense import after, cholesky_solve
 
 __all__ = ["ArrowheadSolution", "arrowhead_solve"]
 
@@ -62,9 +62,8 @@ def _solve_b(L: BlockTridiagonalCholesky, b: Array) -> Array:
     return jax.vmap(solve)(L, b)
 
 
-def _dense_schur(L, E, D, rhs):
-    """Form and factor ``S``; return ``(dtheta, S_ok)``."""
-    Z = _solve_b(L, E)  # (B, T, n, theta)
+def _dense_schur(Z, E, D, rhs):
+    """Form and factor ``S`` from ``Z_b = A_b^{-1} E_b``; return ``(dtheta, S_ok)``."""
     S = D - jnp.sum(jnp.einsum("btnp,btnq->bpq", E, Z), axis=0)
     return cholesky_solve(S, rhs)
 
@@ -186,11 +185,19 @@ def arrowhead_solve(
 
     L = jax.vmap(cholesky)(A)
     a_ok = jnp.all(jax.vmap(is_finite)(L))
-    w = _solve_b(L, r_x)  # A_b^{-1} r_b
+    # Batched block solves with the same factors are never left independent of each other (two
+    # batched LAPACK calls running at once can deadlock, ceemx.lib.dense): the dense method
+    # solves [r_b | E_b] in one multi-RHS pass, the CG method orders its solves after A_b⁻¹ r_b.
+    if method == "dense":
+        wZ = _solve_b(L, jnp.concatenate([r_x[..., None], E], axis=-1))
+        w, Z = wZ[..., 0], wZ[..., 1:]  # A_b^{-1} r_b, A_b^{-1} E_b
+    else:
+        w, Z = _solve_b(L, r_x), None
+        E = after(E, w)
     rhs = r_theta - jnp.sum(jnp.einsum("btnp,btn->bp", E, w), axis=0)
 
     if method == "dense":
-        dtheta, s_ok = _dense_schur(L, E, D, rhs)
+        dtheta, s_ok = _dense_schur(Z, E, D, rhs)
         steps = jnp.asarray(0, jnp.int32)
         converged = jnp.asarray(True)
     else:

@@ -10,12 +10,10 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import solve_triangular
 from jaxtyping import Array, Bool, Float
 
-from ceemx.lib.dense import masked_cholesky, symmetrize
+from ceemx.lib.dense import cho_solve, cholesky, masked_cholesky, solve_triangular, symmetrize
 from ceemx.lib.typing import Scalar
 
 __all__ = ["GaussianUpdate", "gaussian_update", "predictive_log_density"]
@@ -63,14 +61,14 @@ def gaussian_update(
     L_R = masked_cholesky(chol_R, mask)
     R = L_R @ L_R.T
     S = symmetrize(Cm @ P @ Cm.T + R)
-    L_S = jnp.linalg.cholesky(S)
+    L_S = cholesky(S)  # elementwise, not LAPACK: batched over steps (ceemx.lib.dense)
     PCt = P @ Cm.T
     # K = P Cᵀ S⁻¹ through two triangular solves: Kᵀ = S⁻¹ C P.
-    gain = jax.scipy.linalg.cho_solve((L_S, True), PCt.T).T
+    gain = cho_solve(L_S, PCt.T).T
     gain = jnp.where(mask[None, :], gain, 0.0)
     IKC = jnp.eye(P.shape[0], dtype=P.dtype) - gain @ Cm
     post = symmetrize(IKC @ P @ IKC.T + gain @ R @ gain.T)
-    return GaussianUpdate(Cm, L_S, gain, jnp.linalg.cholesky(post), mask)
+    return GaussianUpdate(Cm, L_S, gain, cholesky(post), mask)
 
 
 def predictive_log_density(
@@ -81,7 +79,7 @@ def predictive_log_density(
     ``y`` is the observation less its offset d.
     """
     r = jnp.where(update.mask, y, 0.0) - update.C @ mu
-    z = solve_triangular(update.chol_S, r, lower=True)
+    z = solve_triangular(update.chol_S, r)
     k = jnp.sum(update.mask).astype(mu.dtype)
     # Missing rows of chol_S are the identity: their log-diagonal is 0 and z is 0 there.
     return -0.5 * jnp.sum(z**2) - jnp.sum(jnp.log(jnp.diag(update.chol_S))) - 0.5 * k * _LOG_2PI

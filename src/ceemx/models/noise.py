@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
-from ceemx.lib.dense import masked_cholesky, symmetrize, whitening_matrix
+from ceemx.lib.dense import eigh, masked_cholesky, solve_triangular, symmetrize, whitening_matrix
 from ceemx.lib.typing import Scalar
 
 __all__ = [
@@ -79,7 +79,7 @@ class AbstractNoise(eqx.Module):
         """A matrix S with SᵀS a positive semi-definite curvature of ``nll`` at ``r``."""
         hess = jax.hessian(lambda z: self.nll(z, mask))(r)
         hess = symmetrize(hess)
-        w, v = jnp.linalg.eigh(hess)
+        w, v = eigh(hess)  # Jacobi, not LAPACK: batched over time steps (ceemx.lib.dense)
         return jnp.sqrt(jnp.clip(w, 0.0))[:, None] * v.T
 
     @property
@@ -141,7 +141,7 @@ class AbstractGaussianNoise(AbstractNoise):
         """Exact Gaussian log-density of the present components."""
         mask = _full_mask(r, mask)
         chol = masked_cholesky(self.cholesky().astype(r.dtype), mask)
-        z = jax.scipy.linalg.solve_triangular(chol, jnp.where(mask, r, 0.0), lower=True)
+        z = solve_triangular(chol, jnp.where(mask, r, 0.0))
         k = jnp.sum(mask)
         return -0.5 * jnp.sum(z**2) - jnp.sum(jnp.log(jnp.abs(jnp.diag(chol)))) - 0.5 * k * _LOG_2PI
 
@@ -244,7 +244,7 @@ class StudentT(AbstractNoise):
 
     def _whitened(self, r, mask):
         chol = masked_cholesky(self._chol(r.dtype), mask)
-        z = jax.scipy.linalg.solve_triangular(chol, jnp.where(mask, r, 0.0), lower=True)
+        z = solve_triangular(chol, jnp.where(mask, r, 0.0))
         return z, chol
 
     def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:

@@ -52,6 +52,7 @@ from ceemx.identification.solvers.base import (
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.posterior import E_STEP_SMOOTHER, GaussianPosterior, gaussian_posterior
 from ceemx.infra.warn import warn
+from ceemx.lib.dense import cho_solve, cholesky
 from ceemx.lib.results import RESULTS, codes
 from ceemx.lib.typing import PerTrajectory, States, Theta
 from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
@@ -72,7 +73,9 @@ def _masked_fill(S_oo, R, mask):
     m = R.shape[-1]
     eye = jnp.eye(m, dtype=R.dtype)
     Mo = jnp.diag(mask.astype(R.dtype))
-    inv_o = Mo @ jnp.linalg.inv(Mo @ R @ Mo + eye - Mo) @ Mo
+    # (M R M + I − M)⁻¹ by an elementwise Cholesky: this runs batched over time steps, where
+    # batched LAPACK calls can deadlock (ceemx.lib.dense)
+    inv_o = Mo @ cho_solve(cholesky(Mo @ R @ Mo + eye - Mo), eye) @ Mo
     K = (eye - Mo) @ R @ inv_o
     IK = eye + K
     cond = (eye - Mo) @ (R - R @ inv_o @ R) @ (eye - Mo)
@@ -189,9 +192,10 @@ class LaplaceEM(AbstractFitSolver):
     solver accepts trainable noise: the CE-EM objective is unbounded in the noise scales.
 
     Attributes:
-        smoother: the E-step's MAP smoother (default ``LMSmoother(rtol=1e-14)``: the posterior is
-            evaluated at its answer; its ``rho_x`` should stay 0, since a trust region towards the
-            previous states would move the MAP; the previous states are its start).
+        smoother: the E-step's MAP smoother (default ``LMSmoother(rtol=1e-14, damping=1e-6)``:
+            the posterior is evaluated at its answer; its ``rho_x`` should stay 0, since a trust
+            region towards the previous states would move the MAP; the previous states are its
+            start, hence the small initial damping).
         learner: the M-step's optimiser over the non-noise θ (default Levenberg–Marquardt, run to
             convergence so the M-step is exact on models linear in θ).
         rho_theta: ρ_θ ≥ 0, a trust region on the M-step's θ (0: plain EM).
