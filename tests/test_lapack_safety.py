@@ -178,7 +178,7 @@ def test_laplace_e_step_and_cubature_have_no_concurrent_lapack_calls():
 
 @pytest.mark.slow
 def test_library_programs_have_no_concurrent_lapack_calls():
-    """Every solver's fit, smoothing, filters, learners, evaluation and covariances (~5 min)."""
+    """Every solver's fit, smoothing, filters, learners, evaluation and covariances (1–5 min)."""
     out = subprocess.run(
         [sys.executable, str(ROOT / ".ci" / "check_lapack_concurrency.py")],
         capture_output=True,

@@ -4,6 +4,6 @@ Atomic checkpoints (:mod:`~ceemx.infra.checkpoint`), the persistent compilation 
 (:mod:`~ceemx.infra.compilation`), CPU thread limits for busy machines
 (:mod:`~ceemx.infra.runtime`), the memory guard (:mod:`~ceemx.infra.memory`), warnings
 attributed to the user's line (:mod:`~ceemx.infra.warn`) and the audit of compiled programs for
-LAPACK calls that may run concurrently (:mod:`~ceemx.infra.hlo_audit`, docs/known_issues.md). Layer rule: may import :mod:`ceemx.lib`
-only; every other layer may import it.
+LAPACK calls that may run concurrently (:mod:`~ceemx.infra.hlo_audit`, docs/known_issues.md).
+Layer rule: may import :mod:`ceemx.lib` only; every other layer may import it.
 """
