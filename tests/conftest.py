@@ -40,11 +40,11 @@ def _fast_compilation() -> None:
 
 
 _fast_compilation()
-# The CLI turns on JAX's persistent compilation cache: tests (and their subprocesses) share one
-# fresh folder per session instead of the user's ~/.cache.
+# The CLI turns on JAX's persistent compilation cache. In-process it would stay on for the rest of
+# the session and write every later executable to disk (slower; and under load jaxlib 0.10.2
+# crashed twice in `put_executable_and_time` late in the suite): off for the tests. Tests of the
+# cache itself pass their own folder (tests/test_compilation.py).
 if "CEEMX_COMPILATION_CACHE" not in os.environ:
-    import tempfile
-
-    os.environ["CEEMX_COMPILATION_CACHE"] = tempfile.mkdtemp(prefix="ceemx-test-jax-cache-")
+    os.environ["CEEMX_COMPILATION_CACHE"] = "off"
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
