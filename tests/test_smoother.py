@@ -431,7 +431,9 @@ def test_float32_in_float32_out_with_warning():
     assert sol.cross_covariances.dtype == jnp.float32
     err = np.abs(np.asarray(sol.states, np.float64) - rts_states(data, mask, o)).max()
     print(f"float32: status {codes(sol.status).tolist()}, max |x − RTS| {err:.1e}")
-    assert err < 1e-4
+    # float32 determines these states to about κ(H)·u·|x| ≈ 1e-4 (κ = 41, u = 6e-8): measured
+    # 8.9e-7 with fused multiply-adds (XLA's LLVM -O2), 1.1e-4 without (-O0, tests/conftest.py).
+    assert err < 3e-4
 
 
 def test_float64_in_float64_out_without_warning():
