@@ -7,7 +7,8 @@ moments of a linear-Gaussian model, with missing observations skipped), dense Nu
 conditioning, a NumPy replay of the filter's weight recursion from its own particles and ancestors,
 and a NumPy EM for the maximum-likelihood A. Statistical tests use fixed seeds and tolerances of
 about 4–4.5 standard errors estimated from the spread of independent runs (plus, where the particle
-approximation has an O(1/N) bias, a small stated allowance).
+approximation has an O(1/N) bias, a small stated allowance); R = 64 independent runs in the
+default suite, R = 200 (the same runs and more) under ``slow``.
 
 One problem shape is shared by almost every test — n = 2, m = 2, B = 3, T = 20, N = 300 particles,
 S = 10 smoothed draws — so the filter compiles once per proposal, FFBSi once, and particle EM
@@ -44,7 +45,9 @@ P0_SCALE = np.array([1.0, 0.8])
 B, T, NX, NY = 3, 20, 2, 2
 N = 300  # particles, every filter in this module
 S = 10  # FFBSi draws per trajectory (also particle EM's n_smoothed)
-R_RUNS = 200  # independent runs behind each Monte Carlo test
+R_RUNS = 200  # independent runs behind each Monte Carlo test (slow); the default suite runs
+R_FAST = 64  # the first 64 of them: standard errors 1.8× as large, tolerances in SE units
+RUNS = [R_FAST, pytest.param(R_RUNS, marks=pytest.mark.slow)]
 PEM = dict(n_particles=N, n_smoothed=S, memory=5, burn_in=3, alpha=0.7)
 A_START = A_TRUE + np.array([[0.3, -0.3], [0.3, 0.3]])
 PEM_EPOCHS = 15
@@ -283,16 +286,16 @@ def problem():
 
 @pytest.fixture(scope="module")
 def monte_carlo(problem):
-    """R_RUNS independent filters per (data set, proposal), computed on first use: log p̂ (R, B)
-    and the particle filtering means (R, B, T, n)."""
+    """``runs`` independent filters per (data set, proposal), computed on first use: log p̂ (R, B)
+    and the particle filtering means (R, B, T, n). Fewer runs are the first of more."""
     cache = {}
 
-    def get(name, proposal):
-        if (name, proposal) not in cache:
+    def get(name, proposal, runs=R_FAST):
+        if (name, proposal, runs) not in cache:
             seed = {"observed": 0, "missing": 1}[name] + {"adapted": 10, "bootstrap": 20}[proposal]
             keys = jax.random.split(jax.random.PRNGKey(seed), R_RUNS)
             lls, means = [], []
-            for i in range(R_RUNS):
+            for i in range(runs):
                 pf = ceemx.particle_filter(
                     problem["system"], problem["data"][name], n_particles=N, key=keys[i],
                     proposal=proposal,
@@ -301,8 +304,8 @@ def monte_carlo(problem):
                 lls.append(np.asarray(pf.log_likelihood))
                 w = np.exp(np.asarray(pf.log_weights))[..., None]
                 means.append(np.sum(w * np.asarray(pf.particles), axis=-2))
-            cache[name, proposal] = np.array(lls), np.array(means)
-        return cache[name, proposal]
+            cache[name, proposal, runs] = np.array(lls), np.array(means)
+        return cache[name, proposal, runs]
 
     return get
 
@@ -314,31 +317,34 @@ def monte_carlo(problem):
 
 @pytest.mark.parametrize("name", ["observed", "missing"])
 @pytest.mark.parametrize("proposal", PROPOSALS)
-def test_likelihood_estimate_is_unbiased(problem, monte_carlo, proposal, name):
+@pytest.mark.parametrize("runs", RUNS)
+def test_likelihood_estimate_is_unbiased(problem, monte_carlo, runs, proposal, name):
     """E[p̂(y)] = p(y) (exact Kalman likelihood; missing components skipped) per trajectory: the
     mean of p̂/p over R independent runs is 1 within 4 standard errors of that mean."""
-    lls, _ = monte_carlo(name, proposal)
+    lls, _ = monte_carlo(name, proposal, runs)
     ratio = np.exp(lls - problem["oracle"][name]["ll"])  # (R, B)
-    mean, se = ratio.mean(0), ratio.std(0, ddof=1) / np.sqrt(R_RUNS)
+    mean, se = ratio.mean(0), ratio.std(0, ddof=1) / np.sqrt(runs)
     assert np.all(se < 0.1), se  # the test has power: a 40% bias would fail it
     np.testing.assert_array_less(np.abs(mean - 1.0), 4.0 * se)
 
 
 @pytest.mark.parametrize("name", ["observed", "missing"])
-def test_adapted_likelihood_has_lower_variance(monte_carlo, name):
+@pytest.mark.parametrize("runs", RUNS)
+def test_adapted_likelihood_has_lower_variance(monte_carlo, runs, name):
     """Same problem and N: the fully adapted filter's log p̂ varies well below the bootstrap's."""
-    var_adapted = monte_carlo(name, "adapted")[0].var(0, ddof=1)
-    var_bootstrap = monte_carlo(name, "bootstrap")[0].var(0, ddof=1)
+    var_adapted = monte_carlo(name, "adapted", runs)[0].var(0, ddof=1)
+    var_bootstrap = monte_carlo(name, "bootstrap", runs)[0].var(0, ddof=1)
     np.testing.assert_array_less(var_adapted, 0.5 * var_bootstrap)
 
 
 @pytest.mark.parametrize("name", ["observed", "missing"])
 @pytest.mark.parametrize("proposal", PROPOSALS)
-def test_filtering_means_match_kalman(problem, monte_carlo, proposal, name):
+@pytest.mark.parametrize("runs", RUNS)
+def test_filtering_means_match_kalman(problem, monte_carlo, runs, proposal, name):
     """The particle filtering means E_N[x_t | y_{1:t}], averaged over runs, equal the Kalman
     filter's within 4.5 standard errors plus an O(1/N) bias allowance of 0.02."""
-    _, means = monte_carlo(name, proposal)
-    avg, se = means.mean(0), means.std(0, ddof=1) / np.sqrt(R_RUNS)
+    _, means = monte_carlo(name, proposal, runs)
+    avg, se = means.mean(0), means.std(0, ddof=1) / np.sqrt(runs)
     err = np.abs(avg - problem["oracle"][name]["filtered"])
     np.testing.assert_array_less(err, 4.5 * se + 0.02)
 
@@ -446,7 +452,8 @@ def test_float32_in_float32_out(problem, monte_carlo, proposal):
 
 
 @pytest.mark.parametrize("name", ["missing"])
-def test_ffbsi_matches_rts(problem, name):
+@pytest.mark.parametrize("runs", RUNS)
+def test_ffbsi_matches_rts(problem, runs, name):
     """FFBSi draws (fully adapted filter, N particles, S draws, R independent runs) have the RTS
     smoothed means and variances: per run, the mean of the S draws and the mean squared deviation
     from the RTS mean; across runs, |average − RTS| < 4.5·SE + an O(1/N) allowance (0.03 sd for
@@ -456,7 +463,7 @@ def test_ffbsi_matches_rts(problem, name):
     var = np.diagonal(problem["oracle"][name]["smoothed_cov"], axis1=-2, axis2=-1)
     keys = jax.random.split(jax.random.PRNGKey(3 if name == "observed" else 4), (R_RUNS, 2))
     means, sq = [], []
-    for i in range(R_RUNS):
+    for i in range(runs):
         pf = ceemx.particle_filter(system, data, n_particles=N, key=keys[i, 0], proposal="adapted")
         draws = np.asarray(ceemx.ffbsi(system, data, pf, n_samples=S, key=keys[i, 1]))
         if i == 0:
@@ -467,9 +474,9 @@ def test_ffbsi_matches_rts(problem, name):
         means.append(draws.mean(1))
         sq.append(((draws - ms[:, None]) ** 2).mean(1))
     means, sq = np.array(means), np.array(sq)  # (R, B, T, n)
-    se_mean = means.std(0, ddof=1) / np.sqrt(R_RUNS)
+    se_mean = means.std(0, ddof=1) / np.sqrt(runs)
     np.testing.assert_array_less(np.abs(means.mean(0) - ms), 4.5 * se_mean + 0.03 * np.sqrt(var))
-    se_sq = sq.std(0, ddof=1) / np.sqrt(R_RUNS)
+    se_sq = sq.std(0, ddof=1) / np.sqrt(runs)
     np.testing.assert_array_less(np.abs(sq.mean(0) - var), 4.5 * se_sq + 0.08 * var)
 
 
