@@ -49,6 +49,7 @@ def test_table1_smoke(tmp_path):
     assert "σ ours" in (tmp_path / "table.md").read_text()
 
 
+@pytest.mark.slow  # compiles Laplace EM on table1's problem (≈ 5 s); see the next-but-one test
 def test_table1_laplace_smoke(tmp_path):
     """``ceemx experiment table1 --method laplace --smoke``: Laplace EM, likelihood weighting."""
     args = ["experiment", "table1", "--method", "laplace", "--smoke", "--out", str(tmp_path)]
@@ -64,6 +65,7 @@ def test_table1_laplace_smoke(tmp_path):
     assert "95 % CI covers" in saved["table"]
 
 
+@pytest.mark.slow  # compiles the midpoint Lorenz and Nelder–Mead (≈ 3 s); see the next test
 def test_table1_authors_protocol_smoke(tmp_path):
     """``--protocol authors``: explicit midpoint, x₁ spread 5, zero start, Nelder–Mead."""
     args = ["experiment", "table1", "--protocol", "authors", "--smoke", "--out", str(tmp_path)]
@@ -72,6 +74,34 @@ def test_table1_authors_protocol_smoke(tmp_path):
     assert saved["protocol"] == "authors" and set(saved["results"]) == {"paper"}
     fits = [f for s in saved["results"]["paper"].values() for f in s["fits"]]
     assert all(finite([f["sigma"], f["rho"], f["beta"]]) for f in fits)
+    with pytest.raises(SystemExit):
+        cli.main(["experiment", "figure2", "--protocol", "authors", "--smoke"])
+
+
+def test_table1_methods_and_protocols(capsys):
+    """What the two smoke runs above configure, without compiling: Laplace EM keeps only the
+    likelihood weighting (it maximises a likelihood); the authors' protocol is Algorithm 1 with the
+    paper's weighting and their midpoint integrator; figure2 has no authors' protocol."""
+    assert table1.resolve_methods("laplace", "both", "ours", verbose=True) == (
+        "laplace",
+        ["likelihood"],
+    )
+    assert "likelihood weighting only" in capsys.readouterr().out
+    assert table1.resolve_methods("laplace", "likelihood", "ours", verbose=True)[1] == [
+        "likelihood"
+    ]
+    assert table1.resolve_methods("joint", "both", "authors", verbose=False) == (
+        "alternate",
+        ["paper"],
+    )
+    assert table1.resolve_methods("alternate", "both", "ours", verbose=False) == (
+        "alternate",
+        ["likelihood", "paper"],
+    )
+    with pytest.raises(ValueError, match="protocol"):
+        table1.resolve_methods("alternate", "both", "theirs", verbose=False)
+    assert table1.true_system("authors").integrator == "midpoint"
+    assert table1.true_system("ours").C.shape == (2, 3)
     with pytest.raises(SystemExit):
         cli.main(["experiment", "figure2", "--protocol", "authors", "--smoke"])
 
