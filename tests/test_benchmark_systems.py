@@ -110,6 +110,9 @@ def _fit_check(true, guess, trainable, u, x1, names, rtol, max_epochs=15):
         assert abs(got - want) <= rtol * abs(want), (name, start, got, want)
 
 
+# One identification per system compiles its own JointLM (4–7 s each): the default suite fits the
+# Silverbox; the tanks and the drives run under `slow` (their models are checked above).
+@pytest.mark.slow
 def test_identify_tanks_outflows():
     options: dict[str, Any] = dict(process_noise=1e-3, obs_noise=1e-2)
     true = CascadedTanks.default(**options)
@@ -126,6 +129,7 @@ def test_identify_silverbox_frequency_and_cubic():
     _fit_check(true, guess, lambda s: (s.f0, s.kappa), u, [0.0, 0.0], ("f0", "kappa"), 0.1)
 
 
+@pytest.mark.slow
 def test_identify_drives_rate_and_gain():
     options: dict[str, Any] = dict(process_noise=1e-3, obs_noise=1e-2)
     true = CoupledDrives.default(**options)
