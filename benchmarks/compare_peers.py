@@ -49,7 +49,7 @@ from ceemx.experiments import common  # noqa: E402
 try:
     from ceemx.identification.initialize import from_observations
 except ImportError:  # a tree before the package folders (b271a33), for probes/ab_first_call.py
-    from ceemx.initialize import from_observations
+    from ceemx.identification.initialize import from_observations
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results" / "compare_peers.json"
 

@@ -329,7 +329,7 @@ def test_laplace_evidence_matches_the_particle_filter_likelihood():
     import math
 
     from ceemx.experiments import common
-    from ceemx.inference import particle_filter
+    from ceemx.inference.particle import particle_filter
     from ceemx.models import with_noise
 
     true = common.true_lorenz(1, key=jax.random.PRNGKey(4), m=2, process_noise=0.1, obs_noise=0.5)

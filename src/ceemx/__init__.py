@@ -44,7 +44,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
         learn,
     )
     from ceemx.identification.noise import estimate_noise
-    from ceemx.identification.noise_check import NoiseCheck
+    from ceemx.identification.noise_check import NoiseCheck, NoiseCheckWarning
     from ceemx.identification.problem import FitProblem
     from ceemx.identification.solvers import (
         AbstractFitSolver,
@@ -138,6 +138,7 @@ _LAZY = {
     "LessThan": ".models",
     "NelderMeadLearner": ".identification.learning",
     "NoiseCheck": ".identification.noise_check",
+    "NoiseCheckWarning": ".identification.noise_check",
     "OptaxLearner": ".identification.learning",
     "ParticleEM": ".identification.solvers",
     "ParticleFilterSolution": ".inference.particle",
@@ -233,6 +234,7 @@ __all__ = [
     "LessThan",
     "NelderMeadLearner",
     "NoiseCheck",
+    "NoiseCheckWarning",
     "OptaxLearner",
     "ParticleEM",
     "ParticleFilterSolution",

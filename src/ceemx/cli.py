@@ -37,6 +37,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Iterator, Sequence
 
 __all__ = ["main"]
@@ -395,9 +396,32 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
 
     module = get(args.name)
     kwargs = _experiment_kwargs(parser, args)
-    with report.deferred_writes() as held:
+    with report.deferred_writes() as held, _noise_warnings_counted():
         module.run(**kwargs)
     return _commit(held, interrupts)
+
+
+@contextlib.contextmanager
+def _noise_warnings_counted() -> Iterator[None]:
+    """An experiment's fits run at the paper's fixed noise settings, which the end-of-fit noise
+    check often finds inconsistent (by design of the setting, not a fault of the run): one line
+    at the end counts them instead of one long warning per fit."""
+    from ceemx.identification.noise_check import NoiseCheckWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", NoiseCheckWarning)
+        yield
+    flagged = [w for w in caught if issubclass(w.category, NoiseCheckWarning)]
+    for w in caught:  # every other warning as it would have been shown
+        if not issubclass(w.category, NoiseCheckWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    if flagged:
+        print(
+            f"ceemx: the end-of-fit noise check flagged {len(flagged)} fit"
+            f"{'s' if len(flagged) > 1 else ''} at the experiment's fixed noise settings "
+            "(ceemx.identification.noise_check; fit(..., noise='learn') learns the scales).",
+            file=sys.stderr,
+        )
 
 
 def _commit(held, interrupts: _Interrupts) -> int:

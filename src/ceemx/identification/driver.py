@@ -24,7 +24,7 @@ from ceemx.data.sharding import resolve_devices, shard_batch
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.health import OUTLIER_OPTIONS, trajectory_health
 from ceemx.identification.identifiability import Identifiability
-from ceemx.identification.noise_check import NoiseCheck, noise_check
+from ceemx.identification.noise_check import NoiseCheck, NoiseCheckWarning, noise_check
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver, FitState, total_J
@@ -502,7 +502,7 @@ def _check_noise(problem: FitProblem, solver, state: FitState, converged: bool):
         converged=converged,
     )
     if check is not None and check.message:
-        warn(check.message)
+        warn(check.message, NoiseCheckWarning)
     return check
 
 
