@@ -140,9 +140,10 @@ def test_deferred_writes(tmp_path):
 
 def interrupt(tmp_path, delay: float | None):
     """Run ``python -m ceemx experiment table1 --smoke``, SIGINT after ``delay`` s — or, with
-    ``delay=None``, as soon as the first fit's line is printed (mid-fitting, on any machine speed)."""
+    ``delay=None``, as soon as the first fit's line is printed (mid-fitting, any machine speed)."""
     out = tmp_path / f"out-{delay}"
-    env = dict(os.environ, MPLBACKEND="Agg", CEEMX_COMPILATION_CACHE="0", PYTHONUNBUFFERED="1")
+    env = dict(os.environ, MPLBACKEND="Agg", CEEMX_COMPILATION_CACHE="0")
+    env["PYTHONUNBUFFERED"] = "1"  # the first fit's line arrives as it is printed
     proc = subprocess.Popen(
         [sys.executable, "-m", "ceemx", "experiment", "table1", "--smoke", "--out", str(out)],
         stdout=subprocess.PIPE if delay is None else subprocess.DEVNULL,

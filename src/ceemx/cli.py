@@ -403,9 +403,11 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
 
 @contextlib.contextmanager
 def _noise_warnings_counted() -> Iterator[None]:
-    """An experiment's fits run at the paper's fixed noise settings, which the end-of-fit noise
-    check often finds inconsistent (by design of the setting, not a fault of the run): one line
-    at the end counts them instead of one long warning per fit."""
+    """Count the experiment's noise-check warnings into one line at the end.
+
+    An experiment's fits run at the paper's fixed noise settings, which the end-of-fit noise
+    check often finds inconsistent (by design of the setting, not a fault of the run).
+    """
     from ceemx.identification.noise_check import NoiseCheckWarning
 
     with warnings.catch_warnings(record=True) as caught:

@@ -87,9 +87,12 @@ __all__ = [
 
 
 class NoiseCheckWarning(UserWarning):
-    """The end-of-fit noise check's warning (its own category, so that a script fitting many
-    records at fixed, known-inconsistent noise — the paper's experiments — can collect or filter
-    it: ``warnings.filterwarnings("ignore", category=ceemx.NoiseCheckWarning)``)."""
+    """The end-of-fit noise check's warning.
+
+    Its own category, so that a script fitting many records at fixed, known-inconsistent noise
+    (the paper's experiments) can collect or filter it:
+    ``warnings.filterwarnings("ignore", category=ceemx.NoiseCheckWarning)``.
+    """
 
 
 #: the upper bound F of ρ (and of the per-component ratios, [1/F, F]): 2× in standard deviation
