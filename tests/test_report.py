@@ -45,3 +45,30 @@ def test_files_and_figure(tmp_path):
     ax.plot([0, 1])
     path = report.save_figure(fig, out / "f.png")
     assert path.stat().st_size > 0 and not plt.get_fignums()
+
+
+def test_benchmark_score_prints_a_few_lines_not_its_arrays():
+    """repr(score): RMSE / NRMSE / fit % per record and output; trajectories only on request."""
+    from ceemx.evaluation.metrics import BenchmarkScore
+    from ceemx.lib.results import RESULTS
+
+    rmse = np.array([[0.0123, 2.5], [0.02, 3.0]])
+    nrmse = np.array([[0.05, 0.4], [0.1, 0.5]])
+    y_sim = np.arange(2 * 5000 * 2, dtype=float).reshape(2, 5000, 2)
+    score = BenchmarkScore(
+        rmse, nrmse, 100 * (1 - nrmse), np.array([1.8, 2.1]), nrmse.mean(1),
+        100 * (1 - nrmse.mean(1)), y_sim, np.zeros((2, 5000, 3)), np.zeros((2, 3)),
+        RESULTS.successful, 50,
+    )  # fmt: skip
+    text = repr(score)
+    assert str(score) == text and len(text.splitlines()) <= 9 and "4999" not in text
+    lines = text.splitlines()
+    assert lines[0].startswith("BenchmarkScore: free-run simulation of 2 record(s)")
+    assert "n_init = 50" in lines[0]
+    assert lines[1].split() == ["record", "output", "RMSE", "NRMSE", "fit", "%"]
+    assert lines[2].split() == ["0", "y1", "0.0123", "0.05", "95.00"]
+    assert lines[6].split() == ["0", "all", "1.8", "0.225", "77.50"]  # overall, 2 outputs
+    named = score.table(output_names=["left", "right"], unit="mV", format="markdown")
+    assert "| record | output | RMSE [mV] | NRMSE | fit % |" in named and "| 1 | right |" in named
+    full = score.table(arrays=True)
+    assert "y_sim (2, 5000, 2)" in full and "..." in full  # abbreviated by NumPy

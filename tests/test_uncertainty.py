@@ -89,8 +89,9 @@ def test_standard_error_matches_monte_carlo_spread():
     assert 0.6 <= ratio <= 1.6, (ratio, spread, np.mean(ses))
     assert abs(np.mean(estimates) - a) < 3 * spread / np.sqrt(R) + 0.02
     assert res is not None
-    table = estimate_table(res.parameter_estimates(), {".A[0,0]": a})
-    assert ".A[0,0]" in table and "±" in table
+    table = estimate_table(res.parameter_estimates(), {"A[0,0]": a})
+    assert "| A[0,0] |" in table and "±" in table
+    assert estimate_table(res.parameter_estimates(), {".A[0,0]": a}) == table  # old key paths
 
 
 class Decay(ceemx.AbstractSystem):
@@ -114,11 +115,20 @@ class Decay(ceemx.AbstractSystem):
         return self.g * x
 
 
-def test_constrained_parameters_use_the_delta_method():
+@pytest.fixture(scope="module")
+def decay():
+    """JointLM on :class:`Decay` (4 × 30 steps; 30 epochs, not converged: a noise-check note)."""
     true = Decay(jnp.asarray(0.7), jnp.asarray(1.5), process_noise=0.3, obs_noise=0.1)
     k1, k2 = jax.random.split(jax.random.PRNGKey(5))
     xs, data = simulate(true, k1, jax.random.normal(k2, (4, 1)), 30)
-    res = ceemx.fit(true, data, xs, solver=ceemx.JointLM(rtol=1e-10), max_epochs=30, progress=False)
+    with pytest.warns(ceemx.NoiseCheckWarning):
+        return ceemx.fit(
+            true, data, xs, solver=ceemx.JointLM(rtol=1e-10), max_epochs=30, progress=False
+        )
+
+
+def test_constrained_parameters_use_the_delta_method(decay):
+    res = decay
     assert res.problem is not None
     cov = np.asarray(res.covariance())
     assert cov.shape == (2, 2) and np.all(np.isfinite(cov))
@@ -138,8 +148,11 @@ def test_constrained_parameters_use_the_delta_method():
         leaf is None for leaf in jax.tree_util.tree_leaves(se.process_noise)
     )
     est = res.parameter_estimates()
-    assert set(est) == {".a", ".g"}
-    assert est[".a"] == pytest.approx((a, float(se.a)))
+    assert list(est) == ["a", "g"]  # names as written
+    assert est["a"] == pytest.approx((a, float(se.a)))
+    # The key paths of earlier versions still look up.
+    assert ".a" in est and est[".a"] == est["a"] and est.get(".g") == est["g"]
+    assert "missing" not in est and est.get(".missing") is None
 
 
 def test_unidentifiable_parameter_gives_nan_and_a_warning():
@@ -149,6 +162,68 @@ def test_unidentifiable_parameter_gives_nan_and_a_warning():
     with pytest.warns(UserWarning, match="not positive definite") as record:
         cov = parameter_covariance(problem, th, x, jnp.ones(x.shape[0]))
     message = str(record[0].message)
-    assert ".H[0,0]" in message and ".sigma" not in message  # names the culprits only
+    assert "H[0,0]" in message and "sigma" not in message  # names the culprits only
     assert cov.shape == (12, 12)
     assert np.all(np.isnan(np.asarray(cov)))
+    # hold_weak: H held at its estimate, the covariance of σ, ρ, β conditional on it (as if H
+    # were not trainable), NaN in H's rows and columns.
+    with pytest.warns(UserWarning, match=r"conditional on H\[0,0\]"):
+        held = np.asarray(
+            parameter_covariance(problem, th, x, jnp.ones(x.shape[0]), hold_weak=True)
+        )
+    small, th3 = FitProblem.create(system, data, trainable=lambda s: (s.sigma, s.rho, s.beta))
+    np.testing.assert_allclose(held[:3, :3], parameter_covariance(small, th3, x), rtol=1e-8)
+    assert np.all(np.isnan(held[3:])) and np.all(np.isnan(held[:, 3:]))
+
+
+# --------------------------------------------------------------------------------------------
+# FitResult.summary / repr (ceemx.identification.summary), on the same fit
+# --------------------------------------------------------------------------------------------
+
+
+def test_summary_names_estimates_intervals_and_constraints(decay):
+    """One row per parameter as written; SE as parameter_estimates; forward(ẑ ± 1.96 σ_z)."""
+    from ceemx.identification.summary import parameter_rows
+
+    res = decay
+    text = res.summary()
+    assert isinstance(text, str) and repr(text) == str(text)  # shows as it reads at the prompt
+    lines = text.splitlines()
+    assert lines[0] == "Fit summary: JointLM, not converged after 30 epoch(s)"
+    rows, notes = parameter_rows(res)
+    assert [r.name for r in rows] == ["a", "g"] and notes == []
+    est = res.parameter_estimates()
+    cov = np.asarray(res.covariance())
+    z = np.asarray(res.theta)
+    for i, r in enumerate(rows):
+        assert (r.estimate, r.se) == pytest.approx(est[r.name], rel=1e-12)
+        step = 1.959963984540054 * np.sqrt(cov[i, i]) * np.eye(2)[i]
+        ends = [float(res.problem.natural(jnp.asarray(z + s * step))[i]) for s in (-1, 1)]
+        assert (r.lower, r.upper) == pytest.approx(tuple(ends), rel=1e-9)
+    assert 0.0 < rows[0].lower < rows[0].estimate < rows[0].upper < 1.0  # inside the constraint
+    assert rows[1].lower > 0.0
+    row_a = next(line for line in lines if line.startswith("a "))
+    assert "in (0, 1)" in row_a and f"{rows[0].estimate:.5g}" in row_a
+    assert any(line.startswith("g ") and "> 0 (positive)" in line for line in lines)
+    for label in ("process noise", "observation noise", "J (log-likelihood", "epochs", "status"):
+        assert any(line.startswith(label) for line in lines), label
+    assert "DiagonalGaussian, std 0.3 (given)" in text and "30, NOT converged" in text
+    assert "noise check" in text and "INCONSISTENT" in text  # the fit's noise-check record
+    assert "Messages:" in text and "the assumed noise is too loose" in text
+    assert max(len(line) for line in lines) <= 100  # wrapped for a terminal
+
+
+def test_summary_markdown_and_repr(decay):
+    res = decay
+    md = res.summary("markdown", level=0.9)
+    assert md.startswith("**Fit summary: JointLM")
+    assert "| parameter | estimate | std. error | 90 % interval | constraint |" in md
+    assert "| a | " in md and "| > 0 (positive) |" in md and "**Messages**" in md
+    bare = res.summary(uncertainty=False, max_rows=1)
+    assert "1 more parameters" in bare and " nan " in bare
+    with pytest.raises((ValueError, TypeError)):  # TypeError: the tests' runtime type checks
+        res.summary("html")  # type: ignore[arg-type]
+    short = repr(res)
+    assert short.startswith("FitResult(JointLM, not converged after 30 epoch(s), J = ")
+    assert "a = " in short and "g = " in short and ".summary()" in short
+    assert len(short.splitlines()) <= 3

@@ -212,6 +212,30 @@ class BenchmarkScore(NamedTuple):
     status: RESULTS
     n_init: int
 
+    def table(
+        self,
+        *,
+        output_names: Sequence[str] | None = None,
+        unit: str = "",
+        format: str = "text",
+        arrays: bool = False,
+    ) -> str:
+        """RMSE / NRMSE / fit % per record and output in a few lines (``repr`` of the score).
+
+        The trajectories (``y_sim``, ``x_sim``, ``x1``) only with ``arrays=True``; ``unit``
+        labels the RMSE (e.g. ``"mV"`` with a dataset's ``score_scale``); ``format``:
+        ``"text"`` or ``"markdown"`` (:func:`ceemx.evaluation.report.score_table`).
+        """
+        from ceemx.evaluation.report import score_table
+
+        return score_table(self, output_names=output_names, unit=unit, format=format, arrays=arrays)
+
+    def __repr__(self) -> str:
+        """The score in a few lines, no arrays (:meth:`table`)."""
+        return self.table()
+
+    __str__ = __repr__
+
 
 @eqx.filter_jit
 def score_batch(

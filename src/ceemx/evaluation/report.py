@@ -4,7 +4,10 @@
   cells and GitHub-flavoured Markdown tables, flagged like the paper's Table 1 when the mean is not
   within two standard errors of the truth.
 - :func:`format_pm`, :func:`estimate_table` — one fit's estimates ± their standard errors (e.g.
-  the Laplace standard errors of :meth:`ceemx.FitResult.parameter_estimates`).
+  the Laplace standard errors of :meth:`ceemx.FitResult.parameter_estimates`);
+  :meth:`ceemx.FitResult.summary` is the whole fit's table.
+- :func:`score_table` — a benchmark score in a few lines (``repr`` of
+  :class:`~ceemx.evaluation.metrics.BenchmarkScore`).
 - :func:`output_dir`, :func:`save_json`, :func:`save_text` — result files, each written atomically
   (a temporary file in the same folder, then ``os.replace``): a reader never sees half a file.
 - :func:`deferred_writes` — hold every result file in memory until :meth:`Deferred.commit`
@@ -154,13 +157,15 @@ def estimate_table(
     """
     if not estimates:
         return ""
+    if truth is not None:  # names as written; the key paths of earlier versions (".a") too
+        truth = {str(k).removeprefix("."): v for k, v in truth.items()}
     header = ["parameter", "estimate ± SE"] + (["truth"] if truth is not None else [])
     body, any_flagged = [], False
     for name, (value, se) in estimates.items():
         cell = format_pm(value, se, digits=digits)
         row = [name, cell]
-        if truth is not None and name in truth:
-            t = float(truth[name])
+        if truth is not None and name.removeprefix(".") in truth:
+            t = float(truth[name.removeprefix(".")])
             if not abs(float(value) - t) <= k * float(se):
                 cell, any_flagged = f"**{cell}**†", True
             row = [name, cell, f"{t:.{digits}f}"]
@@ -171,6 +176,73 @@ def estimate_table(
     if any_flagged:
         out += f"† estimate not within {k:g} standard errors of the truth.\n"
     return out
+
+
+def score_table(
+    score,
+    *,
+    output_names: Sequence[str] | None = None,
+    unit: str = "",
+    format: str = "text",
+    arrays: bool = False,
+) -> str:
+    """A :class:`~ceemx.evaluation.metrics.BenchmarkScore` in a few lines; ``repr(score)``.
+
+    One row per test record and output (RMSE, NRMSE, fit %), then each record's overall RMSE
+    when there are several outputs; the simulated trajectories only with ``arrays=True``
+    (NumPy's abbreviated print).
+
+    Args:
+        score: the score.
+        output_names: one name per output (default ``y1``, ``y2``, …).
+        unit: the RMSE's unit, e.g. ``"mV"`` (in the RMSE column's heading).
+        format: ``"text"`` (aligned columns) or ``"markdown"``.
+        arrays: append ``x1``, ``y_sim`` and ``x_sim``.
+
+    Returns:
+        The table as a string.
+    """
+    if format not in ("text", "markdown"):
+        raise ValueError(f"`format` must be 'text' or 'markdown'; got {format!r}.")
+    rmse, nrmse, fit = (np.atleast_2d(np.asarray(a, np.float64)) for a in score[:3])
+    B, m = rmse.shape
+    names = [f"y{j + 1}" for j in range(m)] if output_names is None else list(output_names)
+    if len(names) != m:
+        raise ValueError(f"`output_names` needs {m} names; got {len(names)}.")
+    head = ["record", "output", f"RMSE [{unit}]" if unit else "RMSE", "NRMSE", "fit %"]
+    body = [
+        [str(b), names[j], f"{rmse[b, j]:.4g}", f"{nrmse[b, j]:.4g}", f"{fit[b, j]:.2f}"]
+        for b in range(B)
+        for j in range(m)
+    ]
+    if m > 1:
+        overall = np.atleast_1d(np.asarray(score.rmse_overall, np.float64))
+        nr, ft = (np.atleast_1d(np.asarray(a, np.float64)) for a in score[4:6])
+        body += [
+            [str(b), "all", f"{overall[b]:.4g}", f"{nr[b]:.4g}", f"{ft[b]:.2f}"] for b in range(B)
+        ]
+    title = (
+        f"BenchmarkScore: free-run simulation of {B} record(s), scored from sample "
+        f"n_init = {int(score.n_init)}"
+    )
+    if format == "markdown":
+        lines = [f"**{title}**", "", markdown_table(head, body).rstrip("\n")]
+    else:
+        widths = [max(len(r[i]) for r in [head, *body]) for i in range(len(head))]
+        lines = [title] + [
+            "  ".join(
+                c.rjust(w) if i >= 2 else c.ljust(w)
+                for i, (c, w) in enumerate(zip(r, widths, strict=True))
+            )
+            for r in [head, *body]
+        ]
+    if arrays:
+        for name in ("x1", "y_sim", "x_sim"):
+            a = np.asarray(getattr(score, name))
+            lines.append(f"{name} {a.shape}:\n{np.array2string(a, threshold=50, edgeitems=2)}")
+    else:
+        lines.append("(x1, y_sim, x_sim: attributes; score.table(arrays=True) prints them)")
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------------------------

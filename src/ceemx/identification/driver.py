@@ -195,12 +195,15 @@ class FitResult(eqx.Module):
             weights = jnp.ones(states.shape[0], states.dtype)
         return self.problem, self.theta, states, weights
 
-    def covariance(self, natural: bool = False):
+    def covariance(self, natural: bool = False, *, hold_weak: bool = False):
         """(P, P) Laplace covariance of the trainable θ (:mod:`ceemx.identification.uncertainty`).
 
         Args:
             natural: ``False`` (default): of the flat θ in the problem's unconstrained
                 coordinates (``FitResult.theta``); ``True``: in natural units by the delta method.
+            hold_weak: for the CE methods, when some entries are not determined by the data,
+                the covariance of the others with those held at their estimates (NaN in the held
+                rows), instead of NaN everywhere (:meth:`summary` uses it).
 
         Returns:
             The covariance; all NaN, with a warning, when the Schur complement is not positive
@@ -216,7 +219,7 @@ class FitResult(eqx.Module):
         if isinstance(self.solver, LaplaceEM):
             cov = evidence_covariance(problem, theta, states, weights, self.solver.smoother)
         else:
-            cov = parameter_covariance(problem, theta, states, weights)
+            cov = parameter_covariance(problem, theta, states, weights, hold_weak=hold_weak)
         return natural_covariance(problem, theta, cov) if natural else cov
 
     def standard_errors(self):
@@ -232,13 +235,51 @@ class FitResult(eqx.Module):
     def parameter_estimates(self) -> dict[str, tuple[float, float]]:
         """``name → (estimate, standard error)`` per trainable scalar, in natural units.
 
-        Names are key paths into the system (``.sigma[0]``, ``.A[0,1]``); the dict feeds
+        Names as written in the system (``sigma[0]``, ``A[0,1]``, ``process_noise.scale``); the
+        key paths of earlier versions (``.A[0,1]``) still look up. The dict feeds
         :func:`ceemx.evaluation.report.estimate_table`.
         """
         from ceemx.identification.uncertainty import standard_errors_by_name
 
         problem, theta, _, _ = self._laplace_inputs()
         return standard_errors_by_name(problem, theta, self.covariance())
+
+    def summary(
+        self,
+        format: Literal["text", "markdown"] = "text",
+        *,
+        level: float = 0.95,
+        diagnostics: bool = False,
+        uncertainty: bool = True,
+        max_rows: int | None = 40,
+    ) -> str:
+        """What the fit found, for a person (:mod:`ceemx.identification.summary`).
+
+        The trainable parameters in natural units, named as written (estimate, standard error,
+        ``level`` interval, constraint), the noise models, J, data, epochs and time, status, the
+        noise check and identifiability records, and the messages; ``diagnostics=True`` adds
+        :meth:`diagnostics` (an EKF pass and a Laplace E-step, not run by default);
+        ``uncertainty=False`` skips the covariance. ``format``: ``"text"`` or ``"markdown"``.
+
+        Example:
+            >>> print(result.summary())  # doctest: +SKIP
+        """
+        from ceemx.identification.summary import fit_summary
+
+        return fit_summary(
+            self,
+            format,
+            level=level,
+            diagnostics=diagnostics,
+            uncertainty=uncertainty,
+            max_rows=max_rows,
+        )
+
+    def __repr__(self) -> str:
+        """A few lines: solver, convergence, J and the first estimates (nothing computed)."""
+        from ceemx.identification.summary import short_repr
+
+        return short_repr(self)
 
 
 class _Progress:

@@ -53,6 +53,7 @@ from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, States, Theta
 
 __all__ = [
+    "NamedEstimates",
     "evidence_covariance",
     "natural_covariance",
     "natural_jacobian",
@@ -68,6 +69,12 @@ _NOT_PD = (
     "maximum of J (the fit did not converge) or a parameter is not identifiable from the data "
     "(e.g. it has no effect on the observations); fix or drop such parameters (`trainable`) or "
     "add a prior (`log_prior`)."
+)
+
+_HELD = (
+    "Standard errors conditional on {which} held at their estimates: the data do not determine "
+    "them (the Schur complement S of the joint Gauss–Newton matrix is singular along them), so "
+    "they have no standard error (NaN), and the others' are those at these values."
 )
 
 
@@ -106,8 +113,30 @@ def _laplace(
 
 
 def _names(problem: FitProblem) -> list[str]:
-    """One name per entry of θ as a key path, e.g. ``.A[0,0]`` or ``.sigma``."""
-    return [f".{name}" for name in problem.parameter_names()]
+    """One name per entry of θ as written, e.g. ``A[0,0]`` or ``sigma``."""
+    return problem.parameter_names()
+
+
+class NamedEstimates(dict):
+    """``name → (estimate, standard error)``, keyed by names as written (``A[0,0]``, ``sigma``).
+
+    The key paths of earlier versions (``.A[0,0]``, ``.sigma``) still look up, through ``[]``,
+    ``in`` and ``get``; iteration gives the names as written.
+    """
+
+    def __missing__(self, key):
+        if isinstance(key, str) and key.startswith(".") and dict.__contains__(self, key[1:]):
+            return dict.__getitem__(self, key[1:])
+        raise KeyError(key)
+
+    def __contains__(self, key) -> bool:
+        return dict.__contains__(self, key) or (
+            isinstance(key, str) and key.startswith(".") and dict.__contains__(self, key[1:])
+        )
+
+    def get(self, key, default=None):
+        """``self[key]`` when present (old key paths included), else ``default``."""
+        return self[key] if key in self else default
 
 
 def parameter_covariance(
@@ -115,6 +144,8 @@ def parameter_covariance(
     theta: Theta,
     states: States,
     weights: PerTrajectory | None = None,
+    *,
+    hold_weak: bool = False,
 ) -> Float[Array, "theta theta"]:
     """Laplace covariance ``S⁻¹`` of the flat, unconstrained θ at the end point (x, θ).
 
@@ -123,6 +154,10 @@ def parameter_covariance(
         theta: (P,) θ̂ in the problem's unconstrained coordinates.
         states: (B, T, n) x̂, one trajectory per trajectory of ``problem.data``.
         weights: (B,) trajectory weights; 0 excludes a trajectory (default: all ones).
+        hold_weak: when ``S`` is not positive definite, hold the weakly determined entries (the
+            ones the warning names) at their estimates and return the covariance of the rest,
+            conditional on them, with NaN in the held entries' rows and columns — instead of NaN
+            everywhere. (Still all NaN, with the warning, if the rest is singular too.)
 
     Returns:
         The (P, P) covariance; all NaN, with a warning, when ``S`` is not positive definite.
@@ -138,11 +173,20 @@ def parameter_covariance(
     noise, noise_var = _noise_variances(problem, theta, weights)
     keep = jnp.where(noise, 0.0, 1.0).astype(theta.dtype)
     cov, ok, weak = _laplace(problem, theta, states, weights, keep)
+    held = jnp.zeros_like(noise)
+    if not bool(ok) and hold_weak and bool(jnp.any(weak)) and not bool(jnp.all(weak | noise)):
+        held = weak & ~noise
+        keep = jnp.where(noise | held, 0.0, 1.0).astype(theta.dtype)
+        cov, ok, weak = _laplace(problem, theta, states, weights, keep)
+        if bool(ok):
+            flagged = [n for n, w in zip(_names(problem), np.asarray(held), strict=True) if w]
+            warn(_HELD.format(which=", ".join(flagged)))
     if not bool(ok):
         flagged = [n for n, w in zip(_names(problem), np.asarray(weak), strict=True) if w]
         which = f" (weakly determined: {', '.join(flagged)})" if flagged else ""
         warn(_NOT_PD.format(which=which))
     cov = jnp.where(noise[:, None] | noise[None, :], 0.0, cov)
+    cov = jnp.where(held[:, None] | held[None, :], jnp.nan, cov)
     return cov + jnp.diag(jnp.where(noise, noise_var, 0.0))
 
 
@@ -285,10 +329,14 @@ def standard_errors(
 def standard_errors_by_name(
     problem: FitProblem, theta: Theta, covariance: Float[Array, "theta theta"]
 ) -> dict[str, tuple[float, float]]:
-    """``name → (estimate, standard error)`` per entry of θ, both in natural units."""
+    """``name → (estimate, standard error)`` per entry of θ, both in natural units.
+
+    Names as written (:meth:`FitProblem.parameter_names`); a :class:`NamedEstimates`, so the key
+    paths of earlier versions (``.A[0,0]``) still look up.
+    """
     values = problem.natural(theta)  # natural values, in θ order
     se = np.sqrt(np.diagonal(np.asarray(natural_covariance(problem, theta, covariance))))
-    return {
-        n: (float(v), float(s))
+    return NamedEstimates(
+        (n, (float(v), float(s)))
         for n, v, s in zip(_names(problem), np.asarray(values), se, strict=True)
-    }
+    )

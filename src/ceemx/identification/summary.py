@@ -1,0 +1,420 @@
+"""What a fit found, for a person: :meth:`ceemx.FitResult.summary` and ``repr(result)``.
+
+:func:`fit_summary` writes, in plain text or Markdown (like statsmodels' ``summary()`` or MATLAB's
+``present``):
+
+1. one line: the solver, whether it converged and in how many epochs;
+2. the trainable parameters, named as written in the system (``M``, ``H[2,3]``,
+   ``process_noise.scale``), in natural units: estimate, standard error, the 95 % interval and
+   the constraint;
+3. the noise models, J at the start and the end, the data, epochs and time, the trajectories'
+   status;
+4. the end-of-fit noise check (:attr:`FitResult.noise_check`) and the identifiability analysis
+   (:attr:`FitResult.identifiability`) when the fit recorded them, and, on request
+   (``diagnostics=True``), the residual diagnostics of :meth:`FitResult.diagnostics` (an EKF pass
+   and a Laplace E-step: not run by default);
+5. the messages (per-trajectory statuses grouped, then the fit's own).
+
+**The interval.** The Laplace covariance lives in the unconstrained coordinates z of θ
+(:mod:`ceemx.identification.uncertainty`); the interval is ``forward(ẑ ± q·σ_z)``, the Wald
+interval of z mapped to natural units, so it always lies inside the constraint (a positive
+parameter's interval never reaches 0) and is ``estimate ± q·SE`` for unconstrained parameters
+(q = 1.96 for 95 %). The standard error is the delta-method one, ``forward'(ẑ)·σ_z``. When the
+data do not determine some parameters, those are held at their estimates and the others' errors
+are conditional on them (``FitResult.covariance(hold_weak=True)``; a message says so), rather than
+NaN for every parameter.
+
+Nothing here computes on the device except the covariance (one compiled Schur complement per
+problem shape, as :meth:`FitResult.covariance`); ``uncertainty=False`` skips it.
+"""
+
+from __future__ import annotations
+
+import textwrap
+import warnings
+from collections import Counter
+from collections.abc import Sequence
+from statistics import NormalDist
+from typing import Literal
+
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+from ceemx.lib.results import RESULTS, codes
+from ceemx.models.constraints import Unconstrained
+from ceemx.models.noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT
+
+__all__ = ["ParameterRow", "Summary", "fit_summary", "parameter_rows", "short_repr"]
+
+Format = Literal["text", "markdown"]
+
+
+class Summary(str):
+    """A summary: a ``str`` that shows itself as it reads (no quotes, real line breaks).
+
+    ``print(result.summary())`` and ``result.summary()`` at the prompt show the same table;
+    notebooks render the Markdown form (``format="markdown"``) as Markdown.
+    """
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return str(self)
+
+    def _repr_markdown_(self) -> str:
+        return str(self) if self.lstrip().startswith(("**", "|", "#")) else f"```\n{self}\n```"
+
+
+class ParameterRow(tuple):
+    """One trainable scalar: ``(name, estimate, se, lower, upper, constraint)``, natural units."""
+
+    __slots__ = ()
+
+    def __new__(cls, name: str, estimate, se, lower, upper, constraint: str):
+        """One row; the numbers as Python floats (NaN where not available)."""
+        return super().__new__(
+            cls, (name, float(estimate), float(se), float(lower), float(upper), constraint)
+        )
+
+    name = property(lambda self: self[0], doc="The parameter's name as written, e.g. ``H[2,3]``.")
+    estimate = property(lambda self: self[1], doc="The estimate in natural units.")
+    se = property(lambda self: self[2], doc="The delta-method standard error (NaN: none).")
+    lower = property(lambda self: self[3], doc="The interval's lower end.")
+    upper = property(lambda self: self[4], doc="The interval's upper end.")
+    constraint = property(lambda self: self[5], doc="The constraint in words.")
+
+
+def _constraint_words(problem) -> list[str]:
+    """One description per entry of θ: each leaf's constraint, repeated over its entries."""
+    leaves = jtu.tree_leaves(problem.template)
+    constraints = problem.constraints or [Unconstrained()] * len(leaves)
+    out: list[str] = []
+    for c, leaf in zip(constraints, leaves, strict=True):
+        out += [c.description] * int(np.size(leaf))
+    return out
+
+
+def parameter_rows(
+    result, *, level: float = 0.95, uncertainty: bool = True
+) -> tuple[list[ParameterRow], list[str]]:
+    """The parameter table of a fit and the notes that go with it.
+
+    Args:
+        result: a :class:`ceemx.FitResult` with its ``problem`` (any fit's).
+        level: the interval's coverage, in (0, 1).
+        uncertainty: compute the Laplace covariance (``False``: estimates only, NaN elsewhere).
+
+    Returns:
+        ``(rows, notes)``: one :class:`ParameterRow` per entry of θ, in θ order; ``notes`` holds
+        the covariance's warnings (e.g. which entries are weakly determined), not re-raised.
+    """
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"`level` must be in (0, 1); got {level}.")
+    problem, theta = result.problem, result.theta
+    names = problem.parameter_names()
+    estimate = np.asarray(problem.natural(theta), np.float64)
+    nan = np.full(estimate.shape, np.nan)
+    se, lower, upper, notes = nan, nan, nan, []
+    if uncertainty and estimate.size:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cov = np.asarray(result.covariance(hold_weak=True), np.float64)
+        notes = list(dict.fromkeys(str(w.message) for w in caught))
+        sd = np.sqrt(np.maximum(np.diagonal(cov), 0.0))
+        sd = np.where(np.isfinite(np.diagonal(cov)), sd, np.nan)
+        se = np.abs(np.asarray(problem.natural_jacobian(theta), np.float64)) * sd
+        q = NormalDist().inv_cdf(0.5 + level / 2.0)
+        th = np.asarray(theta, np.float64)
+        step = np.where(np.isfinite(sd), q * sd, 0.0)
+        ends = [
+            np.asarray(problem.natural(jnp.asarray(th + s * step, theta.dtype)), np.float64)
+            for s in (-1.0, 1.0)
+        ]
+        lower = np.where(np.isfinite(sd), np.minimum(*ends), np.nan)
+        upper = np.where(np.isfinite(sd), np.maximum(*ends), np.nan)
+    words = _constraint_words(problem)
+    rows = [
+        ParameterRow(*fields)
+        for fields in zip(names, estimate, se, lower, upper, words, strict=True)
+    ]
+    return rows, notes
+
+
+# --------------------------------------------------------------------------------------------
+# Pieces
+# --------------------------------------------------------------------------------------------
+
+
+def _num(x: float, digits: int = 5) -> str:
+    return "nan" if not np.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _values(a) -> str:
+    a = np.atleast_1d(np.asarray(a, np.float64)).reshape(-1)
+    if a.size > 1 and np.allclose(a, a[0], rtol=0, atol=0):
+        return f"{_num(float(a[0]), 4)} (each of {a.size})"
+    shown = ", ".join(_num(float(v), 4) for v in a[:6])
+    return shown + (f", … ({a.size} in all)" if a.size > 6 else "")
+
+
+def describe_noise(noise: AbstractNoise | None) -> str:
+    """A noise model in a few words with its scales, e.g. ``"DiagonalGaussian, std 0.1"``."""
+    if noise is None:
+        return "none"
+    kind = type(noise).__name__
+    if isinstance(noise, DiagonalGaussian):
+        return f"{kind}, std {_values(noise.scale)}"
+    if isinstance(noise, StudentT):
+        return f"{kind}, scale {_values(noise.scale)}, df {_num(float(noise.df), 4)}"
+    if isinstance(noise, CholeskyGaussian):
+        chol = np.asarray(noise.chol, np.float64)
+        std = np.sqrt(np.sum(chol**2, axis=1))
+        return f"{kind}, marginal std {_values(std)}"
+    return kind
+
+
+def _names_list(names: Sequence[str], most: int = 8) -> str:
+    more = f", … ({len(names)} in all)" if len(names) > most else ""
+    return ", ".join(names[:most]) + more
+
+
+def _learned(result, field: str) -> bool:
+    problem = result.problem
+    return bool(problem is not None and problem.trains(field))
+
+
+def _trajectory_lines(result) -> tuple[str, list[str]]:
+    """``(status in a few words, the rest of messages())``: statuses grouped with counts."""
+    B = int(np.size(codes(result.status)))
+    every = result.messages()
+    per, rest = every[:B], every[B:]
+    counts = Counter(per)
+    if len(counts) == 1:
+        text = f"all {B} trajectories: {per[0]}" if B > 1 else per[0]
+    else:
+        text = "; ".join(f"{n} × {m}" for m, n in counts.most_common())
+    return text, rest
+
+
+def _timing(result) -> str:
+    times = [float(h.get("time", np.nan)) for h in result.history]
+    if not times:
+        return "no epoch run"
+    total = float(np.nansum(times))
+    text = f"{total:.3g} s in all"
+    if len(times) > 1:
+        rest = float(np.median(times[1:]))
+        text += f" (first epoch {times[0]:.3g} s, compilation included; then {rest:.3g} s each)"
+    return text
+
+
+def _facts(result) -> list[tuple[str, str]]:
+    """Label → value, after the parameter table."""
+    system = result.system
+    data = None if result.problem is None else result.problem.data
+    J = result.history[-1]["J"] if result.history else result.initial_J
+    facts = [
+        (
+            "process noise",
+            describe_noise(system.process_noise)
+            + (" (learned)" if _learned(result, "process_noise") else " (given)"),
+        ),
+        (
+            "observation noise",
+            describe_noise(system.obs_noise)
+            + (" (learned)" if _learned(result, "obs_noise") else " (given)"),
+        ),
+        ("J (log-likelihood, Eq. 9)", f"{_num(float(J), 8)} (start {_num(result.initial_J, 8)})"),
+    ]
+    if data is not None:
+        B, T = int(data.y.shape[0]), int(data.y.shape[1])
+        text = f"{B} trajectories × {T} steps, {int(data.y.shape[2])} output(s)"
+        if result.excluded:
+            text += f"; excluded by the health test: {', '.join(map(str, result.excluded))}"
+        facts.append(("data", text))
+    conv = "converged" if result.converged else "NOT converged"
+    facts.append(("epochs", f"{result.epochs}, {conv}; {_timing(result)}"))
+    status, _ = _trajectory_lines(result)
+    facts.append(("status", status))
+    if result.noise_rounds:
+        last = result.noise_rounds[-1]
+        facts.append(
+            (
+                "noise learned",
+                f"{len(result.noise_rounds) - 1} round(s), last change "
+                f"{float(last.get('change', np.nan)):.3g}",
+            )
+        )
+    check = result.noise_check
+    if check is not None:
+        verdict = "consistent" if check.consistent else "INCONSISTENT"
+        facts.append(
+            (
+                "noise check",
+                f"rho = {check.ratio:.3g} (realised / assumed variance; band "
+                f"[{check.band[0]:.3g}, {check.band[1]:.3g}]): {verdict}",
+            )
+        )
+    ident = result.identifiability
+    if ident is not None:
+        text = (
+            "determined: " + _names_list(ident.determined)
+            if ident.determined
+            else "not determined: " + _names_list(ident.undetermined)
+        )
+        facts.append(
+            ("identifiability", text + (" (the fit stopped on it)" if ident.stopped else ""))
+        )
+    return facts
+
+
+# --------------------------------------------------------------------------------------------
+# Layout
+# --------------------------------------------------------------------------------------------
+
+_WIDTH = 78  # text lines wrap here (the parameter table may be wider)
+_HEAD = ("parameter", "estimate", "std. error", "{pct} interval", "constraint")
+
+
+def _cells(rows: Sequence[ParameterRow]) -> list[list[str]]:
+    return [
+        [
+            r.name,
+            _num(r.estimate),
+            _num(r.se, 3),
+            "—" if not np.isfinite(r.lower) else f"[{_num(r.lower)}, {_num(r.upper)}]",
+            r.constraint,
+        ]
+        for r in rows
+    ]
+
+
+def _text_table(head: Sequence[str], body: Sequence[Sequence[str]], right: set[int]) -> list[str]:
+    widths = [max(len(str(c)) for c in col) for col in zip(head, *body, strict=True)]
+
+    def line(cells):
+        return "  ".join(
+            (c.rjust(w) if i in right else c.ljust(w))
+            for i, (c, w) in enumerate(zip(cells, widths, strict=True))
+        ).rstrip()
+
+    return [line(head), "  ".join("-" * w for w in widths), *(line(r) for r in body)]
+
+
+def _md_escape(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def _md_table(head: Sequence[str], body: Sequence[Sequence[str]], right: set[int]) -> list[str]:
+    rule = ["---:" if i in right else "---" for i in range(len(head))]
+    return [
+        "| " + " | ".join(_md_escape(h) for h in head) + " |",
+        "|" + "|".join(rule) + "|",
+        *("| " + " | ".join(_md_escape(c) for c in r) + " |" for r in body),
+    ]
+
+
+def _title(result) -> str:
+    name = type(result.solver).__name__
+    conv = "converged" if result.converged else "not converged"
+    return f"Fit summary: {name}, {conv} after {result.epochs} epoch(s)"
+
+
+def fit_summary(
+    result,
+    format: Format = "text",
+    *,
+    level: float = 0.95,
+    diagnostics: bool = False,
+    uncertainty: bool = True,
+    max_rows: int | None = 40,
+) -> Summary:
+    """The summary of a fit (module notes); :meth:`ceemx.FitResult.summary` calls it.
+
+    Args:
+        result: a :class:`ceemx.FitResult`.
+        format: ``"text"`` (aligned columns) or ``"markdown"`` (GitHub tables).
+        level: the intervals' coverage.
+        diagnostics: also run :meth:`FitResult.diagnostics` (an EKF pass and a Laplace E-step;
+            compiled on first use) and append its report.
+        uncertainty: compute standard errors and intervals (one Schur complement).
+        max_rows: show at most this many parameters (the first ones; ``None``: all).
+
+    Returns:
+        A :class:`Summary` (a ``str``).
+    """
+    if format not in ("text", "markdown"):
+        raise ValueError(f"`format` must be 'text' or 'markdown'; got {format!r}.")
+    md = format == "markdown"
+    notes: list[str] = []
+    out = [f"**{_title(result)}**" if md else _title(result)]
+    rule = "=" * _WIDTH
+    if not md:
+        out.append(rule)
+    if result.problem is None:
+        out.append("(no fit problem held: the parameter table needs a result of `fit`)")
+    else:
+        rows, notes = parameter_rows(result, level=level, uncertainty=uncertainty)
+        shown = rows if max_rows is None else rows[:max_rows]
+        head = [h.format(pct=f"{100 * level:g} %") for h in _HEAD]
+        table = (_md_table if md else _text_table)(head, _cells(shown), {1, 2})
+        if md:
+            out.append("")
+        out += table
+        if len(shown) < len(rows):
+            out.append(
+                f"… {len(rows) - len(shown)} more parameters (summary(max_rows=None) shows all)"
+            )
+        if not rows:
+            out.append("(no trainable parameters)")
+    facts = _facts(result)
+    if md:
+        out += ["", *_md_table(["", ""], [[k, v] for k, v in facts], set())]
+    else:
+        width = max(len(k) for k, _ in facts)
+        out.append("-" * _WIDTH)
+        for k, v in facts:
+            out += textwrap.wrap(
+                v,
+                _WIDTH,
+                initial_indent=f"{k.ljust(width)}  ",
+                subsequent_indent=" " * (width + 2),
+            )
+    _, extra = _trajectory_lines(result)
+    said = list(dict.fromkeys([*extra, *notes]))
+    if said:
+        out += ["", "**Messages**" if md else "Messages:"]
+        out += (
+            [f"- {m}" for m in said]
+            if md
+            else [
+                textwrap.fill(m, _WIDTH, initial_indent="- ", subsequent_indent="  ") for m in said
+            ]
+        )
+    if diagnostics:
+        report = result.diagnostics().summary()
+        out += ["", "```", report, "```"] if md else ["", report]
+    if not md:
+        out.append(rule)
+    return Summary("\n".join(out))
+
+
+def short_repr(result) -> str:
+    """One or two lines: solver, convergence, J, the first parameters; nothing computed."""
+    conv = "converged" if result.converged else "not converged"
+    J = result.history[-1]["J"] if result.history else result.initial_J
+    name = type(result.solver).__name__
+    head = f"FitResult({name}, {conv} after {result.epochs} epoch(s), J = {_num(float(J), 6)}"
+    if result.problem is not None and result.theta is not None:
+        names = result.problem.parameter_names()
+        values = np.asarray(result.problem.natural(result.theta), np.float64)
+        shown = ", ".join(
+            f"{n} = {_num(float(v), 4)}" for n, v in zip(names[:6], values[:6], strict=False)
+        )
+        more = f", … ({len(names)} in all)" if len(names) > 6 else ""
+        head += f";\n  {shown}{more}"
+    status = np.atleast_1d(codes(result.status)).reshape(-1)
+    failed = int(np.sum(status != int(codes(RESULTS.successful))))
+    head += f"; {status.size} trajectories" + (f", {failed} not successful" if failed else "")
+    return head + ")  — .summary() for standard errors and diagnostics"
