@@ -21,6 +21,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
     from ceemx.data.trajectories import Trajectories, foh_inputs, simulate
     from ceemx.evaluation import metrics as evaluate
     from ceemx.evaluation import prediction, report, simulation
+    from ceemx.evaluation.early_stopping import EarlyStopping
     from ceemx.evaluation.metrics import (
         BenchmarkScore,
         DynamicsErrorCallback,
@@ -32,6 +33,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
     from ceemx.identification import initialize
     from ceemx.identification.diagnostics import ResidualDiagnostics, residual_diagnostics
     from ceemx.identification.driver import EpochInfo, FitResult, fit, particle_em
+    from ceemx.identification.hybrid import hybrid
     from ceemx.identification.identifiability import Identifiability
     from ceemx.identification.initialize import perturb, warm_start
     from ceemx.identification.learning import (
@@ -81,6 +83,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
         param,
         with_noise,
     )
+    from ceemx.systems.hybrid import Hybrid, HybridContinuous, LearnedTerm, weight_decay
 
 #: module names of the flat layout before the folders, kept as attributes (``ceemx.report``, ...)
 _MODULES = {
@@ -118,6 +121,7 @@ _LAZY = {
     "CholeskyGaussian": ".models",
     "DiagonalGaussian": ".models",
     "DynamicsErrorCallback": ".evaluation.metrics",
+    "EarlyStopping": ".evaluation.early_stopping",
     "EpochInfo": ".identification.driver",
     "FilterSolution": ".inference.ekf",
     "FitProblem": ".identification.problem",
@@ -127,6 +131,8 @@ _LAZY = {
     "Fixed": ".models",
     "GaussianPrior": ".models",
     "GreaterThan": ".models",
+    "Hybrid": ".systems.hybrid",
+    "HybridContinuous": ".systems.hybrid",
     "Identifiability": ".identification.identifiability",
     "Interval": ".models",
     "JointLM": ".identification.solvers",
@@ -135,6 +141,7 @@ _LAZY = {
     "LMLearner": ".identification.learning",
     "LMSmoother": ".inference.smoother",
     "LearnInfo": ".identification.learning",
+    "LearnedTerm": ".systems.hybrid",
     "LessThan": ".models",
     "NelderMeadLearner": ".identification.learning",
     "NoiseCheck": ".identification.noise_check",
@@ -158,6 +165,7 @@ _LAZY = {
     "fit": ".identification.driver",
     "foh_inputs": ".data.trajectories",
     "free_run": ".evaluation.simulation",
+    "hybrid": ".identification.hybrid",
     "is_monotone": ".evaluation.metrics",
     "learn": ".identification.learning",
     "log_joint": ".inference.objective",
@@ -170,6 +178,7 @@ _LAZY = {
     "simulate": ".data.trajectories",
     "smooth": ".inference.smoother",
     "warm_start": ".identification.initialize",
+    "weight_decay": ".systems.hybrid",
     "whitened_residuals": ".inference.objective",
     "with_noise": ".models",
 }
@@ -214,6 +223,7 @@ __all__ = [
     "CholeskyGaussian",
     "DiagonalGaussian",
     "DynamicsErrorCallback",
+    "EarlyStopping",
     "EpochInfo",
     "FilterSolution",
     "FitProblem",
@@ -223,6 +233,8 @@ __all__ = [
     "Fixed",
     "GaussianPrior",
     "GreaterThan",
+    "Hybrid",
+    "HybridContinuous",
     "Identifiability",
     "Interval",
     "JointLM",
@@ -231,6 +243,7 @@ __all__ = [
     "LMLearner",
     "LMSmoother",
     "LearnInfo",
+    "LearnedTerm",
     "LessThan",
     "NelderMeadLearner",
     "NoiseCheck",
@@ -257,6 +270,7 @@ __all__ = [
     "fit",
     "foh_inputs",
     "free_run",
+    "hybrid",
     "inference",
     "initialize",
     "is_monotone",
@@ -276,6 +290,7 @@ __all__ = [
     "smooth",
     "systems",
     "warm_start",
+    "weight_decay",
     "whitened_residuals",
     "with_noise",
 ]

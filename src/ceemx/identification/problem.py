@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
+from jax.core import Tracer
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float, PyTree
 
@@ -37,9 +38,11 @@ from ceemx.models.constraints import (
     Positive,
     Unconstrained,
     check_constraints,
+    check_room,
     leaf_constraints,
 )
-from ceemx.models.system import AbstractSystem
+from ceemx.models.noise import AbstractNoise
+from ceemx.models.system import AbstractSystem, GaussianPrior
 
 __all__ = [
     "FitProblem",
@@ -87,15 +90,15 @@ def trainable_mask(
 
 def _selected(system: AbstractSystem, trainable: Trainable) -> PyTree:
     if trainable is None:
-        mask = jtu.tree_map(eqx.is_inexact_array, system)
-        frozen = jtu.tree_map(
-            lambda _: False, (system.process_noise, system.obs_noise, system.initial_prior)
-        )
-        return eqx.tree_at(
-            lambda s: (s.process_noise, s.obs_noise, s.initial_prior),
-            mask,
-            replace=frozen,
-            is_leaf=lambda v: v is None,
+        # Noise models and priors never learn by default, the system's own or those of a
+        # sub-model (a hybrid's physics model keeps its own, unused).
+        def learns(node):
+            if isinstance(node, AbstractNoise | GaussianPrior):
+                return jtu.tree_map(lambda _: False, node)
+            return eqx.is_inexact_array(node)
+
+        return jtu.tree_map(
+            learns, system, is_leaf=lambda v: isinstance(v, AbstractNoise | GaussianPrior)
         )
     if callable(trainable):
         mask = jtu.tree_map(lambda _: False, system)
@@ -142,6 +145,57 @@ def _trainable_constraints(system: AbstractSystem, mask: PyTree) -> list[Abstrac
     """The constraint of each trainable leaf, in the order of the trainable sub-tree's leaves."""
     flags = jtu.tree_structure(system).flatten_up_to(mask)
     return [c for f, c in zip(flags, leaf_constraints(system), strict=True) if f]
+
+
+def _trainable_names(system: AbstractSystem, mask: PyTree) -> list[str]:
+    """``system.A``-style names of the trainable leaves, in the order of the trainable sub-tree."""
+    flags = jtu.tree_structure(system).flatten_up_to(mask)
+    pairs, _ = jtu.tree_flatten_with_path(system)
+    return [f"system{jtu.keystr(path)}" for f, (path, _) in zip(flags, pairs, strict=True) if f]
+
+
+def check_log_prior(log_prior: Callable[[AbstractSystem], Any] | None, system) -> None:
+    """``log_prior`` must be callable and give a finite real scalar at the initial system.
+
+    Evaluated once on the host (skipped inside ``jit``): a prior that is NaN or −inf where the fit
+    starts would freeze θ (every step compares against NaN) while the fit reports success.
+
+    Raises:
+        TypeError, ValueError: naming ``log_prior`` and what it returned.
+    """
+    if log_prior is None:
+        return
+    if not callable(log_prior):
+        raise TypeError(f"`log_prior` must be a callable system -> log p(θ); got {log_prior!r}.")
+    if any(isinstance(a, Tracer) for a in jtu.tree_leaves(system)):
+        return
+    value = log_prior(system)
+    if isinstance(value, Tracer):
+        return
+    try:
+        a = np.asarray(value)
+    except Exception:  # noqa: BLE001 — any object NumPy cannot read is the wrong kind
+        a = np.asarray(None)
+    if a.shape not in ((), (1,)) or not (
+        np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
+    ):
+        raise TypeError(
+            f"`log_prior` must return a real scalar (log p(θ)); it returned {_describe(value)} "
+            "at the initial system."
+        )
+    if not np.all(np.isfinite(a)):
+        raise ValueError(
+            f"`log_prior` is {a.item()!r} at the initial system: it must be finite where the fit "
+            "starts (a NaN or infinite prior freezes θ). Check the prior's support and the "
+            "initial parameters."
+        )
+
+
+def _describe(value: Any) -> str:
+    shape = getattr(value, "shape", None)
+    if shape is not None:
+        return f"an array of shape {tuple(shape)} and dtype {getattr(value, 'dtype', '?')}"
+    return repr(value)
 
 
 def _strong(a):
@@ -199,6 +253,11 @@ class FitProblem(eqx.Module):
                 "`trainable` selects no parameter to learn: it must pick at least one "
                 "floating-point array of the system that is not declared `ceemx.param(fixed=True)`."
             )
+        for where, c, x, z in zip(
+            _trainable_names(system, mask), constraints, leaves, unconstrained, strict=True
+        ):
+            check_room(c, x, z, where)
+        check_log_prior(log_prior, system)
         return cls(template, static, data, log_prior, constraints), _strong(theta)
 
     def build(self, theta: Theta) -> AbstractSystem:
@@ -210,6 +269,20 @@ class FitProblem(eqx.Module):
             natural = [c.forward(z) for c, z in zip(self.constraints, leaves, strict=True)]
             params = jtu.tree_unflatten(treedef, natural)
         return eqx.combine(params, self.static)
+
+    def theta_of(self, system: AbstractSystem) -> Theta:
+        """The flat, unconstrained θ of ``system`` (of this problem's structure).
+
+        The inverse of :meth:`build`, e.g. for a model a callback kept from an earlier epoch.
+        """
+        mask = jtu.tree_map(lambda v: v is not None, self.template, is_leaf=lambda v: v is None)
+        params, _ = eqx.partition(system, mask)
+        leaves, treedef = jtu.tree_flatten(params)
+        unconstrained = [
+            c.inverse(_strong(leaf)) for c, leaf in zip(self.constraints, leaves, strict=True)
+        ]
+        theta, _ = ravel_pytree(jtu.tree_unflatten(treedef, unconstrained))
+        return _strong(theta)
 
     def natural(self, theta: Theta) -> Float[Array, " theta"]:
         """The flat θ in natural units: each entry through its constraint's ``forward``."""

@@ -1,0 +1,106 @@
+"""Early stopping for :func:`ceemx.fit`: keep the model that simulates a held-out record best.
+
+A flexible model (a hybrid's network, :mod:`ceemx.systems.hybrid`) keeps raising J on the record it
+is fitted to after it stops generalising. :class:`EarlyStopping` is a :func:`ceemx.fit` callback
+that scores every epoch's model by a validation free run (the protocol of
+:func:`ceemx.benchmark_score`) on a record the fit does not see — cut from the *training* record,
+never the test record — keeps the best model, stops after ``patience`` epochs without
+improvement, and :meth:`EarlyStopping.restore` puts the best model into the fit's result.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ceemx.data.trajectories import Trajectories
+from ceemx.evaluation.metrics import benchmark_score
+from ceemx.models.system import AbstractSystem
+
+__all__ = ["EarlyStopping"]
+
+
+class EarlyStopping:
+    """A :func:`ceemx.fit` callback: stop when a validation free-run stops improving; keep the best.
+
+    Every epoch the current model is scored on ``validation`` by the benchmark protocol (initial
+    state estimated from the first ``n_init`` outputs, free run over the rest, RMSE on
+    y[n_init:] over all outputs; :func:`ceemx.benchmark_score`). The record must not be one the
+    fit sees (cut it from the end of the training record) and never the test record. The epoch's
+    score is recorded as ``"val_rmse"`` in the history.
+
+    Args:
+        validation: the validation record(s), as the model reads them.
+        n_init: outputs used to estimate the initial state (≥ 1, < T).
+        patience: epochs without a relative improvement of ``min_delta`` before stopping.
+        min_delta: the relative improvement that counts.
+        every: score every ``every`` epochs (scoring costs one free run).
+
+    After the fit, :attr:`best_system`, :attr:`best_epoch` and :attr:`best_rmse` hold the best
+    model; :meth:`restore` returns the fit's result with it (and notes the restore in its
+    messages). A non-finite score (the model diverges on the validation record) never counts as
+    the best.
+    """
+
+    def __init__(
+        self,
+        validation: Trajectories,
+        n_init: int,
+        *,
+        patience: int = 5,
+        min_delta: float = 1e-3,
+        every: int = 1,
+    ):
+        """See the class docstring."""
+        if not isinstance(validation, Trajectories):
+            raise TypeError(
+                f"`validation` must be ceemx.Trajectories; got {type(validation).__name__}."
+            )
+        T = validation.num_steps
+        if isinstance(n_init, bool) or not isinstance(n_init, int) or not 1 <= n_init < T:
+            raise ValueError(f"`n_init` must be an integer in [1, T = {T}); got {n_init!r}.")
+        for name, v, lo in (("patience", patience, 1), ("every", every, 1)):
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ValueError(f"`{name}` must be an integer ≥ {lo}; got {v!r}.")
+        if not (isinstance(min_delta, int | float) and 0 <= min_delta < 1):
+            raise ValueError(f"`min_delta` must be a number in [0, 1); got {min_delta!r}.")
+        self.validation = validation
+        self.n_init = n_init
+        self.patience = patience
+        self.min_delta = float(min_delta)
+        self.every = every
+        self.best_system: AbstractSystem | None = None
+        self.best_epoch = 0
+        self.best_rmse = math.inf
+        self.scores: list[tuple[int, float]] = []
+
+    def score(self, system: AbstractSystem) -> float:
+        """The validation free-run RMSE of ``system`` (over all outputs)."""
+        s = benchmark_score(system, self.validation, self.n_init)
+        return float(np.sqrt(np.mean(np.square(np.asarray(s.rmse)))))
+
+    def __call__(self, info) -> dict | bool:
+        """Score the epoch's model; ``False`` stops the fit."""
+        if info.epoch % self.every:
+            return {}
+        rmse = self.score(info.system)
+        self.scores.append((info.epoch, rmse))
+        if np.isfinite(rmse) and rmse < self.best_rmse * (1 - self.min_delta):
+            self.best_system, self.best_epoch, self.best_rmse = info.system, info.epoch, rmse
+        elif np.isfinite(rmse) and rmse < self.best_rmse:
+            self.best_system, self.best_rmse = info.system, rmse  # better, not by enough to reset
+        info.record["val_rmse"] = rmse
+        if info.epoch - self.best_epoch >= self.patience * self.every:
+            return False
+        return {}
+
+    def restore(self, result):
+        """``result`` with the best validation model as its system (states are kept)."""
+        if self.best_system is None:
+            return result
+        theta = result.theta
+        if result.problem is not None:
+            theta = result.problem.theta_of(self.best_system)
+        return dataclasses.replace(result, system=self.best_system, theta=theta)

@@ -1,0 +1,169 @@
+"""Building a hybrid model from a record.
+
+:func:`hybrid` wraps a physics model (:mod:`ceemx.systems.hybrid`) with learned terms whose input
+and output normalisations come from a record: the states' mean and standard deviation (from given
+states, typically the smoothed states of a physics fit, else the default start of
+:func:`ceemx.fit`),
+the inputs', the spread of the state increments per unit time (the vector field's scale) and the
+outputs'. The output layers are zero, so the returned model equals the physics model.
+
+Training it with early stopping on a validation record cut from the training record:
+:class:`ceemx.evaluation.early_stopping.EarlyStopping`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float, PRNGKeyArray
+
+from ceemx.data.trajectories import Trajectories
+from ceemx.models.system import AbstractContinuousSystem, AbstractSystem
+from ceemx.systems.hybrid import Hybrid, HybridContinuous, learned_term
+
+__all__ = ["hybrid"]
+
+
+def _spread(a: np.ndarray, axis) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, std) along ``axis`` with a floor on the std (a constant column gets scale 1)."""
+    mean = np.nanmean(a, axis=axis)
+    std = np.nanstd(a, axis=axis)
+    floor = 1e-6 * np.maximum(1.0, np.abs(mean))
+    std = np.where(std > floor, std, np.where(np.abs(mean) > 0, np.abs(mean), 1.0))
+    return mean, std
+
+
+def hybrid(
+    physics: AbstractSystem,
+    data: Trajectories,
+    *,
+    states: Float[ArrayLike, "B T n"] | None = None,
+    dynamics: bool | Sequence[int] = True,
+    observation: bool | Sequence[int] = False,
+    key: PRNGKeyArray | None = None,
+    width: int = 16,
+    depth: int = 2,
+    activation: Callable = jnp.tanh,
+    prior_std: float = 1.0,
+    use_input: bool = True,
+    lower: ArrayLike | None = None,
+    upper: ArrayLike | None = None,
+    bound_sharpness: float = 50.0,
+) -> Hybrid | HybridContinuous:
+    """``physics`` plus zero-initialised learned terms normalised from ``data`` (module notes).
+
+    Args:
+        physics: any :class:`~ceemx.AbstractSystem` or :class:`~ceemx.AbstractContinuousSystem`
+            (typically the result of a physics fit).
+        data: the training record(s) the statistics come from (as the model reads them: a
+            first-order-hold model's stacked inputs).
+        states: (B, T, n) states for the state statistics (e.g. ``result.states`` of the physics
+            fit); ``None``: the default start of :func:`ceemx.fit` at ``physics``.
+        dynamics: add a learned term to the transition (vector field for a continuous model):
+            ``True`` on every state equation, or the indices of the equations it enters (e.g.
+            ``(1,)``: the velocity equation of a mechanical model; keeps the hidden states'
+            meaning, :class:`~ceemx.systems.hybrid.LearnedTerm`).
+        observation: add a learned term to the observation (``True``, or output indices).
+        key: PRNG key of the hidden layers (default ``PRNGKey(0)``).
+        width: the MLPs' hidden width.
+        depth: the MLPs' number of hidden layers.
+        activation: the MLPs' hidden activation.
+        prior_std: standard deviation of the weight-decay prior
+            (:func:`ceemx.systems.hybrid.weight_decay`).
+        use_input: whether the terms see the input u.
+        lower: lower state bounds (a scalar or an n-vector; ``None``: unbounded).
+        upper: upper state bounds (likewise).
+        bound_sharpness: the bounds' projection sharpness in units of each state's scale.
+
+    Returns:
+        A :class:`~ceemx.systems.hybrid.HybridContinuous` for a continuous physics model, else a
+        :class:`~ceemx.systems.hybrid.Hybrid`; at its initial weights it equals ``physics``.
+
+    Raises:
+        TypeError / ValueError: a wrong physics or data type, states of the wrong shape or not
+            finite, no learned term asked for.
+    """
+    if not isinstance(physics, AbstractSystem):
+        raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
+    if not isinstance(data, Trajectories):
+        raise TypeError(f"`data` must be ceemx.Trajectories; got {type(data).__name__}.")
+    if dynamics is False and observation is False:
+        raise ValueError("ask for at least one learned term: `dynamics` and/or `observation`.")
+    n = physics.state_dim
+    if states is None:
+        from ceemx.identification.initialize import warm_start
+
+        states = warm_start(physics, data)
+    x = np.asarray(states, dtype=float)
+    if x.ndim != 3 or x.shape[:2] != (data.batch_size, data.num_steps) or x.shape[2] != n:
+        raise ValueError(
+            f"`states` must have shape (B, T, n) = ({data.batch_size}, {data.num_steps}, {n}); "
+            f"got {x.shape}."
+        )
+    if not np.all(np.isfinite(x)):
+        raise ValueError("`states` must be finite.")
+    dtype = jnp.asarray(data.y).dtype
+    key = jax.random.PRNGKey(0) if key is None else key
+    k_dyn, k_obs = jax.random.split(key)
+    x_mean, x_scale = _spread(x.reshape(-1, n), 0)
+    continuous = isinstance(physics, AbstractContinuousSystem)
+    u = np.asarray(data.u, dtype=float)
+    if continuous:
+        u = u[..., : physics.control_dim]
+    p = u.shape[-1]
+    u_mean, u_scale = _spread(u.reshape(-1, p), 0) if p else (np.zeros(0), np.zeros(0))
+    common: dict[str, Any] = dict(
+        x_mean=x_mean,
+        x_scale=x_scale,
+        u_mean=u_mean,
+        u_scale=u_scale,
+        width=width,
+        depth=depth,
+        activation=activation,
+        prior_std=prior_std,
+        use_input=use_input,
+        dtype=dtype,
+    )
+    dyn = obs = None
+    if dynamics is not False:
+        step = np.diff(x, axis=1).reshape(-1, n)
+        if continuous:
+            step = step / physics.dt
+        _, out = _spread(step, 0)
+        targets = _targets(dynamics, n, "dynamics")
+        out = out if targets is None else out[list(targets)]
+        dyn = learned_term(k_dyn, out_scale=out, targets=targets, size=n, **common)
+    if observation is not False:
+        m = physics.obs_dim
+        y = np.where(np.asarray(data.mask), np.asarray(data.y, dtype=float), np.nan)
+        _, out = _spread(y.reshape(-1, m), 0)
+        targets = _targets(observation, m, "observation")
+        out = out if targets is None else out[list(targets)]
+        obs = learned_term(k_obs, out_scale=out, targets=targets, size=m, **common)
+    cls = HybridContinuous if continuous else Hybrid
+    return cls(
+        physics,  # type: ignore[arg-type]
+        dyn,
+        obs,
+        lower=lower,
+        upper=upper,
+        bound_sharpness=bound_sharpness,
+    )
+
+
+def _targets(spec, size: int, name: str) -> tuple[int, ...] | None:
+    if spec is True:
+        return None
+    try:
+        targets = tuple(int(i) for i in spec)
+    except TypeError:
+        raise TypeError(
+            f"`{name}` must be a bool or a sequence of indices; got {spec!r}."
+        ) from None
+    if not targets or len(set(targets)) != len(targets) or not all(0 <= i < size for i in targets):
+        raise ValueError(f"`{name}` must be distinct indices in [0, {size}); got {spec!r}.")
+    return targets
