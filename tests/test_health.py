@@ -44,10 +44,15 @@ def test_outlier_start_is_excluded_and_named(lorenz, solver):
     assert res.messages()[2].startswith("excluded from the fit")
     np.testing.assert_array_equal(res.states[2], bad[2])  # returned as given
     np.testing.assert_allclose(res.states[:2], ref.states, rtol=1e-8, atol=1e-8)
-    # Kept on request (the defect's behaviour, now opt-in and warned about).
+    # Kept on request (the defect's behaviour, now opt-in and warned about) — but a start of
+    # 1e10 is beyond any fit (r ≈ 1e137 > 1e16: issue 24), refused even when kept; a start 10
+    # off (r ≈ 2e6, 3000 × the others) is kept.
+    with pytest.raises(ValueError, match=r"too far from the data to fit: trajectory 2 \(r = "):
+        ceemx.fit(guess, data, bad, solver=solver, trainable=WHERE, max_epochs=2, outliers="warn")
+    off = x0.at[2].add(10.0)
     with pytest.warns(UserWarning, match="kept"):
         kept = ceemx.fit(
-            guess, data, bad, solver=solver, trainable=WHERE, max_epochs=2, outliers="warn"
+            guess, data, off, solver=solver, trainable=WHERE, max_epochs=2, outliers="warn"
         )
     assert kept.excluded == ()
     assert not np.allclose(theta(kept.system), theta(ref.system), rtol=1e-3)

@@ -22,7 +22,7 @@ from jaxtyping import ArrayLike, PRNGKeyArray
 
 from ceemx.data.sharding import resolve_devices, shard_batch
 from ceemx.data.trajectories import Trajectories
-from ceemx.identification.health import OUTLIER_OPTIONS, trajectory_health
+from ceemx.identification.health import OUTLIER_OPTIONS, check_start, trajectory_health
 from ceemx.identification.identifiability import Identifiability
 from ceemx.identification.noise_check import NoiseCheck, NoiseCheckWarning, noise_check
 from ceemx.identification.problem import FitProblem
@@ -32,6 +32,7 @@ from ceemx.identification.solvers.laplace import LaplaceEM
 from ceemx.identification.solvers.particle_em import ParticleEM
 from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra import checkpoint as ckpt
+from ceemx.infra.options import check_key
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, from_codes, messages, select
 from ceemx.lib.tree import trace_numbers
@@ -403,6 +404,7 @@ def fit(
     _check_noise_learnable(problem, solver)
     all_states = states
     excluded, health = _screen_outliers(problem, theta, states, outliers)
+    check_start(problem, theta, states, health, excluded)  # refuses absurd or non-finite starts
     if excluded.any():
         keep = np.flatnonzero(~excluded)
         data, states = data[keep], states[keep]
@@ -474,6 +476,8 @@ def _prepare(
             f"got {solver!r}."
         )
     max_epochs = _check_max_epochs(max_epochs)
+    if key is not None:
+        check_key(key)
     if checkpoint is not None:
         ckpt.check_folder(checkpoint, checkpoint_mismatch)
     system, data, x_init = promote_inputs(system, data, x_init)

@@ -36,9 +36,12 @@ import numpy as np
 from ceemx.identification.problem import FitProblem
 from ceemx.lib.typing import States, Theta
 
-__all__ = ["OUTLIER_OPTIONS", "Health", "trajectory_health"]
+__all__ = ["ABSURD_MEAN_SQUARE", "OUTLIER_OPTIONS", "Health", "check_start", "trajectory_health"]
 
 OUTLIER_OPTIONS = ("exclude", "warn", "keep")
+
+ABSURD_MEAN_SQUARE = 1e16
+"""r_b above which a start is refused (residuals beyond 10⁸ noise standard deviations)."""
 
 
 @dataclass(frozen=True)
@@ -86,3 +89,46 @@ def trajectory_health(
             mad = 1.4826 * float(np.median(np.abs(z[finite] - med)))
             flagged |= finite & (z - med > max(k * mad, np.log(ratio)))
     return Health(r, flagged, median)
+
+
+def check_start(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    health: Health | None = None,
+    excluded: np.ndarray | None = None,
+) -> None:
+    """Refuse a start no fit can be judged from: J not finite anywhere, or absurdly large.
+
+    Every trajectory taking part (not ``excluded``) must have r_b ≤ :data:`ABSURD_MEAN_SQUARE`
+    (1e16: whitened residuals of 10⁸ standard deviations). Beyond it J's rounding errors exceed
+    any improvement a fit could make and the relative stopping rules compare against a
+    meaningless scale: starts of 10¹⁰ on a Lorenz model stopped after two epochs as "converged"
+    at J = −2.55e67. Such a start is a wrong unit or scale of ``x_init`` or of θ.
+
+    Raises:
+        ValueError: naming the trajectories, their r_b and what to check (before any epoch).
+    """
+    health = trajectory_health(problem, theta, states) if health is None else health
+    r = health.mean_square
+    take = np.ones(r.shape, bool) if excluded is None else ~np.asarray(excluded, bool)
+    if not np.any(np.isfinite(r) & take):
+        raise ValueError(
+            "no trajectory has a finite objective at the start: check the model's parameters "
+            "and noise, the inputs and `x_init` (J is not finite for all "
+            f"{int(take.sum())} trajectories)."
+        )
+    with np.errstate(invalid="ignore"):
+        absurd = take & np.isfinite(r) & (r > ABSURD_MEAN_SQUARE)
+    if absurd.any():
+        which = np.flatnonzero(absurd)
+        shown = health.describe(which[:5]) + (", …" if which.size > 5 else "")
+        several = which.size > 1
+        raise ValueError(
+            f"the start is too far from the data to fit: trajector{'ies' if several else 'y'} "
+            f"{shown} ha{'ve' if several else 's'} a mean squared whitened residual r above "
+            f"{ABSURD_MEAN_SQUARE:.0e} (residuals beyond 1e8 noise standard deviations). J's "
+            "rounding errors then exceed any improvement a fit could make, so convergence "
+            "cannot be judged. Check the scale and units of `x_init` and of the initial "
+            "parameters and the noise models (or pass x_init=None for the solver's warm start)."
+        )

@@ -23,7 +23,7 @@ below ``ess_threshold · N``. Missing observations (the data's mask) drop out of
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, cast
 
 import equinox as eqx
 import jax
@@ -33,6 +33,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.smoother import check_inputs
+from ceemx.infra import options
 from ceemx.lib import kalman
 from ceemx.lib import particles as lp
 from ceemx.lib.results import RESULTS, select
@@ -274,23 +275,18 @@ def _check_dtypes(system: AbstractSystem, data: Trajectories) -> None:
 
 
 def check_int(name: str, value, minimum: int) -> int:
-    """``value`` as an int >= ``minimum`` (raises ``TypeError``/``ValueError`` naming ``name``)."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise TypeError(f"`{name}` must be an int; got {value!r}.")
-    if value < minimum:
-        raise ValueError(f"`{name}` must be >= {minimum}; got {value}.")
-    return int(value)
+    """``value`` as an int >= ``minimum`` (:func:`ceemx.infra.options.check_int`)."""
+    return cast(int, options.check_int(name, value, minimum))
 
 
 def check_threshold(ess_threshold) -> float:
     """``ess_threshold`` as a float in [0, 1] (raises naming it)."""
-    try:
-        value = float(ess_threshold)
-    except (TypeError, ValueError):
-        raise TypeError(f"`ess_threshold` must be a number; got {ess_threshold!r}.") from None
-    if not 0.0 <= value <= 1.0:
-        raise ValueError(f"`ess_threshold` must be in [0, 1]; got {ess_threshold}.")
-    return value
+    a = options.check_real("ess_threshold", ess_threshold)
+    if a is None:  # traced: checked when the options were made
+        return ess_threshold
+    if a.shape != () or not 0.0 <= float(a) <= 1.0:
+        raise ValueError(f"`ess_threshold` must be a number in [0, 1]; got {ess_threshold!r}.")
+    return float(a)
 
 
 @no_type_check  # validates its arguments: check_inputs and the checks below

@@ -14,6 +14,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ceemx import lib
 from ceemx.data.trajectories import Trajectories, cast_checked
 from ceemx.inference.objective import linearize, nll_offset_single
+from ceemx.infra.options import check_bool, check_int, check_nonnegative
 from ceemx.infra.warn import warn
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, messages
@@ -65,24 +66,9 @@ class LMSmoother(eqx.Module):
     def __check_init__(self):
         for name in ("rho_x", "rtol", "atol", "damping"):
             check_nonnegative(name, getattr(self, name))
-        k = self.max_steps
-        if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 0:
-            raise ValueError(f"`max_steps` must be an integer >= 0; got {k!r}.")
-        c = self.batch_chunk
-        if c is not None and (isinstance(c, bool) or not isinstance(c, int | np.integer) or c < 1):
-            raise ValueError(f"`batch_chunk` must be None or an integer >= 1; got {c!r}.")
-
-
-def check_nonnegative(name: str, value) -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``value`` is finite and >= 0 (tracers pass)."""
-    if isinstance(value, Tracer):
-        return
-    try:
-        v = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise TypeError(f"`{name}` must be a real number; got {value!r}.") from None
-    if not (np.all(np.isfinite(v)) and np.all(v >= 0)):
-        raise ValueError(f"`{name}` must be finite and >= 0; got {value!r}.")
+        check_int("max_steps", self.max_steps, 0)
+        check_bool("throw", self.throw)
+        check_int("batch_chunk", self.batch_chunk, 1, none=True)
 
 
 class SmootherSolution(eqx.Module):

@@ -2,7 +2,8 @@
 
 Atomic checkpoints (:mod:`~ceemx.infra.checkpoint`), the persistent compilation cache
 (:mod:`~ceemx.infra.compilation`), CPU thread limits for busy machines
-(:mod:`~ceemx.infra.runtime`), the memory guard (:mod:`~ceemx.infra.memory`), warnings
+(:mod:`~ceemx.infra.runtime`), the memory guard (:mod:`~ceemx.infra.memory`), the validation of
+solver and learner options (:mod:`~ceemx.infra.options`), warnings
 attributed to the user's line (:mod:`~ceemx.infra.warn`) and the audit of compiled programs for
 LAPACK calls that may run concurrently (:mod:`~ceemx.infra.hlo_audit`, docs/known_issues.md).
 Layer rule: may import :mod:`ceemx.lib` only; every other layer may import it.

@@ -61,6 +61,7 @@ __all__ = [
     "Positive",
     "Unconstrained",
     "check_constraints",
+    "check_room",
     "field_constraint",
     "leaf_constraints",
     "param",
@@ -105,6 +106,11 @@ class AbstractConstraint(eqx.Module):
     @abc.abstractmethod
     def description(self) -> str:
         """The allowed set in words, e.g. ``"> 0 (positive)"``."""
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """(lower, upper) of the allowed set (±inf where unbounded; default: none)."""
+        return (-math.inf, math.inf)
 
 
 class _AbstractIdentity(AbstractConstraint):
@@ -163,6 +169,11 @@ class Positive(AbstractConstraint):
         """``"> 0 (positive)"``."""
         return "> 0 (positive)"
 
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """(0, inf)."""
+        return (0.0, math.inf)
+
 
 class GreaterThan(AbstractConstraint):
     """x > lower through x = lower + softplus(z).
@@ -193,6 +204,11 @@ class GreaterThan(AbstractConstraint):
         """``"> lower"``."""
         return f"> {self.lower:g}"
 
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """(lower, inf)."""
+        return (self.lower, math.inf)
+
 
 class LessThan(AbstractConstraint):
     """x < upper through x = upper − softplus(−z) (increasing in z).
@@ -222,6 +238,11 @@ class LessThan(AbstractConstraint):
     def description(self) -> str:
         """``"< upper"``."""
         return f"< {self.upper:g}"
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """(-inf, upper)."""
+        return (-math.inf, self.upper)
 
 
 class Interval(AbstractConstraint):
@@ -258,6 +279,11 @@ class Interval(AbstractConstraint):
     def description(self) -> str:
         """``"in (lower, upper)"``."""
         return f"in ({self.lower:g}, {self.upper:g})"
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """(lower, upper)."""
+        return (self.lower, self.upper)
 
 
 def _finite_float(name: str, value) -> float:
@@ -438,3 +464,52 @@ def check_constraints(tree: Any, name: str = "system") -> None:
                 idx = tuple(int(i) for i in np.argwhere(~inside)[0])
                 got = f"entry {idx} is {value[idx].item()!r}"
             raise ValueError(f"`{where}` must be {c.description}; {got}.")
+
+
+#: A trainable value within this many units of rounding (of its bound's size) of a bound is
+#: refused at the start of a fit (:func:`check_room`).
+ROOM_ULPS = 64
+
+
+def check_room(constraint: AbstractConstraint, x: Any, z: Any, where: str) -> None:
+    """Refuse a trainable start value ``x`` that sits on its bound to within rounding.
+
+    ``z`` is ``constraint.inverse(x)``, the unconstrained value a fit learns. Refused (host-side,
+    before any compute; traced values are skipped): ``z`` not finite (``param(positive=True)``
+    started at 1e-320 gives z = −inf: subnormals flush to zero); ``forward(z)`` not strictly
+    inside (the start rounds onto its bound); ``x`` within :data:`ROOM_ULPS` units of rounding
+    of a finite bound b, i.e. |x − b| ≤ 64·ε·|b| (or below the smallest normal number for
+    b = 0) — ``upper=-2`` started at −2 − 4e-16, or ``lower=1, upper=5`` at 1 + 1e-15, where the
+    transform is saturated: the representable values nearby are a few ulps apart, so no step can
+    move the parameter and a fit stops at once, reporting success.
+
+    Raises:
+        ValueError: naming ``where`` (e.g. ``system.k``), the value, the bound and what to do.
+    """
+    if not (_is_concrete(x) and _is_concrete(z)):
+        return
+    xa, za = np.asarray(x), np.asarray(z)
+    if not np.issubdtype(xa.dtype, np.floating):
+        return
+    finfo = np.finfo(xa.dtype)
+    lower, upper = constraint.bounds
+    with np.errstate(all="ignore"):
+        bad = ~np.isfinite(za)
+        back = np.asarray(constraint.forward(jnp.asarray(z)))
+        bad |= ~np.asarray(constraint.contains(back), bool)
+        for b in (lower, upper):
+            if math.isfinite(b):
+                bad |= np.abs(xa - b) <= max(ROOM_ULPS * float(finfo.eps) * abs(b), finfo.tiny)
+    if not np.any(bad):
+        return
+    idx = tuple(int(i) for i in np.argwhere(bad)[0]) if xa.ndim else ()
+    value = xa[idx].item()
+    entry = f" entry {idx}" if xa.ndim else ""
+    raise ValueError(
+        f"`{where}`{entry} = {value!r} is within rounding of its bound (it must be "
+        f"{constraint.description}): in the unconstrained coordinates a fit learns it is "
+        f"{za[idx].item():.4g}, where the constraint's transform is saturated (or infinite), so "
+        "the parameter could never move. Start it further inside the allowed set (more than "
+        f"{ROOM_ULPS} units of rounding from the bound), or fix it (`ceemx.param(fixed=True)` "
+        "or leave it out of `trainable`)."
+    )

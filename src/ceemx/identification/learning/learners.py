@@ -20,6 +20,7 @@ from jaxtyping import Array, PRNGKeyArray
 
 from ceemx.identification.learning.problem import AbstractLearningProblem
 from ceemx.infra.memory import check_fits
+from ceemx.infra.options import check_int, check_nonnegative
 from ceemx.lib.dense import cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS
@@ -77,6 +78,11 @@ class LMLearner(AbstractLearner):
     atol: float = 0.0
     damping: float = 1e-3
 
+    def __check_init__(self):
+        check_int("max_steps", self.max_steps, 1)
+        for name in ("rtol", "atol", "damping"):
+            check_nonnegative(name, getattr(self, name))
+
     def run(
         self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
@@ -133,6 +139,11 @@ class LBFGSLearner(AbstractLearner):
     gtol: float = 1e-9
     memory_size: int = eqx.field(default=20, static=True)
 
+    def __check_init__(self):
+        check_int("max_steps", self.max_steps, 1)
+        check_nonnegative("gtol", self.gtol)
+        check_int("memory_size", self.memory_size, 1)
+
     def run(
         self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
@@ -180,6 +191,15 @@ class OptaxLearner(AbstractLearner):
     transform: optax.GradientTransformation = eqx.field(static=True)
     steps: int = eqx.field(default=100, static=True)
     batch_size: int | None = eqx.field(default=None, static=True)
+
+    def __check_init__(self):
+        if not isinstance(self.transform, optax.GradientTransformation):
+            raise TypeError(
+                "`transform` must be an Optax gradient transformation such as "
+                f"optax.adam(1e-3); got {self.transform!r}."
+            )
+        check_int("steps", self.steps, 1)
+        check_int("batch_size", self.batch_size, 1, none=True)
 
     def init(self, theta: Theta, key: PRNGKeyArray) -> Any:
         """(optimiser state, PRNG key)."""
@@ -232,6 +252,11 @@ class NelderMeadLearner(AbstractLearner):
     max_steps: int | None = eqx.field(default=None, static=True)
     rtol: float = 1e-8
     atol: float = 1e-8
+
+    def __check_init__(self):
+        check_int("max_steps", self.max_steps, 1, none=True)
+        for name in ("rtol", "atol"):
+            check_nonnegative(name, getattr(self, name))
 
     def run(
         self, problem: AbstractLearningProblem, theta: Theta, state: Any

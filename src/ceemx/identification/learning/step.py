@@ -13,7 +13,8 @@ from jaxtyping import ArrayLike, Float, PRNGKeyArray
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.learning.learners import AbstractLearner, LearnInfo, LMLearner
 from ceemx.identification.learning.problem import AbstractLearningProblem, make_problem
-from ceemx.inference.smoother import check_inputs, check_nonnegative, promote_inputs
+from ceemx.inference.smoother import check_inputs, promote_inputs
+from ceemx.infra.options import check_key, check_nonnegative
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, Theta
 from ceemx.models.system import AbstractSystem
@@ -70,6 +71,8 @@ def learn(
     if not isinstance(learner, AbstractLearner):
         raise TypeError(f"`learner` must be a ceemx learner; got {learner!r}.")
     check_nonnegative("rho_theta", rho_theta)
+    if key is not None:
+        check_key(key)
     system, data, states = promote_inputs(system, data, states, name="states")
     check_inputs(system, data, states, name="states")
     states = jnp.asarray(states)

@@ -32,6 +32,7 @@ from ceemx.identification.identifiability import Identifiability
 from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
 from ceemx.inference.smoother import LMSmoother
+from ceemx.infra.options import check_nonnegative
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 
@@ -127,9 +128,7 @@ def check_alternation(smoother, learner, rho_theta) -> None:
         raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {smoother!r}.")
     if not isinstance(learner, AbstractLearner):
         raise TypeError(f"`learner` must be a ceemx learner; got {learner!r}.")
-    rho = np.asarray(rho_theta)
-    if not (np.all(np.isfinite(rho)) and np.all(rho >= 0)):
-        raise ValueError(f"`rho_theta` must be finite and >= 0; got {rho_theta}.")
+    check_nonnegative("rho_theta", rho_theta)
 
 
 class AbstractFitSolver(eqx.Module):
@@ -150,6 +149,11 @@ class AbstractFitSolver(eqx.Module):
     #: Whether the method can learn noise covariances (only :class:`ceemx.LaplaceEM`: the CE-EM
     #: objective J grows without bound as a noise scale → 0, so CE methods refuse them).
     learns_noise: ClassVar[bool] = False
+
+    def __check_init__(self):
+        # Equinox runs every class's __check_init__: each solver's own checks come on top.
+        for name in ("rtol", "atol"):
+            check_nonnegative(name, getattr(self, name))
 
     def initial_states(self, system, data) -> States:
         """The start states of ``fit(..., x_init=None)``: ``initialize.warm_start``.

@@ -67,6 +67,12 @@ from ceemx.identification.solvers.base import (
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.objective import linearize
 from ceemx.infra.memory import check_fits
+from ceemx.infra.options import (
+    check_bool,
+    check_int,
+    check_nonnegative,
+    check_positive,
+)
 from ceemx.infra.warn import warn
 from ceemx.lib.blocktri import BlockTridiagonal, cholesky, is_finite, solve
 from ceemx.lib.dense import symmetrize
@@ -146,16 +152,18 @@ class JointLM(AbstractFitSolver):
     }
 
     def __check_init__(self):
-        for name in ("rho_x", "rho_theta", "damping", "check_rtol"):
-            v = np.asarray(getattr(self, name))
-            if not (np.all(np.isfinite(v)) and np.all(v >= 0)):
-                raise ValueError(f"`{name}` must be finite and >= 0; got {getattr(self, name)}.")
-        if not np.all(np.asarray(self.max_theta_step) > 0):  # inf: no bound
-            raise ValueError(f"`max_theta_step` must be > 0; got {self.max_theta_step}.")
+        for name in ("rho_x", "rho_theta", "damping", "check_rtol", "cg_rtol"):
+            check_nonnegative(name, getattr(self, name))
+        check_positive("max_theta_step", self.max_theta_step, allow_inf=True)  # inf: no bound
         if self.linear_solver not in ("auto", "dense", "cg"):
             raise ValueError(
                 f"`linear_solver` must be 'auto', 'dense' or 'cg'; got {self.linear_solver!r}."
             )
+        check_int("max_trials", self.max_trials, 1)
+        check_int("dense_max_p", self.dense_max_p, 0)
+        check_int("cg_max_steps", self.cg_max_steps, 1, none=True)
+        check_bool("check_smoothing", self.check_smoothing)
+        check_bool("check_identifiability", self.check_identifiability)
 
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray

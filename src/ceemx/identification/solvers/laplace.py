@@ -51,6 +51,7 @@ from ceemx.identification.solvers.base import (
 )
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.posterior import E_STEP_SMOOTHER, GaussianPosterior, gaussian_posterior
+from ceemx.infra.options import check_choice
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import cho_solve, cholesky
 from ceemx.lib.results import RESULTS, codes
@@ -232,10 +233,7 @@ class LaplaceEM(AbstractFitSolver):
     }
 
     def __check_init__(self):
-        if self.acceleration not in (None, "squarem"):
-            raise ValueError(
-                f"`acceleration` must be 'squarem' or None; got {self.acceleration!r}."
-            )
+        check_choice("acceleration", self.acceleration, ("squarem", None))
         check_alternation(self.smoother, self.learner, self.rho_theta)
 
     def _posterior(

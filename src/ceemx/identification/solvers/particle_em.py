@@ -53,6 +53,7 @@ from ceemx.inference.particle import (
     initial_prior,
     resolve_proposal,
 )
+from ceemx.infra.options import check_nonnegative, check_real
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, select
 from ceemx.lib.typing import Scalar, States, Theta
@@ -142,18 +143,20 @@ class ParticleEM(AbstractFitSolver):
         for name in ("n_particles", "n_smoothed", "memory"):
             check_int(name, getattr(self, name), 1)
         check_int("burn_in", self.burn_in, 0)
-        alpha = np.asarray(self.alpha)
-        if not (np.all(np.isfinite(alpha)) and np.all(alpha > 0.5) and np.all(alpha <= 1.0)):
+        alpha = check_real("alpha", self.alpha)
+        if alpha is not None and not (np.all(alpha > 0.5) and np.all(alpha <= 1.0)):
             raise ValueError(f"`alpha` must be in (0.5, 1]; got {self.alpha}.")
         check_proposal(self.proposal)
-        if isinstance(self.ess_threshold, float | int):
-            check_threshold(self.ess_threshold)
+        check_threshold(self.ess_threshold)
         if not isinstance(self.learner, _learners.AbstractLearner):
             raise TypeError(f"`learner` must be a ceemx learner; got {self.learner!r}.")
+        if self.initial is not None and not isinstance(self.initial, GaussianPrior):
+            raise TypeError(
+                "`initial` must be None or a ceemx.GaussianPrior; got "
+                f"{type(self.initial).__name__}."
+            )
         for name in ("rho_theta", "rtol", "atol"):
-            value = np.asarray(getattr(self, name))
-            if not (np.all(np.isfinite(value)) and np.all(value >= 0)):
-                raise ValueError(f"`{name}` must be finite and >= 0; got {getattr(self, name)}.")
+            check_nonnegative(name, getattr(self, name))
 
     def _prior(self, problem: FitProblem, theta: Theta) -> GaussianPrior:
         """``initial``, else the system's ``initial_prior`` (validated; raises if neither)."""

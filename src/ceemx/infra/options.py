@@ -1,0 +1,121 @@
+"""Validation of solver and learner options: one helper per kind of option, used by every class.
+
+Each check runs on the host when an options object is built (Equinox ``__check_init__``), before
+any compute, and raises ``TypeError`` (wrong kind) or ``ValueError`` (bad value) with a message
+that names the option and says what it must be: "`rtol` must be finite and >= 0; got nan.".
+Traced values pass unchecked (an options object rebuilt inside ``jit`` was checked when made).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.core import Tracer
+
+__all__ = [
+    "check_bool",
+    "check_choice",
+    "check_int",
+    "check_key",
+    "check_nonnegative",
+    "check_positive",
+    "check_real",
+]
+
+
+def check_real(name: str, value: Any) -> np.ndarray | None:
+    """``value`` as a float64 NumPy array (``None`` for a traced value); ``TypeError`` otherwise.
+
+    Numbers and real arrays are accepted; booleans, strings, ``None`` and complex values are not.
+    """
+    if isinstance(value, Tracer):
+        return None
+    if isinstance(value, bool | np.bool_ | str | bytes) or value is None:
+        raise TypeError(f"`{name}` must be a real number; got {value!r}.")
+    try:
+        a = np.asarray(value)
+    except Exception:  # noqa: BLE001 — any object NumPy cannot read is the wrong kind
+        raise TypeError(f"`{name}` must be a real number; got {value!r}.") from None
+    if a.dtype == bool or not (
+        np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
+    ):
+        raise TypeError(f"`{name}` must be a real number; got {value!r}.")
+    return a.astype(np.float64)
+
+
+def check_nonnegative(name: str, value: Any) -> None:
+    """Raise unless ``value`` is real, finite and >= 0 (tolerances, trust regions, damping)."""
+    a = check_real(name, value)
+    if a is not None and not (np.all(np.isfinite(a)) and np.all(a >= 0)):
+        raise ValueError(f"`{name}` must be finite and >= 0; got {value!r}.")
+
+
+def check_positive(name: str, value: Any, *, allow_inf: bool = False) -> None:
+    """Raise unless ``value`` is real and > 0 (and finite unless ``allow_inf``)."""
+    a = check_real(name, value)
+    if a is None:
+        return
+    finite = np.all(~np.isnan(a)) if allow_inf else np.all(np.isfinite(a))
+    if not (finite and np.all(a > 0)):
+        what = "> 0 (inf allowed)" if allow_inf else "finite and > 0"
+        raise ValueError(f"`{name}` must be {what}; got {value!r}.")
+
+
+def check_int(name: str, value: Any, minimum: int, *, none: bool = False) -> int | None:
+    """``value`` as an integer >= ``minimum`` (``None`` passes if ``none``); raises naming it.
+
+    A bool is not an int here (``max_steps=True`` is a mistake, not 1).
+    """
+    if value is None and none:
+        return None
+    if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer):
+        kind = "an integer or None" if none else "an integer"
+        raise TypeError(f"`{name}` must be {kind}; got {value!r}.")
+    if value < minimum:
+        raise ValueError(f"`{name}` must be an integer >= {minimum}; got {value}.")
+    return int(value)
+
+
+def check_bool(name: str, value: Any) -> None:
+    """Raise ``TypeError`` unless ``value`` is ``True`` or ``False``."""
+    if not isinstance(value, bool | np.bool_):
+        raise TypeError(f"`{name}` must be True or False; got {value!r}.")
+
+
+def check_choice(name: str, value: Any, choices: Collection[Any]) -> None:
+    """Raise ``ValueError`` unless ``value`` is one of ``choices`` (listed in the message)."""
+    if not any(value is c or (type(value) is type(c) and value == c) for c in choices):
+        listed = ", ".join(repr(c) for c in choices)
+        raise ValueError(f"`{name}` must be one of {listed}; got {value!r}.")
+
+
+def check_key(value: Any, name: str = "key") -> None:
+    """Raise unless ``value`` is a JAX PRNG key: typed (``jax.random.key``) or raw uint32.
+
+    A raw key is what ``jax.random.PRNGKey(seed)`` returns: a 1-D ``uint32`` array (two words for
+    the default threefry implementation). Batches of keys are refused (one fit, one key).
+    """
+    if isinstance(value, Tracer):
+        return
+    if isinstance(value, jax.Array | np.ndarray):
+        if jnp.issubdtype(value.dtype, jax.dtypes.prng_key):
+            if value.shape == ():
+                return
+            raise ValueError(f"`{name}` must be a single PRNG key; got shape {value.shape}.")
+        if value.dtype == np.uint32 and value.ndim == 1 and value.shape[0] >= 2:
+            return
+    raise TypeError(
+        f"`{name}` must be a JAX PRNG key such as jax.random.key(0) or jax.random.PRNGKey(0); "
+        f"got {_short(value)}."
+    )
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, jax.Array | np.ndarray):
+        return f"an array of dtype {value.dtype} and shape {value.shape}"
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
