@@ -200,3 +200,37 @@ def test_hybrid_learns_the_missing_cubic_stiffness(duffing):
     rmse = float(jnp.sqrt(jnp.mean((simulate(s, data.u)[..., 0] - x[..., 0]) ** 2)))
     rmse_phys = float(jnp.sqrt(jnp.mean((simulate(physics, data.u)[..., 0] - x[..., 0]) ** 2)))
     assert rmse < 0.02 and rmse_phys > 1.0, (rmse, rmse_phys)
+
+
+@pytest.mark.parametrize("window", [57, 100, 399])
+def test_windows_sum_to_the_record(duffing, window):
+    """Σ over windows of −J = the record's −J (exactly when the windows tile the T − 1 = 399
+    transitions; else the last window's overlap adds its shared transitions once more), with the
+    initial-state prior counted once; and the gradient likewise."""
+    from ceemx.identification.learning.problem import learning_problem, windowed
+    from ceemx.identification.problem import FitProblem
+    from ceemx.models import GaussianPrior
+
+    _, physics, x, data = duffing
+    prior = GaussianPrior(jnp.zeros(2), ceemx.DiagonalGaussian(jnp.ones(2), 2))
+    system = eqx.tree_at(lambda s: s.initial_prior, physics, prior, is_leaf=lambda v: v is None)
+    problem, theta = FitProblem.create(system, data)
+    full = learning_problem(problem, theta, x)
+    win = windowed(full, window)
+    L = min(window, 399)
+    W = -(-399 // L)
+    assert win.batch_size == W
+    extra = W * L - 399  # transitions the last window repeats
+    theta1 = theta * 1.1
+    total, whole = float(win.data_term(theta1)), float(full.data_term(theta1))
+    if extra == 0:
+        assert total == pytest.approx(whole, rel=1e-12)
+        g_w = jax.grad(win.data_term)(theta1)
+        np.testing.assert_allclose(g_w, jax.grad(full.data_term)(theta1), rtol=1e-10)
+    else:  # the repeated transitions' −log p_w, computed directly
+        sys1 = problem.build(theta1)
+        r = x[0, 1:] - jax.vmap(lambda xt, ut: sys1.dynamics(xt, ut, 0.0))(
+            x[0, :-1], data.u[0, :-1]
+        )
+        rep = float(jnp.sum(jax.vmap(sys1.process_noise.nll)(r[399 - L : 399 - L + extra])))
+        assert total == pytest.approx(whole + rep, rel=1e-12)

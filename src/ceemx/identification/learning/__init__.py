@@ -15,10 +15,13 @@ from ceemx.identification.learning.learners import (
 from ceemx.identification.learning.problem import (
     AbstractLearningProblem,
     LearningProblem,
+    WindowedLearningProblem,
     learning_problem,
     make_problem,
+    windowed,
 )
 from ceemx.identification.learning.step import learn, run_learner
+from ceemx.identification.learning.windowed import WindowedLearner
 
 __all__ = [
     "AbstractLearningProblem",
@@ -31,8 +34,11 @@ __all__ = [
     "LearningProblem",
     "NelderMeadLearner",
     "OptaxLearner",
+    "WindowedLearner",
+    "WindowedLearningProblem",
     "learn",
     "learning_problem",
     "make_problem",
     "run_learner",
+    "windowed",
 ]

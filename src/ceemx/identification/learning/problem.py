@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ceemx.data.trajectories import Trajectories
@@ -16,7 +17,14 @@ from ceemx.inference.objective import linearize
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["AbstractLearningProblem", "LearningProblem", "make_problem"]
+__all__ = [
+    "AbstractLearningProblem",
+    "LearningProblem",
+    "WindowedLearningProblem",
+    "make_problem",
+    "window_starts",
+    "windowed",
+]
 
 
 class AbstractLearningProblem(eqx.Module):
@@ -195,4 +203,103 @@ def learning_problem(
         weights=w,
         theta_ref=theta,
         rho_theta=jnp.asarray(rho_theta, states.dtype),
+    )
+
+
+def window_starts(T: int, length: int) -> np.ndarray:
+    """Starts of windows of ``length`` transitions (``length + 1`` samples) covering T samples.
+
+    Consecutive windows share one sample (the last of one is the first of the next); the last
+    window ends at sample T − 1 and may overlap its predecessor by more.
+    """
+    if T < 2:
+        raise ValueError(f"a record needs at least 2 samples to cut windows; got T = {T}.")
+    if isinstance(length, bool) or not isinstance(length, int | np.integer) or length < 1:
+        raise ValueError(f"`window` must be an integer ≥ 1; got {length!r}.")
+    length = min(int(length), T - 1)
+    starts = np.arange(0, T - 1, length)
+    starts[-1] = min(starts[-1], T - 1 - length)
+    return starts
+
+
+class WindowedLearningProblem(AbstractLearningProblem):
+    """:class:`LearningProblem` with every record cut into short windows of time (minibatches).
+
+    At fixed states, −J is a sum of per-step terms, so cutting the (B, T) record into windows of
+    L transitions and summing the windows' −J gives the record's −J exactly — each observation
+    counted once (a sample shared by two windows is masked in one), each transition once except
+    those of the last window that overlap its predecessor (at most L − 1 of T − 1), and the
+    initial-state prior only in each record's first window. Minibatches of windows
+    (:class:`~ceemx.identification.learning.learners.OptaxLearner` with ``batch_size``, through
+    :class:`~ceemx.identification.learning.windowed.WindowedLearner`) are then minibatches of
+    time, which a single long record (B = 1) otherwise cannot have.
+
+    Attributes:
+        problem: the identification problem.
+        states: (B·W, L + 1, n) window states.
+        windows: the (B·W, L + 1) window data (masks adjusted).
+        weights: (B·W,) each window's record's weight.
+        first: (B·W,) whether a window starts its record (carries the initial prior).
+        theta_ref: θᵏ; rho_theta: ρ_θ.
+    """
+
+    problem: FitProblem
+    states: States
+    windows: Trajectories
+    weights: PerTrajectory
+    first: Array
+    theta_ref: Theta
+    rho_theta: Scalar
+
+    @property
+    def data(self) -> Trajectories:
+        """The windows (what minibatches draw from)."""
+        return self.windows
+
+    def per_trajectory(self, theta: Theta, idx: Int[Array, " _"] | None = None) -> PerTrajectory:
+        """−J of the windows ``idx`` (all when ``None``), the prior only in first windows."""
+        states, data, first = self.participating(self.states, self.windows, self.first)
+        if idx is not None:
+            states, data, first = states[idx], data[idx], first[idx]
+        values = self.problem.per_trajectory(theta, states, data)
+        prior = self.build(theta).initial_prior
+        if prior is not None:
+            values = values - jnp.where(first, 0.0, jax.vmap(prior.nll)(states[:, 0]))
+        return values
+
+    def per_trajectory_gauss_newton(self, theta: Theta):
+        """Not provided: windows are for first-order minibatch learners."""
+        raise NotImplementedError(
+            "a windowed learning problem is for first-order minibatch learners (OptaxLearner); "
+            "use the LM learner on the whole record."
+        )
+
+
+def windowed(problem: LearningProblem, length: int) -> WindowedLearningProblem:
+    """``problem`` with its records cut into windows of ``length`` transitions (see the class)."""
+    B, T = problem.states.shape[:2]
+    starts = window_starts(T, length)
+    L = min(int(length), T - 1)
+    idx = starts[:, None] + np.arange(L + 1)
+    keep = np.ones(idx.shape, bool)  # each sample observed in one window only
+    keep[:-1, -1] = False
+    if len(starts) > 1:
+        keep[-1] &= idx[-1] >= starts[-2] + L
+    W = len(starts)
+    data = problem.data
+
+    def cut(a):
+        return a[:, jnp.asarray(idx)].reshape((B * W, L + 1) + a.shape[2:])
+
+    mask = cut(data.mask) & jnp.asarray(np.tile(keep, (B, 1)))[..., None]
+    first = np.zeros((B, W), bool)
+    first[:, 0] = True
+    return WindowedLearningProblem(
+        problem=problem.problem,
+        states=cut(problem.states),
+        windows=Trajectories(cut(data.y), cut(data.u), mask),
+        weights=jnp.repeat(problem.weights, W),
+        first=jnp.asarray(first.reshape(-1)),
+        theta_ref=problem.theta_ref,
+        rho_theta=problem.rho_theta,
     )
