@@ -28,6 +28,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ceemx.data.trajectories import Trajectories, rollout_one
 from ceemx.evaluation.simulation import estimate_initial_state, free_run_batch, strongly_typed
 from ceemx.inference.smoother import check_inputs
+from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import ObservationMask, Observations, States, no_type_check
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem, float_dtype
@@ -196,7 +197,8 @@ class BenchmarkScore(NamedTuple):
         x_sim: (B, T, n) simulated states (``x_sim[:, 0]`` is ``x1``).
         x1: (B, n) initial states of the simulations.
         status: (B,) :class:`ceemx.RESULTS` of the initial-state estimation (``successful``
-            where ``x1`` was given).
+            where ``x1`` was given; ``nonfinite`` where x̂₁ is not finite), or ``diverged`` where
+            the free run from a finite x̂₁ is not finite (its scores are NaN or inf; warned).
         n_init: outputs used for the initial state (not scored).
     """
 
@@ -348,7 +350,28 @@ def benchmark_score(
     x_sim, y_sim = free_run_batch(strongly_typed(system), start, test.u, jnp.zeros((), jnp.int32))
     scale_arr = jnp.asarray(np.broadcast_to(s, (m,)), dtype)
     metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
+    status = _flag_diverged(start, metrics[3], status)
     return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init)
+
+
+def _flag_diverged(start, rmse_overall, status: RESULTS) -> RESULTS:
+    """Status ``diverged`` and a warning where x̂₁ is finite but the free run's score is not.
+
+    (A non-finite x̂₁ was already warned about by ``estimate_initial_state``; its status stays
+    ``nonfinite``.)
+    """
+    finite_start = np.all(np.isfinite(np.asarray(start)), axis=-1)
+    bad = finite_start & ~np.isfinite(np.asarray(rmse_overall))
+    if not bad.any():
+        return status
+    which = ", ".join(str(b) for b in np.flatnonzero(bad))
+    warn(
+        f"benchmark_score: the free-run simulation of trajector{'ies' if bad.sum() > 1 else 'y'} "
+        f"{which} is not finite — the model diverges (or overflows) from x̂₁ under the test "
+        "inputs — so their RMSE, NRMSE and fit % are not finite. Their status is "
+        "RESULTS.diverged (BenchmarkScore.status)."
+    )
+    return select(jnp.asarray(~bad), status, RESULTS.diverged)
 
 
 # --------------------------------------------------------------------------------------------

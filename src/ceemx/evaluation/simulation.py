@@ -29,9 +29,10 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import from_observations
 from ceemx.inference.ekf import ekf
 from ceemx.inference.smoother import LMSmoother, check_inputs, smooth_batch
+from ceemx.infra.warn import warn
 from ceemx.lib.dense import cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
-from ceemx.lib.results import RESULTS
+from ceemx.lib.results import RESULTS, select
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import Inputs, Observations, States, no_type_check
 from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype, with_noise
@@ -356,7 +357,24 @@ def estimate_initial_state(
         weak = with_noise(system, process_noise=jnp.asarray(warm_process_noise, dtype))
     system, weak = strongly_typed((system, weak))
     x1, status = initial_state_batch(solver, system, weak, window, x_init, bool(refine))
+    status = _flag_nonfinite(x1, status)
     return (x1, status) if return_status else x1
+
+
+def _flag_nonfinite(x1: Float[Array, "B n"], status: RESULTS) -> RESULTS:
+    """Status ``nonfinite`` and a warning for every trajectory whose x̂₁ is not finite."""
+    bad = ~np.all(np.isfinite(np.asarray(x1)), axis=-1)
+    if not bad.any():
+        return status
+    which = ", ".join(str(b) for b in np.flatnonzero(bad))
+    warn(
+        f"estimate_initial_state: x̂₁ is not finite (NaN or inf) for "
+        f"trajector{'ies' if bad.sum() > 1 else 'y'} {which}: the window's objective is not "
+        "finite at the model's parameters (a noise scale so small that whitening overflows, "
+        "such as 1e-300, or a model that overflows in the window). Their status is "
+        "RESULTS.nonfinite (return_status=True; BenchmarkScore.status)."
+    )
+    return select(jnp.asarray(~bad), status, RESULTS.nonfinite)
 
 
 # --------------------------------------------------------------------------------------------

@@ -31,6 +31,10 @@ class RESULTS(eqx.Enumeration):
         "excluded from the fit: its residuals at the start are far outside the noise model, "
         "compared with the other trajectories (ceemx.identification.health)"
     )
+    diverged = (
+        "the free-run simulation is not finite: the model diverges (or overflows) from its "
+        "initial state under these inputs"
+    )
 
 
 def codes(status: RESULTS) -> np.ndarray:
@@ -71,4 +75,5 @@ _ITEMS = (
     RESULTS.stalled,
     RESULTS.particle_failure,
     RESULTS.outlier,
+    RESULTS.diverged,
 )
