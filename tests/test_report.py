@@ -63,7 +63,7 @@ def test_benchmark_score_prints_a_few_lines_not_its_arrays():
     text = repr(score)
     assert str(score) == text and len(text.splitlines()) <= 9 and "4999" not in text
     lines = text.splitlines()
-    assert lines[0].startswith("BenchmarkScore: free-run simulation of 2 record(s)")
+    assert lines[0].startswith("BenchmarkScore: free-run simulation of 2 records")
     assert "n_init = 50" in lines[0]
     assert lines[1].split() == ["record", "output", "RMSE", "NRMSE", "fit", "%"]
     assert lines[2].split() == ["0", "y1", "0.0123", "0.05", "95.00"]

@@ -189,7 +189,7 @@ def test_summary_names_estimates_intervals_and_constraints(decay):
     text = res.summary()
     assert isinstance(text, str) and repr(text) == str(text)  # shows as it reads at the prompt
     lines = text.splitlines()
-    assert lines[0] == "Fit summary: JointLM, not converged after 30 epoch(s)"
+    assert lines[0] == "Fit summary: JointLM, not converged after 30 epochs"
     rows, notes = parameter_rows(res)
     assert [r.name for r in rows] == ["a", "g"] and notes == []
     est = res.parameter_estimates()
@@ -224,6 +224,6 @@ def test_summary_markdown_and_repr(decay):
     with pytest.raises((ValueError, TypeError)):  # TypeError: the tests' runtime type checks
         res.summary("html")  # type: ignore[arg-type]
     short = repr(res)
-    assert short.startswith("FitResult(JointLM, not converged after 30 epoch(s), J = ")
+    assert short.startswith("FitResult(JointLM, not converged after 30 epochs, J = ")
     assert "a = " in short and "g = " in short and ".summary()" in short
     assert len(short.splitlines()) <= 3

@@ -1,8 +1,12 @@
-"""Three real measured nonlinear system-identification benchmarks, read from local CSV files.
+"""Three real measured nonlinear system-identification benchmarks, from the official CSV files.
 
 The files are not part of the package. They are looked for in ``root`` (an argument), else in the
-folder named by the ``CEEMX_DATA`` environment variable, else in ``../shared/data`` relative to the
-working directory or to the repository; their sha256 is checked against the published files.
+folder named by the ``CEEMX_DATA`` environment variable, else in the download cache, else in
+``../shared/data`` relative to the working directory or to the repository (a development
+checkout); else the official archive is downloaded into the cache on first use
+(:mod:`ceemx.datasets.download`: `pooch`, the platform's cache folder or ``CEEMX_DATA_CACHE``;
+offline, one sentence says where to put the file). Their sha256 is checked against the published
+files.
 
 =========================  =====================================  ==========================
 name                       file                                   official test records
@@ -35,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ceemx.data.trajectories import Trajectories
+from ceemx.datasets.download import DatasetUnavailable, cache_dir, fetch
 
 __all__ = [
     "BENCHMARKS",
@@ -43,6 +48,7 @@ __all__ = [
     "PublishedResult",
     "WindowSplits",
     "benchmark_dataset",
+    "benchmark_file",
     "benchmark_splits",
     "cascaded_tanks",
     "coupled_electric_drives",
@@ -200,6 +206,11 @@ def _candidates(root: str | os.PathLike | None) -> list[Path]:
     env = os.environ.get("CEEMX_DATA")
     if env:
         return [Path(env)]
+    return _checkout_folders()
+
+
+def _checkout_folders() -> list[Path]:
+    """``../shared/data`` of a development checkout: from the working directory and the repo."""
     repo = Path(__file__).resolve().parents[3]
     return [Path.cwd() / ".." / "shared" / "data", repo / ".." / "shared" / "data"]
 
@@ -247,34 +258,92 @@ def _col(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, np.float64).reshape(-1, 1)
 
 
+def benchmark_file(
+    name: str,
+    root: str | os.PathLike | None = None,
+    *,
+    cache: str | os.PathLike | None = None,
+    download: bool = True,
+) -> Path:
+    """Where a benchmark's official file is, downloading it into the cache on first use.
+
+    Looked for in ``root``, else ``$CEEMX_DATA`` (either one given: the file must be there),
+    else the cache (:func:`ceemx.datasets.download.cache_dir`), else ``../shared/data`` of a
+    development checkout; else downloaded into the cache and checked
+    (:func:`ceemx.datasets.download.fetch`).
+
+    Args:
+        name: ``"cascaded_tanks"``, ``"silverbox"`` or ``"coupled_electric_drives"``.
+        root: the data folder (see :func:`data_root`).
+        cache: the download cache (``None``: ``$CEEMX_DATA_CACHE`` or the platform's cache).
+        download: allow the download (``False``: only files already on disk).
+
+    Returns:
+        The file's path (its sha256 is checked by the loaders, and after a download).
+
+    Raises:
+        FileNotFoundError: the file is not under ``root`` / ``$CEEMX_DATA``; or
+            :class:`~ceemx.datasets.download.DatasetUnavailable` (a ``FileNotFoundError``) when
+            it is nowhere on disk and cannot be downloaded — one sentence saying where to put it.
+    """
+    spec = _spec(name)
+    if root is not None or os.environ.get("CEEMX_DATA"):
+        try:
+            path = data_root(root) / spec.file
+        except FileNotFoundError as e:
+            raise FileNotFoundError(f"{name}: cannot look for {spec.file}: {e}") from None
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"missing benchmark file {path}: the {name} benchmark needs the official "
+                f"{spec.file} under the data folder. Pass `root=` (the folder holding "
+                f"{spec.file.split('/')[0]}/) or set the CEEMX_DATA environment variable to it; "
+                "with neither, the loaders download it into a user cache."
+            )
+        return path
+    cached = cache_dir(cache) / spec.file
+    if cached.is_file():
+        return cached
+    for folder in _checkout_folders():
+        if (folder / spec.file).is_file():
+            return (folder / spec.file).resolve()
+    if not download:
+        raise DatasetUnavailable(
+            f"the {name} benchmark file is not on disk (looked for {cached}) and "
+            "download=False: allow the download, or put the official file there or under a "
+            f"folder named by CEEMX_DATA (as {spec.file})."
+        )
+    return fetch(name, cache=cache)
+
+
 def load_benchmark(
-    name: str, root: str | os.PathLike | None = None, verify: bool = True
+    name: str,
+    root: str | os.PathLike | None = None,
+    verify: bool = True,
+    *,
+    cache: str | os.PathLike | None = None,
+    download: bool = True,
 ) -> BenchmarkRecord:
     """Read one benchmark's official records.
 
     Args:
         name: ``"cascaded_tanks"``, ``"silverbox"`` or ``"coupled_electric_drives"``.
-        root: the data folder (see :func:`data_root`).
+        root: the data folder (see :func:`data_root`); ``None``: ``$CEEMX_DATA``, else the
+            download cache (:func:`benchmark_file`).
         verify: check the file's sha256 against the published one (once per file per process).
+        cache: the download cache (:func:`ceemx.datasets.download.cache_dir`).
+        download: download the official file when it is not on disk (the first use).
 
     Returns:
         A :class:`BenchmarkRecord`; every signal is a float64 (N, 1) array.
 
     Raises:
         ValueError: for an unknown name, a sha256 mismatch or a file of the wrong shape.
-        FileNotFoundError: when the folder or the file is missing.
+        FileNotFoundError: when the file is missing under ``root`` / ``$CEEMX_DATA``, or is
+            nowhere on disk and cannot be downloaded
+            (:class:`~ceemx.datasets.download.DatasetUnavailable`).
     """
+    path = benchmark_file(name, root, cache=cache, download=download)
     spec = _spec(name)
-    try:
-        path = data_root(root) / spec.file
-    except FileNotFoundError as e:
-        raise FileNotFoundError(f"{name}: cannot look for {spec.file}: {e}") from None
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"missing benchmark file {path}: the {name} benchmark needs the official "
-            f"{spec.file} under the data folder. Pass `root=` (the folder holding "
-            f"{spec.file.split('/')[0]}/) or set the CEEMX_DATA environment variable to it."
-        )
     if verify:
         st = path.stat()
         key = (str(path), st.st_size, st.st_mtime)
@@ -556,14 +625,22 @@ def _trajectories(records: Sequence[Record]) -> Trajectories:
 
 
 def benchmark_dataset(
-    name: str, root: str | os.PathLike | None = None, *, verify: bool = True
+    name: str,
+    root: str | os.PathLike | None = None,
+    *,
+    verify: bool = True,
+    cache: str | os.PathLike | None = None,
+    download: bool = True,
 ) -> BenchmarkDataset:
     """One benchmark's official records as a :class:`BenchmarkDataset`.
 
     Args:
         name: ``"cascaded_tanks"``, ``"silverbox"`` or ``"coupled_electric_drives"``.
-        root: the data folder (see :func:`data_root`; else ``$CEEMX_DATA``).
+        root: the data folder (see :func:`data_root`; else ``$CEEMX_DATA``, else the download
+            cache: :func:`benchmark_file`).
         verify: check the file's sha256 against the published one (once per file per process).
+        cache: the download cache (``None``: ``$CEEMX_DATA_CACHE`` or the platform's cache).
+        download: download the official file on first use (``False``: only files on disk).
 
     Returns:
         A :class:`BenchmarkDataset` (float64 when JAX runs in float64).
@@ -572,7 +649,7 @@ def benchmark_dataset(
         FileNotFoundError: naming the expected file and how to set the folder.
         ValueError: for an unknown name or a sha256 mismatch.
     """
-    rec = load_benchmark(name, root, verify)
+    rec = load_benchmark(name, root, verify, cache=cache, download=download)
     spec = BENCHMARKS[name]
     unit, scale, published = _PUBLISHED[name]
     rename = _TEST_NAMES.get(name, {})
@@ -596,31 +673,47 @@ def benchmark_dataset(
 
 
 def cascaded_tanks(
-    root: str | os.PathLike | None = None, *, verify: bool = True
+    root: str | os.PathLike | None = None,
+    *,
+    verify: bool = True,
+    cache: str | os.PathLike | None = None,
+    download: bool = True,
 ) -> BenchmarkDataset:
     """The cascaded-tanks benchmark (Schoukens, Mattsson, Wigren, Noël 2016).
 
     A pump fills an upper tank that drains into a lower one; the upper level is hidden, the lower
     level saturates at 10 V (overflow). ``train``: (1, 1024, 1), (uEst, yEst); ``tests["test"]``:
     (1, 1024, 1), (uVal, yVal); ``n_init`` = 50; dt = 4 s; scores in V. See
-    :func:`benchmark_dataset` for the arguments and errors.
+    :func:`benchmark_dataset` for the arguments (the file is downloaded into a user cache on
+    first use) and errors.
     """
-    return benchmark_dataset("cascaded_tanks", root, verify=verify)
+    return benchmark_dataset("cascaded_tanks", root, verify=verify, cache=cache, download=download)
 
 
-def silverbox(root: str | os.PathLike | None = None, *, verify: bool = True) -> BenchmarkDataset:
+def silverbox(
+    root: str | os.PathLike | None = None,
+    *,
+    verify: bool = True,
+    cache: str | os.PathLike | None = None,
+    download: bool = True,
+) -> BenchmarkDataset:
     """The Silverbox benchmark (Wigren & Schoukens 2013), an electronic Duffing oscillator.
 
     u = V1, y = V2 [V], the velocity hidden; fs = 610.35 Hz. ``train``: samples [40650, 105712)
     (1, 65062, 1); ``tests``: ``"multisine"`` [105712, 127400), ``"arrow_full"`` [100, 40575),
     ``"arrow_no_extrapolation"`` [100, 32100); ``n_init`` = 50; scores in mV (``score_scale`` =
-    1000). See :func:`benchmark_dataset` for the arguments and errors.
+    1000). See :func:`benchmark_dataset` for the arguments (the file is downloaded into a user
+    cache on first use) and errors.
     """
-    return benchmark_dataset("silverbox", root, verify=verify)
+    return benchmark_dataset("silverbox", root, verify=verify, cache=cache, download=download)
 
 
 def coupled_electric_drives(
-    root: str | os.PathLike | None = None, *, verify: bool = True
+    root: str | os.PathLike | None = None,
+    *,
+    verify: bool = True,
+    cache: str | os.PathLike | None = None,
+    download: bool = True,
 ) -> BenchmarkDataset:
     """The coupled-electric-drives benchmark (Wigren & Schoukens 2017), uniform-input sets.
 
@@ -628,6 +721,9 @@ def coupled_electric_drives(
     counter, the belt states hidden. Per set (``"set1_low"``: u11 → z11, ``"set2_high"``:
     u12 → z12) samples [0, 400) train and [400, 500) test: ``train`` (2, 400, 1) (one record per
     set, ``train_names``), ``tests[set]`` (1, 100, 1); ``n_init`` = 10; dt = 20 ms. See
-    :func:`benchmark_dataset` for the arguments and errors.
+    :func:`benchmark_dataset` for the arguments (the file is downloaded into a user cache on
+    first use) and errors.
     """
-    return benchmark_dataset("coupled_electric_drives", root, verify=verify)
+    return benchmark_dataset(
+        "coupled_electric_drives", root, verify=verify, cache=cache, download=download
+    )

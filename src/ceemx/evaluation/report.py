@@ -222,7 +222,8 @@ def score_table(
             [str(b), "all", f"{overall[b]:.4g}", f"{nr[b]:.4g}", f"{ft[b]:.2f}"] for b in range(B)
         ]
     title = (
-        f"BenchmarkScore: free-run simulation of {B} record(s), scored from sample "
+        f"BenchmarkScore: free-run simulation of {B} record{'s' if B != 1 else ''}, scored from "
+        "sample "
         f"n_init = {int(score.n_init)}"
     )
     if format == "markdown":

@@ -174,6 +174,10 @@ def describe_noise(noise: AbstractNoise | None) -> str:
     return kind
 
 
+def _count(n: int, one: str, many: str | None = None) -> str:
+    return f"{n} {one if n == 1 else (many or one + 's')}"
+
+
 def _names_list(names: Sequence[str], most: int = 8) -> str:
     more = f", … ({len(names)} in all)" if len(names) > most else ""
     return ", ".join(names[:most]) + more
@@ -229,7 +233,8 @@ def _facts(result) -> list[tuple[str, str]]:
     ]
     if data is not None:
         B, T = int(data.y.shape[0]), int(data.y.shape[1])
-        text = f"{B} trajectories × {T} steps, {int(data.y.shape[2])} output(s)"
+        m = int(data.y.shape[2])
+        text = f"{_count(B, 'trajectory', 'trajectories')} × {T} steps, {_count(m, 'output')}"
         if result.excluded:
             text += f"; excluded by the health test: {', '.join(map(str, result.excluded))}"
         facts.append(("data", text))
@@ -318,7 +323,7 @@ def _md_table(head: Sequence[str], body: Sequence[Sequence[str]], right: set[int
 def _title(result) -> str:
     name = type(result.solver).__name__
     conv = "converged" if result.converged else "not converged"
-    return f"Fit summary: {name}, {conv} after {result.epochs} epoch(s)"
+    return f"Fit summary: {name}, {conv} after {_count(result.epochs, 'epoch')}"
 
 
 def fit_summary(
@@ -405,7 +410,9 @@ def short_repr(result) -> str:
     conv = "converged" if result.converged else "not converged"
     J = result.history[-1]["J"] if result.history else result.initial_J
     name = type(result.solver).__name__
-    head = f"FitResult({name}, {conv} after {result.epochs} epoch(s), J = {_num(float(J), 6)}"
+    head = (
+        f"FitResult({name}, {conv} after {_count(result.epochs, 'epoch')}, J = {_num(float(J), 6)}"
+    )
     if result.problem is not None and result.theta is not None:
         names = result.problem.parameter_names()
         values = np.asarray(result.problem.natural(result.theta), np.float64)
@@ -416,5 +423,6 @@ def short_repr(result) -> str:
         head += f";\n  {shown}{more}"
     status = np.atleast_1d(codes(result.status)).reshape(-1)
     failed = int(np.sum(status != int(codes(RESULTS.successful))))
-    head += f"; {status.size} trajectories" + (f", {failed} not successful" if failed else "")
+    head += f"; {_count(status.size, 'trajectory', 'trajectories')}"
+    head += f", {failed} not successful" if failed else ""
     return head + ")  — .summary() for standard errors and diagnostics"

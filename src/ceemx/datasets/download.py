@@ -1,0 +1,226 @@
+"""The benchmark files, downloaded once into a user cache, and checked.
+
+On first use a loader (:func:`ceemx.datasets.cascaded_tanks`, ``silverbox``,
+``coupled_electric_drives``) fetches the official archive with `pooch`_ (HTTP, retries, atomic
+writes), takes the data file out of it and checks the file's sha256 against the published one
+(the same digests that :data:`ceemx.datasets.BENCHMARKS` holds); later calls read the cached file.
+
+=========================== ================================================ ===========
+name                        archive (host)                                   data file
+=========================== ================================================ ===========
+``cascaded_tanks``          ``CascadedTanksFiles.zip`` (4TU.ResearchData)    ``dataBenchmark.csv``
+``silverbox``               ``SilverboxFiles.zip`` (nonlinearbenchmark.org,  ``SNLS80mV.csv``
+                            a Google Drive file)
+``coupled_electric_drives`` ``CoupledElectricDrivesDataSetAndReferenceModels ``DATAUNIF.csv``
+                            .zip`` (Uppsala University)
+=========================== ================================================ ===========
+
+Where the files are looked for, first found wins: the ``root`` argument, the folder named by
+``CEEMX_DATA``, the cache (``cache`` argument, else ``CEEMX_DATA_CACHE``, else the platform's cache
+folder, ``~/.cache/ceemx/datasets`` on Linux: ``pooch.os_cache``), a ``../shared/data`` folder of a
+development checkout — and only then the download into the cache. The cache keeps the layout of
+a data folder (``cascaded_tanks/dataBenchmark.csv``, …), so it can be handed to ``root=``.
+
+What is checked: the data file's sha256 (a mismatch removes the file and raises). The archives'
+digests are not pinned: the hosts re-pack them (the Silverbox archive moved twice), and the data
+inside is what the published digests are of. A ``file://`` URL copies a local archive (a mirror
+on a shared drive; the tests).
+
+Without a network the loader raises :class:`DatasetUnavailable` (a ``FileNotFoundError``) with
+one sentence: what could not be downloaded from where, and where to put the file by hand.
+
+.. _pooch: https://www.fatiando.org/pooch
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import unquote, urlparse
+
+__all__ = ["SOURCES", "DatasetUnavailable", "Source", "cache_dir", "fetch"]
+
+
+class DatasetUnavailable(FileNotFoundError):
+    """A benchmark file is neither on disk nor downloadable (offline, host moved)."""
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where a benchmark's official file comes from.
+
+    Attributes:
+        url: the archive's address.
+        archive: the archive's file name (as the host names it).
+        member: the data file's name inside the archive (matched by base name, any folder).
+        file: where the data file goes under a data folder (``name/file.csv``).
+        sha256: the data file's published sha256.
+    """
+
+    url: str
+    archive: str
+    member: str
+    file: str
+    sha256: str
+
+
+SOURCES: dict[str, Source] = {
+    "cascaded_tanks": Source(
+        "https://data.4tu.nl/file/d4810b78-6cdd-48fe-8950-9bd601e5f47f/"
+        "3b697e42-01a4-4979-a370-813a456c36f5",
+        "CascadedTanksFiles.zip",
+        "dataBenchmark.csv",
+        "cascaded_tanks/dataBenchmark.csv",
+        "ef2388ed822f3aef4aa80d6b0f2b466dd80b361786b3eafc7a2957c31ea323a7",
+    ),
+    "silverbox": Source(
+        "https://drive.google.com/uc?export=download&id=17iS-6oBUUgrmiAcrZoG9S5sOaljZnDSy",
+        "SilverboxFiles.zip",
+        "SNLS80mV.csv",
+        "silverbox/SNLS80mV.csv",
+        "ae62d5a91230c10f76e6dd02c8a4fac3c9d4d8a95fbf50e87cb0c4885003e0f1",
+    ),
+    "coupled_electric_drives": Source(
+        "http://www.it.uu.se/research/publications/reports/2017-024/"
+        "CoupledElectricDrivesDataSetAndReferenceModels.zip",
+        "CoupledElectricDrivesDataSetAndReferenceModels.zip",
+        "DATAUNIF.csv",
+        "coupled_electric_drives/DATAUNIF.csv",
+        "9114f637f22ca826f03f066270cf68bd8cad686739a7fa4b471c14ccdbf66889",
+    ),
+}
+
+
+def cache_dir(cache: str | os.PathLike | None = None) -> Path:
+    """The download cache: ``cache``, else ``$CEEMX_DATA_CACHE``, else the platform's cache folder.
+
+    The platform's folder is ``pooch.os_cache("ceemx") / "datasets"`` (``~/.cache/ceemx/datasets``
+    on Linux, ``~/Library/Caches/ceemx/datasets`` on macOS). Not created here.
+    """
+    if cache is not None:
+        return Path(cache)
+    env = os.environ.get("CEEMX_DATA_CACHE")
+    if env:
+        return Path(env)
+    import pooch
+
+    return Path(pooch.os_cache("ceemx")) / "datasets"
+
+
+def sha256(path: Path) -> str:
+    """The file's sha256, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _copy_local(fname: str, action, pooch, *, check_only: bool | None = None):
+    """A pooch downloader for ``file://`` URLs (``fname``): copies the local file to ``action``.
+
+    pooch calls a downloader with the URL, the output file (a path or an open binary file) and
+    the ``Pooch`` instance (unused).
+    """
+    source = Path(unquote(urlparse(fname).path))
+    if check_only:
+        return source.is_file()
+    with source.open("rb") as src:
+        if isinstance(action, str | os.PathLike):
+            with open(action, "wb") as dst:
+                shutil.copyfileobj(src, dst)
+        else:
+            shutil.copyfileobj(src, action)
+
+
+def _extract(archive: Path, member: str, target: Path) -> None:
+    """Write ``member`` (by base name, any case) of a zip archive to ``target``, atomically."""
+    with zipfile.ZipFile(archive) as z:
+        found = [n for n in z.namelist() if Path(n).name.lower() == member.lower()]
+        if not found:
+            raise ValueError(f"{archive} holds no {member}.")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+        with os.fdopen(fd, "wb") as dst, z.open(sorted(found, key=len)[0]) as src:
+            shutil.copyfileobj(src, dst)
+    os.replace(tmp, target)
+
+
+def fetch(
+    name: str,
+    *,
+    cache: str | os.PathLike | None = None,
+    url: str | None = None,
+    progress: bool = False,
+) -> Path:
+    """The benchmark's data file in the cache, downloaded and checked on first use.
+
+    Args:
+        name: a key of :data:`SOURCES`.
+        cache: the cache folder (see :func:`cache_dir`).
+        url: another address of the same archive (a mirror; ``file://`` copies a local file).
+        progress: show pooch's progress bar.
+
+    Returns:
+        The path of the data file, ``cache_dir(cache) / SOURCES[name].file``, its sha256 checked.
+
+    Raises:
+        ValueError: an unknown name; the archive is not a zip holding the data file; the data
+            file's sha256 is not the published one (the file is removed).
+        DatasetUnavailable: the archive could not be downloaded (offline, the host moved).
+    """
+    if name not in SOURCES:
+        raise ValueError(f"unknown benchmark {name!r}; choose from {', '.join(SOURCES)}.")
+    src = SOURCES[name]
+    folder = cache_dir(cache)
+    target = folder / src.file
+    if target.is_file() and sha256(target) == src.sha256:
+        return target
+    url = src.url if url is None else url
+    import pooch
+
+    logger = pooch.get_logger()  # its "use this known_hash" advice is not for our users
+    level = logger.level
+    logger.setLevel("WARNING")
+    try:
+        archive = Path(
+            pooch.retrieve(
+                url,
+                known_hash=None,  # the data file's digest is checked below (module notes)
+                fname=src.archive,
+                path=folder / "archives",
+                downloader=_copy_local if url.startswith("file://") else None,
+                progressbar=progress,
+            )
+        )
+    except Exception as e:  # offline, refused, moved: one sentence says what to do
+        raise DatasetUnavailable(
+            f"Could not download the {name} benchmark ({src.archive}) from {url} "
+            f"({type(e).__name__}: {e}); download it by hand and put its {src.member} at "
+            f"{target} (or under a folder named by the CEEMX_DATA environment variable, as "
+            f"{src.file})."
+        ) from None
+    finally:
+        logger.setLevel(level)
+    try:
+        _extract(archive, src.member, target)
+    except (zipfile.BadZipFile, ValueError) as e:
+        archive.unlink(missing_ok=True)
+        raise ValueError(
+            f"the file downloaded from {url} is not the {name} archive ({e}); the host may "
+            f"have moved it: pass `url=` or put {src.member} at {target} by hand."
+        ) from None
+    digest = sha256(target)
+    if digest != src.sha256:
+        target.unlink()
+        raise ValueError(
+            f"sha256 of the {src.member} downloaded from {url} is {digest}; expected "
+            f"{src.sha256} (the published {name} file). It was removed; the host may serve "
+            "another version."
+        )
+    return target
