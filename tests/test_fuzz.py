@@ -205,6 +205,71 @@ def test_learn_arguments(states, rho, trainable):
         assert new.A.shape == (N, N) and np.all(np.isfinite(np.asarray(new.A)))
 
 
+# --- every option of every solver and learner: pure validation --------------------------------
+
+_NONNEG, _POS_INT, _NONNEG_INT, _FRACTION = "nonneg", "int>=1", "int>=0", "fraction"
+OPTIONS = [
+    *[
+        (cls, name, _NONNEG)
+        for cls in (ceemx.Alternating, ceemx.JointLM, ceemx.LaplaceEM, ceemx.ParticleEM)
+        for name in ("rtol", "atol")
+    ],
+    *[
+        (cls, "rho_theta", _NONNEG)
+        for cls in (ceemx.Alternating, ceemx.JointLM, ceemx.LaplaceEM, ceemx.ParticleEM)
+    ],
+    *[(ceemx.JointLM, name, _NONNEG) for name in ("rho_x", "damping", "check_rtol", "cg_rtol")],
+    (ceemx.JointLM, "max_trials", _POS_INT),
+    (ceemx.JointLM, "dense_max_p", _NONNEG_INT),
+    (ceemx.ParticleEM, "ess_threshold", _FRACTION),
+    *[(ceemx.ParticleEM, name, _POS_INT) for name in ("n_particles", "n_smoothed", "memory")],
+    (ceemx.ParticleEM, "burn_in", _NONNEG_INT),
+    *[(ceemx.LMSmoother, name, _NONNEG) for name in ("rho_x", "rtol", "atol", "damping")],
+    (ceemx.LMSmoother, "max_steps", _NONNEG_INT),
+    *[(ceemx.LMLearner, name, _NONNEG) for name in ("rtol", "atol", "damping")],
+    (ceemx.LMLearner, "max_steps", _POS_INT),
+    (ceemx.LBFGSLearner, "gtol", _NONNEG),
+    *[(ceemx.LBFGSLearner, name, _POS_INT) for name in ("max_steps", "memory_size")],
+    *[(ceemx.NelderMeadLearner, name, _NONNEG) for name in ("rtol", "atol")],
+    (ceemx.NelderMeadLearner, "max_steps", _POS_INT),
+]
+OPTION_VALUES = st.one_of(
+    SPECIAL,
+    st.floats(-10.0, 10.0),
+    st.integers(-3, 3),
+    st.sampled_from([None, "abc", True, False, 1j, [1.0], np.float64(0.5), np.nan]),
+)
+
+
+def _valid(kind: str, value) -> bool | None:
+    """Whether ``value`` is valid for ``kind`` (None: either answer is right).
+
+    In the test session jaxtyping checks the annotations first, so an int for a float option may
+    be refused although ceemx accepts it: left open.
+    """
+    if isinstance(value, bool | np.bool_) or not isinstance(value, int | float | np.floating):
+        return False
+    if kind in (_POS_INT, _NONNEG_INT):
+        return isinstance(value, int) and value >= (1 if kind == _POS_INT else 0)
+    ok = np.isfinite(value) and value >= 0 and (kind != _FRACTION or value <= 1)
+    return None if isinstance(value, int) and ok else bool(ok)
+
+
+@examples(300)
+@given(case=st.sampled_from(OPTIONS), value=OPTION_VALUES)
+def test_every_option_validated(case, value):
+    """Issue 24: no invalid value silently accepted, no valid one refused, the option named."""
+    cls, name, kind = case
+    valid = _valid(kind, value)
+    try:
+        cls(**{name: value})
+    except (ValueError, TypeError) as err:
+        assert f"`{name}`" in str(err) or f"parameter '{name}'" in str(err), str(err)
+        assert valid is not True, f"{cls.__name__}({name}={value!r}) refused: {err}"
+        return
+    assert valid is not False, f"{cls.__name__}({name}={value!r}) silently accepted"
+
+
 def test_profile_is_registered():
     assert settings().deadline is None
     assert re.fullmatch(r"default|slow", PROFILE)

@@ -20,6 +20,7 @@ from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, messages
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, States, Trajectory, no_type_check
+from ceemx.models.method_check import check_methods
 from ceemx.models.system import AbstractSystem, float_dtype
 
 __all__ = [
@@ -292,6 +293,9 @@ def check_inputs(
 ) -> None:
     """Validate shapes, finiteness, noise parameters and dtype before any compute (host-side).
 
+    The system's ``dynamics``, ``vector_field`` and ``observe`` are traced once (abstractly) to
+    check the shape and dtype they return (:func:`ceemx.models.method_check.check_methods`).
+
     ``data.y`` and ``x`` must already have the system's dtype (see :func:`promote_inputs`); a
     float32 identification warns. Without ``x`` it also warns when a linear observation matrix is
     rank-deficient or has a condition number above 1e12.
@@ -313,6 +317,7 @@ def check_inputs(
         raise ValueError(
             f"`data.u` has p = {data.input_dim} but the system takes p = {system.input_dim} inputs."
         )
+    check_methods(system)  # the model's own methods: shapes and dtypes, traced once
     if x is None:
         _check_observation_matrix(system)
     else:
