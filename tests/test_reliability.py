@@ -5,6 +5,9 @@ absurd J and reported convergence). Validation tests compile nothing: a counting
 every trace of its methods, and the refusals must come before the first one.
 """
 
+import errno
+import json
+import os
 import re
 
 import jax
@@ -23,9 +26,11 @@ from ceemx.identification.learning.learners import (
     NelderMeadLearner,
     OptaxLearner,
 )
+from ceemx.identification.solvers.base import FitState
 from ceemx.inference.smoother import check_inputs
+from ceemx.infra import checkpoint as ckpt
 from ceemx.infra import options
-from ceemx.lib.results import RESULTS, codes, messages
+from ceemx.lib.results import RESULTS, codes, messages, select
 from ceemx.systems import LinearSystem
 
 TRACES: list[str] = []
@@ -447,3 +452,85 @@ def test_model_methods_traced_once_per_structure():
     for _ in range(3):
         check_inputs(Good(a=0.5), DATA, X2)
     assert TRACES == ["dynamics", "observe"]
+
+
+# --- item 5 (issue item 4, in part): checkpoints on full disks; what a resume trusts -----------
+
+
+def fit_state(weights=(1.0, 1.0), lam=1e-3):
+    return FitState(
+        theta=jnp.zeros(3),
+        states=jnp.zeros((2, 4, 1)),
+        J=jnp.zeros(2),
+        weights=jnp.asarray(weights),
+        status=select(jnp.zeros(2, bool), RESULTS.nonfinite, RESULTS.successful),
+        solver_state=jnp.asarray(lam),
+    )
+
+
+class DiskFull:
+    """A file whose writes fail as on a full disk."""
+
+    def __init__(self, f):
+        self.f = f
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.f.close()
+
+
+def test_full_disk_keeps_the_last_checkpoint(tmp_path, monkeypatch):
+    """Was "TreePathError: Error at leaf with path (GetAttrKey(name='states'),)"."""
+    folder = str(tmp_path)
+    ckpt.save(folder, fit_state(), [{"epoch": 1}])
+    real = os.fdopen
+    monkeypatch.setattr(os, "fdopen", lambda *a, **k: DiskFull(real(*a, **k)))
+    with raises(ckpt.CheckpointError, "No space left on device"):
+        ckpt.save(folder, fit_state(), [{"epoch": 1}, {"epoch": 2}])
+    monkeypatch.undo()
+    assert sorted(os.listdir(folder)) == ["latest.json", "state-1.eqx"]  # nothing stray
+    tree, history = ckpt.load(folder, fit_state())
+    assert history == [{"epoch": 1}]
+
+
+def test_full_disk_at_the_start_leaves_no_probe(tmp_path, monkeypatch):
+    def full_open(path, mode="r", *args, **kwargs):
+        return DiskFull(open(path, mode, *args, **kwargs))
+
+    monkeypatch.setattr(ckpt, "open", full_open, raising=False)
+    with raises(ckpt.CheckpointError, "is not writable (No space left on device)"):
+        ckpt.check_folder(str(tmp_path))
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "state, what",
+    [
+        (fit_state(weights=(np.nan, 1.0)), "weights"),
+        (fit_state(lam=np.nan), "solver_state"),
+    ],
+    ids=["nan-weights", "nan-damping"],
+)
+def test_resume_refuses_nonfinite_weights_and_solver_scalars(tmp_path, state, what):
+    """NaN weights used to resume (J then read 0), as did a NaN damping λ."""
+    ckpt.save(str(tmp_path), state, [{"epoch": 1}])
+    with raises(ckpt.CheckpointError, f"non-finite values (NaN or inf) in {what}"):
+        ckpt.load(str(tmp_path), fit_state())
+
+
+def test_resume_refuses_a_history_that_does_not_match_its_epoch(tmp_path):
+    """An emptied history resumed as converged=True with the wrong epoch count."""
+    ckpt.save(str(tmp_path), fit_state(), [{"epoch": 1}, {"epoch": 2}])
+    path = tmp_path / "latest.json"
+    meta = json.loads(path.read_text())
+    path.write_text(json.dumps({**meta, "history": []}))
+    with raises(ckpt.CheckpointError, "epoch 2 does not match the 0 epochs of its history"):
+        ckpt.load(str(tmp_path), fit_state())

@@ -62,9 +62,12 @@ def check_folder(folder: str, mismatch: str = "raise") -> None:
     probe = os.path.join(folder, f".tmp-probe-{uuid.uuid4().hex}")
     try:
         os.makedirs(folder, exist_ok=True)
-        with open(probe, "wb") as f:
-            f.write(b"probe")
-        os.remove(probe)
+        try:
+            with open(probe, "wb") as f:
+                f.write(b"probe")
+        finally:  # also when the write fails (a full disk): no stray probe left behind
+            if os.path.exists(probe):
+                os.remove(probe)
     except OSError as err:
         raise CheckpointError(
             f"checkpoint folder {folder!r} is not writable ({err.strerror or err}); "
@@ -162,7 +165,11 @@ def save(folder: str, tree, history: list[dict], fingerprint: dict | None = None
     epoch = len(history)
     name = f"state-{epoch}.eqx"
     path = os.path.join(folder, name)
-    _atomic_write(path, lambda f: eqx.tree_serialise_leaves(f, tree))
+    try:
+        _atomic_write(path, lambda f: eqx.tree_serialise_leaves(f, tree))
+    except Exception as err:
+        _raise_write_error(folder, err)
+        raise
     meta = {
         "format": _FORMAT,
         "epoch": epoch,
@@ -172,11 +179,35 @@ def save(folder: str, tree, history: list[dict], fingerprint: dict | None = None
         "history": history,
     }
     text = json.dumps(meta, default=_to_builtin)
-    _atomic_write(os.path.join(folder, _LATEST), lambda f: f.write(text.encode()))
+    try:
+        _atomic_write(os.path.join(folder, _LATEST), lambda f: f.write(text.encode()))
+    except Exception as err:
+        if os.path.exists(path):  # latest.json still names the previous state: keep that one
+            os.remove(path)
+        _raise_write_error(folder, err)
+        raise
     for other in os.listdir(folder):
         # Older states, and temporaries of a write that was killed half-way.
         if (other.startswith("state-") and other != name) or other.startswith(".tmp-"):
             os.remove(os.path.join(folder, other))
+
+
+def _raise_write_error(folder: str, err: BaseException) -> None:
+    """A :class:`CheckpointError` for an OS error behind ``err`` (Equinox wraps it per leaf).
+
+    A full disk surfaced as "TreePathError: Error at leaf with path (GetAttrKey(name='states'),)";
+    now it reads "… No space left on device …; the previous checkpoint … is kept".
+    """
+    cause: BaseException | None = err
+    while cause is not None and not isinstance(cause, OSError):
+        cause = cause.__cause__ or cause.__context__
+    if cause is None:
+        return
+    raise CheckpointError(
+        f"could not write the checkpoint in {folder!r}: {cause.strerror or cause} "
+        f"(errno {cause.errno}); the previous checkpoint there, if any, is kept unchanged. Free "
+        "space or pass another folder to go on."
+    ) from err
 
 
 def _to_builtin(value):
@@ -216,13 +247,23 @@ def _describe_mismatch(saved: dict, now: dict) -> list[str]:
 def _non_finite(tree) -> list[str]:
     """Fields of a fit state with NaN/inf where they must be finite.
 
-    These are θ, and the states and J of the trajectories taking part (weight > 0).
+    These are θ, the weights, the solver's scalar state (e.g. the joint method's damping λ), and
+    the states and J of the trajectories taking part (weight > 0).
     """
     bad = []
     theta = getattr(tree, "theta", None)
     if theta is not None and not np.all(np.isfinite(np.asarray(theta))):
         bad.append("theta")
     weights = getattr(tree, "weights", None)
+    if weights is not None and not np.all(np.isfinite(np.asarray(weights))):
+        bad.append("weights")
+    scalars = [
+        leaf
+        for leaf in jtu.tree_leaves(getattr(tree, "solver_state", None))
+        if eqx.is_inexact_array(leaf) and np.ndim(leaf) == 0
+    ]
+    if not all(np.isfinite(np.asarray(leaf)) for leaf in scalars):
+        bad.append("solver_state (a scalar such as the damping)")
     active = None if weights is None else np.asarray(weights) > 0
     for name in ("states", "J"):
         value = getattr(tree, name, None)
@@ -287,6 +328,11 @@ def _load(folder: str, path: str, template, fingerprint: dict | None):
             raise TypeError(f"bad state file name {name!r}")
         if not isinstance(history, list):
             raise TypeError("`history` is not a list")
+        if meta.get("epoch", len(history)) != len(history):  # e.g. a history emptied by hand
+            raise ValueError(
+                f"epoch {meta.get('epoch')!r} does not match the {len(history)} epochs of its "
+                "history"
+            )
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise CheckpointError(
             f"checkpoint file {path!r} is corrupt ({type(err).__name__}: {err}); {hint}"
