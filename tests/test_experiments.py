@@ -346,7 +346,10 @@ def test_benchmarks_smoke(tmp_path):
     }
     for d in saved["datasets"]:
         for entry in d["tests"].values():
-            assert math.isfinite(entry["graybox_rmse"]) and entry["graybox_rmse"] > 0
+            for key in ("graybox", "hybrid", "learned", "linear"):
+                assert math.isfinite(entry[f"{key}_rmse"]) and entry[f"{key}_rmse"] > 0, key
+        assert set(d["learned"]) == {"hybrid", "learned"}
+        assert d["learned"]["hybrid"]["weights"] > 0
     with pytest.raises(SystemExit):
         cli.main(["experiment", "benchmarks", "--method", "particle"])
 

@@ -54,6 +54,7 @@ from ceemx.models.noise import AbstractNoise
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem, GaussianPrior
 
 __all__ = [
+    "Blank",
     "Hybrid",
     "HybridContinuous",
     "LearnedTerm",
@@ -481,3 +482,51 @@ class HybridContinuous(_HybridMixin, AbstractContinuousSystem):
 def _check_physics(physics, cls) -> None:
     if not isinstance(physics, cls):
         raise TypeError(f"`physics` must be a ceemx.{cls.__name__}; got {type(physics).__name__}.")
+
+
+class Blank(AbstractContinuousSystem):
+    """ẋ = 0, y = x[observed]: no physics — a learned term alone is a neural state-space model.
+
+    ``hybrid(Blank(...), data)`` gives ẋ = N(x, u), y = x[observed] (+ a learned observation term
+    if asked for): the "learned term alone" of an ablation, trained by CE-EM like any hybrid.
+
+    Attributes:
+        n: the state dimension (static).
+        observed: the state entries that are the outputs, one per output (static).
+        p: the number of inputs (static).
+    """
+
+    n: int = eqx.field(static=True)
+    observed: tuple[int, ...] = eqx.field(static=True)
+    p: int = eqx.field(static=True, default=0)
+
+    def __check_init__(self):
+        if not (isinstance(self.n, int) and self.n >= 1):
+            raise ValueError(f"`n` must be a positive integer; got {self.n!r}.")
+        if not self.observed or not all(0 <= i < self.n for i in self.observed):
+            raise ValueError(f"`observed` must be indices in [0, {self.n}); got {self.observed}.")
+
+    @property
+    def state_dim(self) -> int:
+        """n."""
+        return self.n
+
+    @property
+    def obs_dim(self) -> int:
+        """The number of observed states."""
+        return len(self.observed)
+
+    @property
+    def control_dim(self) -> int:
+        """p."""
+        return self.p
+
+    def vector_field(self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]) -> State:
+        """Zero."""
+        return jnp.zeros_like(x)
+
+    def observe(
+        self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]
+    ) -> Float[Array, " m"]:
+        """x[observed]."""
+        return x[jnp.asarray(self.observed)]
