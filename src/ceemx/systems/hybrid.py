@@ -508,7 +508,7 @@ class Blank(AbstractContinuousSystem):
 
     @property
     def state_dim(self) -> int:
-        """n."""
+        """The state dimension n."""
         return self.n
 
     @property
@@ -518,7 +518,7 @@ class Blank(AbstractContinuousSystem):
 
     @property
     def control_dim(self) -> int:
-        """p."""
+        """The number of inputs p."""
         return self.p
 
     def vector_field(self, x: State, u: Float[Array, " p"], t: Real[ArrayLike, ""]) -> State:
