@@ -53,3 +53,21 @@ def test_graybox_from_csv_smoke(tmp_path):
     assert "published deep-encoder" in proc.stdout
     for name in ("m", "d", "k1", "k3", "u0 [mV]"):
         assert re.search(rf"^{re.escape(name)}\s", proc.stdout, re.MULTILINE), proc.stdout
+
+
+@pytest.mark.slow  # two small JointLM fits (≈ 30 s with compilation)
+def test_hybrid_duffing_smoke(tmp_path):
+    """examples/hybrid_duffing.py --smoke runs, writes its figure and prints both test scores."""
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    proc = subprocess.run(
+        [sys.executable, str(EXAMPLES / "hybrid_duffing.py"), "--smoke", "--out", str(tmp_path)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (tmp_path / "hybrid_duffing.png").is_file()
+    match = re.search(r"test free-run RMSE: physics ([^\s,]+), hybrid ([^\s]+)", proc.stdout)
+    assert match is not None, proc.stdout
+    assert all(math.isfinite(float(v)) for v in match.groups())

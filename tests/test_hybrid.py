@@ -234,3 +234,26 @@ def test_windows_sum_to_the_record(duffing, window):
         )
         rep = float(jnp.sum(jax.vmap(sys1.process_noise.nll)(r[399 - L : 399 - L + extra])))
         assert total == pytest.approx(whole + rep, rel=1e-12)
+
+
+def test_early_stopping_keeps_the_best_and_stops_after_patience(duffing):
+    """Scores by the validation free run; the start counts as epoch 0; stops after `patience`
+    epochs without improvement; a diverging (non-finite) model never becomes the best."""
+    from ceemx.identification.driver import EpochInfo
+
+    true, physics, x, data = duffing
+    worse = eqx.tree_at(lambda s: s.k, physics, jnp.asarray(3.0))
+    nan_model = eqx.tree_at(lambda s: s.k, physics, jnp.asarray(1e300))
+    stop = EarlyStopping(data, n_init=20, patience=2, start=physics)
+    assert stop.best_epoch == 0 and stop.best_system is physics
+
+    def epoch(k, system):
+        return stop(EpochInfo(k, system, x, {}))
+
+    assert epoch(1, worse) == {}
+    assert epoch(2, true) == {}  # better: the new best
+    assert stop.best_epoch == 2 and stop.best_system is true
+    assert stop.best_rmse < 0.02 < stop.scores[0][1]
+    assert epoch(3, nan_model) == {}
+    assert epoch(4, worse) is False  # two epochs without improvement
+    assert stop.best_system is true

@@ -37,6 +37,9 @@ class EarlyStopping:
         patience: epochs without a relative improvement of ``min_delta`` before stopping.
         min_delta: the relative improvement that counts.
         every: score every ``every`` epochs (scoring costs one free run).
+        start: the fit's starting model, scored as epoch 0 (recommended: :meth:`restore` then
+            never returns a model worse on the validation record than the start, e.g. the
+            physics model a hybrid starts from).
 
     After the fit, :attr:`best_system`, :attr:`best_epoch` and :attr:`best_rmse` hold the best
     model; :meth:`restore` returns the fit's result with it (and notes the restore in its
@@ -52,6 +55,7 @@ class EarlyStopping:
         patience: int = 5,
         min_delta: float = 1e-3,
         every: int = 1,
+        start: AbstractSystem | None = None,
     ):
         """See the class docstring."""
         if not isinstance(validation, Trajectories):
@@ -75,6 +79,11 @@ class EarlyStopping:
         self.best_epoch = 0
         self.best_rmse = math.inf
         self.scores: list[tuple[int, float]] = []
+        if start is not None:
+            rmse = self.score(start)
+            self.scores.append((0, rmse))
+            if np.isfinite(rmse):
+                self.best_system, self.best_rmse = start, rmse
 
     def score(self, system: AbstractSystem) -> float:
         """The validation free-run RMSE of ``system`` (over all outputs)."""

@@ -154,7 +154,7 @@ def _fit_learned(name, physics, states, ds, settings: Settings, *, blank: bool):
         prior_std=settings.prior_std,
         **BOUNDS[name],
     )
-    stopper = EarlyStopping(val, ds.n_init, patience=settings.patience)
+    stopper = EarlyStopping(val, ds.n_init, patience=settings.patience, start=model)
     t0 = time.perf_counter()
     result = fit(
         model,

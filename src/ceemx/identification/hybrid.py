@@ -68,6 +68,8 @@ def hybrid(
             ``(1,)``: the velocity equation of a mechanical model; keeps the hidden states'
             meaning, :class:`~ceemx.systems.hybrid.LearnedTerm`).
         observation: add a learned term to the observation (``True``, or output indices).
+            With neither term, ``lower``/``upper`` must be given: the physics model with
+            bounded states.
         key: PRNG key of the hidden layers (default ``PRNGKey(0)``).
         width: the MLPs' hidden width.
         depth: the MLPs' number of hidden layers.
@@ -91,8 +93,11 @@ def hybrid(
         raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be ceemx.Trajectories; got {type(data).__name__}.")
-    if dynamics is False and observation is False:
-        raise ValueError("ask for at least one learned term: `dynamics` and/or `observation`.")
+    if dynamics is False and observation is False and lower is None and upper is None:
+        raise ValueError(
+            "ask for at least one learned term (`dynamics` and/or `observation`) or for state "
+            "bounds (`lower`/`upper`: the physics model with bounded states)."
+        )
     n = physics.state_dim
     if states is None:
         from ceemx.identification.initialize import warm_start
