@@ -6,7 +6,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ceemx.evaluation import report
+from ceemx.evaluation import plots, report
 from ceemx.evaluation.metrics import Estimate, mean_se
 
 
@@ -72,3 +72,126 @@ def test_benchmark_score_prints_a_few_lines_not_its_arrays():
     assert "| record | output | RMSE [mV] | NRMSE | fit % |" in named and "| 1 | right |" in named
     full = score.table(arrays=True)
     assert "y_sim (2, 5000, 2)" in full and "..." in full  # abbreviated by NumPy
+
+
+# --------------------------------------------------------------------------------------------
+# Figures (ceemx.evaluation.plots): tiny arrays, Agg
+# --------------------------------------------------------------------------------------------
+
+
+def _texts(fig):
+    out = []
+    for ax in fig.axes:
+        out += [ax.get_title(loc) for loc in ("left", "center", "right")]
+        leg = ax.get_legend()
+        if leg is not None:
+            out += [t.get_text() for t in leg.get_texts()]
+    return " | ".join(out)
+
+
+def test_plot_benchmark_panels_zoom_error_and_bounds(tmp_path):
+    import ceemx
+
+    assert ceemx.plot_benchmark is plots.plot_benchmark and ceemx.plot_resid is plots.plot_resid
+    T, n_init = 400, 20
+    t = np.arange(T)
+    y = np.sin(t / 8.0)
+    good = y + 0.01 * np.cos(t)
+    good[300] += 0.5  # the largest error: the default zoom is centred on it
+    bad = 1e3 * y  # a diverging model must not squash the measured output
+    level = np.cos(t / 8.0)  # leaves its range [-0.5, 2] on a third of the samples
+    fig = plots.plot_benchmark(
+        y[:, None], {"gray-box": good, "N4SID": bad[None, :, None]}, n_init=n_init,
+        hidden=level, hidden_label="level [V]", bounds=(-0.5, 2.0), unit="V",
+        score_scale=1000, score_unit="mV", title="tiny",
+    )  # fmt: skip
+    assert len(fig.axes) == 6  # (output, error, hidden) × (whole record, zoom)
+    text = _texts(fig)
+    rmse = np.sqrt(np.mean((good - y)[n_init:] ** 2)) * 1000
+    assert f"gray-box (RMSE {rmse:.3g} mV)" in text and "N4SID (RMSE" in text
+    assert f"initial-state window (n_init = {n_init})" in text
+    assert (
+        "level [V] — physical range [-0.5, 2]" in text
+        and "outside on 34 % of samples (reaches -1)" in text
+    )
+    full, zoom = fig.axes[0], fig.axes[1]
+    assert full.get_ylim()[1] < 2 and full.get_xlim() == (0, T - 1)
+    a, b = zoom.get_xlim()
+    assert a < 300 < b and b - a == 19  # 5 % of 400 samples, at least 20
+    assert fig.axes[2].get_ylim()[1] < 1.0  # the error axis follows the best model
+    path = report.save_figure(fig, tmp_path / "b.png", dpi=30)  # layout and render, cheaply
+    assert path.stat().st_size > 0
+    fig = plots.plot_benchmark(y, good, n_init=0, zoom=False, dt=0.5)
+    assert len(fig.axes) == 2 and fig.axes[-1].get_xlabel() == "time [s]"
+    fig = plots.plot_benchmark(y, good, zoom=(10, 50))
+    assert fig.axes[1].get_xlim() == (10, 49)
+    report.plt().close("all")
+
+
+def test_plot_benchmark_decimates_long_records_for_display_only():
+    rng = np.random.default_rng(0)
+    T = 20_000
+    y = rng.normal(size=T)
+    fig = plots.plot_benchmark(y, 0.9 * y, max_points=1000)
+    full, zoom = fig.axes[0], fig.axes[1]
+    assert not full.get_lines()  # bands between each of 500 bins' min and max, not 20 000 points
+    measured = full.collections[-2].get_paths()[0].vertices  # drawn before the simulation
+    assert len(measured) <= 2100
+    assert measured[:, 1].max() == y.max() and measured[:, 1].min() == y.min()  # exact envelope
+    a, b = zoom.get_xlim()
+    assert len(zoom.get_lines()[0].get_ydata()) == b - a + 1 == 600  # every sample; at most 600
+    report.plt().close("all")
+
+
+def test_plot_benchmark_outputs_subfigures_and_errors():
+    import pytest
+
+    y = np.stack([np.sin(np.arange(100) / 5), np.cos(np.arange(100) / 5)], -1)
+    fig = report.plt().figure(figsize=(11, 8), layout="constrained")
+    subs = fig.subfigures(2, 1)
+    for sub in subs:
+        plots.plot_benchmark(y, {"a": y + 0.1, "b": y - 0.1}, n_init=5,
+                             output_names=["left", "right"], fig=sub)  # fmt: skip
+    assert len(fig.axes) == 16  # 2 records × 2 outputs × (output, error) × (whole, zoom)
+    assert "left" in fig.axes[0].get_ylabel() and "right" in fig.axes[4].get_ylabel()
+    with pytest.raises(ValueError, match="shape"):
+        plots.plot_benchmark(y, y[:, :1])
+    with pytest.raises(ValueError, match="zoom"):
+        plots.plot_benchmark(y, y, zoom=(50, 10))
+    with pytest.raises(ValueError, match="one record"):
+        plots.plot_benchmark(np.zeros((2, 10, 1)), np.zeros((2, 10, 1)))
+    with pytest.raises(ValueError, match="bounds"):
+        plots.plot_benchmark(y, y, hidden=y, bounds=[(0, 1)])
+    report.plt().close("all")
+
+
+def test_residual_correlations_and_plot_resid_draw_the_99_percent_band():
+    from matplotlib.collections import PolyCollection
+
+    from ceemx.evaluation import plots
+    from ceemx.identification.diagnostics import BAND_Z, residual_correlations
+
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=500)
+    e = np.convolve(u, [0.0, 0.0, 1.0])[:500] + 0.5 * rng.normal(size=500)  # u acts at lag 2
+    c = residual_correlations(e, u, lags=10)
+    d = e - e.mean()
+    k = 3
+    r3 = np.sum(d[k:] * d[:-k]) / (500 - k) / np.mean(d**2)
+    np.testing.assert_allclose(c.autocorrelation[0, k], r3)
+    assert c.cross_correlation.shape == (1, 1, 21)
+    assert np.argmax(c.cross_correlation[0, 0]) == 10 + 2  # lag k = 2: input before error
+    np.testing.assert_allclose(c.band()[0, 1], BAND_Z / np.sqrt(499))
+    fig = plots.plot_resid(e, u, lags=10, input_names="pump")
+    assert len(fig.axes) == 2
+    for ax in fig.axes:  # the band is drawn on every panel
+        assert any(isinstance(a, PolyCollection) for a in ax.collections)
+    assert "pump and residuals" in _texts(fig)
+    from matplotlib.collections import LineCollection
+
+    stems = [c for c in fig.axes[1].collections if isinstance(c, LineCollection)]
+    red = [c for c in stems if c.get_color()[0][0] > 0.8]
+    assert red and "inside" in _texts(fig)  # input-correlated lags drawn red
+    fig = plots.plot_resid(rng.normal(size=(3, 200, 2)), lags=5)  # batch, 2 outputs, no input
+    assert len(fig.axes) == 2
+    report.plt().close("all")

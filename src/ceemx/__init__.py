@@ -20,7 +20,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
     from ceemx import datasets, lib, systems
     from ceemx.data.trajectories import Trajectories, foh_inputs, simulate
     from ceemx.evaluation import metrics as evaluate
-    from ceemx.evaluation import prediction, report, simulation
+    from ceemx.evaluation import plots, prediction, report, simulation
     from ceemx.evaluation.early_stopping import EarlyStopping
     from ceemx.evaluation.metrics import (
         BenchmarkScore,
@@ -29,6 +29,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
         benchmark_score,
         is_monotone,
     )
+    from ceemx.evaluation.plots import plot_benchmark, plot_resid
     from ceemx.evaluation.simulation import estimate_initial_state, free_run, predict_k_step
     from ceemx.identification import initialize
     from ceemx.identification.diagnostics import ResidualDiagnostics, residual_diagnostics
@@ -96,6 +97,7 @@ _MODULES = {
     "initialize": ".identification.initialize",
     "learning": ".identification.learning",
     "objective": ".inference.objective",
+    "plots": ".evaluation.plots",
     "prediction": ".evaluation.prediction",
     "problem": ".identification.problem",
     "report": ".evaluation.report",
@@ -173,6 +175,8 @@ _LAZY = {
     "particle_em": ".identification.driver",
     "particle_filter": ".inference.particle",
     "perturb": ".identification.initialize",
+    "plot_benchmark": ".evaluation.plots",
+    "plot_resid": ".evaluation.plots",
     "predict_k_step": ".evaluation.simulation",
     "residual_diagnostics": ".identification.diagnostics",
     "simulate": ".data.trajectories",
@@ -281,6 +285,9 @@ __all__ = [
     "particle_em",
     "particle_filter",
     "perturb",
+    "plot_benchmark",
+    "plot_resid",
+    "plots",
     "predict_k_step",
     "prediction",
     "residual_diagnostics",

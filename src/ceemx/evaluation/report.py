@@ -13,8 +13,9 @@
 - :func:`deferred_writes` — hold every result file in memory until :meth:`Deferred.commit`
   (the ``ceemx`` command commits after the run, ``results.json`` last, so an interrupted run
   leaves no result file at all).
-- :func:`plt`, :func:`save_figure` — Matplotlib with a non-interactive backend;
-  :func:`plot_residual_diagnostics` — the figure of :meth:`ceemx.FitResult.diagnostics`.
+- :func:`plt`, :func:`save_figure` — Matplotlib with a non-interactive backend; the figures
+  themselves (benchmark traces, residual correlations, :func:`plot_residual_diagnostics`) are in
+  :mod:`ceemx.evaluation.plots`.
 
 The numbers themselves (ε(θ), simulation RMSE, :class:`~ceemx.evaluation.metrics.Estimate`) come
 from :mod:`ceemx.evaluation.metrics`.
@@ -390,65 +391,16 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> Path:
     return _save(path, buf.getvalue())
 
 
-def plot_residual_diagnostics(diag, path: str | os.PathLike) -> Path:
-    """The figure of a :class:`~ceemx.identification.diagnostics.ResidualDiagnostics`.
-
-    One row per output: the autocorrelation of the standardised one-step prediction errors at
-    lags 1…M and their cross-correlation with every input at lags −M…M (stems), each with the
-    pointwise 99 % band ±2.58/√N (as MATLAB's ``resid`` draws them); a last row: the noise
-    ratios per component on a log axis — one E-step's realised / assumed variance and, when
-    estimated, (estimated / assumed std)² — with the consistency band [1/F, F].
+def plot_residual_diagnostics(diag, path: str | os.PathLike | None = None):
+    """The figure of :meth:`ceemx.FitResult.diagnostics`; see :mod:`ceemx.evaluation.plots`.
 
     Args:
-        diag: the diagnostics (:meth:`ceemx.FitResult.diagnostics`).
-        path: the figure file (its suffix picks the format), written atomically.
+        diag: the diagnostics.
+        path: the figure file, written atomically (``None``: return the figure).
 
     Returns:
-        The path written.
+        The path written, or the figure when ``path`` is ``None``.
     """
-    pyplot = plt()
-    acf = np.asarray(diag.autocorrelation)
-    xcf = np.asarray(diag.cross_correlation)
-    m, p = xcf.shape[0], xcf.shape[1]
-    M = int(diag.lags)
-    band = np.asarray(diag.band)
-    fig = pyplot.figure(figsize=(10, 2.4 * (m + 1)))
-    grid = fig.add_gridspec(m + 1, 2)
-    for i in range(m):
-        ax = fig.add_subplot(grid[i, 0])
-        ks = np.arange(1, M + 1)
-        ax.stem(ks, acf[i, 1:], basefmt=" ")
-        ax.axhspan(-band[i], band[i], color="0.85", zorder=0)
-        verdict = "white" if diag.white[i] else "NOT white"
-        ax.set_title(f"output {i + 1}: autocorrelation ({verdict}; NIS {diag.nis[i]:.3g})")
-        ax.set_xlabel("lag k")
-        ax = fig.add_subplot(grid[i, 1])
-        ks = np.arange(-M, M + 1)
-        for j in range(p):
-            ax.stem(ks, xcf[i, j], linefmt=f"C{j}-", markerfmt=f"C{j}o", basefmt=" ")
-        ax.axhspan(-band[i], band[i], color="0.85", zorder=0)
-        ax.set_title(f"output {i + 1}: cross-correlation with the inputs")
-        ax.set_xlabel("lag k (error at t, input at t − k)")
-    ax = fig.add_subplot(grid[m, :])
-    names, ratio, em = [], [], []
-    for name, what in (("process_noise", "state"), ("obs_noise", "output")):
-        r = np.asarray(diag.noise_ratios[name], float)
-        for c in range(r.size):
-            names.append(f"{name}\n{what} {c + 1}")
-            ratio.append(r[c])
-            if diag.estimated_std is not None:
-                em.append((diag.estimated_std[name][c] / diag.assumed_std[name][c]) ** 2)
-    x = np.arange(len(names))
-    width = 0.4 if em else 0.8
-    ax.bar(x - (width / 2 if em else 0), ratio, width, label="one E-step: realised / assumed")
-    if em:
-        ax.bar(x + width / 2, em, width, label="(estimated / assumed std)²")
-    F = float(diag.factor)
-    ax.axhspan(1 / F, F, color="0.85", zorder=0, label=f"consistent [1/{F:g}, {F:g}]")
-    ax.axhline(1.0, color="k", lw=0.8)
-    ax.set_yscale("log")
-    ax.set_xticks(x, names)
-    ax.set_ylabel("variance ratio")
-    ax.legend(fontsize="small")
-    fig.tight_layout()
-    return save_figure(fig, path)
+    from ceemx.evaluation.plots import plot_residual_diagnostics as plot
+
+    return plot(diag, path)

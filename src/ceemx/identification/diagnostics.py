@@ -50,6 +50,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from statistics import NormalDist
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -68,7 +69,13 @@ from ceemx.identification.noise_check import FACTOR, LOWER, NoiseCheck, chi2_ban
 from ceemx.inference.ekf import ekf
 from ceemx.models.system import AbstractSystem, GaussianPrior
 
-__all__ = ["BAND_Z", "ResidualDiagnostics", "residual_diagnostics"]
+__all__ = [
+    "BAND_Z",
+    "Correlations",
+    "ResidualDiagnostics",
+    "residual_correlations",
+    "residual_diagnostics",
+]
 
 #: the pointwise 99 % normal quantile of the correlation bands (±BAND_Z/√N, as ``resid`` draws)
 BAND_Z = 2.5758293035489004
@@ -271,6 +278,86 @@ def _correlations(z: np.ndarray, u: np.ndarray, M: int):
                 if xpairs[i, j, idx] > 0:
                     xcf[i, j, idx] = np.sum(zz * uu) / xpairs[i, j, idx] / np.sqrt(var) / u_sd[j]
     return counts, nis, mean, acf, pairs, xcf, xpairs
+
+
+class Correlations(NamedTuple):
+    """Residual correlations of :func:`residual_correlations`, per output (``m``) and input (``p``).
+
+    Attributes:
+        autocorrelation: (m, M + 1) r(k), k = 0…M (r(0) = 1).
+        cross_correlation: (m, p, 2M + 1) the correlation of e_t with u_{t−k}, k = −M…M (NaN
+            where an input is constant).
+        counts: (m,) N, the present samples per output.
+        pair_counts: (m, M + 1) N_k, the pairs at each autocorrelation lag.
+        cross_pair_counts: (m, p, 2M + 1) the pairs at each cross-correlation lag.
+        mean: (m,) the mean residual.
+        lags: M.
+    """
+
+    autocorrelation: np.ndarray
+    cross_correlation: np.ndarray
+    counts: np.ndarray
+    pair_counts: np.ndarray
+    cross_pair_counts: np.ndarray
+    mean: np.ndarray
+    lags: int
+
+    def band(self, z: float = BAND_Z) -> np.ndarray:
+        """(m, M + 1) the pointwise band ±z/√N_k of the autocorrelation (99 % by default)."""
+        return z / np.sqrt(np.maximum(self.pair_counts, 1))
+
+    def cross_band(self, z: float = BAND_Z) -> np.ndarray:
+        """(m, p, 2M + 1) the pointwise band ±z/√N_k of the cross-correlations."""
+        return z / np.sqrt(np.maximum(self.cross_pair_counts, 1))
+
+
+def _as_btc(values: ArrayLike, name: str) -> np.ndarray:
+    a = np.asarray(values, np.float64)
+    if a.ndim == 1:
+        return a[None, :, None]
+    if a.ndim == 2:
+        return a[None]
+    if a.ndim == 3:
+        return a
+    raise ValueError(f"`{name}` must be (T,), (T, c) or (B, T, c); got shape {a.shape}.")
+
+
+def residual_correlations(
+    residuals: ArrayLike, inputs: ArrayLike | None = None, *, lags: int = 25
+) -> Correlations:
+    """Autocorrelation of residuals and their cross-correlation with the inputs (MATLAB ``resid``).
+
+    The statistics :func:`residual_diagnostics` tests, from any residuals: one-step prediction
+    errors, free-run simulation errors y − ŷ, whitened CE residuals. Pairs are never formed across
+    a trajectory's end; NaN marks a missing sample.
+
+    Args:
+        residuals: e, (T,), (T, m) or (B, T, m).
+        inputs: u, (T,), (T, p) or (B, T, p) with the same B and T (``None``: no inputs).
+        lags: M, the largest lag (capped at T − 1).
+
+    Returns:
+        The :class:`Correlations`; ``.band()`` and ``.cross_band()`` give the pointwise 99 %
+        bands ±2.58/√N_k that ``resid`` draws.
+
+    Raises:
+        ValueError: bad shapes, or ``lags`` < 1.
+    """
+    e = _as_btc(residuals, "residuals")
+    B, T, _ = e.shape
+    u = np.zeros((B, T, 0)) if inputs is None else _as_btc(inputs, "inputs")
+    if u.shape[:2] != (B, T):
+        raise ValueError(
+            f"`inputs` must have the residuals' batch and time sizes {(B, T)}; got {u.shape[:2]}."
+        )
+    if isinstance(lags, bool) or not isinstance(lags, int | np.integer) or lags < 1:
+        raise ValueError(f"`lags` must be an integer ≥ 1; got {lags!r}.")
+    M = int(min(lags, T - 1))
+    p = u.shape[-1]
+    if p == 0:  # a constant stand-in (no correlations computed), dropped below
+        u = np.zeros((B, T, 1))
+    counts, _, mean, acf, pairs, xcf, xpairs = _correlations(e, u, M)
+    return Correlations(acf, xcf[:, :p], counts, pairs, xpairs[:, :p], mean, M)
 
 
 def residual_diagnostics(
