@@ -441,8 +441,8 @@ def predict_k_step(
         trajectory failed (its ``status``).
 
     Raises:
-        TypeError / ValueError: as :func:`ceemx.inference.ekf.ekf`, and for ``k`` not an integer ≥
-        1.
+        TypeError: as :func:`ceemx.inference.ekf.ekf`.
+        ValueError: as :func:`ceemx.inference.ekf.ekf`, and for ``k`` not an integer ≥ 1.
 
     Cost O(B·T·k) model evaluations; compiled once per shape and ``k`` (k is a loop length).
     """
