@@ -9,6 +9,8 @@ import errno
 import json
 import os
 import re
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -534,3 +536,58 @@ def test_resume_refuses_a_history_that_does_not_match_its_epoch(tmp_path):
     path.write_text(json.dumps({**meta, "history": []}))
     with raises(ckpt.CheckpointError, "epoch 2 does not match the 0 epochs of its history"):
         ckpt.load(str(tmp_path), fit_state())
+
+
+# --- issue item 4: one writer per checkpoint folder -------------------------------------------
+
+_HOLDER = """
+import sys
+from ceemx.infra.folder_lock import folder_lock
+with folder_lock(sys.argv[1], RuntimeError):
+    print("held", flush=True)
+    sys.stdin.read()
+"""
+
+
+def hold_in_another_process(folder):
+    """A process holding ``folder``'s lock until its stdin closes (imports nothing heavy)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, str(folder)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stdout.readline() == "held\n"
+    return proc
+
+
+def test_a_second_writer_is_refused_naming_the_first(tmp_path):
+    """Two fits on one folder used to remove each other's temporaries and crash
+    (FileNotFoundError … .tmp-… -> state-8.eqx); the second is now refused at once."""
+    proc = hold_in_another_process(tmp_path)
+    try:
+        with raises(ckpt.CheckpointError, f"is in use by another fit (pid {proc.pid} on host"):
+            with ckpt.lock(str(tmp_path)):
+                pass
+    finally:
+        proc.communicate("")
+    with ckpt.lock(str(tmp_path)):  # free once the first has finished
+        assert os.listdir(tmp_path) == [".lock"]
+    assert os.listdir(tmp_path) == []  # removed on release
+
+
+def test_the_lock_of_a_killed_writer_is_taken_over(tmp_path):
+    proc = hold_in_another_process(tmp_path)
+    proc.kill()
+    proc.wait()
+    assert os.listdir(tmp_path) == [".lock"]  # left behind, but no longer held
+    with ckpt.lock(str(tmp_path)):
+        assert f"pid {os.getpid()} on host" in (tmp_path / ".lock").read_text()
+
+
+def test_fit_on_a_folder_in_use_is_refused_before_compute(no_compute, tmp_path):
+    """Also within one process: the lock is per open file, and held for the fit's lifetime."""
+    with ckpt.lock(str(tmp_path)):
+        with raises(ckpt.CheckpointError, "is in use by another fit"):
+            ceemx.fit(decay(), DATA, X0, checkpoint=str(tmp_path))
+    assert os.listdir(tmp_path) == []

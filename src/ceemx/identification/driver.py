@@ -7,6 +7,7 @@ resume — and delegates the mathematics to the solver object (:mod:`ceemx.ident
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 import time
@@ -353,7 +354,8 @@ def fit(
         checkpoint: folder; after every epoch the state is written there atomically, and an
             existing checkpoint there is resumed from — only if it was written by the same fit
             (data, system, method and options; see ``docs/guarantees.md``). The folder must be
-            writable (checked before any compute).
+            writable (checked before any compute); the fit holds it alone, by a lock on its
+            ``.lock`` file, until it returns.
         checkpoint_mismatch: what to do with a checkpoint that is another fit's, corrupt, or not
             finite: ``"raise"`` a :class:`ceemx.infra.checkpoint.CheckpointError` naming what
             differs, or ``"restart"`` (warn, start afresh, overwrite it).
@@ -389,7 +391,8 @@ def fit(
     Raises:
         ValueError, TypeError: on invalid inputs (before any compute).
         ceemx.infra.checkpoint.CheckpointError: (a ``ValueError``) for an unwritable ``checkpoint``
-            folder (before any compute) or a checkpoint that cannot be resumed (see above).
+            folder or one another fit is writing (before any compute), or a checkpoint that
+            cannot be resumed (see above).
 
     Example:
         >>> result = ceemx.fit(guess, data, solver=ceemx.JointLM(), trainable=lambda s: s.rho)
@@ -397,56 +400,76 @@ def fit(
     """
     if noise != "fixed":
         return _fit_learning_noise(noise, solver, system, data, x_init, locals())
-    solver, data, states, key, max_epochs = _prepare(
-        system, data, x_init, solver, max_epochs, checkpoint, checkpoint_mismatch, key, devices
-    )
-    problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
-    _check_noise_learnable(problem, solver)
-    all_states = states
-    excluded, health = _screen_outliers(problem, theta, states, outliers)
-    check_start(problem, theta, states, health, excluded)  # refuses absurd or non-finite starts
-    if excluded.any():
-        keep = np.flatnonzero(~excluded)
-        data, states = data[keep], states[keep]
+    with contextlib.ExitStack() as hold:  # the checkpoint folder's lock, for the whole fit
+        solver, data, states, key, max_epochs = _prepare(
+            system,
+            data,
+            x_init,
+            solver,
+            max_epochs,
+            checkpoint,
+            checkpoint_mismatch,
+            key,
+            devices,
+            hold,
+        )
         problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
+        _check_noise_learnable(problem, solver)
+        all_states = states
+        excluded, health = _screen_outliers(problem, theta, states, outliers)
+        check_start(problem, theta, states, health, excluded)  # refuses absurd or non-finite starts
+        if excluded.any():
+            keep = np.flatnonzero(~excluded)
+            data, states = data[keep], states[keep]
+            problem, theta = FitProblem.create(
+                system, data, trainable=trainable, log_prior=log_prior
+            )
 
-    state = solver.init(problem, theta, states, key)
-    initial_J = total_J(state)
-    history: list[dict] = []
-    fingerprint = None
-    if checkpoint is not None:
-        template = dataclasses.replace(state, cache=None)
-        fingerprint = ckpt.fingerprint(template, problem, theta, solver)
-        loaded = ckpt.load(checkpoint, template, fingerprint, mismatch=checkpoint_mismatch)
-        if loaded is not None:
-            state, history = loaded
+        state = solver.init(problem, theta, states, key)
+        initial_J = total_J(state)
+        history: list[dict] = []
+        fingerprint = None
+        if checkpoint is not None:
+            template = dataclasses.replace(state, cache=None)
+            fingerprint = ckpt.fingerprint(template, problem, theta, solver)
+            loaded = ckpt.load(checkpoint, template, fingerprint, mismatch=checkpoint_mismatch)
+            if loaded is not None:
+                state, history = loaded
 
-    state, converged = _run_epochs(
-        solver, problem, state, history, max_epochs, callbacks, progress, checkpoint, fingerprint
-    )
-    state = solver.postprocess(problem, state)
-    # Never "converged" when no trajectory took part or J is not finite.
-    took_part = bool(np.any(np.asarray(state.weights) > 0))
-    converged = bool(converged and took_part and np.isfinite(total_J(state)))
-    found = solver.identifiability(problem, state, history, converged) if took_part else None
-    out_states, status = _with_excluded(state, all_states, excluded)
-    check = _check_noise(problem, solver, state, converged) if diagnose and history else None
-    return FitResult(
-        problem.build(state.theta),
-        out_states,
-        status,
-        history,
-        converged,
-        solver,
-        initial_J,
-        tuple(int(b) for b in np.flatnonzero(excluded)),
-        None if health is None else tuple(float(r) for r in health.mean_square),
-        problem=problem,
-        theta=state.theta,
-        weights=state.weights,
-        identifiability=found,
-        noise_check=check,
-    )
+        state, converged = _run_epochs(
+            solver,
+            problem,
+            state,
+            history,
+            max_epochs,
+            callbacks,
+            progress,
+            checkpoint,
+            fingerprint,
+        )
+        state = solver.postprocess(problem, state)
+        # Never "converged" when no trajectory took part or J is not finite.
+        took_part = bool(np.any(np.asarray(state.weights) > 0))
+        converged = bool(converged and took_part and np.isfinite(total_J(state)))
+        found = solver.identifiability(problem, state, history, converged) if took_part else None
+        out_states, status = _with_excluded(state, all_states, excluded)
+        check = _check_noise(problem, solver, state, converged) if diagnose and history else None
+        return FitResult(
+            problem.build(state.theta),
+            out_states,
+            status,
+            history,
+            converged,
+            solver,
+            initial_J,
+            tuple(int(b) for b in np.flatnonzero(excluded)),
+            None if health is None else tuple(float(r) for r in health.mean_square),
+            problem=problem,
+            theta=state.theta,
+            weights=state.weights,
+            identifiability=found,
+            noise_check=check,
+        )
 
 
 def _fit_learning_noise(noise, solver, system, data, x_init, arguments: dict) -> FitResult:
@@ -466,9 +489,12 @@ def _fit_learning_noise(noise, solver, system, data, x_init, arguments: dict) ->
 
 
 def _prepare(
-    system, data, x_init, solver, max_epochs, checkpoint, checkpoint_mismatch, key, devices
+    system, data, x_init, solver, max_epochs, checkpoint, checkpoint_mismatch, key, devices, hold
 ):
-    """Validate the inputs (before any compute); the solver, data and start states to fit."""
+    """Validate the inputs (before any compute); the solver, data and start states to fit.
+
+    The checkpoint folder's lock is entered into the exit stack ``hold``: held until the fit ends.
+    """
     solver = Alternating() if solver is None else solver
     if not isinstance(solver, AbstractFitSolver):
         raise TypeError(
@@ -480,6 +506,7 @@ def _prepare(
         check_key(key)
     if checkpoint is not None:
         ckpt.check_folder(checkpoint, checkpoint_mismatch)
+        hold.enter_context(ckpt.lock(checkpoint))
     system, data, x_init = promote_inputs(system, data, x_init)
     check_inputs(system, data)
     if x_init is None:

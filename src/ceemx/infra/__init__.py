@@ -1,6 +1,7 @@
 """Infrastructure: what a fit needs around the mathematics, not in it.
 
-Atomic checkpoints (:mod:`~ceemx.infra.checkpoint`), the persistent compilation cache
+Atomic checkpoints (:mod:`~ceemx.infra.checkpoint`) and their one-writer lock
+(:mod:`~ceemx.infra.folder_lock`), the persistent compilation cache
 (:mod:`~ceemx.infra.compilation`), CPU thread limits for busy machines
 (:mod:`~ceemx.infra.runtime`), the memory guard (:mod:`~ceemx.infra.memory`), the validation of
 solver and learner options (:mod:`~ceemx.infra.options`), warnings

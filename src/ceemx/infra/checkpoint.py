@@ -10,7 +10,8 @@ The fingerprint (:func:`fingerprint`) describes the fit: the layout of the state
 its options, the system's structure and fixed parameters, and the data. :func:`load` resumes only
 when it matches; otherwise — and when a file is corrupt or the saved state is not finite — it
 raises :class:`CheckpointError`, or, with ``mismatch="restart"``, warns and starts afresh.
-See ``docs/guarantees.md`` ("Checkpoints").
+:func:`lock` holds the folder for one writer (:mod:`ceemx.infra.folder_lock`). See
+``docs/guarantees.md`` ("Checkpoints").
 """
 
 from __future__ import annotations
@@ -22,13 +23,17 @@ import re
 import tempfile
 import uuid
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any, Literal
 
 import equinox as eqx
 import jax.tree_util as jtu
 import numpy as np
 
-__all__ = ["CheckpointError", "check_folder", "fingerprint", "load", "save"]
+from ceemx.infra.folder_lock import folder_lock
+
+__all__ = ["CheckpointError", "check_folder", "fingerprint", "load", "lock", "save"]
 
 _LATEST = "latest.json"
 _FORMAT = 2
@@ -73,6 +78,24 @@ def check_folder(folder: str, mismatch: str = "raise") -> None:
             f"checkpoint folder {folder!r} is not writable ({err.strerror or err}); "
             "pass a writable folder or `checkpoint=None`."
         ) from err
+
+
+@contextmanager
+def lock(folder: str | None) -> Iterator[None]:
+    """Hold ``folder`` for this fit alone (nothing for ``None``); call after :func:`check_folder`.
+
+    An advisory ``fcntl.flock`` lock on ``folder/.lock``, released when the block ends or the
+    process dies; see :mod:`ceemx.infra.folder_lock`.
+
+    Raises:
+        CheckpointError: at once, when another fit (another process, or another fit in this one)
+            holds the folder; the message names its pid, host and start time.
+    """
+    if folder is None:
+        yield
+        return
+    with folder_lock(folder, CheckpointError):
+        yield
 
 
 def _atomic_write(path: str, write) -> None:
@@ -189,7 +212,10 @@ def save(folder: str, tree, history: list[dict], fingerprint: dict | None = None
     for other in os.listdir(folder):
         # Older states, and temporaries of a write that was killed half-way.
         if (other.startswith("state-") and other != name) or other.startswith(".tmp-"):
-            os.remove(os.path.join(folder, other))
+            try:
+                os.remove(os.path.join(folder, other))
+            except FileNotFoundError:
+                pass
 
 
 def _raise_write_error(folder: str, err: BaseException) -> None:
