@@ -319,6 +319,7 @@ def test_foh_observe_sees_the_stacked_pair():
     np.testing.assert_array_equal(s.current_input(jnp.arange(4.0)), [0.0, 1.0])
 
 
+@pytest.mark.slow  # the documented example's fits (≈ 5 s)
 def test_documented_example_runs():
     assert ceemx.param is cons.param
     text = (pathlib.Path(__file__).parents[1] / "docs" / "custom_systems.md").read_text()

@@ -40,6 +40,7 @@ def test_generator_shapes_dtype_and_normalisation(small):
     assert -12.0 < d.y_mean[2] < -6.0
 
 
+@pytest.mark.slow  # two full generator runs
 def test_generator_deterministic_per_seed():
     make = lambda seed: datasets.helicopter_like(seed, n_train=2, n_valid=1, n_test=1, steps=20)  # noqa: E731
     a, b, c = make(3), make(3), make(4)

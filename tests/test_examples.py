@@ -26,6 +26,7 @@ def _silverbox_csv() -> Path | None:
     _silverbox_csv() is None,
     reason="Silverbox data (silverbox/SNLS80mV.csv) not found: set CEEMX_DATA or ../shared/data",
 )
+@pytest.mark.slow  # a subprocess fit of the Silverbox example (≈ 10 s)
 def test_graybox_from_csv_smoke(tmp_path):
     csv = _silverbox_csv()
     env = {**os.environ, "MPLBACKEND": "Agg"}

@@ -106,6 +106,7 @@ def test_table1_methods_and_protocols(capsys):
         cli.main(["experiment", "figure2", "--protocol", "authors", "--smoke"])
 
 
+@pytest.mark.slow  # an experiment's wiring end to end (table1's smoke stays in the default suite)
 def test_laplace_experiment_smoke(tmp_path):
     """``ceemx experiment laplace --smoke``: learned noise and interval coverage."""
     assert cli.main(["experiment", "laplace", "--smoke", "--out", str(tmp_path)]) == 0
@@ -135,6 +136,7 @@ def test_table1_weightings():
         table1.fit_noise("other", 0.1, 0.1)
 
 
+@pytest.mark.slow  # an experiment's wiring end to end (table1's smoke stays in the default suite)
 def test_figure3_smoke(tmp_path):
     res = figure3.run(smoke=True, out=tmp_path, method="alternate", verbose=False)
     check_files(tmp_path, "figure3.png")
@@ -147,6 +149,7 @@ def test_figure3_smoke(tmp_path):
     assert "authors' code" in (tmp_path / "table.md").read_text()
 
 
+@pytest.mark.slow  # an experiment's wiring end to end (table1's smoke stays in the default suite)
 def test_figure2_smoke(tmp_path):
     """``ceemx experiment figure2 --smoke``: CE-EM (both solvers) and Particle EM side by side."""
     assert cli.main(["experiment", "figure2", "--smoke", "--out", str(tmp_path)]) == 0
@@ -209,6 +212,7 @@ def test_make_solver():
         common.make_solver("other")
 
 
+@pytest.mark.slow  # an experiment's wiring end to end (table1's smoke stays in the default suite)
 def test_cli_demo_smoke(tmp_path, capsys):
     """``ceemx demo --smoke`` in-process (the demo's only smoke run; the slowest test here)."""
     out = tmp_path / "demo"
@@ -273,6 +277,7 @@ def test_perturb_lorenz():
     np.testing.assert_array_equal(np.asarray(no_h.H), np.asarray(true.H))
 
 
+@pytest.mark.slow  # an experiment's wiring end to end (table1's smoke stays in the default suite)
 def test_figure4_smoke(tmp_path):
     """``ceemx experiment figure4 --smoke``: five models trained and scored on the generator."""
     assert cli.main(["experiment", "figure4", "--smoke", "--out", str(tmp_path)]) == 0
