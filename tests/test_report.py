@@ -195,3 +195,16 @@ def test_residual_correlations_and_plot_resid_draw_the_99_percent_band():
     fig = plots.plot_resid(rng.normal(size=(3, 200, 2)), lags=5)  # batch, 2 outputs, no input
     assert len(fig.axes) == 2
     report.plt().close("all")
+
+
+def test_plot_benchmark_open_bounds():
+    """A hidden state with bounds open on both sides draws no bound (used to raise)."""
+    import numpy as np
+
+    from ceemx.evaluation.plots import plot_benchmark
+
+    t = np.linspace(0, 6, 200)
+    fig = plot_benchmark(np.sin(t), np.sin(t) + 0.01, n_init=10, hidden=np.cos(t),
+                         hidden_label="velocity", bounds=(None, None))  # fmt: skip
+    assert fig is not None
+    report.plt().close(fig)

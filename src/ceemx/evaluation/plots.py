@@ -384,9 +384,9 @@ def plot_benchmark(
                     continue
                 shade(ax, zoomed)
                 draw(ax, v, zoomed, color="C0", lw=1.1, zorder=2)
-                if b is not None:
+                edges = [] if b is None else [e for e in b if e is not None]
+                if b is not None and edges:
                     vmin, vmax = np.nanmin(v), np.nanmax(v)
-                    edges = [e for e in b if e is not None]
                     span = max(vmax, *edges) - min(vmin, *edges) + 1e-12
                     ylo, yhi = min(vmin, *edges) - 0.08 * span, max(vmax, *edges) + 0.08 * span
                     for edge, other in ((b[0], ylo), (b[1], yhi)):

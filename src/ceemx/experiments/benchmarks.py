@@ -393,6 +393,7 @@ def _plot(results: list[dict], path) -> None:
         if "linear_y_sim" in e:
             sims["N4SID"] = e["linear_y_sim"]
         label, idx = HIDDEN[r["dataset"]]
+        lower = BOUNDS[r["dataset"]].get("lower")
         x = e.get("hybrid_x_sim", e["x_sim"])
         which = "hybrid" if "hybrid_x_sim" in e else "gray-box"
         plot_benchmark(
@@ -401,7 +402,7 @@ def _plot(results: list[dict], path) -> None:
             n_init=r["n_init"],
             hidden=x[:, idx],
             hidden_label=f"{label} ({which})",
-            bounds=(BOUNDS[r["dataset"]].get("lower"), None),
+            bounds=None if lower is None else (lower, None),
             score_unit=r["unit"],
             score_scale=r.get("scale", 1.0),
             title=f"{r['dataset']} / {test_name}: free-run simulation",
