@@ -93,8 +93,8 @@ class Trajectories(eqx.Module):
         ValueError: naming the argument and the first offending index, for wrong ranks,
             mismatched B or T, NaN/inf in unmasked ``y`` or anywhere in ``u`` (checked after the
             cast to the stored dtype: a finite value that overflows it is refused), an empty
-            batch, T < 2, a ragged nested sequence, a non-floating ``y``, or a mask of the wrong
-            shape or dtype.
+            batch, T < 2, no observed component (m = 0), a ragged nested sequence, a
+            non-floating ``y``, or a mask of the wrong shape or dtype.
         TypeError: for a complex or non-numeric (e.g. string) ``y`` or ``u``.
 
     ``y`` and ``u`` are stored in ``y``'s floating dtype as JAX stores it (float64 becomes
@@ -120,6 +120,11 @@ class Trajectories(eqx.Module):
                 raise ValueError("`y` is an empty batch (B = 0).")
             if T < 2:
                 raise ValueError(f"`y` must have T >= 2 time steps; got T = {T}.")
+            if m == 0:
+                raise ValueError(
+                    f"`y` has shape {y_np.shape}: no observed components (m = 0). Give each "
+                    "step's observations as the last axis, m >= 1."
+                )
             if not np.issubdtype(y_np.dtype, np.floating):
                 raise ValueError(f"`y` must be a floating-point array; got dtype {y_np.dtype}.")
             # The dtype JAX will store (float64 becomes float32 without x64): cast first, so that

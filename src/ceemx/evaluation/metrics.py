@@ -27,7 +27,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ceemx.data.trajectories import Trajectories, rollout_one
 from ceemx.evaluation.simulation import estimate_initial_state, free_run_batch, strongly_typed
-from ceemx.inference.smoother import check_inputs
+from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import ObservationMask, Observations, States, no_type_check
@@ -292,14 +292,17 @@ def benchmark_score(
         **kwargs: options of :func:`~ceemx.evaluation.simulation.estimate_initial_state`
             (``refine``, ``smoother``, ``warm_process_noise``).
 
+    ``test`` and ``x1`` are cast to the dtype of the system's parameters, as by
+    :func:`ceemx.fit` and :func:`ceemx.smooth` (:func:`ceemx.inference.smoother.promote_inputs`).
+
     Returns:
-        A :class:`BenchmarkScore` (arrays in the data's dtype).
+        A :class:`BenchmarkScore` (arrays in the system's dtype).
 
     Raises:
         TypeError: wrong argument types.
-        ValueError: before any compute: ``n_init`` outside [1, T−1], mismatched shapes or
-            dtypes, non-finite data or ``x1``, a bad ``scale``, or a trajectory with no observed
-            output in its window or in its scored part.
+        ValueError: before any compute: ``n_init`` outside [1, T−1], mismatched shapes, a
+            float16 system, non-finite data or ``x1``, a bad ``scale``, or a trajectory with no
+            observed output in its window or in its scored part.
 
     Compiled once per system structure, B, T and ``n_init`` (the initial-state window, see
     :func:`~ceemx.evaluation.simulation.estimate_initial_state`); parameters and data are traced.
@@ -312,6 +315,7 @@ def benchmark_score(
     """
     if not isinstance(system, AbstractSystem):
         raise TypeError(f"`system` must be a ceemx.AbstractSystem; got {type(system).__name__}.")
+    system, test, x1 = promote_inputs(system, test, x1, name="x1")  # as fit and smooth
     check_inputs(system, test)
     T = test.num_steps
     if isinstance(n_init, bool) or not isinstance(n_init, (int, np.integer)):

@@ -28,14 +28,20 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import from_observations
 from ceemx.inference.ekf import ekf
-from ceemx.inference.smoother import LMSmoother, check_inputs, smooth_batch
+from ceemx.inference.smoother import (
+    LMSmoother,
+    check_inputs,
+    promote_array,
+    promote_inputs,
+    smooth_batch,
+)
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import Inputs, Observations, States, no_type_check
-from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype, with_noise
+from ceemx.models.system import AbstractSystem, GaussianPrior, with_noise
 
 __all__ = [
     "estimate_initial_state",
@@ -85,16 +91,12 @@ def strongly_typed(tree):
     return jax.tree_util.tree_map(fix, tree)
 
 
-def _check_data(system: AbstractSystem, data, *, same_dtype: bool) -> None:
+def _check_data(system: AbstractSystem, data) -> None:
+    """``data`` (already in the system's dtype: :func:`promote_inputs`) fits the system."""
     check_inputs(system, data)
     y, u, mask = np.asarray(data.y), np.asarray(data.u), np.asarray(data.mask)
     _finite("data.y", np.where(mask, y, 0.0))  # a Trajectories built under a transformation
     _finite("data.u", u)
-    if same_dtype and jnp.dtype(float_dtype(system)) != y.dtype:
-        raise ValueError(
-            f"the system's parameters are {jnp.dtype(float_dtype(system))} but `data.y` is "
-            f"{y.dtype}: convert one of them (the smoother runs in a single precision)."
-        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -145,11 +147,14 @@ def free_run(
 
     Returns:
         ``(states, outputs)``: (B, T, n) and (B, T, m) — or (T, n) and (T, m) for one trajectory —
-        in the dtype of ``x1`` (``u`` is cast to it). ``states[:, 0]`` is ``x1``.
+        in the dtype of the system's parameters (``x1`` and ``u`` are cast to it, as by
+        :func:`ceemx.fit`). ``states[:, 0]`` is ``x1``.
 
     Raises:
-        TypeError: ``system`` is not a :class:`ceemx.AbstractSystem`.
-        ValueError: mismatched shapes, non-finite ``x1`` or ``u``, or a missing ``num_steps``.
+        TypeError: ``system`` is not a :class:`ceemx.AbstractSystem`; a complex or non-numeric
+            ``x1`` or ``u``.
+        ValueError: mismatched shapes, non-finite ``x1`` or ``u`` (or a value that overflows
+            the cast), a float16 system, or a missing ``num_steps``.
 
     ``lax.scan`` over time and ``vmap`` over the batch; compiled once per system structure and
     (B, T, p).
@@ -161,23 +166,21 @@ def free_run(
         [2.0, 1.0, 0.5]
     """
     _check_system(system)
-    x1 = jnp.asarray(x1)
-    if not jnp.issubdtype(x1.dtype, jnp.floating):
-        x1 = x1.astype(float_dtype(system))
-    single = x1.ndim == 1
-    xb = x1[None] if single else x1
+    x = promote_array("x1", x1, system)  # the system's dtype (x1's used to win)
+    single = x.ndim == 1
+    xb = x[None] if single else x
     n, p = system.state_dim, system.input_dim
     if xb.ndim != 2 or xb.shape[1] != n:
-        raise ValueError(f"`x1` must have shape (B, n) or (n,) with n = {n}; got {x1.shape}.")
+        raise ValueError(f"`x1` must have shape (B, n) or (n,) with n = {n}; got {x.shape}.")
     if u is None:
         if p != 0:
             raise ValueError(f"the system takes p = {p} inputs: pass `u`.")
         if num_steps is None:
             raise ValueError("pass `u` or `num_steps` (T).")
         T = _check_int("num_steps", num_steps, 1)
-        ub = jnp.zeros((xb.shape[0], T, 0), x1.dtype)
+        ub = jnp.zeros((xb.shape[0], T, 0), x.dtype)
     else:
-        ub = jnp.asarray(u, x1.dtype)
+        ub = promote_array("u", u, system)
         ub = ub[None] if single else ub
         if ub.ndim != 3 or ub.shape[0] != xb.shape[0] or ub.shape[2] != p or ub.shape[1] < 1:
             want = f"(T, {p})" if single else f"(B, T, {p}) with B = {xb.shape[0]}"
@@ -324,20 +327,24 @@ def estimate_initial_state(
             weak pass).
         return_status: also return the last solve's (B,) :class:`ceemx.RESULTS`.
 
+    Data and ``x_init`` are cast to the dtype of the system's parameters, as by :func:`ceemx.fit`
+    and :func:`ceemx.smooth` (:func:`ceemx.inference.smoother.promote_inputs`).
+
     Returns:
-        (B, n) initial states in the data's dtype; ``(x1, status)`` with ``return_status``.
+        (B, n) initial states in the system's dtype; ``(x1, status)`` with ``return_status``.
 
     Raises:
         TypeError: ``system`` or ``data`` of the wrong type, or a non-integer ``n_init``.
-        ValueError: ``n_init`` outside [1, T], mismatched dimensions or dtypes, non-finite data,
-            or a trajectory with no observed output in the window.
+        ValueError: ``n_init`` outside [1, T], mismatched dimensions, a float16 system,
+            non-finite data, or a trajectory with no observed output in the window.
 
     Trajectories are independent (``vmap``). Compiled once per system structure, B and window
     length ``n_init`` (and the smoother's type): the parameters, data and the smoother's
     numbers are traced, so scoring many models or records of one shape never recompiles.
     """
     _check_system(system)
-    _check_data(system, data, same_dtype=True)
+    system, data, x_init = promote_inputs(system, data, x_init)
+    _check_data(system, data)
     T = data.num_steps
     n_init = T if n_init is None else _check_int("n_init", n_init, 1, T)
     window = _window(data, n_init)
@@ -437,8 +444,8 @@ def predict_k_step(
         initial: the filter's prior on x₁ (see :func:`ceemx.inference.ekf.ekf`).
 
     Returns:
-        (B, T, m) predictions in the data's dtype; NaN from the step on where the filter of a
-        trajectory failed (its ``status``).
+        (B, T, m) predictions in the system's dtype (``data`` is cast to it); NaN from the step
+        on where the filter of a trajectory failed (its ``status``).
 
     Raises:
         TypeError: as :func:`ceemx.inference.ekf.ekf`.
@@ -448,6 +455,7 @@ def predict_k_step(
     """
     _check_system(system)
     k = _check_int("k", k, 1)
+    system, data, _ = promote_inputs(system, data)
     sol = ekf(system, data, initial=initial)
     k = min(k, data.num_steps)
     means, prior_mean = sol.filtered_means, sol.predicted_means[:, 0]

@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ceemx.data.trajectories import Trajectories
-from ceemx.inference.smoother import check_inputs
+from ceemx.inference.smoother import check_inputs, promote_inputs, promote_tree
 from ceemx.lib import kalman
 from ceemx.lib.dense import cholesky, symmetrize
 from ceemx.lib.results import RESULTS, select
@@ -192,12 +192,15 @@ def ekf(
     Args:
         system: the model. Its ``process_noise`` (Q) and ``obs_noise`` (R) must be Gaussian
             (:class:`ceemx.AbstractGaussianNoise`).
-        data: B trajectories of observations, inputs and masks; its dtype is the filter's.
+        data: B trajectories of observations, inputs and masks.
         initial: the prior N(x̂_{1|0}, P_{1|0}) on x₁ (Gaussian noise). ``None``: the system's
             ``initial_prior``, or N(0, I) when it has none (the authors' evaluation).
 
+    Data and ``initial`` are cast to the dtype of the system's parameters, as by :func:`ceemx.fit`
+    and :func:`ceemx.smooth` (:func:`ceemx.inference.smoother.promote_inputs`).
+
     Returns:
-        A :class:`FilterSolution` (arrays in the data's dtype). A trajectory whose covariances
+        A :class:`FilterSolution` (arrays in the system's dtype). A trajectory whose covariances
         stop being positive definite or whose means become non-finite gets status ``nonfinite``
         and NaN outputs from that step on; the others are unaffected. Trajectories are
         independent (``vmap`` over the batch, ``lax.scan`` over time); compiled once per shape.
@@ -206,8 +209,8 @@ def ekf(
         TypeError: ``data`` is not a :class:`ceemx.Trajectories`, or a noise model or the prior
             is not Gaussian (the message names ``system.process_noise``, ``system.obs_noise`` or
             ``initial``).
-        ValueError: mismatched dimensions or dtypes, or invalid noise parameters, before any
-            compute.
+        ValueError: mismatched dimensions, a float16 system, a value that overflows the cast, or
+            invalid noise parameters, before any compute.
 
     Example:
         >>> sol = ceemx.inference.ekf.ekf(system, data)  # doctest: +SKIP
@@ -215,17 +218,13 @@ def ekf(
     """
     if not isinstance(system, AbstractSystem):
         raise TypeError(f"`system` must be a ceemx.AbstractSystem; got {type(system).__name__}.")
+    system, data, _ = promote_inputs(system, data)  # one dtype: the system's, as fit and smooth
+    if initial is not None:
+        initial = promote_tree(initial, system)
     check_inputs(system, data)
     _check_gaussian(system.process_noise, "system.process_noise")
     _check_gaussian(system.obs_noise, "system.obs_noise")
     _check_factor(system.process_noise, "system.process_noise", system.state_dim, "n")  # type: ignore[arg-type]
     _check_factor(system.obs_noise, "system.obs_noise", system.obs_dim, "m")  # type: ignore[arg-type]
-    dtype = jnp.dtype(data.y.dtype)
-    have = jnp.dtype(float_dtype(system))
-    if have != dtype:
-        raise ValueError(
-            f"the system's parameters are {have} but `data.y` is {dtype}: convert one of them "
-            "(the filter runs in a single precision)."
-        )
-    prior = _resolve_prior(system, initial, dtype)
+    prior = _resolve_prior(system, initial, jnp.dtype(float_dtype(system)))
     return ekf_batch(system, data, prior)

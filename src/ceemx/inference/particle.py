@@ -32,14 +32,14 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ceemx.data.trajectories import Trajectories
-from ceemx.inference.smoother import check_inputs
+from ceemx.inference.smoother import check_inputs, promote_inputs, promote_tree
 from ceemx.infra import options
 from ceemx.lib import kalman
 from ceemx.lib import particles as lp
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import PerTrajectory, no_type_check
 from ceemx.models.noise import AbstractGaussianNoise
-from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype
+from ceemx.models.system import AbstractSystem, GaussianPrior
 
 __all__ = [
     "PROPOSALS",
@@ -264,16 +264,6 @@ def filter_batch(
     )
 
 
-def _check_dtypes(system: AbstractSystem, data: Trajectories) -> None:
-    """The filter runs in the data's precision: the system's must match (host-side)."""
-    have, want = jnp.dtype(float_dtype(system)), jnp.dtype(data.y.dtype)
-    if have != want:
-        raise ValueError(
-            f"the system's parameters are {have} but `data.y` is {want}: convert one of them "
-            "(particle filtering runs in a single precision)."
-        )
-
-
 def check_int(name: str, value, minimum: int) -> int:
     """``value`` as an int >= ``minimum`` (:func:`ceemx.infra.options.check_int`)."""
     return cast(int, options.check_int(name, value, minimum))
@@ -314,8 +304,12 @@ def particle_filter(
         initial: the distribution of x₁ (default: the system's ``initial_prior``; one of the two
             is required).
 
+    Data and ``initial`` are cast to the dtype of the system's parameters, as by :func:`ceemx.fit`
+    and :func:`ceemx.smooth` (:func:`ceemx.inference.smoother.promote_inputs`).
+
     Returns:
-        A :class:`ParticleFilterSolution`; ``log_likelihood`` is log p̂(y_{1:T} | θ) per trajectory,
+        A :class:`ParticleFilterSolution` (arrays in the system's dtype); ``log_likelihood`` is
+        log p̂(y_{1:T} | θ) per trajectory,
         ``status`` flags trajectories whose estimate is not finite. Compiled once per shape,
         N and proposal; ``ess_threshold`` is traced.
 
@@ -326,8 +320,12 @@ def particle_filter(
         >>> pf = ceemx.particle_filter(system, data, n_particles=200, key=key)  # doctest: +SKIP
         >>> pf.log_likelihood  # doctest: +SKIP
     """
+    if not isinstance(system, AbstractSystem):
+        raise TypeError(f"`system` must be a ceemx.AbstractSystem; got {type(system).__name__}.")
+    system, data, _ = promote_inputs(system, data)  # one dtype: the system's, as fit and smooth
+    if initial is not None:
+        initial = promote_tree(initial, system)
     check_inputs(system, data)
-    _check_dtypes(system, data)
     n_particles = check_int("n_particles", n_particles, 1)
     threshold = check_threshold(ess_threshold)
     prior = initial_prior(system, initial)
@@ -402,8 +400,9 @@ def ffbsi(
         key: PRNG key (default ``PRNGKey(0)``).
 
     Returns:
-        (B, S, T, n) smoothed state trajectories.
+        (B, S, T, n) smoothed state trajectories (in the system's dtype; ``data`` is cast to it).
     """
+    system, data, _ = promote_inputs(system, data)
     check_inputs(system, data)
     n_samples = check_int("n_samples", n_samples, 1)
     if not isinstance(pf, ParticleFilterSolution):

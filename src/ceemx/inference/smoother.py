@@ -27,9 +27,12 @@ __all__ = [
     "LMSmoother",
     "SmootherSolution",
     "check_inputs",
+    "promote_array",
     "promote_inputs",
+    "promote_tree",
     "smooth",
     "smooth_batch",
+    "working_dtype",
 ]
 
 
@@ -198,6 +201,35 @@ def _working_dtype(system: AbstractSystem) -> np.dtype:
     return dtype
 
 
+def working_dtype(system: AbstractSystem) -> np.dtype:
+    """The dtype every entry point computes in: the system's parameters' (float32 or float64).
+
+    Raises:
+        ValueError: for a float16 (or non-floating) system.
+    """
+    return _working_dtype(system)
+
+
+def promote_array(name: str, x, system: AbstractSystem) -> Any:
+    """``x`` (states, inputs, …) cast to the system's working dtype, as :func:`promote_inputs`.
+
+    ``None`` stays ``None``; a finite value that overflows the cast is refused, naming ``name``.
+
+    Raises:
+        TypeError: a complex or non-numeric ``x``.
+        ValueError: a ragged ``x``, or a value that overflows the cast.
+    """
+    return _promote_array(name, x, _working_dtype(system))
+
+
+def promote_tree(tree, system: AbstractSystem):
+    """Every floating array of ``tree`` (e.g. a prior) in the system's working dtype.
+
+    As :func:`promote_inputs` casts the system's own noise models and prior.
+    """
+    return _cast_floating(tree, _working_dtype(system))
+
+
 def _promote_array(name: str, x, dtype):
     if x is None:
         return None
@@ -217,12 +249,16 @@ def _promote_array(name: str, x, dtype):
 
 
 def _promote_system(system: AbstractSystem, dtype) -> AbstractSystem:
+    return _cast_floating(system, dtype)
+
+
+def _cast_floating(tree, dtype):
     def cast(leaf):
         if eqx.is_inexact_array(leaf) and leaf.dtype != dtype:
             return leaf.astype(dtype)
         return leaf
 
-    return jax.tree_util.tree_map(cast, system)
+    return jax.tree_util.tree_map(cast, tree)
 
 
 @no_type_check  # validates its arguments
