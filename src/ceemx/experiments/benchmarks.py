@@ -408,7 +408,7 @@ def _plot(results: list[dict], path) -> None:
             title=f"{r['dataset']} / {test_name}: free-run simulation",
             fig=sub,
         )
-    report.save_figure(fig, path)
+    report.save_figure(fig, path, dpi=90)  # six record panels: a readable, smaller file
     plt.close(fig)
 
 
