@@ -4,7 +4,8 @@
   any compute.
 - Result files are replaced atomically; under :func:`ceemx.evaluation.report.deferred_writes`
   nothing is written until the commit, ``results.json`` last.
-- SIGINT: exit status 130, exactly one line on stderr, no ``results.json``.
+- SIGINT: exit status 130, exactly one line on stderr, no ``results.json``; SIGTERM the same with
+  status 143; the ``--out`` folder the run created is removed when nothing was written to it.
 """
 
 import json
@@ -138,10 +139,11 @@ def test_deferred_writes(tmp_path):
 # ----------------------------------------------------------------------------------------------
 
 
-def interrupt(tmp_path, delay: float | None):
-    """Run ``python -m ceemx experiment table1 --smoke``, SIGINT after ``delay`` s — or, with
-    ``delay=None``, as soon as the first fit's line is printed (mid-fitting, any machine speed)."""
-    out = tmp_path / f"out-{delay}"
+def interrupt(tmp_path, delay: float | str | None, signum=signal.SIGINT):
+    """Run ``python -m ceemx experiment table1 --smoke``, send ``signum`` after ``delay`` s — or,
+    with ``delay=None``, as soon as the first fit's line is printed (mid-fitting, any machine
+    speed); with ``delay="out"``, as soon as the ``--out`` folder exists (nothing imported yet)."""
+    out = tmp_path / f"out-{delay}" / "run"
     env = dict(os.environ, MPLBACKEND="Agg", CEEMX_COMPILATION_CACHE="0")
     env["PYTHONUNBUFFERED"] = "1"  # the first fit's line arrives as it is printed
     proc = subprocess.Popen(
@@ -155,15 +157,32 @@ def interrupt(tmp_path, delay: float | None):
         assert proc.stdout is not None
         first = proc.stdout.readline().decode()
         assert first.startswith("[likelihood"), first
+    elif delay == "out":
+        while not out.exists() and proc.poll() is None:
+            time.sleep(0.005)
     else:
         time.sleep(delay)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(signum)
     _, err = proc.communicate(timeout=120)
     err = err.decode()
-    assert proc.returncode == 130, (proc.returncode, err)
+    assert proc.returncode == 128 + signum, (proc.returncode, err)
     lines = err.splitlines()
     assert len(lines) == 1 and lines[0].strip(), err
-    assert not (out / "results.json").exists()
+    # nothing written, and the folders the run made for --out (out-…/run) removed again
+    assert not out.parent.exists(), list(out.parent.rglob("*"))
+    return lines[0]
+
+
+def test_sigterm_like_sigint(tmp_path):
+    """SIGTERM used to kill the run silently, leaving an empty ``--out`` folder (issue 24, item
+    8): now one line, status 143, no folder — here sent once ``--out`` exists (≈ 0.5 s)."""
+    assert interrupt(tmp_path, "out", signal.SIGTERM) == "ceemx: terminated"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("delay", [3.0, None])
+def test_sigterm_while_compiling_and_fitting(tmp_path, delay):
+    assert interrupt(tmp_path, delay, signal.SIGTERM) == "ceemx: terminated"
 
 
 def test_sigint_one_line_130(tmp_path):

@@ -25,7 +25,9 @@ for one seed) runs exactly those seeds.
 Interrupts and errors: Ctrl-C (SIGINT) at any point after the command starts prints the one line
 ``ceemx: interrupted`` on stderr and exits with status 130, without a traceback and without
 writing any result file (results are held in memory and written, atomically and ``results.json``
-last, only when the run has finished). A usage error (unknown option, ``--seeds 0``, an ``--out``
+last, only when the run has finished); SIGTERM (``kill``, a batch scheduler's stop) the same, with
+``ceemx: terminated`` and status 143. Either removes the ``--out`` folder if this run created it
+and nothing was written to it. A usage error (unknown option, ``--seeds 0``, an ``--out``
 folder that cannot be written) prints one line and exits with status 2 before any compute.
 """
 
@@ -39,6 +41,7 @@ import sys
 import threading
 import warnings
 from collections.abc import Iterator, Sequence
+from typing import Any
 
 __all__ = ["main"]
 
@@ -51,10 +54,19 @@ def _version() -> str:
 
 _INTERRUPTED = b"ceemx: interrupted\n"
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report an interrupted command
+#: the signals the command turns into one line and exit status 128 + signal number
+_SIGNALS: dict[int, bytes] = {
+    signal.SIGINT: b"ceemx: interrupted\n",
+    signal.SIGTERM: b"ceemx: terminated\n",
+}
 
 
 class _Interrupts:
-    """SIGINT → one line on stderr and ``os._exit(130)``, from wherever the process is.
+    """SIGINT or SIGTERM → one line on stderr and ``os._exit(128 + signal)``, from anywhere.
+
+    (SIGTERM used to kill the process silently, leaving an empty ``--out`` folder.) Before
+    exiting, the folders listed in ``created`` (made by this run for ``--out``) are removed if
+    they are still empty.
 
     ``os._exit`` skips interpreter shutdown: a ``KeyboardInterrupt`` unwinding through JAX while
     XLA's compiler threads run (and the teardown that follows) is what printed long tracebacks
@@ -68,14 +80,16 @@ class _Interrupts:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._critical = 0
-        self._pending = False
+        self._pending: int | None = None
         self._exiting = False
-        self._old_handler = None
+        self._old_handlers: dict[int, Any] = {}
         self._old_wakeup = -1
         self._pipe: tuple[int, int] | None = None
+        self.created: list[str] = []
 
     def install(self) -> None:
-        self._old_handler = signal.signal(signal.SIGINT, self._on_signal)
+        for signum in _SIGNALS:
+            self._old_handlers[signum] = signal.signal(signum, self._on_signal)
         r, w = os.pipe()
         os.set_blocking(w, False)
         self._pipe = (r, w)
@@ -84,7 +98,8 @@ class _Interrupts:
 
     def uninstall(self) -> None:
         signal.set_wakeup_fd(self._old_wakeup)
-        signal.signal(signal.SIGINT, self._old_handler)
+        for signum, handler in self._old_handlers.items():
+            signal.signal(signum, handler)
         if self._pipe is not None:
             os.close(self._pipe[1])  # the watcher reads EOF and ends; it closes the read end
             self._pipe = None
@@ -95,28 +110,35 @@ class _Interrupts:
                 data = os.read(fd, 64)
                 if not data:
                     return
-                if signal.SIGINT in data:
-                    self._exit()
+                for signum in _SIGNALS:
+                    if signum in data:
+                        self._exit(signum)
         finally:
             with contextlib.suppress(OSError):
                 os.close(fd)
 
     def _on_signal(self, signum, frame) -> None:
-        self._exit()
+        self._exit(signum)
 
-    def _exit(self) -> None:
+    def _exit(self, signum: int) -> None:
         with self._lock:
             if self._critical:
-                self._pending = True
+                self._pending = self._pending or signum
                 return
             if self._exiting:
                 return
             self._exiting = True
-        _die()
+        _die(signum, self.created)
+
+    def remove_created(self) -> None:
+        """Remove the folders this run created for ``--out`` that are still empty."""
+        for path in self.created:  # deepest first; a folder holding anything stays
+            with contextlib.suppress(OSError):
+                os.rmdir(path)
 
     @contextlib.contextmanager
     def critical(self) -> Iterator[None]:
-        """A block that SIGINT does not cut short (the exit follows the block)."""
+        """A block that SIGINT or SIGTERM does not cut short (the exit follows the block)."""
         with self._lock:
             self._critical += 1
         try:
@@ -124,18 +146,35 @@ class _Interrupts:
         finally:
             with self._lock:
                 self._critical -= 1
-                die = self._pending and not self._critical and not self._exiting
+                die = self._pending is not None and not self._critical and not self._exiting
                 self._exiting = self._exiting or die
             if die:
-                _die()
+                assert self._pending is not None
+                _die(self._pending, self.created)
 
 
-def _die() -> None:
+def _die(signum: int, created: Sequence[str] = ()) -> None:
     with contextlib.suppress(Exception):
         sys.stdout.flush()
+    for path in created:
+        with contextlib.suppress(OSError):
+            os.rmdir(path)
     with contextlib.suppress(OSError):
-        os.write(2, _INTERRUPTED)
-    os._exit(EXIT_INTERRUPTED)
+        os.write(2, _SIGNALS.get(signum, _INTERRUPTED))
+    os._exit(128 + int(signum))
+
+
+def _missing_folders(path: str) -> list[str]:
+    """``path`` and its ancestors that do not exist yet, deepest first."""
+    missing = []
+    path = os.path.abspath(path)
+    while not os.path.exists(path):
+        missing.append(path)
+        parent = os.path.dirname(path)
+        if parent == path:
+            break
+        path = parent
+    return missing
 
 
 class _Parser(argparse.ArgumentParser):
@@ -271,14 +310,15 @@ def main(argv: Sequence[str] | None = None, *, handle_sigint: bool | None = None
 
     Args:
         argv: the arguments (``None``: ``sys.argv[1:]``).
-        handle_sigint: take over SIGINT (one line on stderr, ``os._exit(130)``; see the module
-            notes). ``None``: when ``argv`` is ``None`` (run as a program) in the main thread; a
-            caller in the same process (tests, a notebook) gets ``KeyboardInterrupt`` caught
-            instead: one line and the return value 130.
+        handle_sigint: take over SIGINT and SIGTERM (one line on stderr, ``os._exit(130)`` or
+            ``os._exit(143)``; see the module notes). ``None``: when ``argv`` is ``None`` (run
+            as a program) in the main thread; a caller in the same process (tests, a notebook)
+            gets ``KeyboardInterrupt`` caught instead: one line and the return value 130.
 
     Returns:
         The exit status: 0 done, 1 the results could not be written, 2 usage error, 130
-        interrupted. Usage errors raise ``SystemExit(2)`` (argparse's convention).
+        interrupted. Usage errors raise ``SystemExit(2)`` (argparse's convention). With the
+        signals taken over, the process exits at once: 130 on SIGINT, 143 on SIGTERM.
     """
     if handle_sigint is None:
         handle_sigint = argv is None
@@ -289,6 +329,7 @@ def main(argv: Sequence[str] | None = None, *, handle_sigint: bool | None = None
     try:
         return _main(argv, interrupts)
     except KeyboardInterrupt:
+        interrupts.remove_created()
         sys.stderr.write(_INTERRUPTED.decode())
         sys.stderr.flush()
         return EXIT_INTERRUPTED
@@ -380,6 +421,8 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    out = args.out if args.out is not None else _default_out(args)
+    interrupts.created = _missing_folders(out)  # removed again if interrupted before writing
     _check_out(parser, args.out, _default_out(args))
     _limit_threads(parser, args)
     _start_jax()
