@@ -121,6 +121,7 @@ def test_identify_tanks_outflows():
     _fit_check(true, guess, lambda s: (s.k1, s.k4), u, [3.0, 4.0], ("k1", "k4"), 0.1)
 
 
+@pytest.mark.slow  # a JointLM fit on real data (≈ 5 s of compilation; tanks and drives too)
 def test_identify_silverbox_frequency_and_cubic():
     options: dict[str, Any] = dict(process_noise=1e-4, obs_noise=1e-3)
     true = Silverbox.default(kappa=20.0, **options)

@@ -31,6 +31,7 @@ def check_files(out, figure):
     return json.loads((out / "results.json").read_text())
 
 
+@pytest.mark.slow  # an experiment's wiring end to end (≈ 6 s)
 def test_table1_smoke(tmp_path):
     """``ceemx experiment table1 --smoke`` in-process."""
     assert cli.main(["experiment", "table1", "--smoke", "--out", str(tmp_path)]) == 0

@@ -78,6 +78,7 @@ def natural(system):
     return np.exp([float(system.log_k), float(system.log_c), float(system.log_fc)])
 
 
+@pytest.mark.slow  # both methods from the default start (≈ 5 s); the guard's own oracles stay
 def test_default_start_both_methods_same_optimum(problem):
     guess, data = problem
     alt = ceemx.fit(guess, data, solver=ceemx.Alternating(), max_epochs=100)

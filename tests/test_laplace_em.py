@@ -200,6 +200,7 @@ def test_squarem_reaches_the_em_fixed_point_in_fewer_epochs():
     assert 2 * fast.epochs < plain.epochs
 
 
+@pytest.mark.slow  # SQUAREM's fixed point (≈ 5 s); exact EM on the linear-Gaussian model stays
 def test_squarem_stops_at_an_em_fixed_point_before_plain_em():
     """The test above at a fifth of its cost: SQUAREM converges (17 epochs), one plain EM epoch
     from its answer moves nothing (an EM fixed point; measured 2e-7), and plain EM given twice

@@ -122,6 +122,7 @@ def test_resolve_devices():
         resolve_devices("gpu")
 
 
+@pytest.mark.slow  # a fit with devices='all' (≈ 6 s); the 4-device equality stays
 def test_fit_devices_all_on_one_device_changes_nothing():
     """With one visible device ``devices="all"`` gives the very same fit as ``devices=None``."""
     from ceemx.experiments import common

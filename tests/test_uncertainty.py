@@ -63,6 +63,7 @@ def _scalar_data(key, a, B, T):
     return true, data
 
 
+@pytest.mark.slow  # a Monte Carlo spread over refits (≈ 4 s); the dense-inverse oracle stays
 def test_standard_error_matches_monte_carlo_spread():
     """x_{t+1} = a x_t + w, y_t = x_t + v: the SE of â matches the spread of â over datasets."""
     a, B, T, R = 0.8, 8, 40, 30
