@@ -107,6 +107,7 @@ def test_laplace_em_is_exact_em_on_a_linear_gaussian_model():
     assert np.all(result.history_array("Q_gain") > -1e-8)
 
 
+@pytest.mark.slow  # a Monte Carlo check (≈ 4 s); the cubature Gauss–Newton oracle stays
 def test_cubature_expectation_matches_monte_carlo_on_lorenz():
     """Q(θ) by cubature over pairwise marginals = E_q[−log p(x, y | θ)] by Monte Carlo over q.
 

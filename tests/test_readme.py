@@ -4,8 +4,10 @@ import pathlib
 import re
 
 import numpy as np
+import pytest
 
 
+@pytest.mark.slow  # the README example's fit (≈ 6 s; tests/test_docs.py keeps its text)
 def test_readme_example_runs():
     text = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
     code = re.search(r"```python\n(.*?)```", text, re.S).group(1)

@@ -545,6 +545,7 @@ def test_linearize_gradient_and_gauss_newton_on_lorenz():
         np.testing.assert_allclose(dense.reshape(T * n, T * n), Jb.T @ Jb, rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.slow  # the chunked smoother equal to the unchunked (≈ 4 s)
 def test_batch_chunks_give_the_same_answers(lorenz):
     """``batch_chunk`` (memory bound for large n) smooths the trajectories in chunks — including a
     remainder chunk — with the same states, objectives, iterations and covariances."""
