@@ -14,9 +14,10 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ceemx import lib
 from ceemx.data.trajectories import Trajectories, cast_checked
 from ceemx.inference.objective import linearize, nll_offset_single
-from ceemx.infra.options import check_bool, check_int, check_nonnegative
+from ceemx.infra.options import check_bool, check_choice, check_int, check_nonnegative
 from ceemx.infra.warn import warn
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
+from ceemx.lib.parallel_blocktri import parallel_solve
 from ceemx.lib.results import RESULTS, messages
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, States, Trajectory, no_type_check
@@ -24,6 +25,7 @@ from ceemx.models.method_check import check_methods
 from ceemx.models.system import AbstractSystem, float_dtype
 
 __all__ = [
+    "AUTO_PARALLEL_MIN_T",
     "LMSmoother",
     "SmootherSolution",
     "check_inputs",
@@ -32,6 +34,7 @@ __all__ = [
     "promote_tree",
     "smooth",
     "smooth_batch",
+    "uses_parallel_solve",
     "working_dtype",
 ]
 
@@ -57,6 +60,13 @@ class LMSmoother(eqx.Module):
             Memory grows as (chunk)·T·n² (≈ 20 live (T, n, n) blocks per trajectory): a chunk
             bounds it for large state dimensions; the answers are the same (each trajectory is
             solved on its own either way).
+        time_parallel: how each iteration's block-tridiagonal system is solved. ``False``
+            (default): block Cholesky and two sequential scans over time (depth O(T)).
+            ``True``: ``lib.parallel_blocktri.parallel_solve``, two associative scans (depth
+            O(log T), several times the arithmetic; the same steps to rounding). ``"auto"``:
+            parallel where it measures faster — never on CPU (benchmarks/README.md "Parallel in
+            time": 1.6–16× slower at every T and n measured); on an accelerator from
+            ``AUTO_PARALLEL_MIN_T`` time steps (a provisional threshold, not yet measured).
     """
 
     rho_x: float = 0.0
@@ -66,6 +76,7 @@ class LMSmoother(eqx.Module):
     damping: float = 1e-3
     throw: bool = eqx.field(default=False, static=True)
     batch_chunk: int | None = eqx.field(default=None, static=True)
+    time_parallel: bool | str = eqx.field(default=False, static=True)
 
     def __check_init__(self):
         for name in ("rho_x", "rtol", "atol", "damping"):
@@ -73,6 +84,18 @@ class LMSmoother(eqx.Module):
         check_int("max_steps", self.max_steps, 0)
         check_bool("throw", self.throw)
         check_int("batch_chunk", self.batch_chunk, 1, none=True)
+        check_choice("time_parallel", self.time_parallel, (False, True, "auto"))
+
+
+#: ``LMSmoother(time_parallel="auto")`` solves in parallel on an accelerator from this many steps
+AUTO_PARALLEL_MIN_T = 1024
+
+
+def uses_parallel_solve(option: bool | str, T: int) -> bool:
+    """Whether the smoother's ``time_parallel`` option means the associative-scan solve at T."""
+    if option == "auto":
+        return jax.default_backend() != "cpu" and T >= AUTO_PARALLEL_MIN_T
+    return bool(option)
 
 
 class SmootherSolution(eqx.Module):
@@ -131,10 +154,16 @@ def _smooth_one(
             grad_x=lin.grad_x + 2.0 * rho * dx
         )
 
+    parallel = uses_parallel_solve(getattr(solver, "time_parallel", False), x0.shape[0])
+
     def solve(lin, lam):
         h = lin.hess_x
         d = jnp.diagonal(h.diagonal, axis1=-2, axis2=-1)
-        L = lib.cholesky(lib.add_to_diagonal(h, marquardt_scale(d, lam) + 2.0 * rho))
+        damped = lib.add_to_diagonal(h, marquardt_scale(d, lam) + 2.0 * rho)
+        if parallel:
+            step = -parallel_solve(damped, lin.grad_x)
+            return step, jnp.all(jnp.isfinite(step))
+        L = lib.cholesky(damped)
         return -lib.solve(L, lin.grad_x), lib.is_finite(L)
 
     def quad(lin, delta):

@@ -4,6 +4,7 @@ Nothing here knows about EM, systems or data; the user-facing layer (``ceemx``) 
 
 - :mod:`~ceemx.lib.blocktri` — symmetric block-tridiagonal matrices: Cholesky, solves,
   log-determinant, selected inverse (all O(T n³), ``lax.scan`` over time).
+- :mod:`~ceemx.lib.parallel_blocktri` — the same solve by associative scans (depth O(log T)).
 - :mod:`~ceemx.lib.arrowhead` — bordered block-tridiagonal (arrowhead) systems by the Schur
   complement (dense Cholesky or matrix-free preconditioned CG).
 - :mod:`~ceemx.lib.dense` — small dense SPD solves with a failure flag, masked whitening.
@@ -34,6 +35,7 @@ from ceemx.lib.dense import symmetrize as symmetrize
 from ceemx.lib.lm import LMOutput as LMOutput
 from ceemx.lib.lm import levenberg_marquardt as levenberg_marquardt
 from ceemx.lib.lm import marquardt_scale as marquardt_scale
+from ceemx.lib.parallel_blocktri import parallel_solve as parallel_solve
 from ceemx.lib.results import RESULTS as RESULTS
 from ceemx.lib.tree import trace_numbers as trace_numbers
 
