@@ -228,7 +228,7 @@ def simulated(T=60, B=3, seed=0):
     return true, data
 
 
-@pytest.mark.parametrize("solver", ["alternating", "joint"])
+@pytest.mark.parametrize("solver", ["alternating", pytest.param("joint", marks=pytest.mark.slow)])
 def test_fit_keeps_parameters_inside_and_reports_natural_units(solver):
     true, data = simulated()
     # Start far off: g close to its bound and a at the edge of (0, 1); c fixed at a wrong value
@@ -250,6 +250,7 @@ def test_fit_keeps_parameters_inside_and_reports_natural_units(solver):
     np.testing.assert_allclose(float(s.gain.g), 0.5 / 1.05, rtol=0.15)
 
 
+@pytest.mark.slow  # ≈ 2.5 s; resume is checked in test_checkpoint_safety
 def test_fit_with_lm_learner_and_checkpoint_resume(tmp_path):
     true, data = simulated(T=40, B=2)
     guess = leaky(a=0.3, g=2.0, offset=0.0, process_noise=0.02, obs_noise=0.02)
@@ -268,6 +269,7 @@ def test_fields_carry_metadata():
     assert isinstance(names["a"], cons.Interval) and names["process_noise"] is None
 
 
+@pytest.mark.slow  # ≈ 2.3 s of ParticleEM compilation
 def test_particle_em_learns_unconstrained():
     true, data = simulated(T=30, B=2)
     prior = ceemx.GaussianPrior(jnp.zeros(1), ceemx.DiagonalGaussian(0.5, 1))

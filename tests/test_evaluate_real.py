@@ -330,6 +330,7 @@ def test_benchmark_score_matches_a_hand_computation():
     assert float(jnp.max(p.rmse)) < 1e-12 and float(jnp.min(p.fit_percent)) > 100 - 1e-9
 
 
+@pytest.mark.slow  # ≈ 2 s; the float64 score's hand computation stays
 def test_benchmark_score_float32():
     s32 = duffing(dtype=jnp.float32)
     data = noise_free(s32, np.ones((1, 2), np.float32), inputs(1, 30, dtype=np.float32))

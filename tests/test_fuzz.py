@@ -171,6 +171,7 @@ TRAINABLE = st.sampled_from(
 EPOCHS = st.one_of(st.integers(-2, 2), st.sampled_from(["3", 2.0, np.nan, True, None, np.int64(1)]))
 
 
+@pytest.mark.slow  # 60 fits (≈ 4 s); option validation is fuzzed without fitting by default
 @examples(60)
 @given(max_epochs=EPOCHS, rho=NUMBERS, trainable=TRAINABLE, joint=st.booleans())
 def test_fit_options(max_epochs, rho, trainable, joint):

@@ -238,6 +238,7 @@ def test_squarem_stops_at_an_em_fixed_point_before_plain_em():
         )
 
 
+@pytest.mark.slow  # ≈ 5 s; noise learning on the linear-Gaussian model stays in the default suite
 def test_learned_diagonal_noise_with_missing_data():
     """Diagonal scales (one per component) are recovered with a third of the outputs missing."""
     rng = np.random.default_rng(3)

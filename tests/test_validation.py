@@ -98,7 +98,11 @@ def test_check_inputs_refuses_mixed_dtypes_naming_both():
 @pytest.mark.parametrize(
     "sys_dtype, data_dtype", [(jnp.float32, np.float64), (jnp.float64, np.float32)]
 )
-@pytest.mark.parametrize("solver", [ceemx.JointLM(), ceemx.Alternating()], ids=["joint", "alt"])
+@pytest.mark.parametrize(
+    "solver",
+    [pytest.param(ceemx.JointLM(), marks=pytest.mark.slow), ceemx.Alternating()],
+    ids=["joint", "alt"],
+)  # the joint cases under slow (≈ 2 s of compilation each): the promotion is the driver's
 def test_fit_mixed_precision_is_clear(sys_dtype, data_dtype, solver):
     sys, data = system(sys_dtype), ceemx.Trajectories(observations(data_dtype))
     x = np.zeros((B, T, N), data_dtype)
