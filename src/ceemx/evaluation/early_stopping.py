@@ -17,6 +17,7 @@ import numpy as np
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.metrics import benchmark_score
+from ceemx.infra.options import check_int, check_nonnegative
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["EarlyStopping"]
@@ -35,7 +36,8 @@ class EarlyStopping:
         validation: the validation record(s), as the model reads them.
         n_init: outputs used to estimate the initial state (≥ 1, < T).
         patience: epochs without a relative improvement of ``min_delta`` before stopping.
-        min_delta: the relative improvement that counts.
+        min_delta: the relative improvement that resets the patience (any improvement is kept
+            as the best model).
         every: score every ``every`` epochs (scoring costs one free run).
         start: the fit's starting model, scored as epoch 0 (recommended: :meth:`restore` then
             never returns a model worse on the validation record than the start, e.g. the
@@ -63,12 +65,13 @@ class EarlyStopping:
                 f"`validation` must be ceemx.Trajectories; got {type(validation).__name__}."
             )
         T = validation.num_steps
-        if isinstance(n_init, bool) or not isinstance(n_init, int) or not 1 <= n_init < T:
+        check_int("n_init", n_init, 1)
+        if n_init >= T:
             raise ValueError(f"`n_init` must be an integer in [1, T = {T}); got {n_init!r}.")
-        for name, v, lo in (("patience", patience, 1), ("every", every, 1)):
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ValueError(f"`{name}` must be an integer ≥ {lo}; got {v!r}.")
-        if not (isinstance(min_delta, int | float) and 0 <= min_delta < 1):
+        check_int("patience", patience, 1)
+        check_int("every", every, 1)
+        check_nonnegative("min_delta", min_delta)
+        if min_delta >= 1:
             raise ValueError(f"`min_delta` must be a number in [0, 1); got {min_delta!r}.")
         self.validation = validation
         self.n_init = n_init
@@ -77,6 +80,7 @@ class EarlyStopping:
         self.every = every
         self.best_system: AbstractSystem | None = None
         self.best_epoch = 0
+        self._progress_epoch = 0
         self.best_rmse = math.inf
         self.scores: list[tuple[int, float]] = []
         if start is not None:
@@ -96,12 +100,12 @@ class EarlyStopping:
             return {}
         rmse = self.score(info.system)
         self.scores.append((info.epoch, rmse))
-        if np.isfinite(rmse) and rmse < self.best_rmse * (1 - self.min_delta):
+        if np.isfinite(rmse) and rmse < self.best_rmse:
+            if rmse < self.best_rmse * (1 - self.min_delta):
+                self._progress_epoch = info.epoch  # patience counts from a real improvement
             self.best_system, self.best_epoch, self.best_rmse = info.system, info.epoch, rmse
-        elif np.isfinite(rmse) and rmse < self.best_rmse:
-            self.best_system, self.best_rmse = info.system, rmse  # better, not by enough to reset
         info.record["val_rmse"] = rmse
-        if info.epoch - self.best_epoch >= self.patience * self.every:
+        if info.epoch - self._progress_epoch >= self.patience * self.every:
             return False
         return {}
 

@@ -48,6 +48,7 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real, Scalar
 
+from ceemx.infra.options import check_int, check_positive
 from ceemx.lib.typing import State
 from ceemx.models.constraints import param
 from ceemx.models.noise import AbstractNoise
@@ -185,12 +186,10 @@ def learned_term(
             )
         if not all(0 <= i < size for i in targets):
             raise ValueError(f"`targets` must lie in [0, size = {size}); got {targets}.")
-    if not (isinstance(prior_std, int | float) and 0 < prior_std < math.inf):
-        raise ValueError(f"`prior_std` must be a positive finite number; got {prior_std!r}.")
+    check_positive("prior_std", prior_std)
     if net is None:
-        for name, v in (("width", width), ("depth", depth)):
-            if isinstance(v, bool) or not isinstance(v, int) or v < (1 if name == "width" else 0):
-                raise ValueError(f"`{name}` must be a positive integer; got {v!r}.")
+        check_int("width", width, 1)
+        check_int("depth", depth, 0)
         n_in = n + (p if use_input else 0)
         mlp = eqx.nn.MLP(n_in, out, width, depth, activation=activation, key=key, dtype=dtype)
         last = mlp.layers[-1]
@@ -284,6 +283,19 @@ class _HybridMixin(eqx.Module):
     def _current(self, u):
         return u
 
+    def _wrap(self, physics, dynamics_term, observation_term, bounds, noise) -> None:
+        """Set the parts, bounds, noise and prior (the physics' own where ``None``).
+
+        The constructors' shared part, called from ``__init__`` only.
+        """
+        self.physics = physics
+        self.dynamics_term = dynamics_term
+        self.observation_term = observation_term
+        self.lower, self.upper, self.sharpness = bounds
+        fields = ("process_noise", "obs_noise", "initial_prior")
+        for name, value in zip(fields, noise, strict=True):
+            setattr(self, name, getattr(physics, name) if value is None else value)
+
     def trainable(self, part: Part = "both") -> Callable:
         """A ``trainable`` filter for :func:`ceemx.fit`: ``"both"``, ``"physics"`` or ``"term"``.
 
@@ -316,8 +328,8 @@ def _physics_parameters(physics: AbstractSystem) -> list[str]:
     return out
 
 
-def _bounds(physics: AbstractSystem, lower, upper, sharpness, x_scale):
-    """(lower, upper, β) as tuples of n floats; β = ``sharpness`` / each state's scale."""
+def _bounds(physics: AbstractSystem, lower, upper, sharpness, *terms):
+    """(lower, upper, β) as tuples of n floats; β = ``sharpness`` / the first term's state scale."""
     n = physics.state_dim
 
     def vector(v, fill):
@@ -332,7 +344,8 @@ def _bounds(physics: AbstractSystem, lower, upper, sharpness, x_scale):
         raise ValueError(f"`lower` must be below `upper` in every entry; got {lo} and {hi}.")
     if not (isinstance(sharpness, int | float) and 0 < sharpness < math.inf):
         raise ValueError(f"`bound_sharpness` must be a positive finite number; got {sharpness!r}.")
-    scale = np.ones(n) if x_scale is None else np.asarray(x_scale, float)
+    scales = [t.x_scale for t in terms if t is not None]
+    scale = np.asarray(scales[0], float) if scales else np.ones(n)
     return lo, hi, tuple(float(sharpness / s) for s in scale)
 
 
@@ -372,18 +385,13 @@ class Hybrid(_HybridMixin, AbstractSystem):
     ):
         """Wrap ``physics`` (noise and prior default to the physics model's own)."""
         _check_physics(physics, AbstractSystem)
-        self.physics = physics
-        self.dynamics_term = dynamics_term
-        self.observation_term = observation_term
-        x_scale = None if dynamics_term is None else dynamics_term.x_scale
-        if x_scale is None and observation_term is not None:
-            x_scale = observation_term.x_scale
-        self.lower, self.upper, self.sharpness = _bounds(
-            physics, lower, upper, bound_sharpness, x_scale
+        self._wrap(
+            physics,
+            dynamics_term,
+            observation_term,
+            _bounds(physics, lower, upper, bound_sharpness, dynamics_term, observation_term),
+            (process_noise, obs_noise, initial_prior),
         )
-        self.process_noise = physics.process_noise if process_noise is None else process_noise
-        self.obs_noise = physics.obs_noise if obs_noise is None else obs_noise
-        self.initial_prior = physics.initial_prior if initial_prior is None else initial_prior
 
     @property
     def input_dim(self) -> int:
@@ -437,18 +445,13 @@ class HybridContinuous(_HybridMixin, AbstractContinuousSystem):
     ):
         """Wrap ``physics`` (noise, prior and integration options default to the physics')."""
         _check_physics(physics, AbstractContinuousSystem)
-        self.physics = physics  # pyright: ignore[reportIncompatibleVariableOverride]
-        self.dynamics_term = dynamics_term
-        self.observation_term = observation_term
-        x_scale = None if dynamics_term is None else dynamics_term.x_scale
-        if x_scale is None and observation_term is not None:
-            x_scale = observation_term.x_scale
-        self.lower, self.upper, self.sharpness = _bounds(
-            physics, lower, upper, bound_sharpness, x_scale
+        self._wrap(
+            physics,
+            dynamics_term,
+            observation_term,
+            _bounds(physics, lower, upper, bound_sharpness, dynamics_term, observation_term),
+            (process_noise, obs_noise, initial_prior),
         )
-        self.process_noise = physics.process_noise if process_noise is None else process_noise
-        self.obs_noise = physics.obs_noise if obs_noise is None else obs_noise
-        self.initial_prior = physics.initial_prior if initial_prior is None else initial_prior
         self.dt = physics.dt
         self.hold = physics.hold
         self.substeps = physics.substeps

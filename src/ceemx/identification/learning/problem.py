@@ -14,6 +14,7 @@ from jaxtyping import Array, Float, Int
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.problem import FitProblem
 from ceemx.inference.objective import linearize
+from ceemx.infra.options import check_int
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 from ceemx.models.system import AbstractSystem
 
@@ -214,8 +215,7 @@ def window_starts(T: int, length: int) -> np.ndarray:
     """
     if T < 2:
         raise ValueError(f"a record needs at least 2 samples to cut windows; got T = {T}.")
-    if isinstance(length, bool) or not isinstance(length, int | np.integer) or length < 1:
-        raise ValueError(f"`window` must be an integer ≥ 1; got {length!r}.")
+    check_int("window", length, 1)
     length = min(int(length), T - 1)
     starts = np.arange(0, T - 1, length)
     starts[-1] = min(starts[-1], T - 1 - length)

@@ -19,9 +19,9 @@ from ceemx.identification.learning.learners import AbstractLearner, LearnInfo
 from ceemx.identification.learning.problem import (
     AbstractLearningProblem,
     LearningProblem,
-    window_starts,
     windowed,
 )
+from ceemx.infra.options import check_int
 from ceemx.lib.typing import Theta
 
 __all__ = ["WindowedLearner"]
@@ -44,7 +44,7 @@ class WindowedLearner(AbstractLearner):
             raise TypeError(
                 f"`learner` must be a ceemx learner; got {type(self.learner).__name__}."
             )
-        window_starts(2, self.window)  # validates the window length
+        check_int("window", self.window, 1)
 
     def init(self, theta: Theta, key: PRNGKeyArray) -> Any:
         """The inner learner's state."""
