@@ -209,6 +209,16 @@ def spectral_radius(a: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(a)))) if a.size else 0.0
 
 
+def _output_powers(A: np.ndarray, C: np.ndarray, T: int) -> np.ndarray:
+    """(T, m, n) C Aᵗ for t < T: the free response of the output to x₀."""
+    out = np.empty((T,) + C.shape)
+    power = np.eye(A.shape[0])
+    for t in range(T):
+        out[t] = C @ power
+        power = A @ power
+    return out
+
+
 def _initial_states(us, ys, A, B, C, D, k: int) -> np.ndarray:
     """Least-squares x₀ of every trajectory from its simulated output error (see module doc)."""
     n = A.shape[0]
@@ -226,13 +236,10 @@ def _initial_states(us, ys, A, B, C, D, k: int) -> np.ndarray:
         u_pad[b, :t], y_pad[b, :t] = u[:t], y[:t]
     resid = y_pad - u_pad @ D.T
     x = np.zeros((Bn, n))
-    obs = np.empty((T_max, m, n))  # C A^t
-    power = np.eye(n)
     for t in range(T_max):
         resid[:, t] -= x @ C.T
         x = x @ A.T + u_pad[:, t] @ B.T
-        obs[t] = C @ power
-        power = A @ power
+    obs = _output_powers(A, C, T_max)
     x0 = np.empty((Bn, n))
     steps = np.minimum(lengths, T_max)
     for t in np.unique(steps):
@@ -262,6 +269,7 @@ def stabilize(A, B, C, D, us, ys, *, radius: float = 0.999):
     scale = np.minimum(1.0, radius / np.maximum(np.abs(lam), 1e-300))
     A = np.real(V @ np.diag(lam * scale) @ np.linalg.inv(V))
     cols = []  # per trajectory: (T·m, n·p + m·p) regressors of vec(B), vec(D); (T·m, n) of x0
+    powers = _output_powers(A, C, max(y.shape[0] for y in ys))
     for u, y in zip(us, ys, strict=True):
         T = y.shape[0]
         reg = np.zeros((T, m, n * p + m * p))
@@ -272,12 +280,7 @@ def stabilize(A, B, C, D, us, ys, *, radius: float = 0.999):
             reg[t, :, n * p :] = np.kron(np.eye(m), u[t][None, :])
             xs = xs @ A.T
             xs[rows_q, np.arange(n)[:, None]] += u[t][None, :]
-        obs = np.empty((T, m, n))
-        power = np.eye(n)
-        for t in range(T):
-            obs[t] = C @ power
-            power = A @ power
-        cols.append((reg.reshape(T * m, -1), obs.reshape(T * m, n), y.reshape(-1)))
+        cols.append((reg.reshape(T * m, -1), powers[:T].reshape(T * m, n), y.reshape(-1)))
     Bn = len(cols)
     rows = sum(c[0].shape[0] for c in cols)
     lhs = np.zeros((rows, n * p + m * p + Bn * n))
