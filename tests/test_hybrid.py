@@ -73,24 +73,33 @@ def duffing():
 
 
 def test_zero_initialised_hybrid_is_the_physics_model(duffing):
-    """J, the free run and the physics gradient of a fresh hybrid equal the physics model's."""
+    """J, the free run and the physics gradient of a fresh hybrid equal the physics model's, and
+    the output layer's gradient is not zero (the weights learn from the first step)."""
     _, physics, x, data = duffing
     h = hybrid(physics, data, states=x, dynamics=True, observation=True)
     assert isinstance(h, HybridContinuous)
-    assert float(jnp.max(jnp.abs(log_joint(h, x, data) - log_joint(physics, x, data)))) == 0.0
+
+    @eqx.filter_jit
+    def both(physics, h):
+        def J(model):
+            return jnp.sum(log_joint(model, x, data))
+
+        g_phys = jax.grad(lambda k: J(eqx.tree_at(lambda s: s.k, physics, k)))(physics.k)
+        g_h = jax.grad(lambda k: J(eqx.tree_at(lambda s: s.physics.k, h, k)))(h.physics.k)
+        last = h.dynamics_term.net.layers[-1].weight
+        g_last = jax.grad(
+            lambda w: J(eqx.tree_at(lambda s: s.dynamics_term.net.layers[-1].weight, h, w))
+        )(last)
+        values = (log_joint(h, x, data), log_joint(physics, x, data))
+        return values, (g_h, g_phys), g_last
+
+    (J_h, J_p), (g_h, g_p), g_last = both(physics, h)
+    assert float(jnp.max(jnp.abs(J_h - J_p))) == 0.0
+    # each free run its own program, as a user runs them (one program would fuse the two
+    # differently and differ in the last bit)
     np.testing.assert_array_equal(simulate(h, data.u), simulate(physics, data.u))
-
-    def J_phys(k):
-        return jnp.sum(log_joint(eqx.tree_at(lambda s: s.k, physics, k), x, data))
-
-    def J_h(k):
-        return jnp.sum(log_joint(eqx.tree_at(lambda s: s.physics.k, h, k), x, data))
-
-    k = jnp.asarray(1.0)
-    assert float(jax.grad(J_h)(k)) == pytest.approx(float(jax.grad(J_phys)(k)), rel=1e-12)
-    # The weights' gradient is not zero (the output layer learns from the first step).
-    mask = trainable_mask(h, h.trainable("term"))
-    assert sum(map(np.size, jax.tree_util.tree_leaves(eqx.filter(h, mask)))) > 0
+    assert float(g_h) == pytest.approx(float(g_p), rel=1e-12)
+    assert float(jnp.max(jnp.abs(g_last))) > 0.0
 
 
 def test_trainable_parts_and_noise_never_selected(duffing):
@@ -202,11 +211,11 @@ def test_hybrid_learns_the_missing_cubic_stiffness(duffing):
     assert rmse < 0.02 and rmse_phys > 1.0, (rmse, rmse_phys)
 
 
-@pytest.mark.parametrize("window", [57, 133])
-def test_windows_sum_to_the_record(duffing, window):
+def test_windows_sum_to_the_record(duffing):
     """Σ over windows of −J = the record's −J (exactly when the windows tile the T − 1 = 399
-    transitions, 133 = 399 / 3; else the last window's overlap adds its shared transitions once
-    more), with the initial-state prior counted once; and the gradient likewise."""
+    transitions, 133 = 399 / 3; with 57 the last window's overlap adds its shared transitions
+    once more), with the initial-state prior counted once; and the gradient likewise. One
+    compiled program for all of it."""
     from ceemx.identification.learning.problem import learning_problem, windowed
     from ceemx.identification.problem import FitProblem
     from ceemx.models import GaussianPrior
@@ -216,24 +225,27 @@ def test_windows_sum_to_the_record(duffing, window):
     system = eqx.tree_at(lambda s: s.initial_prior, physics, prior, is_leaf=lambda v: v is None)
     problem, theta = FitProblem.create(system, data)
     full = learning_problem(problem, theta, x)
-    win = windowed(full, window)
-    L = min(window, 399)
-    W = -(-399 // L)
-    assert win.batch_size == W
-    extra = W * L - 399  # transitions the last window repeats
-    theta1 = theta * 1.1
-    total, whole = float(win.data_term(theta1)), float(full.data_term(theta1))
-    if extra == 0:
-        assert total == pytest.approx(whole, rel=1e-12)
-        g_w = jax.grad(win.data_term)(theta1)
-        np.testing.assert_allclose(g_w, jax.grad(full.data_term)(theta1), rtol=1e-10)
-    else:  # the repeated transitions' −log p_w, computed directly
-        sys1 = problem.build(theta1)
+    tiled, overlapping = windowed(full, 133), windowed(full, 57)
+    assert (tiled.batch_size, overlapping.batch_size) == (3, 7)
+    extra = 7 * 57 - 399  # transitions the last window of 57 repeats
+
+    @eqx.filter_jit
+    def terms(full, tiled, overlapping, th):
+        sys1 = full.problem.build(th)
         r = x[0, 1:] - jax.vmap(lambda xt, ut: sys1.dynamics(xt, ut, 0.0))(
             x[0, :-1], data.u[0, :-1]
         )
-        rep = float(jnp.sum(jax.vmap(sys1.process_noise.nll)(r[399 - L : 399 - L + extra])))
-        assert total == pytest.approx(whole + rep, rel=1e-12)
+        rep = jnp.sum(jax.vmap(sys1.process_noise.nll)(r[399 - 57 : 399 - 57 + extra]))
+        values = (full.data_term(th), tiled.data_term(th), overlapping.data_term(th), rep)
+        grads = (jax.grad(full.data_term)(th), jax.grad(tiled.data_term)(th))
+        return values, grads
+
+    (whole, total_tiled, total_overlap, rep), (g_full, g_tiled) = terms(
+        full, tiled, overlapping, theta * 1.1
+    )
+    assert float(total_tiled) == pytest.approx(float(whole), rel=1e-12)
+    np.testing.assert_allclose(g_tiled, g_full, rtol=1e-10)
+    assert float(total_overlap) == pytest.approx(float(whole + rep), rel=1e-12)
 
 
 def test_early_stopping_keeps_the_best_and_stops_after_patience(duffing):
