@@ -24,6 +24,7 @@ import optax
 import pytest
 
 import ceemx
+import ceemx.identification.initialize
 import ceemx.identification.learning.step
 import ceemx.inference.smoother
 from ceemx.lib.results import codes
