@@ -51,6 +51,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 from ceemx.data.trajectories import Trajectories
+from ceemx.infra.distributed import check_same, to_host
 
 __all__ = ["BATCH_AXIS", "batch_mesh", "resolve_devices", "shard_batch"]
 
@@ -76,9 +77,11 @@ def batch_mesh(devices: Sequence[Any] | None = None) -> Mesh:
 def resolve_devices(devices) -> Mesh | None:
     """``fit``'s ``devices`` argument as a mesh: ``None`` → ``None``, ``"all"`` → all devices.
 
+    ``"all"`` is every process's devices after :func:`jax.distributed.initialize` (see "Several
+    processes" in the module docstring).
+
     Raises:
         TypeError: for anything but ``None``, ``"all"`` or a 1-D :class:`jax.sharding.Mesh`.
-        ValueError: for a mesh over several processes (see the module docstring).
     """
     if devices is None:
         return None
@@ -93,13 +96,7 @@ def resolve_devices(devices) -> Mesh | None:
         mesh = devices
     else:
         raise TypeError(f'`devices` must be None, "all" or a jax.sharding.Mesh; got {devices!r}.')
-    if not mesh.is_multi_process:
-        return mesh
-    raise ValueError(
-        f"`devices` spans {jax.process_count()} processes, but fit reads per-trajectory results "
-        "on the host every epoch and supports only devices this process addresses: pass "
-        "devices=ceemx.data.sharding.batch_mesh(jax.local_devices()) (see ceemx.data.sharding)."
-    )
+    return mesh
 
 
 def _submesh(mesh: Mesh, B: int, strict: bool) -> Mesh:
@@ -109,6 +106,12 @@ def _submesh(mesh: Mesh, B: int, strict: bool) -> Mesh:
     n = mesh.devices.size
     if B % n == 0:
         return mesh
+    if mesh.is_multi_process:
+        raise ValueError(
+            f"the batch size B = {B} is not divisible by the {n} devices of a mesh over "
+            f"{len({d.process_index for d in mesh.devices.flat})} processes: every process must "
+            f"hold an equal share of the trajectories; use B a multiple of {n}."
+        )
     if strict:
         raise ValueError(
             f"the batch size B = {B} is not divisible by the {n} devices of the mesh; use B a "
@@ -147,7 +150,12 @@ def shard_batch(
     mesh = _submesh(mesh, B, strict)
     spec = NamedSharding(mesh, PartitionSpec(mesh.axis_names[0]))
     arrays = (data.y, data.u, data.mask, states)
-    # Across processes each one hands over its host copy (see the module docstring).
-    host = np.asarray if mesh.is_multi_process else jnp.asarray
-    y, u, mask, x = jax.device_put(tuple(host(a) for a in arrays), spec)
+    if mesh.is_multi_process:
+        # Each process hands over its host copy of the whole batch; it must be everyone's.
+        arrays = tuple(to_host(a) for a in arrays)
+        check_same("data", y=arrays[0], u=arrays[1], mask=arrays[2])
+        check_same("states", states=arrays[3])
+    else:
+        arrays = tuple(jnp.asarray(a) for a in arrays)
+    y, u, mask, x = jax.device_put(arrays, spec)
     return eqx.tree_at(lambda d: (d.y, d.u, d.mask), data, (y, u, mask)), x
