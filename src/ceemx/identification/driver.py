@@ -431,9 +431,11 @@ def fit(
         history: list[dict] = []
         fingerprint = None
         if checkpoint is not None:
-            template = dataclasses.replace(state, cache=None)
-            local = _local_problem(problem, system, trainable, log_prior) if spread else problem
-            fingerprint = ckpt.fingerprint(_local(template), local, theta, solver)
+            template, local = dataclasses.replace(state, cache=None), problem
+            if spread:  # fingerprint and load on gathered arrays (a resumed state is local)
+                template = _local(template)
+                local = _local_problem(problem, system, trainable, log_prior)
+            fingerprint = ckpt.fingerprint(template, local, theta, solver)
             loaded = ckpt.load(checkpoint, template, fingerprint, mismatch=checkpoint_mismatch)
             if loaded is not None:
                 state, history = loaded

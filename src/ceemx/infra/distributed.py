@@ -208,7 +208,7 @@ def launch(
     num_processes: int,
     *,
     port: int | None = None,
-    timeout: float | None = None,
+    timeout: int | float | None = None,
     env: dict[str, str] | None = None,
 ) -> list[int]:
     """Run ``command`` as ``num_processes`` local processes joined by :func:`initialize`.
@@ -243,7 +243,7 @@ def launch(
     ]
     deadline = None if timeout is None else time.monotonic() + timeout
     try:
-        while any(p.poll() is None for p in procs):
+        while any([p.poll() is None for p in procs]):  # a list: poll every process
             failed = any(p.returncode not in (None, 0) for p in procs)
             late = deadline is not None and time.monotonic() > deadline
             if failed or late:
