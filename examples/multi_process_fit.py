@@ -1,4 +1,4 @@
-"""One fit, several processes: the trajectories split over every process's devices.
+r"""One fit, several processes: the trajectories split over every process's devices.
 
 Each process runs this same script on the same whole data set (here simulated from a fixed seed);
 ``ceemx.infra.distributed.initialize()`` joins it to the others before any JAX work, and
@@ -57,7 +57,8 @@ def problem(B: int, T: int):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    """Fit with each solver named by --solver; process 0 prints (and writes --out)."""
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--solver", default="joint", help="joint, alternate or both: joint,alternate")
     ap.add_argument("-B", type=int, default=8, help="trajectories (a multiple of the devices)")
     ap.add_argument("-T", type=int, default=64, help="time steps")
@@ -81,6 +82,7 @@ def main() -> None:
         )
         seconds = time.perf_counter() - t0
         s = result.system
+        assert isinstance(s, CoupledLorenz)
         out["fits"][name] = {
             "theta": np.asarray(result.theta).tolist(),
             "J": [h["J"] for h in result.history],

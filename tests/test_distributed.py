@@ -109,6 +109,10 @@ if pid == 1:
 refused(lambda: ceemx.fit(p.init_system, ceemx.Trajectories(y), p.states, **kw),
         "`data` differs", "`y` of process 1")
 
+# a solver that reads per-trajectory values on the host is refused, naming the supported ones
+refused(lambda: ceemx.fit(p.init_system, p.data, p.states, **{**kw, "solver": ceemx.LaplaceEM()}),
+        "2 processes", "ceemx.JointLM or ceemx.Alternating", "LaplaceEM")
+
 # checkpoints: process 0 writes; 2 epochs, then resumed by both processes to 3 = 3 straight
 ref = ceemx.fit(p.init_system, p.data, p.states, max_epochs=3, **kw)
 first = ceemx.fit(p.init_system, p.data, p.states, max_epochs=2, checkpoint=folder, **kw)

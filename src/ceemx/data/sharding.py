@@ -23,19 +23,23 @@ devices; a prime B larger than the device count: one device). ``strict=True`` ra
 use them all. When ``fit`` excludes outlying trajectories at the start, the remaining ones stay
 on the same devices, placed as XLA partitions the subset.
 
-**Several hosts.** Start one process per host and call :func:`jax.distributed.initialize` in each
-before anything else touches JAX (on a cluster it finds the coordinator itself; otherwise pass
-``coordinator_address``, ``num_processes`` and ``process_id``). :func:`jax.devices` then lists
-every host's devices, so :func:`batch_mesh` spans all hosts. Every process must run the same
-program on the same full data (same files, same seeds): :func:`shard_batch` hands JAX host copies,
-and each process transfers only the shards of its own devices (JAX checks that the copies agree).
-Compiled batch functions then run across the hosts; reading a result on the host
-(``np.asarray``) needs it fully addressable — gather it first with
-:func:`jax.experimental.multihost_utils.process_allgather`. :func:`ceemx.fit` reads per-trajectory
-quantities on the host every epoch (history, health test, statuses), so ``fit(devices=...)``
-accepts only meshes whose devices this process addresses (all local devices, or every device of
-a single-process run) and refuses a cross-host mesh before any compute; multi-host runs are not
-tested.
+**Several processes** (hosts, or processes on one machine; :mod:`ceemx.infra.distributed`). Each
+process calls :func:`ceemx.infra.distributed.initialize` (a wrapper of
+:func:`jax.distributed.initialize` that reads ``CEEMX_COORDINATOR``, ``CEEMX_NUM_PROCESSES``,
+``CEEMX_PROCESS_ID`` and selects Gloo CPU collectives) before anything else touches JAX;
+:func:`jax.devices` then lists every process's devices, so ``"all"`` and :func:`batch_mesh` span
+them all. Every process runs the same program on the same *whole* data set (same files, same
+seeds) and start: :func:`shard_batch` hands JAX its host copies and each process transfers only
+the shards of its own devices. It checks first that the copies agree (a SHA-256 digest per array,
+gathered: a ``ValueError`` names the array and the processes that differ) and that B is a
+multiple of the device count (no fallback to fewer devices across processes). ``fit`` reads
+per-trajectory values on the host every epoch through
+:func:`ceemx.infra.distributed.to_host` (gathered across processes, the same collective on every
+process); only process 0 shows progress and writes checkpoints (every process reads one to
+resume: a folder all of them see); the result is gathered, so every process gets the whole
+:class:`~ceemx.FitResult`, fully addressable, as a one-process fit's. θ and J equal a one-process
+fit's to rounding (two processes: ``tests/test_distributed.py``).
+
 """
 
 from __future__ import annotations

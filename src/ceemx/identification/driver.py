@@ -368,10 +368,13 @@ def fit(
             ``outlier``); ``"warn"`` only names them; ``"keep"`` skips the test.
         devices: data parallelism over the trajectories (:mod:`ceemx.data.sharding`): ``None``
             (default) places nothing; ``"all"`` splits the batch axis of the data and states over
-            all visible devices, a 1-D :class:`jax.sharding.Mesh` over its devices (of this
-            process only: a mesh across hosts is refused). When B is not divisible by the device
-            count the largest divisor of B devices is used. Results agree with ``None`` to
-            rounding; with one device it changes nothing.
+            all visible devices, a 1-D :class:`jax.sharding.Mesh` over its devices. When B is
+            not divisible by the device count the largest divisor of B devices is used. Results
+            agree with ``None`` to rounding; with one device it changes nothing. Over several
+            processes (:mod:`ceemx.infra.distributed`) every process passes the same whole data
+            set, B must be a multiple of the device count, only process 0 shows progress and
+            writes ``checkpoint``, callbacks see the states as a global array, and every
+            process gets the whole result.
         diagnose: the end-of-fit noise check (:mod:`ceemx.identification.noise_check`, one
             pass over the residuals): warns when the residuals are inconsistent with the assumed
             noise (too tight or too loose by more than 2× in standard deviation) and stores it in
@@ -514,6 +517,13 @@ def _prepare(
         check_key(key)
     mesh = resolve_devices(devices)
     spread = mesh is not None and mesh.is_multi_process  # data over several processes' devices
+    if spread and isinstance(solver, LaplaceEM | ParticleEM):
+        raise ValueError(
+            f"`devices` spans {jax.process_count()} processes: a multi-process fit runs "
+            f"ceemx.JointLM or ceemx.Alternating; {type(solver).__name__} reads per-trajectory "
+            "values on the host that are not gathered across processes. Fit it in one process "
+            "(devices=None, or a mesh of jax.local_devices())."
+        )
     if checkpoint is not None:
         ckpt.check_folder(checkpoint, checkpoint_mismatch)
         if not spread or is_main_process():  # process 0 alone writes a multi-process fit's
@@ -538,7 +548,9 @@ def _local(tree):
 
 def _local_problem(problem: FitProblem, system, trainable, log_prior) -> FitProblem:
     """``problem`` over this process's copy of its data (gathered: a multi-process fit's)."""
-    return FitProblem.create(system, _local(problem.data), trainable=trainable, log_prior=log_prior)[0]
+    return FitProblem.create(
+        system, _local(problem.data), trainable=trainable, log_prior=log_prior
+    )[0]
 
 
 def _check_noise_learnable(problem: FitProblem, solver: AbstractFitSolver) -> None:
@@ -599,7 +611,16 @@ def _check_noise(problem: FitProblem, solver, state: FitState, converged: bool):
 
 
 def _run_epochs(
-    solver, problem, state, history, max_epochs, callbacks, progress, checkpoint, fingerprint, spread
+    solver,
+    problem,
+    state,
+    history,
+    max_epochs,
+    callbacks,
+    progress,
+    checkpoint,
+    fingerprint,
+    spread,
 ):
     """The epoch loop: step, record, stop rule, callbacks, progress, checkpoints (into history).
 

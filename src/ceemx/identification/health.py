@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceemx.identification.problem import FitProblem
-from ceemx.lib.typing import States, Theta
 from ceemx.infra.distributed import to_host
+from ceemx.lib.typing import States, Theta
 
 __all__ = ["ABSURD_MEAN_SQUARE", "OUTLIER_OPTIONS", "Health", "check_start", "trajectory_health"]
 

@@ -63,7 +63,9 @@ def _env_int(name: str) -> int | None:
     try:
         return int(value)
     except ValueError:
-        raise ValueError(f"environment variable {name} must be an integer; got {value!r}.") from None
+        raise ValueError(
+            f"environment variable {name} must be an integer; got {value!r}."
+        ) from None
 
 
 def initialize(
@@ -113,7 +115,9 @@ def initialize(
     }
     missing = [f"`{k}` (or {env[k]})" for k, v in given.items() if v is None]
     if missing:
-        raise ValueError(f"initialize needs all three of its arguments; missing {', '.join(missing)}.")
+        raise ValueError(
+            f"initialize needs all three of its arguments; missing {', '.join(missing)}."
+        )
     for name in ("num_processes", "process_id"):
         value = given[name]
         if isinstance(value, bool) or not isinstance(value, int | np.integer):

@@ -22,10 +22,10 @@ from ceemx.identification.solvers.base import (
 )
 from ceemx.identification.solvers.joint import end_point_identifiability
 from ceemx.inference import smoother as smoothing_solver
+from ceemx.infra.distributed import to_host
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes
 from ceemx.lib.typing import States, Theta
-from ceemx.infra.distributed import to_host
 
 __all__ = ["Alternating"]
 

@@ -32,10 +32,10 @@ from ceemx.identification.identifiability import Identifiability
 from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
 from ceemx.inference.smoother import LMSmoother
+from ceemx.infra.distributed import to_host
 from ceemx.infra.options import check_nonnegative
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
-from ceemx.infra.distributed import to_host
 
 __all__ = [
     "AbstractFitSolver",

@@ -66,6 +66,7 @@ from ceemx.identification.solvers.base import (
 )
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.objective import linearize
+from ceemx.infra.distributed import to_host
 from ceemx.infra.memory import check_fits
 from ceemx.infra.options import (
     check_bool,
@@ -80,7 +81,6 @@ from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, codes, select
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
-from ceemx.infra.distributed import to_host
 
 __all__ = [
     "JointLM",
