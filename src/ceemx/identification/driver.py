@@ -51,7 +51,8 @@ class EpochInfo:
     Attributes:
         epoch: 1-based epoch number.
         system: the system after this epoch.
-        states: (B, T, n) states after this epoch.
+        states: (B, T, n) states after this epoch (in a multi-process fit a global array:
+            read it with :func:`ceemx.infra.distributed.to_host`, on every process).
         record: this epoch's history record (a dict; callbacks may add entries to it).
     """
 
