@@ -23,19 +23,23 @@ devices; a prime B larger than the device count: one device). ``strict=True`` ra
 use them all. When ``fit`` excludes outlying trajectories at the start, the remaining ones stay
 on the same devices, placed as XLA partitions the subset.
 
-**Several hosts.** Start one process per host and call :func:`jax.distributed.initialize` in each
-before anything else touches JAX (on a cluster it finds the coordinator itself; otherwise pass
-``coordinator_address``, ``num_processes`` and ``process_id``). :func:`jax.devices` then lists
-every host's devices, so :func:`batch_mesh` spans all hosts. Every process must run the same
-program on the same full data (same files, same seeds): :func:`shard_batch` hands JAX host copies,
-and each process transfers only the shards of its own devices (JAX checks that the copies agree).
-Compiled batch functions then run across the hosts; reading a result on the host
-(``np.asarray``) needs it fully addressable — gather it first with
-:func:`jax.experimental.multihost_utils.process_allgather`. :func:`ceemx.fit` reads per-trajectory
-quantities on the host every epoch (history, health test, statuses), so ``fit(devices=...)``
-accepts only meshes whose devices this process addresses (all local devices, or every device of
-a single-process run) and refuses a cross-host mesh before any compute; multi-host runs are not
-tested.
+**Several processes** (hosts, or processes on one machine; :mod:`ceemx.infra.distributed`). Each
+process calls :func:`ceemx.infra.distributed.initialize` (a wrapper of
+:func:`jax.distributed.initialize` that reads ``CEEMX_COORDINATOR``, ``CEEMX_NUM_PROCESSES``,
+``CEEMX_PROCESS_ID`` and selects Gloo CPU collectives) before anything else touches JAX;
+:func:`jax.devices` then lists every process's devices, so ``"all"`` and :func:`batch_mesh` span
+them all. Every process runs the same program on the same *whole* data set (same files, same
+seeds) and start: :func:`shard_batch` hands JAX its host copies and each process transfers only
+the shards of its own devices. It checks first that the copies agree (a SHA-256 digest per array,
+gathered: a ``ValueError`` names the array and the processes that differ) and that B is a
+multiple of the device count (no fallback to fewer devices across processes). ``fit`` reads
+per-trajectory values on the host every epoch through
+:func:`ceemx.infra.distributed.to_host` (gathered across processes, the same collective on every
+process); only process 0 shows progress and writes checkpoints (every process reads one to
+resume: a folder all of them see); the result is gathered, so every process gets the whole
+:class:`~ceemx.FitResult`, fully addressable, as a one-process fit's. θ and J equal a one-process
+fit's to rounding (two processes: ``tests/test_distributed.py``).
+
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 from ceemx.data.trajectories import Trajectories
+from ceemx.infra.distributed import check_same, to_host
 
 __all__ = ["BATCH_AXIS", "batch_mesh", "resolve_devices", "shard_batch"]
 
@@ -76,9 +81,11 @@ def batch_mesh(devices: Sequence[Any] | None = None) -> Mesh:
 def resolve_devices(devices) -> Mesh | None:
     """``fit``'s ``devices`` argument as a mesh: ``None`` → ``None``, ``"all"`` → all devices.
 
+    ``"all"`` is every process's devices after :func:`jax.distributed.initialize` (see "Several
+    processes" in the module docstring).
+
     Raises:
         TypeError: for anything but ``None``, ``"all"`` or a 1-D :class:`jax.sharding.Mesh`.
-        ValueError: for a mesh over several processes (see the module docstring).
     """
     if devices is None:
         return None
@@ -93,13 +100,7 @@ def resolve_devices(devices) -> Mesh | None:
         mesh = devices
     else:
         raise TypeError(f'`devices` must be None, "all" or a jax.sharding.Mesh; got {devices!r}.')
-    if not mesh.is_multi_process:
-        return mesh
-    raise ValueError(
-        f"`devices` spans {jax.process_count()} processes, but fit reads per-trajectory results "
-        "on the host every epoch and supports only devices this process addresses: pass "
-        "devices=ceemx.data.sharding.batch_mesh(jax.local_devices()) (see ceemx.data.sharding)."
-    )
+    return mesh
 
 
 def _submesh(mesh: Mesh, B: int, strict: bool) -> Mesh:
@@ -109,6 +110,12 @@ def _submesh(mesh: Mesh, B: int, strict: bool) -> Mesh:
     n = mesh.devices.size
     if B % n == 0:
         return mesh
+    if mesh.is_multi_process:
+        raise ValueError(
+            f"the batch size B = {B} is not divisible by the {n} devices of a mesh over "
+            f"{len({d.process_index for d in mesh.devices.flat})} processes: every process must "
+            f"hold an equal share of the trajectories; use B a multiple of {n}."
+        )
     if strict:
         raise ValueError(
             f"the batch size B = {B} is not divisible by the {n} devices of the mesh; use B a "
@@ -147,7 +154,12 @@ def shard_batch(
     mesh = _submesh(mesh, B, strict)
     spec = NamedSharding(mesh, PartitionSpec(mesh.axis_names[0]))
     arrays = (data.y, data.u, data.mask, states)
-    # Across processes each one hands over its host copy (see the module docstring).
-    host = np.asarray if mesh.is_multi_process else jnp.asarray
-    y, u, mask, x = jax.device_put(tuple(host(a) for a in arrays), spec)
+    if mesh.is_multi_process:
+        # Each process hands over its host copy of the whole batch; it must be everyone's.
+        arrays = tuple(to_host(a) for a in arrays)
+        check_same("data", y=arrays[0], u=arrays[1], mask=arrays[2])
+        check_same("states", states=arrays[3])
+    else:
+        arrays = tuple(jnp.asarray(a) for a in arrays)
+    y, u, mask, x = jax.device_put(arrays, spec)
     return eqx.tree_at(lambda d: (d.y, d.u, d.mask), data, (y, u, mask)), x

@@ -33,6 +33,7 @@ from ceemx.identification.solvers.laplace import LaplaceEM
 from ceemx.identification.solvers.particle_em import ParticleEM
 from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra import checkpoint as ckpt
+from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.options import check_key
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, from_codes, messages, select
@@ -50,7 +51,8 @@ class EpochInfo:
     Attributes:
         epoch: 1-based epoch number.
         system: the system after this epoch.
-        states: (B, T, n) states after this epoch.
+        states: (B, T, n) states after this epoch (in a multi-process fit a global array:
+            read it with :func:`ceemx.infra.distributed.to_host`, on every process).
         record: this epoch's history record (a dict; callbacks may add entries to it).
     """
 
@@ -367,10 +369,13 @@ def fit(
             ``outlier``); ``"warn"`` only names them; ``"keep"`` skips the test.
         devices: data parallelism over the trajectories (:mod:`ceemx.data.sharding`): ``None``
             (default) places nothing; ``"all"`` splits the batch axis of the data and states over
-            all visible devices, a 1-D :class:`jax.sharding.Mesh` over its devices (of this
-            process only: a mesh across hosts is refused). When B is not divisible by the device
-            count the largest divisor of B devices is used. Results agree with ``None`` to
-            rounding; with one device it changes nothing.
+            all visible devices, a 1-D :class:`jax.sharding.Mesh` over its devices. When B is
+            not divisible by the device count the largest divisor of B devices is used. Results
+            agree with ``None`` to rounding; with one device it changes nothing. Over several
+            processes (:mod:`ceemx.infra.distributed`) every process passes the same whole data
+            set, B must be a multiple of the device count, only process 0 shows progress and
+            writes ``checkpoint``, callbacks see the states as a global array, and every
+            process gets the whole result.
         diagnose: the end-of-fit noise check (:mod:`ceemx.identification.noise_check`, one
             pass over the residuals): warns when the residuals are inconsistent with the assumed
             noise (too tight or too loose by more than 2× in standard deviation) and stores it in
@@ -401,7 +406,7 @@ def fit(
     if noise != "fixed":
         return _fit_learning_noise(noise, solver, system, data, x_init, locals())
     with contextlib.ExitStack() as hold:  # the checkpoint folder's lock, for the whole fit
-        solver, data, states, key, max_epochs = _prepare(
+        solver, data, states, key, max_epochs, spread = _prepare(
             system,
             data,
             x_init,
@@ -430,8 +435,11 @@ def fit(
         history: list[dict] = []
         fingerprint = None
         if checkpoint is not None:
-            template = dataclasses.replace(state, cache=None)
-            fingerprint = ckpt.fingerprint(template, problem, theta, solver)
+            template, local = dataclasses.replace(state, cache=None), problem
+            if spread:  # fingerprint and load on gathered arrays (a resumed state is local)
+                template = _local(template)
+                local = _local_problem(problem, system, trainable, log_prior)
+            fingerprint = ckpt.fingerprint(template, local, theta, solver)
             loaded = ckpt.load(checkpoint, template, fingerprint, mismatch=checkpoint_mismatch)
             if loaded is not None:
                 state, history = loaded
@@ -446,7 +454,11 @@ def fit(
             progress,
             checkpoint,
             fingerprint,
+            spread,
         )
+        if spread:  # the rest runs on every process alike, on gathered arrays (the result)
+            state, all_states = _local(dataclasses.replace(state, cache=None)), _local(all_states)
+            problem = _local_problem(problem, system, trainable, log_prior)
         state = solver.postprocess(problem, state)
         # Never "converged" when no trajectory took part or J is not finite.
         took_part = bool(np.any(np.asarray(state.weights) > 0))
@@ -504,21 +516,42 @@ def _prepare(
     max_epochs = _check_max_epochs(max_epochs)
     if key is not None:
         check_key(key)
+    mesh = resolve_devices(devices)
+    spread = mesh is not None and mesh.is_multi_process  # data over several processes' devices
+    if spread and isinstance(solver, LaplaceEM | ParticleEM):
+        raise ValueError(
+            f"`devices` spans {jax.process_count()} processes: a multi-process fit runs "
+            f"ceemx.JointLM or ceemx.Alternating; {type(solver).__name__} reads per-trajectory "
+            "values on the host that are not gathered across processes. Fit it in one process "
+            "(devices=None, or a mesh of jax.local_devices())."
+        )
     if checkpoint is not None:
         ckpt.check_folder(checkpoint, checkpoint_mismatch)
-        hold.enter_context(ckpt.lock(checkpoint))
+        if not spread or is_main_process():  # process 0 alone writes a multi-process fit's
+            hold.enter_context(ckpt.lock(checkpoint))
     system, data, x_init = promote_inputs(system, data, x_init)
     check_inputs(system, data)
     if x_init is None:
         x_init = solver.initial_states(system, data)
     check_inputs(system, data, x_init)
     states = jnp.asarray(x_init)
-    mesh = resolve_devices(devices)
     if mesh is not None:
         data, states = shard_batch(data, states, mesh)
     solver = trace_numbers(solver, states.dtype)
     key = jax.random.PRNGKey(0) if key is None else key
-    return solver, data, states, key, max_epochs
+    return solver, data, states, key, max_epochs, spread
+
+
+def _local(tree):
+    """``tree`` with every array gathered onto this process (after a multi-process fit)."""
+    return jax.tree.map(lambda a: jnp.asarray(to_host(a)) if eqx.is_array(a) else a, tree)
+
+
+def _local_problem(problem: FitProblem, system, trainable, log_prior) -> FitProblem:
+    """``problem`` over this process's copy of its data (gathered: a multi-process fit's)."""
+    return FitProblem.create(
+        system, _local(problem.data), trainable=trainable, log_prior=log_prior
+    )[0]
 
 
 def _check_noise_learnable(problem: FitProblem, solver: AbstractFitSolver) -> None:
@@ -579,10 +612,22 @@ def _check_noise(problem: FitProblem, solver, state: FitState, converged: bool):
 
 
 def _run_epochs(
-    solver, problem, state, history, max_epochs, callbacks, progress, checkpoint, fingerprint
+    solver,
+    problem,
+    state,
+    history,
+    max_epochs,
+    callbacks,
+    progress,
+    checkpoint,
+    fingerprint,
+    spread,
 ):
-    """The epoch loop: step, record, stop rule, callbacks, progress, checkpoints (into history)."""
-    show = sys.stderr.isatty() if progress is None else progress
+    """The epoch loop: step, record, stop rule, callbacks, progress, checkpoints (into history).
+
+    Over several processes (``spread``) only process 0 shows progress and writes checkpoints.
+    """
+    show = (sys.stderr.isatty() if progress is None else progress) and is_main_process()
     bar = _Progress(show, max_epochs, len(history), type(solver).__name__)
     converged = bool(history and history[-1].get("converged", False))
     stopped = bool(history and history[-1].get("stop", False))
@@ -603,7 +648,10 @@ def _run_epochs(
             history.append(record)
             bar.update(record)
             if checkpoint is not None:
-                ckpt.save(checkpoint, dataclasses.replace(state, cache=None), history, fingerprint)
+                saved = dataclasses.replace(state, cache=None)
+                saved = _local(saved) if spread else saved  # a collective: every process
+                if not spread or is_main_process():
+                    ckpt.save(checkpoint, saved, history, fingerprint)
     finally:
         bar.close()
     return state, converged
@@ -623,14 +671,14 @@ def _with_excluded(state: FitState, all_states, excluded: np.ndarray):
 
 def _record(epoch: int, before: FitState, after: FitState, elapsed: float, own: dict) -> dict:
     """The driver's history keys (see :class:`FitResult`) and the solver's own."""
-    ok = np.asarray(after.weights) > 0
-    dx = np.where(ok[:, None, None], np.asarray(after.states) - np.asarray(before.states), 0.0)
+    ok = to_host(after.weights) > 0
+    dx = np.where(ok[:, None, None], to_host(after.states) - to_host(before.states), 0.0)
     return {
         "epoch": epoch,
         "J_before": total_J(before),
         "J": total_J(after),
-        "J_per_trajectory": np.asarray(after.J).tolist(),
-        "dtheta_norm": float(np.linalg.norm(np.asarray(after.theta) - np.asarray(before.theta))),
+        "J_per_trajectory": to_host(after.J).tolist(),
+        "dtheta_norm": float(np.linalg.norm(to_host(after.theta) - to_host(before.theta))),
         "dx_norm": float(np.linalg.norm(dx)),
         "failed_trajectories": np.flatnonzero(~ok).tolist(),
         "time": elapsed,

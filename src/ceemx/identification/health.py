@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ceemx.identification.problem import FitProblem
+from ceemx.infra.distributed import to_host
 from ceemx.lib.typing import States, Theta
 
 __all__ = ["ABSURD_MEAN_SQUARE", "OUTLIER_OPTIONS", "Health", "check_start", "trajectory_health"]
@@ -70,12 +71,12 @@ def trajectory_health(
     from ceemx.identification.problem import per_trajectory_nll, per_trajectory_offset
 
     data = problem.data
-    nll = np.asarray(per_trajectory_nll(problem, theta, states), dtype=np.float64)
+    nll = to_host(per_trajectory_nll(problem, theta, states)).astype(np.float64)
     system = problem.build(theta)
-    c = np.asarray(per_trajectory_offset(problem, theta), dtype=np.float64)
+    c = to_host(per_trajectory_offset(problem, theta)).astype(np.float64)
     B, T, _ = data.y.shape
     n = system.state_dim
-    count = (T - 1) * n + np.asarray(data.mask).reshape(B, -1).sum(axis=1)
+    count = (T - 1) * n + to_host(data.mask).reshape(B, -1).sum(axis=1)
     if system.initial_prior is not None:
         count = count + n
     with np.errstate(all="ignore"):

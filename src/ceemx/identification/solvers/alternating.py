@@ -22,6 +22,7 @@ from ceemx.identification.solvers.base import (
 )
 from ceemx.identification.solvers.joint import end_point_identifiability
 from ceemx.inference import smoother as smoothing_solver
+from ceemx.infra.distributed import to_host
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes
 from ceemx.lib.typing import States, Theta
@@ -79,7 +80,7 @@ class Alternating(AbstractFitSolver):
         )
         sol.states.block_until_ready()
         t_smooth = time.perf_counter() - t0
-        failed = np.asarray(sol.status == RESULTS.nonfinite)
+        failed = to_host(sol.status == RESULTS.nonfinite)
         if failed.any():
             warn(
                 f"smoothing failed (non-finite objective) on trajectories "

@@ -32,6 +32,7 @@ from ceemx.identification.identifiability import Identifiability
 from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
 from ceemx.inference.smoother import LMSmoother
+from ceemx.infra.distributed import to_host
 from ceemx.infra.options import check_nonnegative
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
@@ -98,8 +99,8 @@ def starting_state(
 
 def total_J(state: FitState) -> float:
     """Σ_b J_b over the trajectories taking part (host-side)."""
-    w = np.asarray(state.weights)
-    return float(np.sum(np.where(w > 0, np.asarray(state.J), 0.0)))
+    w = to_host(state.weights)
+    return float(np.sum(np.where(w > 0, to_host(state.J), 0.0)))
 
 
 def improvement_converged(
@@ -186,7 +187,7 @@ class AbstractFitSolver(eqx.Module):
         self, problem: FitProblem, before: FitState, after: FitState, record: dict[str, Any]
     ) -> tuple[bool, bool]:
         """(stop, converged) after an epoch. Default: :func:`improvement_converged`."""
-        if not np.any(np.asarray(after.weights) > 0):
+        if not np.any(to_host(after.weights) > 0):
             return True, False  # every trajectory failed: nothing left to fit
         converged = improvement_converged(problem, before, after, self.rtol, self.atol)
         return converged, converged

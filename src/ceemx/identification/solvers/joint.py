@@ -66,6 +66,7 @@ from ceemx.identification.solvers.base import (
 )
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.objective import linearize
+from ceemx.infra.distributed import to_host
 from ceemx.infra.memory import check_fits
 from ceemx.infra.options import (
     check_bool,
@@ -180,7 +181,7 @@ class JointLM(AbstractFitSolver):
             "large n, LMSmoother(batch_chunk=...).",
         )
         J = trajectory_log_likelihood(problem, theta, states)
-        ok = np.isfinite(np.asarray(J))
+        ok = np.isfinite(to_host(J))
         if not ok.all():
             warn(
                 f"trajectories {np.flatnonzero(~ok).tolist()} have a non-finite objective at "
@@ -227,13 +228,13 @@ class JointLM(AbstractFitSolver):
             if found is not None:
                 record["identifiability"] = found.to_record()
                 stop = found.stopped
-        if stop and self.check_smoothing and np.any(np.asarray(ok)):
+        if stop and self.check_smoothing and np.any(to_host(ok)):
             new, record["smoothing_gain"] = self._smoothing_check(problem, new)
         return new, record
 
     def _stopping(self, problem, before, after, record) -> tuple[bool, bool]:
         """(stop, converged) by Algorithm 1's rule, the LM's predicted decrease, or stuck."""
-        if not np.any(np.asarray(after.weights) > 0):
+        if not np.any(to_host(after.weights) > 0):
             return True, False
         lm_converged = record["lm_status"] == int(codes(RESULTS.successful))
         if record["accepted"]:
@@ -274,7 +275,7 @@ class JointLM(AbstractFitSolver):
 
     def _smoothing_check(self, problem: FitProblem, state: FitState) -> tuple[FitState, float]:
         """One smoothing pass at the end θ; its states if it raises J materially."""
-        ok = np.asarray(state.weights) > 0
+        ok = to_host(state.weights) > 0
         sol = smoothing_solver.smooth_batch(
             trace_numbers(smoothing_solver.LMSmoother(), state.states.dtype),
             problem.build(state.theta),
@@ -282,8 +283,8 @@ class JointLM(AbstractFitSolver):
             problem.data,
             False,
         )
-        J_new = np.asarray(trajectory_log_likelihood(problem, state.theta, sol.states))
-        J_old = np.asarray(state.J)
+        J_new = to_host(trajectory_log_likelihood(problem, state.theta, sol.states))
+        J_old = to_host(state.J)
         better = ok & np.isfinite(J_new) & (J_new > J_old)
         gain = float(np.sum(np.where(better, J_new - J_old, 0.0)))
         if not gain > float(self.check_rtol) * objective_scale(problem, state):
@@ -428,7 +429,7 @@ def end_point_identifiability(
     Shorter or converged fits are not analysed (``FitResult.check_identifiability`` does it on
     demand): the analysis costs about one epoch, ≤ 5 % of such a fit.
     """
-    if converged or len(history) < MIN_EPOCHS or not np.any(np.asarray(state.weights) > 0):
+    if converged or len(history) < MIN_EPOCHS or not np.any(to_host(state.weights) > 0):
         return None
     return identifiability_at(problem, state)
 
