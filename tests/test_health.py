@@ -47,10 +47,17 @@ def test_outlier_start_is_excluded_and_named(lorenz, solver):
     np.testing.assert_array_equal(res.states[2], bad[2])  # returned as given
     np.testing.assert_allclose(res.states[:2], ref.states, rtol=1e-8, atol=1e-8)
     # Kept on request (the defect's behaviour, now opt-in and warned about) — but a start of
-    # 1e10 is beyond any fit (r ≈ 1e137 > 1e16: issue 24), refused even when kept; a start 10
-    # off (r ≈ 2e6, 3000 × the others) is kept.
+    # 1e10 is beyond any fit (r ≈ 1e137 > 1e16: issue 24), refused even when kept.
     with pytest.raises(ValueError, match=r"too far from the data to fit: trajectory 2 \(r = "):
         ceemx.fit(guess, data, bad, solver=solver, trainable=WHERE, max_epochs=2, outliers="warn")
+
+
+@pytest.mark.slow  # a fit of all three trajectories (the programs of B = 3, ≈ 3 s)
+def test_outlier_kept_on_request(lorenz):
+    """A start 10 off (r ≈ 2e6, 3000 × the others) is kept with outliers='warn', and it shows."""
+    guess, data, x0 = lorenz
+    solver = ceemx.Alternating()
+    ref = ceemx.fit(guess, data[:2], x0[:2], solver=solver, trainable=WHERE, max_epochs=30)
     off = x0.at[2].add(10.0)
     with pytest.warns(UserWarning, match="kept"):
         kept = ceemx.fit(

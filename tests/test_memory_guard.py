@@ -39,29 +39,16 @@ def test_check_fits_passes_small_and_refuses_large():
 
 
 def test_lm_learner_refuses_matrices_that_do_not_fit(problem, tiny_memory):
+    """The learning step (Algorithm 1's M-step; ``ceemx.learn`` alone: no smoother to compile)."""
     guess, states, data = problem
     trainable = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
     with pytest.raises(ValueError, match="LMLearner.*Gauss–Newton.*LBFGSLearner"):
-        ceemx.fit(
-            guess,
-            data,
-            states,
-            solver=ceemx.Alternating(),
-            trainable=trainable,
-            max_epochs=1,
-            progress=False,
-        )
+        ceemx.learn(guess, states, data, ceemx.LMLearner(), trainable=trainable)
     # A matrix-free learner runs.
-    res = ceemx.fit(
-        guess,
-        data,
-        states,
-        solver=ceemx.Alternating(learner=ceemx.LBFGSLearner(max_steps=5)),
-        trainable=trainable,
-        max_epochs=1,
-        progress=False,
+    new, _, _ = ceemx.learn(
+        guess, states, data, ceemx.LBFGSLearner(max_steps=5), trainable=trainable
     )
-    assert np.isfinite(res.history[-1]["J"])
+    assert np.isfinite(float(new.sigma[0]))
 
 
 def test_joint_method_refuses_a_border_that_does_not_fit(problem, tiny_memory):
