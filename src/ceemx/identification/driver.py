@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Literal
@@ -42,7 +43,7 @@ from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import States, no_type_check
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["EpochInfo", "FitResult", "fit", "particle_em"]
+__all__ = ["EpochInfo", "FitResult", "fit", "particle_em", "precompile_fit"]
 
 
 @dataclasses.dataclass
@@ -580,6 +581,41 @@ def _local_problem(problem: FitProblem, system, trainable, log_prior) -> FitProb
     return FitProblem.create(
         system, _local(problem.data), trainable=trainable, log_prior=log_prior
     )[0]
+
+
+def precompile_fit(
+    system: AbstractSystem,
+    data: Trajectories,
+    x_init: ArrayLike | None = None,
+    *,
+    solver: AbstractFitSolver | None = None,
+    trainable=None,
+    log_prior: Callable[[AbstractSystem], Any] | None = None,
+) -> threading.Thread:
+    """Start compiling the epoch programs of the same :func:`fit` call, in a background thread.
+
+    :func:`fit` does this itself while it computes the start states; call this when the start
+    states or the data come from your own work first (a warm start, loading, simulation), so the
+    compiler runs meanwhile on another core, then ``join()`` the thread before calling
+    :func:`fit` with the same ``system``, ``data`` shapes, ``solver``, ``trainable`` and
+    ``log_prior``. ``x_init`` may be ``None`` (the programs depend only on the states' shape and
+    dtype). Nothing is computed: only :meth:`AbstractFitSolver.precompile` (no-op for solvers
+    without one). Arguments are validated as by :func:`fit`.
+
+    Returns:
+        The started thread.
+    """
+    solver = Alternating() if solver is None else solver
+    if not isinstance(solver, AbstractFitSolver):
+        raise TypeError(f"`solver` must be a fit solver; got {solver!r}.")
+    given = system
+    system, data, x_init = promote_inputs(system, data, x_init)
+    check_inputs(system, data)
+    if x_init is not None:
+        check_inputs(system, data, x_init)
+    return _precompile(
+        trace_numbers(solver, data.y.dtype), given, data, x_init, trainable, log_prior
+    )
 
 
 def _precompile(solver, system, data, x_init, trainable, log_prior):

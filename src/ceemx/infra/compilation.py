@@ -27,7 +27,18 @@ from pathlib import Path
 
 import jax
 
-__all__ = ["compile_in_background", "default_cache_dir", "enable_compilation_cache"]
+__all__ = [
+    "FAST_COMPILE_FLAGS",
+    "compile_in_background",
+    "default_cache_dir",
+    "enable_compilation_cache",
+    "use_fast_compilation",
+]
+
+#: XLA:CPU options that :func:`use_fast_compilation` adds: the classic (non-MLIR) fusion emitters,
+#: which compile ceemx's programs in about half the CPU time (benchmarks/README.md, "First-fit
+#: latency"); the same HLO optimisations and LLVM -O2 run either way.
+FAST_COMPILE_FLAGS = {"xla_cpu_use_fusion_emitters": "false"}
 
 _OFF = ("0", "off", "none", "false", "no")
 
@@ -69,7 +80,9 @@ def enable_compilation_cache(
     return folder
 
 
-def compile_in_background(work: Callable[[], object], name: str = "ceemx-compile") -> threading.Thread:
+def compile_in_background(
+    work: Callable[[], object], name: str = "ceemx-compile"
+) -> threading.Thread:
     """Run ``work`` (ahead-of-time ``lower(...).compile()`` calls) in a daemon thread; started.
 
     A compiled program lands in JAX's in-memory caches, so the later call with arguments of the
@@ -89,3 +102,33 @@ def compile_in_background(work: Callable[[], object], name: str = "ceemx-compile
     thread = threading.Thread(target=run, name=name, daemon=True)
     thread.start()
     return thread
+
+
+def use_fast_compilation() -> bool:
+    """Add :data:`FAST_COMPILE_FLAGS` to this process's ``XLA_FLAGS`` (before JAX starts).
+
+    Process-local: it edits the environment variable XLA reads when its CPU backend starts, so it
+    works only before JAX's first computation (the ``ceemx`` command calls it first thing) and
+    is inherited by subprocesses. A flag ``XLA_FLAGS`` already names is left as it is;
+    ``CEEMX_XLA_DEFAULTS=1`` keeps XLA's defaults.
+
+    Returns:
+        Whether the flags are in effect: ``False`` when JAX had already started (nothing is
+        changed then) or ``CEEMX_XLA_DEFAULTS=1``.
+    """
+    if os.environ.get("CEEMX_XLA_DEFAULTS", "").strip() == "1" or _backend_started():
+        return False
+    flags = os.environ.get("XLA_FLAGS", "")
+    extra = [f"--{k}={v}" for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags]
+    os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
+    return True
+
+
+def _backend_started() -> bool:
+    """Whether JAX's backends exist already (no public query; False when unknown)."""
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return False
