@@ -34,8 +34,8 @@ from ceemx.identification.solvers.laplace import LaplaceEM
 from ceemx.identification.solvers.particle_em import ParticleEM
 from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra import checkpoint as ckpt
-from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.compilation import compile_in_background
+from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.options import check_key
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, from_codes, messages, select
