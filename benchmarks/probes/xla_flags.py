@@ -33,6 +33,8 @@ import time
 SETS = {
     "default": "",
     "noemit": "--xla_cpu_use_fusion_emitters=false",
+    "split1": "--xla_cpu_parallel_codegen_split_count=1",
+    "noexp": "--xla_llvm_disable_expensive_passes=true",
     "noemit_split1": "--xla_cpu_use_fusion_emitters=false --xla_cpu_parallel_codegen_split_count=1",
     "noemit_O1": "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1",
     "tests": "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 "
