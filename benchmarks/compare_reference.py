@@ -97,6 +97,10 @@ def ceemx_worker(problem_path: str, out_path: str) -> None:
     from ceemx.experiments import common
     from ceemx.models import with_noise
 
+    if os.environ.get("CEEMX_BENCH_FAST_COMPILE") == "1":  # before JAX's first computation
+        from ceemx.infra.compilation import use_fast_compilation
+
+        use_fast_compilation()
     cache = os.environ.get("CEEMX_BENCH_CACHE")
     if cache:  # a persistent compilation cache (a second run finds the programs compiled)
         ceemx.enable_compilation_cache(cache)
@@ -161,8 +165,10 @@ def run_reference(problem: pathlib.Path, out: pathlib.Path) -> dict:
     return {"process_s": time.perf_counter() - t0, "fits": rec}
 
 
-def run_ceemx(problem: pathlib.Path, out: pathlib.Path, cache: str | None = None) -> dict:
-    env = dict(os.environ, CEEMX_COMPILATION_CACHE="0")
+def run_ceemx(
+    problem: pathlib.Path, out: pathlib.Path, cache: str | None = None, fast: bool = False
+) -> dict:
+    env = dict(os.environ, CEEMX_COMPILATION_CACHE="0", CEEMX_BENCH_FAST_COMPILE=str(int(fast)))
     if cache:
         env["CEEMX_BENCH_CACHE"] = cache
     t0 = time.perf_counter()
@@ -228,6 +234,12 @@ def main() -> None:
         help="ceemx's persistent compilation cache folder (default: none, every run compiles); "
         "run twice to measure a warm cache",
     )
+    ap.add_argument(
+        "--fast-compile",
+        action="store_true",
+        help="the ceemx process calls ceemx.infra.compilation.use_fast_compilation() first "
+        "(what the ceemx command does)",
+    )
     ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -251,7 +263,9 @@ def main() -> None:
             rec: dict = {"rep": rep, "load_before": load()}
             if have_ref:
                 rec["reference"] = run_reference(problem, tmp / f"ref{rep}.json")
-            rec["ceemx"] = run_ceemx(problem, tmp / f"ceemx{rep}.json", args.cache)
+            rec["ceemx"] = run_ceemx(
+                problem, tmp / f"ceemx{rep}.json", args.cache, args.fast_compile
+            )
             rec["load_after"] = load()
             runs.append(rec)
             print(f"rep {rep}: load {rec['load_before']:.2f} → {rec['load_after']:.2f}", flush=True)
@@ -267,6 +281,8 @@ def main() -> None:
             "sigma_v": SIGMA_V,
             "reps": reps,
             "integrator": "midpoint",
+            "fast_compile": bool(args.fast_compile),
+            "cache": bool(args.cache),
         },
         "summary": summary,
         "runs": runs,

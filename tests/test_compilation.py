@@ -42,3 +42,33 @@ def test_environment_switches(monkeypatch, tmp_path):
     assert default_cache_dir() == tmp_path / "ceemx" / "jax"
     with pytest.raises(ValueError, match="min_compile_time_s"):
         enable_compilation_cache(tmp_path, min_compile_time_s=-1.0)
+
+
+def test_fast_compilation_flags(monkeypatch):
+    """Added to XLA_FLAGS before JAX starts; a flag the user set and the opt-out are respected."""
+    from ceemx.infra import compilation
+
+    monkeypatch.setattr(compilation, "_backend_started", lambda: False)
+    monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
+    assert compilation.use_fast_compilation()
+    assert os.environ["XLA_FLAGS"] == "--xla_dump_to=/tmp/x --xla_cpu_use_fusion_emitters=false"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert compilation.use_fast_compilation()
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    monkeypatch.setenv("CEEMX_XLA_DEFAULTS", "1")
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert not compilation.use_fast_compilation()
+    assert os.environ["XLA_FLAGS"] == ""
+
+
+def test_fast_compilation_after_jax_started_changes_nothing(monkeypatch):
+    import jax.numpy as jnp
+
+    from ceemx.infra.compilation import use_fast_compilation
+
+    jnp.zeros(1).block_until_ready()  # the backend runs
+    monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert not use_fast_compilation()
+    assert os.environ["XLA_FLAGS"] == ""

@@ -21,6 +21,7 @@ import numpy as np
 from ceemx import fit, report
 from ceemx.evaluation import metrics as ev
 from ceemx.experiments import common
+from ceemx.identification.driver import precompile_fit
 from ceemx.identification.initialize import warm_start
 from ceemx.models import with_noise
 from ceemx.systems import CoupledLorenz
@@ -53,7 +54,13 @@ def identify(true, problem, *, method: str, max_epochs: int, say) -> Identified:
     # Fit with the observation noise σ_v = 0.01 and a small process noise (the data are
     # deterministic; a zero process noise has no density).
     system = with_noise(problem.init_system, 0.01, 0.01)
+    solver = common.make_solver(method, rtol=1e-10)
+    # The fit's programs compile on another core while the warm start runs.
+    compiling = precompile_fit(
+        system, problem.data, solver=solver, trainable=common.LORENZ_PARAMS_H
+    )
     x_init = warm_start(system, problem.data)
+    compiling.join()
 
     def show(info, eps):
         say(
@@ -70,7 +77,7 @@ def identify(true, problem, *, method: str, max_epochs: int, say) -> Identified:
         system,
         problem.data,
         x_init,
-        solver=common.make_solver(method, rtol=1e-10),
+        solver=solver,
         trainable=common.LORENZ_PARAMS_H,
         max_epochs=max_epochs,
         callbacks=[record_eps, timer],

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Literal
@@ -33,6 +34,7 @@ from ceemx.identification.solvers.laplace import LaplaceEM
 from ceemx.identification.solvers.particle_em import ParticleEM
 from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra import checkpoint as ckpt
+from ceemx.infra.compilation import compile_in_background
 from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.options import check_key
 from ceemx.infra.warn import warn
@@ -41,7 +43,7 @@ from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import States, no_type_check
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["EpochInfo", "FitResult", "fit", "particle_em"]
+__all__ = ["EpochInfo", "FitResult", "fit", "particle_em", "precompile_fit"]
 
 
 @dataclasses.dataclass
@@ -406,7 +408,7 @@ def fit(
     if noise != "fixed":
         return _fit_learning_noise(noise, solver, system, data, x_init, locals())
     with contextlib.ExitStack() as hold:  # the checkpoint folder's lock, for the whole fit
-        solver, data, states, key, max_epochs, spread = _prepare(
+        solver, data, states, key, max_epochs, spread, compiling = _prepare(
             system,
             data,
             x_init,
@@ -417,6 +419,8 @@ def fit(
             key,
             devices,
             hold,
+            trainable,
+            log_prior,
         )
         problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
         _check_noise_learnable(problem, solver)
@@ -444,6 +448,8 @@ def fit(
             if loaded is not None:
                 state, history = loaded
 
+        if compiling is not None:  # the epoch programs compiled beside the start states
+            compiling.join()
         state, converged = _run_epochs(
             solver,
             problem,
@@ -501,11 +507,25 @@ def _fit_learning_noise(noise, solver, system, data, x_init, arguments: dict) ->
 
 
 def _prepare(
-    system, data, x_init, solver, max_epochs, checkpoint, checkpoint_mismatch, key, devices, hold
+    system,
+    data,
+    x_init,
+    solver,
+    max_epochs,
+    checkpoint,
+    checkpoint_mismatch,
+    key,
+    devices,
+    hold,
+    trainable,
+    log_prior,
 ):
     """Validate the inputs (before any compute); the solver, data and start states to fit.
 
     The checkpoint folder's lock is entered into the exit stack ``hold``: held until the fit ends.
+    The last value returned is the thread compiling the solver's epoch programs while the start
+    states are computed (:meth:`AbstractFitSolver.precompile`; ``None`` when there is none):
+    join it before the first epoch.
     """
     solver = Alternating() if solver is None else solver
     if not isinstance(solver, AbstractFitSolver):
@@ -529,17 +549,26 @@ def _prepare(
         ckpt.check_folder(checkpoint, checkpoint_mismatch)
         if not spread or is_main_process():  # process 0 alone writes a multi-process fit's
             hold.enter_context(ckpt.lock(checkpoint))
+    given = system  # fit builds its problem from the system as given
     system, data, x_init = promote_inputs(system, data, x_init)
     check_inputs(system, data)
+    if x_init is not None:
+        check_inputs(system, data, x_init)
+    dtype = data.y.dtype  # the working dtype (promote_inputs)
+    compiling = None
+    if mesh is None and type(solver).precompile is not AbstractFitSolver.precompile:
+        compiling = _precompile(
+            trace_numbers(solver, dtype), given, data, x_init, trainable, log_prior
+        )
     if x_init is None:
         x_init = solver.initial_states(system, data)
-    check_inputs(system, data, x_init)
+        check_inputs(system, data, x_init)
     states = jnp.asarray(x_init)
     if mesh is not None:
         data, states = shard_batch(data, states, mesh)
     solver = trace_numbers(solver, states.dtype)
     key = jax.random.PRNGKey(0) if key is None else key
-    return solver, data, states, key, max_epochs, spread
+    return solver, data, states, key, max_epochs, spread, compiling
 
 
 def _local(tree):
@@ -552,6 +581,56 @@ def _local_problem(problem: FitProblem, system, trainable, log_prior) -> FitProb
     return FitProblem.create(
         system, _local(problem.data), trainable=trainable, log_prior=log_prior
     )[0]
+
+
+def precompile_fit(
+    system: AbstractSystem,
+    data: Trajectories,
+    x_init: ArrayLike | None = None,
+    *,
+    solver: AbstractFitSolver | None = None,
+    trainable=None,
+    log_prior: Callable[[AbstractSystem], Any] | None = None,
+) -> threading.Thread:
+    """Start compiling the epoch programs of the same :func:`fit` call, in a background thread.
+
+    :func:`fit` does this itself while it computes the start states; call this when the start
+    states or the data come from your own work first (a warm start, loading, simulation), so the
+    compiler runs meanwhile on another core, then ``join()`` the thread before calling
+    :func:`fit` with the same ``system``, ``data`` shapes, ``solver``, ``trainable`` and
+    ``log_prior``. ``x_init`` may be ``None`` (the programs depend only on the states' shape and
+    dtype). Nothing is computed: only :meth:`AbstractFitSolver.precompile` (no-op for solvers
+    without one). Arguments are validated as by :func:`fit`.
+
+    Returns:
+        The started thread.
+    """
+    solver = Alternating() if solver is None else solver
+    if not isinstance(solver, AbstractFitSolver):
+        raise TypeError(f"`solver` must be a fit solver; got {solver!r}.")
+    given = system
+    system, data, x_init = promote_inputs(system, data, x_init)
+    check_inputs(system, data)
+    if x_init is not None:
+        check_inputs(system, data, x_init)
+    return _precompile(
+        trace_numbers(solver, data.y.dtype), given, data, x_init, trainable, log_prior
+    )
+
+
+def _precompile(solver, system, data, x_init, trainable, log_prior):
+    """Start compiling the solver's epoch programs in a background thread (returned).
+
+    The problem and θ are those :func:`fit` builds next; without ``x_init`` the states are
+    zeros of the start states' shape and dtype (the programs depend on those alone).
+    """
+    problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
+    if x_init is None:
+        B, T, _ = data.y.shape
+        states = jnp.zeros((B, T, system.state_dim), data.y.dtype)
+    else:
+        states = jnp.asarray(x_init)
+    return compile_in_background(lambda: solver.precompile(problem, theta, states))
 
 
 def _check_noise_learnable(problem: FitProblem, solver: AbstractFitSolver) -> None:

@@ -12,16 +12,33 @@ order: the ``path`` argument, the ``CEEMX_COMPILATION_CACHE`` environment variab
 ``none`` turns the cache off. Entries are keyed by JAX on the program and its compile options; a
 JAX or jaxlib upgrade simply misses. The cache grows without bound: delete the folder to reclaim
 space.
+
+:func:`compile_in_background` compiles programs in a worker thread: :func:`ceemx.fit` compiles
+the solver's epoch programs there while the main thread computes the start states (XLA releases
+the interpreter lock while it compiles, so two programs compile at once on two cores).
 """
 
 from __future__ import annotations
 
 import os
+import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
 
-__all__ = ["default_cache_dir", "enable_compilation_cache"]
+__all__ = [
+    "FAST_COMPILE_FLAGS",
+    "compile_in_background",
+    "default_cache_dir",
+    "enable_compilation_cache",
+    "use_fast_compilation",
+]
+
+#: XLA:CPU options that :func:`use_fast_compilation` adds: the classic (non-MLIR) fusion emitters,
+#: which compile ceemx's programs in about half the CPU time (benchmarks/README.md, "First-fit
+#: latency"); the same HLO optimisations and LLVM -O2 run either way.
+FAST_COMPILE_FLAGS = {"xla_cpu_use_fusion_emitters": "false"}
 
 _OFF = ("0", "off", "none", "false", "no")
 
@@ -33,7 +50,7 @@ def default_cache_dir() -> Path:
 
 
 def enable_compilation_cache(
-    path: str | os.PathLike | None = None, *, min_compile_time_s: float = 0.2
+    path: str | os.PathLike | None = None, *, min_compile_time_s: float = 0.0
 ) -> Path | None:
     """Turn on JAX's persistent compilation cache (see the module notes for the folder).
 
@@ -61,3 +78,57 @@ def enable_compilation_cache(
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return folder
+
+
+def compile_in_background(
+    work: Callable[[], object], name: str = "ceemx-compile"
+) -> threading.Thread:
+    """Run ``work`` (ahead-of-time ``lower(...).compile()`` calls) in a daemon thread; started.
+
+    A compiled program lands in JAX's in-memory caches, so the later call with arguments of the
+    same shapes, dtypes (weak types included) and static parts runs it without compiling again;
+    a call with other arguments compiles as usual. ``work`` must only lower and compile, never
+    execute: programs running concurrently can contend for the LAPACK thread pool. Any exception
+    in ``work`` is dropped (the later call compiles and reports it). ``join()`` the thread before
+    the calls it prepares: two threads compiling the same program both pay for it.
+    """
+
+    def run() -> None:
+        try:
+            work()
+        except Exception:  # noqa: BLE001 — the real call compiles and raises it
+            pass
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    thread.start()
+    return thread
+
+
+def use_fast_compilation() -> bool:
+    """Add :data:`FAST_COMPILE_FLAGS` to this process's ``XLA_FLAGS`` (before JAX starts).
+
+    Process-local: it edits the environment variable XLA reads when its CPU backend starts, so it
+    works only before JAX's first computation (the ``ceemx`` command calls it first thing) and
+    is inherited by subprocesses. A flag ``XLA_FLAGS`` already names is left as it is;
+    ``CEEMX_XLA_DEFAULTS=1`` keeps XLA's defaults.
+
+    Returns:
+        Whether the flags are in effect: ``False`` when JAX had already started (nothing is
+        changed then) or ``CEEMX_XLA_DEFAULTS=1``.
+    """
+    if os.environ.get("CEEMX_XLA_DEFAULTS", "").strip() == "1" or _backend_started():
+        return False
+    flags = os.environ.get("XLA_FLAGS", "")
+    extra = [f"--{k}={v}" for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags]
+    os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
+    return True
+
+
+def _backend_started() -> bool:
+    """Whether JAX's backends exist already (no public query; False when unknown)."""
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return False

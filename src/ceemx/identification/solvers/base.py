@@ -9,7 +9,10 @@ checkpoints, timing — and calls:
   history entries (documented in its ``history_keys``);
 - ``terminate(problem, before, after, record) -> (stop, converged)`` after every epoch;
 - ``postprocess(problem, state) -> state`` once at the end;
-- ``identifiability(problem, state, history, converged)`` once after it (default ``None``).
+- ``identifiability(problem, state, history, converged)`` once after it (default ``None``);
+- ``precompile(problem, theta, states)`` before all of these, in a background thread while the
+  driver computes the start states: it compiles (never runs) the programs ``step`` will call, so
+  that they compile beside the start-state smoother instead of after it (default: nothing).
 
 Heavy work inside ``step`` runs in ``eqx.filter_jit``-compiled functions whose arguments keep their
 shapes and dtypes across epochs, so an EM run compiles once. The driver converts the solver's
@@ -172,6 +175,18 @@ class AbstractFitSolver(eqx.Module):
         own = getattr(self, "smoother", None)
         chunk = own.batch_chunk if isinstance(own, LMSmoother) else None
         return warm_start(system, data, smoother=LMSmoother(batch_chunk=chunk))
+
+    def precompile(self, problem: FitProblem, theta: Theta, states: States) -> None:
+        """Compile the programs of ``step`` for these shapes, without running them (optional).
+
+        :func:`ceemx.fit` calls it in a background thread
+        (:func:`ceemx.infra.compilation.compile_in_background`) with the problem, θ and start
+        states ``init`` will receive (the states may be placeholders of the right shape and
+        dtype, computed meanwhile). Only ``lower(...).compile()`` of the programs, with arguments
+        of exactly the shapes, dtypes and static parts of the later calls; nothing may execute
+        here. Default: nothing.
+        """
+        del problem, theta, states
 
     @abc.abstractmethod
     def init(

@@ -196,6 +196,18 @@ class JointLM(AbstractFitSolver):
             solver_state=jnp.asarray(self.damping, states.dtype),
         )
 
+    def precompile(self, problem: FitProblem, theta: Theta, states: States) -> None:
+        """Compile the joint iteration and the identifiability check's S (nothing runs).
+
+        The arguments are built as :meth:`init` and :meth:`step` build theirs (weights and λ
+        of the states' dtype), so the epochs find both programs compiled.
+        """
+        weights = jnp.ones(states.shape[:1], states.dtype)
+        lam = jnp.asarray(self.damping, states.dtype)
+        _iteration.lower(self, problem, weights, theta, states, lam).compile()
+        if self.check_identifiability and theta.shape[0] <= MAX_P:
+            schur_complement.lower(problem, theta, states, weights).compile()
+
     def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict]:
         """One accepted LM step on (x, θ) (or the trials that failed to find one)."""
         theta, states, lam, code, n_acc, trials, nll = _iteration(
