@@ -24,6 +24,19 @@ What is measured (float64, JAX on CPU; issue 12, item 7):
    the LM learner and with the L-BFGS learner, vs T and K (K ≤ 10), compile apart (first epoch −
    median of the later ones, from the history's ``time``), a fresh process per (T, K).
 
+4. **Long records** (``--only long``; issue 23 item 5): one record of the mass–spring–damper of
+   ``benchmarks/laplace_long_record.py`` (n = 2, m = 1, dt 0.1, foh, 2 RK4 substeps) for T from
+   10³ to 10⁵ (log spaced), each (T, method) in a fresh process: smoothing
+   (``ceemx.smooth``, 5 LM iterations per call at the start θ), a ``JointLM`` fit and a
+   ``LaplaceEM(acceleration="quasi_newton")`` fit with learned noise (both to convergence from
+   the same start, as ``laplace_long_record.py``; an iteration of it is one E-step and one
+   gradient of Q, so its time per epoch is the Laplace E-step's and M-step's scaling). Steady
+   time per call and per iteration/epoch (median of ≥ 3 calls
+   after a first, compiling one; compile = first − steady), peak memory of the process
+   (``ru_maxrss``) beside the same process's high-water mark before the first call, and log–log
+   fits (slope, intercept, R²) of the time per iteration and of the memory increment against T,
+   written to ``benchmarks/results/scaling_long.json``.
+
 The K = 100 identification attempt is ``benchmarks/k100.py`` (``--k100`` here runs it).
 
 Usage::
@@ -32,13 +45,15 @@ Usage::
     python benchmarks/scaling.py --quick              # ≈ 6 min under load
     python benchmarks/scaling.py --smoke --out x.json # seconds per case, a few tiny cases
     python benchmarks/scaling.py --only smooth        # or: fit
+    python benchmarks/scaling.py --only long          # long records, T = 10³…10⁵ (≈ 10 min)
     python benchmarks/scaling.py --grid b8 --out x.json  # the first smoother sweep (≈ 5 min)
     taskset -c 0 python benchmarks/scaling.py --only smooth --sweeps K \
         --variant pinned_one_core --out benchmarks/results/scaling.json  # add a pinned K sweep
     python benchmarks/scaling.py --k100 [k100 options]  # = python benchmarks/k100.py ...
 
 Writes ``--out`` (default ``benchmarks/results/scaling.json`` for the default and ``--quick``
-grids; no default with ``--smoke`` or ``--grid b8``).
+grids, ``benchmarks/results/scaling_long.json`` for ``--only long``; no default with ``--smoke``
+or ``--grid b8``).
 
 The ``b8`` grid is the first smoother sweep (2026-11-21; formerly ``smoother_scaling.py``): T ∈
 {128, …, 4096} and B ∈ {1, …, 64} around T = 128, B = 8, K = 6, and K ∈ {1, 2, 5, 10, 20} at
@@ -78,6 +93,16 @@ from ceemx.systems import (  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "scaling.json")
+DEFAULT_LONG_OUT = os.path.join(HERE, "results", "scaling_long.json")
+#: T of the long-record sweep (``--only long``) per grid
+LONG_T = {
+    "default": [1000, 3162, 10000, 31623, 100000],
+    "quick": [1000, 10000, 100000],
+    "smoke": [300, 1000],
+    "b8": [],
+}
+LONG_METHODS = ("smooth", "joint_lm", "laplace_em_qn")
+LONG_SMOOTH_STEPS = 5
 
 # --- grids ------------------------------------------------------------------------------------
 # Each sweep: (variable, values, base case). The K sweep uses a small T·B so that K = 100 fits.
@@ -152,6 +177,19 @@ def make_problem(T: int, B: int, K: int, seed: int = 0):
 def slope(xs, ys) -> float:
     """Least-squares slope of log y against log x."""
     return float(np.polyfit(np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float)), 1)[0])
+
+
+def loglog_fit(xs, ys) -> dict[str, float]:
+    """Least-squares line through (log x, log y): slope, intercept and R²."""
+    lx, ly = np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float))
+    b, a = np.polyfit(lx, ly, 1)
+    resid = ly - (a + b * lx)
+    ss = float(np.sum((ly - ly.mean()) ** 2))
+    return {
+        "slope": float(b),
+        "intercept": float(a),
+        "r2": 1.0 - float(np.sum(resid**2)) / ss if ss > 0 else float("nan"),
+    }
 
 
 def steps_for(n: int) -> int:
@@ -353,6 +391,139 @@ def fit_case(T: int, K: int, B: int, epochs: int) -> dict:
     return out
 
 
+def _maxrss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+
+
+def long_case(T: int, method: str, repeats: int) -> dict:
+    """One long-record case (T, method) in this process (module docstring, item 4)."""
+    sys.path.insert(0, HERE)
+    import laplace_long_record as llr
+
+    start, data = llr.problem(T)
+    jax.block_until_ready(data)
+    base_mb = _maxrss_mb()
+    load0 = os.getloadavg()[0]
+    out: dict = {"T": T, "method": method}
+    if method == "smooth":
+        x_init = jnp.zeros((1, T, start.state_dim), data.y.dtype)
+        solver = ceemx.LMSmoother(max_steps=LONG_SMOOTH_STEPS, rtol=0.0, atol=0.0)
+
+        def call():
+            t0 = time.perf_counter()
+            sol = jax.block_until_ready(ceemx.smooth(start, data, x_init, solver))
+            return time.perf_counter() - t0, int(np.max(np.asarray(sol.iterations))), None
+    else:
+        fitter = llr.METHODS[method]
+
+        def call():
+            t0 = time.perf_counter()
+            res = fitter(start, data)
+            wall = time.perf_counter() - t0
+            est = {"k": float(res.system.k), "c": float(res.system.c)}
+            if method.startswith("laplace_em"):
+                est["sigma_w"] = float(np.ravel(res.system.process_noise.std())[0])
+                est["sigma_v"] = float(np.ravel(res.system.obs_noise.std())[0])
+                est["log_evidence"] = res.history[-1].get("log_evidence")
+            return wall, len(res.history), est
+
+    first, iters0, est = call()
+    first_mb = _maxrss_mb()
+    runs, per_iter, iters = [], [], []
+    for _ in range(max(repeats, 3)):
+        wall, it, est = call()
+        runs.append(wall)
+        iters.append(it)
+        per_iter.append(wall / max(it, 1))
+    steady = statistics.median(runs)
+    out.update(
+        {
+            "first_call_s": first,
+            "steady_call_s": steady,
+            "steady_runs_s": runs,
+            "compile_s": first - steady,
+            "iterations": iters,
+            "per_iter_s": statistics.median(per_iter),
+            "per_iter_per_step_us": 1e6 * statistics.median(per_iter) / T,
+            "estimates": est,
+            "baseline_rss_mb": base_mb,
+            "peak_rss_after_first_mb": first_mb,
+            "peak_rss_mb": _maxrss_mb(),
+            "peak_increment_mb": _maxrss_mb() - base_mb,
+            "loadavg_1min": [load0, os.getloadavg()[0]],
+        }
+    )
+    return out
+
+
+def long_table(rows: list[dict]) -> str:
+    lines = [
+        "| method | T | steady call (s) | iterations | per iteration (ms) | per iter·step (µs) "
+        "| compile (s) | peak RSS (MB) | increment (MB) | load |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['method']} | {r['T']} | {r['steady_call_s']:.3f} | {r['iterations'][0]} "
+            f"| {1e3 * r['per_iter_s']:.1f} | {r['per_iter_per_step_us']:.2f} "
+            f"| {r['compile_s']:.1f} | {r['peak_rss_mb']:.0f} | {r['peak_increment_mb']:.0f} "
+            f"| {r['loadavg_1min'][0]:.1f}–{r['loadavg_1min'][1]:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def long_sweep(Ts: list[int], repeats: int) -> dict:
+    """The long-record sweep: a fresh process per (T, method); log–log fits against T."""
+    rows, fits = [], {}
+    for method in LONG_METHODS:
+        mrows = []
+        for T in Ts:
+            r = run_worker(["--worker-long", str(T), method, "--repeats", str(repeats)])
+            mrows.append(r)
+            print(
+                f"long {method} T={T}: {r['steady_call_s']:.3f} s, {r['iterations'][0]} iter, "
+                f"{1e3 * r['per_iter_s']:.1f} ms/iter, peak {r['peak_rss_mb']:.0f} MB "
+                f"(+{r['peak_increment_mb']:.0f}), load {r['loadavg_1min'][0]:.1f}",
+                flush=True,
+            )
+        rows += mrows
+        xs = [r["T"] for r in mrows]
+        fits[method] = {
+            "time_per_iteration": loglog_fit(xs, [r["per_iter_s"] for r in mrows]),
+            "time_per_call": loglog_fit(xs, [r["steady_call_s"] for r in mrows]),
+            "peak_rss": loglog_fit(xs, [r["peak_rss_mb"] for r in mrows]),
+            "peak_increment": loglog_fit(xs, [max(r["peak_increment_mb"], 1e-3) for r in mrows]),
+        }
+        big = [r for r in mrows if r["T"] >= 10000]
+        if len(big) >= 2:
+            fits[method]["peak_increment_T_ge_1e4"] = loglog_fit(
+                [r["T"] for r in big], [max(r["peak_increment_mb"], 1e-3) for r in big]
+            )
+    print(f"### Long records (one record, mass–spring–damper)\n\n{long_table(rows)}\n")
+    for method, f in fits.items():
+        print(
+            f"{method}: slope time/iteration {f['time_per_iteration']['slope']:.2f} "
+            f"(R² {f['time_per_iteration']['r2']:.3f}), time/call "
+            f"{f['time_per_call']['slope']:.2f}, memory increment "
+            f"{f['peak_increment']['slope']:.2f}"
+        )
+    target = {
+        "criterion": "log–log slope of time per iteration and of the memory increment "
+        "(T ≥ 10⁴) against T within 1 ± 0.15",
+        "met": {
+            m: {
+                "time": abs(f["time_per_iteration"]["slope"] - 1.0) <= 0.15,
+                "memory": abs(f.get("peak_increment_T_ge_1e4", f["peak_increment"])["slope"] - 1.0)
+                <= 0.15,
+            }
+            for m, f in fits.items()
+        },
+    }
+    return {"T": Ts, "rows": rows, "fits": fits, "target": target}
+
+
 def run_worker(args: list[str]) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), *args]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -461,7 +632,7 @@ def main(argv=None) -> dict:
         "no fits; ≈ 5 min)",
     )
     p.add_argument("--out", type=str, default=None)
-    p.add_argument("--only", choices=("smooth", "fit"), default=None)
+    p.add_argument("--only", choices=("smooth", "fit", "long"), default=None)
     p.add_argument(
         "--sweeps", type=str, default="T,B,K", help="smoothing sweeps to run (default T,B,K)"
     )
@@ -476,6 +647,8 @@ def main(argv=None) -> dict:
     p.add_argument("--min-time", type=float, default=None, help="min steady seconds per case")
     p.add_argument("--worker-smooth", type=int, nargs=4, help=argparse.SUPPRESS)
     p.add_argument("--worker-fit", type=int, nargs=4, help=argparse.SUPPRESS)
+    p.add_argument("--worker-long", nargs=2, help=argparse.SUPPRESS)
+    p.add_argument("--long-T", type=int, nargs="+", default=None, help="T of --only long")
     args = p.parse_args(argv)
     min_time = args.min_time if args.min_time is not None else (0.0 if args.smoke else 1.0)
 
@@ -486,10 +659,15 @@ def main(argv=None) -> dict:
     if args.worker_fit:
         print(json.dumps(fit_case(*args.worker_fit)))
         return {}
+    if args.worker_long:
+        T, method = int(args.worker_long[0]), args.worker_long[1]
+        print(json.dumps(long_case(T, method, args.repeats)))
+        return {}
 
     name = "smoke" if args.smoke else ("quick" if args.quick else (args.grid or "default"))
     grid = GRIDS[name]
-    out_path = args.out if args.out else (DEFAULT_OUT if name in ("default", "quick") else None)
+    default_out = DEFAULT_LONG_OUT if args.only == "long" else DEFAULT_OUT
+    out_path = args.out if args.out else (default_out if name in ("default", "quick") else None)
     t_start = time.perf_counter()
     env = environment()
     print(
@@ -572,6 +750,9 @@ def main(argv=None) -> dict:
             },
             "target_5x": target,
         }
+
+    if args.only == "long":
+        result["long"] = long_sweep(args.long_T or LONG_T[name], args.repeats)
 
     if args.only in (None, "fit") and grid["fit"]:
         fg = grid["fit"]
