@@ -413,3 +413,87 @@ def test_parameters_saturated_at_a_bound_survive_learned_noise():
     joined = split.join(split.theta_inner, noisier)
     assert np.all(np.isfinite(joined)) and float(unravel(joined).a) == 60.0
     assert float(problem.build(joined).obs_noise.scale) == pytest.approx(0.3)
+
+
+def test_quasi_newton_bfgs_update_keeps_the_secant_and_positive_definite():
+    """The damped BFGS update of the quasi-Newton acceleration: H⁻¹y = s where sᵀy is large
+    enough; positive definite (and no secant) where the objective is not concave along s."""
+    from ceemx.identification.solvers.laplace import _bfgs
+
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(4, 4))
+    Hinv = M @ M.T + np.eye(4)
+    s = rng.normal(size=4)
+    y = np.linalg.solve(Hinv, s) + 0.1 * s  # sᵀy > 0.2 sᵀBs
+    new = _bfgs(Hinv, s, y)
+    np.testing.assert_allclose(new @ y, s, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(new, new.T, atol=1e-12)
+    bad = _bfgs(Hinv, s, -y)  # negative curvature along s: damped, still positive definite
+    assert np.all(np.linalg.eigvalsh(0.5 * (bad + bad.T)) > 0)
+    np.testing.assert_array_equal(_bfgs(Hinv, np.zeros(4), y), Hinv)
+
+
+@pytest.mark.slow  # two Laplace EM fits and FD evidences (145 s at load 25)
+def test_quasi_newton_reaches_the_em_fixed_point():
+    """``acceleration="quasi_newton"`` on a linear-Gaussian model: its gradient is the gradient
+    of the exact log-likelihood (Fisher's identity; central differences of the Kalman evidence
+    to 1e-6 relative), and it ends at SQUAREM's answer (A, Q, R to 1e-4, the evidence no lower),
+    where one plain EM update moves nothing (1e-6): the EM fixed point, the MLE."""
+    from ceemx.identification.problem import FitProblem
+    from ceemx.identification.solvers.laplace import _q_derivatives
+    from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
+    from ceemx.lib.tree import trace_numbers
+
+    y, (_, C, _, _, mu0, P0) = _lg_problem(T=60)
+    A0, _, Q0, R0 = _guess()
+    data = ceemx.Trajectories(jnp.asarray(y))
+    x0 = jnp.zeros(y.shape[:2] + (2,))
+    start = _system(A0, C, Q0, R0, mu0, P0)
+
+    def trainable(s):
+        return (s.A, s.process_noise, s.obs_noise)
+
+    problem, theta = FitProblem.create(start, data, trainable=trainable)
+    smoother = trace_numbers(E_STEP_SMOOTHER, jnp.float64)
+
+    def evidence(th):
+        post = gaussian_posterior(smoother, problem.build(th), x0, data)
+        return float(jnp.sum(post.log_evidence)), post
+
+    _, post = evidence(theta)
+    grad = -np.asarray(_q_derivatives(problem, theta, post, hessian=False)[1])
+    h = 1e-5
+    fd = np.array(
+        [
+            (evidence(theta.at[i].add(h))[0] - evidence(theta.at[i].add(-h))[0]) / (2 * h)
+            for i in range(theta.shape[0])
+        ]
+    )
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-6 * np.max(np.abs(fd)))
+
+    def run(system, states, acceleration, epochs):
+        return ceemx.fit(
+            system,
+            data,
+            states,
+            solver=ceemx.LaplaceEM(acceleration=acceleration, rtol=1e-12),
+            trainable=trainable,
+            max_epochs=epochs,
+            outliers="keep",
+            diagnose=False,
+        )
+
+    qn = run(start, x0, "quasi_newton", 200)
+    sq = run(start, x0, "squarem", 400)
+    assert qn.converged and sq.converged
+    assert qn.history[-1]["log_evidence"] >= sq.history[-1]["log_evidence"] - 1e-8
+    np.testing.assert_allclose(qn.system.A, sq.system.A, atol=1e-4)
+    step = run(qn.system, qn.states, None, 1)
+    np.testing.assert_allclose(step.system.A, qn.system.A, atol=1e-6)
+    for noise in ("process_noise", "obs_noise"):
+        for other in (sq, step):
+            np.testing.assert_allclose(
+                getattr(qn.system, noise).covariance(),
+                getattr(other.system, noise).covariance(),
+                atol=1e-4 if other is sq else 1e-6,
+            )
