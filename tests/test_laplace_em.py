@@ -418,19 +418,19 @@ def test_parameters_saturated_at_a_bound_survive_learned_noise():
 def test_quasi_newton_bfgs_update_keeps_the_secant_and_positive_definite():
     """The damped BFGS update of the quasi-Newton acceleration: H⁻¹y = s where sᵀy is large
     enough; positive definite (and no secant) where the objective is not concave along s."""
-    from ceemx.identification.solvers.laplace import _bfgs
+    from ceemx.identification.solvers.laplace_qn import bfgs_update
 
     rng = np.random.default_rng(0)
     M = rng.normal(size=(4, 4))
     Hinv = M @ M.T + np.eye(4)
     s = rng.normal(size=4)
     y = np.linalg.solve(Hinv, s) + 0.1 * s  # sᵀy > 0.2 sᵀBs
-    new = _bfgs(Hinv, s, y)
+    new = bfgs_update(Hinv, s, y)
     np.testing.assert_allclose(new @ y, s, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(new, new.T, atol=1e-12)
-    bad = _bfgs(Hinv, s, -y)  # negative curvature along s: damped, still positive definite
+    bad = bfgs_update(Hinv, s, -y)  # negative curvature along s: damped, still positive definite
     assert np.all(np.linalg.eigvalsh(0.5 * (bad + bad.T)) > 0)
-    np.testing.assert_array_equal(_bfgs(Hinv, np.zeros(4), y), Hinv)
+    np.testing.assert_array_equal(bfgs_update(Hinv, np.zeros(4), y), Hinv)
 
 
 @pytest.mark.slow  # two Laplace EM fits and FD evidences (145 s at load 25)
@@ -440,7 +440,7 @@ def test_quasi_newton_reaches_the_em_fixed_point():
     to 1e-6 relative), and it ends at SQUAREM's answer (A, Q, R to 1e-4, the evidence no lower),
     where one plain EM update moves nothing (1e-6): the EM fixed point, the MLE."""
     from ceemx.identification.problem import FitProblem
-    from ceemx.identification.solvers.laplace import _q_derivatives
+    from ceemx.identification.solvers.laplace_qn import q_derivatives
     from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
     from ceemx.lib.tree import trace_numbers
 
@@ -461,7 +461,7 @@ def test_quasi_newton_reaches_the_em_fixed_point():
         return float(jnp.sum(post.log_evidence)), post
 
     _, post = evidence(theta)
-    grad = -np.asarray(_q_derivatives(problem, theta, post, hessian=False)[1])
+    grad = -np.asarray(q_derivatives(problem, theta, post, hessian=False)[1])
     h = 1e-5
     fd = np.array(
         [

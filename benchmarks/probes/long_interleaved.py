@@ -34,7 +34,7 @@ import scaling  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.identification.problem import FitProblem  # noqa: E402
-from ceemx.identification.solvers.laplace import _q_derivatives  # noqa: E402
+from ceemx.identification.solvers.laplace_qn import q_derivatives  # noqa: E402
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior  # noqa: E402
 from ceemx.lib.tree import trace_numbers  # noqa: E402
 
@@ -61,7 +61,7 @@ def main() -> None:
             "laplace_posterior": lambda s=start, d=data, x=post.states: gaussian_posterior(
                 estep, s, x, d
             ),
-            "q_value_and_gradient": lambda p=problem, t=theta, e=post: _q_derivatives(
+            "q_value_and_gradient": lambda p=problem, t=theta, e=post: q_derivatives(
                 p, t, e, hessian=False
             ),
         }

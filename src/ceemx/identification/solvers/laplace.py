@@ -49,6 +49,17 @@ from ceemx.identification.solvers.base import (
     objective_scale,
     trajectory_log_likelihood,
 )
+from ceemx.identification.solvers.laplace_qn import (
+    QN_BACKTRACKS,
+    QN_EXPAND,
+    QN_MAX_PARAMETERS,
+    QN_MAX_STEP,
+    Coordinates,
+    bfgs_update,
+    log_prior_value,
+    q_derivatives,
+    qn_start,
+)
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.posterior import E_STEP_SMOOTHER, GaussianPosterior, gaussian_posterior
 from ceemx.infra.options import check_choice
@@ -292,7 +303,7 @@ class LaplaceEM(AbstractFitSolver):
                     f"`acceleration='quasi_newton'` keeps a dense P × P curvature: θ has "
                     f"{theta.shape[0]} entries (at most {QN_MAX_PARAMETERS}); use 'squarem'."
                 )
-            learner_state = (learner_state, *_qn_start(problem, theta, e))
+            learner_state = (learner_state, *qn_start(problem, theta, e))
         return self._state(problem, theta, e, states, learner_state)
 
     def _em_update(
@@ -392,9 +403,9 @@ class LaplaceEM(AbstractFitSolver):
         learner_state, Hinv, g = memory
         Hinv, g = np.asarray(Hinv), np.asarray(g)
         t0 = time.perf_counter()
-        coords = _Coordinates(problem, state.theta)
+        coords = Coordinates(problem, state.theta)
         z = coords.z(state.theta)
-        f0 = _total(e0.log_evidence, _weights(e0)) + _log_prior(problem, state.theta)
+        f0 = _total(e0.log_evidence, _weights(e0)) + log_prior_value(problem, state.theta)
         d = Hinv @ g
         big = float(np.max(np.abs(d))) if d.size else 0.0
         if big > QN_MAX_STEP:
@@ -409,7 +420,7 @@ class LaplaceEM(AbstractFitSolver):
             e_t = self._timed_posterior(problem, theta_t, e0.states, record, quiet=True)
             if not bool(jnp.all(e_t.status != RESULTS.nonfinite)):
                 return None
-            return _total(e_t.log_evidence, 1.0) + _log_prior(problem, theta_t), theta_t, e_t
+            return _total(e_t.log_evidence, 1.0) + log_prior_value(problem, theta_t), theta_t, e_t
 
         step, accepted = 1.0, None
         if slope > 0 and np.all(np.isfinite(d)):
@@ -439,13 +450,13 @@ class LaplaceEM(AbstractFitSolver):
             theta, learner_state, e = self._em_update(
                 problem, state.theta, e0, learner_state, record
             )
-            Hinv, g = _qn_start(problem, theta, e)
+            Hinv, g = qn_start(problem, theta, e)
         else:
             record["qn_step"] = step
             _, theta, e = accepted
-            coords_new = _Coordinates(problem, theta)
-            g_new = coords_new.ascent(_q_derivatives(problem, theta, e, hessian=False)[1], theta)
-            Hinv = _bfgs(Hinv, coords_new.z(theta) - z, g - g_new)
+            coords_new = Coordinates(problem, theta)
+            g_new = coords_new.ascent(q_derivatives(problem, theta, e, hessian=False)[1], theta)
+            Hinv = bfgs_update(Hinv, coords_new.z(theta) - z, g - g_new)
             g = g_new
             record["learn_time"] += time.perf_counter() - t0
         dtype = state.theta.dtype
@@ -490,110 +501,6 @@ class LaplaceEM(AbstractFitSolver):
         tol = float(self.rtol) * objective_scale(problem, after) + float(self.atol)
         converged = bool(abs(ev_after - ev_before) <= tol)
         return converged, converged
-
-
-#: the largest θ (entries) ``acceleration="quasi_newton"`` takes: its curvature is dense P × P
-QN_MAX_PARAMETERS = 200
-#: the largest change of one coordinate in one quasi-Newton step (z: log-scales for the noise, so
-#: a factor e² at most)
-QN_MAX_STEP = 2.0
-#: step lengths tried by the line search (1, ¼, …) before an EM update is taken instead
-QN_BACKTRACKS = 5
-#: the longest step (in units of the quasi-Newton direction) the line search expands to
-QN_EXPAND = 8.0
-
-
-def _bfgs(Hinv: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Powell-damped BFGS update of the inverse curvature for the step s and gradient change y.
-
-    Where the objective is not concave along s (sᵀy < 0.2 sᵀBs, B = H⁻¹⁻¹), y is blended with Bs
-    so that the update stays positive definite and still takes in what the step showed.
-    """
-    if not (np.all(np.isfinite(s)) and np.all(np.isfinite(y))) or not np.any(s):
-        return Hinv
-    B = np.linalg.inv(Hinv)
-    Bs = B @ s
-    sBs = float(s @ Bs)
-    sy = float(s @ y)
-    if sBs <= 0:
-        return Hinv
-    if sy < 0.2 * sBs:
-        phi = 0.8 * sBs / (sBs - sy)
-        y = phi * y + (1.0 - phi) * Bs
-        sy = float(s @ y)
-    rho = 1.0 / sy
-    left = np.eye(len(s)) - rho * np.outer(s, y)
-    return left @ Hinv @ left.T + rho * np.outer(s, s)
-
-
-@eqx.filter_jit
-def _q_derivatives(problem: FitProblem, theta: Theta, e: GaussianPosterior, *, hessian: bool):
-    """(value, gradient[, Hessian]) in θ of −Q(θ | q) − log p(θ) with q = ``e`` (cubature)."""
-    points, pairs = cubature_points(e.states, e.covariances, e.cross)
-    mp = ExpectedLearningProblem(
-        problem=problem,
-        points=points,
-        pairs=pairs,
-        weights=_weights(e),
-        theta_ref=theta,
-        rho_theta=jnp.zeros((), theta.dtype),
-    )
-    value, grad = jax.value_and_grad(mp.value)(theta)
-    if not hessian:
-        return value, grad, None
-    return value, grad, jax.hessian(mp.value)(theta)
-
-
-def _qn_start(problem: FitProblem, theta: Theta, e: GaussianPosterior):
-    """(H⁻¹, g) in z at θ: the inverse curvature and the ascent gradient.
-
-    The curvature is the complete-data information −∇²Q (EM's metric), its eigenvalues clipped
-    to be positive.
-    """
-    coords = _Coordinates(problem, theta)
-    _, grad, hess = _q_derivatives(problem, theta, e, hessian=True)
-    grad, hess = np.asarray(grad, float), np.asarray(hess, float)
-    scale = coords.dtheta_dz(theta)
-    Hz = scale[:, None] * hess * scale[None, :] + np.diag(np.where(coords.mask, grad * scale, 0.0))
-    w, U = np.linalg.eigh(0.5 * (Hz + Hz.T))
-    top = float(np.max(np.abs(w))) if w.size else 1.0
-    w = np.maximum(w, 1e-10 * max(top, 1e-300))
-    Hinv = (U / w) @ U.T
-    g = coords.ascent(grad, theta)
-    return jnp.asarray(Hinv, theta.dtype), jnp.asarray(g, theta.dtype)
-
-
-def _log_prior(problem: FitProblem, theta: Theta) -> float:
-    return 0.0 if problem.log_prior is None else -float(problem.neg_log_prior(theta))
-
-
-class _Coordinates:
-    """θ ⇄ z for the quasi-Newton steps: log for the learned DiagonalGaussian scales, else θ."""
-
-    def __init__(self, problem: FitProblem, theta: Theta):
-        marks = jtu.tree_map(lambda x: np.zeros(np.shape(x)), problem.template)
-        for field in _NOISE_FIELDS:
-            noise = getattr(problem.template, field, None)
-            if problem.trains(field) and isinstance(noise, DiagonalGaussian):
-                ones = np.ones(np.shape(noise.scale))
-                marks = eqx.tree_at(lambda s, f=field: getattr(s, f).scale, marks, replace=ones)
-        flat = [np.ravel(a) for a in jtu.tree_leaves(marks)]
-        self.mask = (np.concatenate(flat) > 0.5) if flat else np.zeros(0, bool)
-        self.dtype = theta.dtype
-
-    def z(self, theta) -> np.ndarray:
-        t = np.asarray(theta, float)
-        return np.where(self.mask, np.log(np.abs(np.where(self.mask, t, 1.0))), t)
-
-    def theta(self, z: np.ndarray) -> Theta:
-        return jnp.asarray(np.where(self.mask, np.exp(np.where(self.mask, z, 0.0)), z), self.dtype)
-
-    def dtheta_dz(self, theta) -> np.ndarray:
-        return np.where(self.mask, np.asarray(theta, float), 1.0)
-
-    def ascent(self, grad, theta) -> np.ndarray:
-        """The ascent gradient of F = ℓ + log p in z from ∇θ of −Q − log p."""
-        return -np.asarray(grad, float) * self.dtheta_dz(theta)
 
 
 def _valid(problem: FitProblem, theta: Theta) -> bool:
