@@ -41,6 +41,24 @@ def test_scaling_smoke(tmp_path):
         assert m["epochs"] == 3 and m["steady_epoch_s"] > 0
 
 
+@pytest.mark.slow  # three fresh processes per T, each compiling a fit (≈ 3–8 min under load)
+def test_scaling_long_smoke(tmp_path):
+    """``--only long``: one row per (T, method), log–log fits and the linearity verdict."""
+    out = tmp_path / "long.json"
+    proc = _run("scaling.py", out, "--only", "long")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    long = json.loads(out.read_text())["long"]
+    assert {(r["method"], r["T"]) for r in long["rows"]} == {
+        (m, T) for m in ("smooth", "joint_lm", "laplace_em_qn") for T in long["T"]
+    }
+    for r in long["rows"]:
+        assert r["per_iter_s"] > 0 and len(r["steady_runs_s"]) >= 3
+        assert r["peak_rss_mb"] >= r["baseline_rss_mb"] > 0
+    for f in long["fits"].values():
+        assert set(f["time_per_iteration"]) == {"slope", "intercept", "r2"}
+    assert set(long["target"]["met"]) == set(long["fits"])
+
+
 @pytest.mark.slow  # compiles one Algorithm-1 epoch with the L-BFGS learner (≈ 30 s)
 def test_k100_smoke(tmp_path):
     out = tmp_path / "k100.json"
