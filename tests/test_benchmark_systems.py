@@ -98,6 +98,25 @@ def test_tanks_overflow_and_saturation():
     assert float(y[0]) <= 10.0 + 1e-12
 
 
+def test_tanks_lower_level_stays_below_its_rim():
+    """A free run pumping hard: the lower tank overflows at its rim instead of filling on."""
+    tanks = CascadedTanks.default()
+    u = jnp.full((150, 1), 8.0)  # steady state far above both rims
+    x, y = ceemx.free_run(tanks, jnp.array([3.0, 4.0]), u)
+    rim = float(tanks.h2 - tanks.offset)
+    assert float(x[:, 1].max()) > rim - 0.5  # it does reach the rim…
+    assert float(x[:, 1].max()) < rim + 0.3  # …and stays there (smooth gate, β₂ = 10/V)
+    assert float(y.max()) <= 10.0
+    no_rim = CascadedTanks.default(h2=1e3)  # the model without the lower overflow fills on
+    x_free, _ = ceemx.free_run(no_rim, jnp.array([3.0, 4.0]), u)
+    assert float(x_free[:, 1].max()) > rim + 2.0
+    # below the rim the gate is closed: the model is the one without the lower overflow
+    low = jnp.array([2.0, 3.0])
+    np.testing.assert_allclose(
+        tanks.vector_field(low, u[0], 0.0), no_rim.vector_field(low, u[0], 0.0), rtol=1e-10
+    )
+
+
 def _fit_check(true, guess, trainable, u, x1, names, rtol, max_epochs=15):
     x0 = jnp.broadcast_to(jnp.asarray(x1, dtype=jnp.float64), (u.shape[0], true.state_dim))
     _, data = ceemx.simulate(true, jax.random.PRNGKey(3), x0, u.shape[1], u)
