@@ -148,8 +148,8 @@ TANK_VARIANTS: dict[str, tuple[float, dict, tuple[str, ...], tuple[str, ...]]] =
     "no-lower-overflow-0.005": (0.005, dict(lower_overflow=False, dead_zone=False), ("h2",), ()),
     "dead-zone-0.005": (0.005, {}, (), ()),
     "dead-zone-0.005-staged": (0.005, {}, (), ("a1", "a2")),
-    "chosen": (0.002, {}, (), ()),
-    "dead-zone-0.001": (0.001, {}, (), ()),
+    "dead-zone-0.002": (0.002, {}, (), ()),
+    "chosen": (0.001, {}, (), ()),
 }
 
 

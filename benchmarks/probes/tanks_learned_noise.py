@@ -8,7 +8,9 @@ record: RMSE (V), the learned parameters and the noise scales (docs/real_data.md
 
 Backs: ``docs/real_data.md`` ("The noise levels: guessed (CE-EM) or learned (Laplace EM)": "the
 default guess σ_w = σ_v = 0.05 V and half of it reach the same model (0.325 V free-run RMSE),
-twice it another optimum (0.944 V)"; with ``laplace``: "0.62–0.70 V after 200 epochs").
+twice it another optimum (0.944 V)"; with ``laplace``: "0.62–0.70 V after 200 epochs"). Those
+figures were measured with ``CascadedTanks`` before its lower-tank overflow and pump dead zone
+(commit ccfd11e); run today, the probe fits the current model.
 """
 
 import sys
