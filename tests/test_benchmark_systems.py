@@ -103,7 +103,7 @@ def test_tanks_lower_level_stays_below_its_rim():
     tanks = CascadedTanks.default()
     u = jnp.full((150, 1), 8.0)  # steady state far above both rims
     x, y = ceemx.free_run(tanks, jnp.array([3.0, 4.0]), u)
-    rim = float(tanks.h2 - tanks.offset)
+    rim = float(jnp.asarray(tanks.h2) - jnp.asarray(tanks.offset))
     assert float(x[:, 1].max()) > rim - 0.5  # it does reach the rim…
     assert float(x[:, 1].max()) < rim + 0.3  # …and stays there (smooth gate, β₂ = 10/V)
     assert float(y.max()) <= 10.0

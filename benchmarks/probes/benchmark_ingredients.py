@@ -41,7 +41,7 @@ import ceemx  # noqa: E402
 from ceemx import datasets  # noqa: E402
 from ceemx.experiments import benchmarks as bm  # noqa: E402
 from ceemx.models.constraints import param  # noqa: E402
-from ceemx.systems.benchmarks import smooth_power, soft_min  # noqa: E402
+from ceemx.systems.benchmarks import _AbstractSISO, smooth_power, soft_min  # noqa: E402
 
 
 def _scores(system, ds, guess) -> dict[str, float]:
@@ -95,7 +95,7 @@ def bounded_tanks(scale: float) -> None:
           f"level {float(score.x_sim[..., 0].min()):.3g} V")  # fmt: skip
 
 
-class _Tanks(ceemx.systems.benchmarks._AbstractSISO):
+class _Tanks(_AbstractSISO):
     """``CascadedTanks`` with its two new ingredients switchable (``CascadedTanks`` = both on)."""
 
     k1: jax.Array = param(positive=True)

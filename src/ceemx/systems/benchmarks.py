@@ -186,10 +186,8 @@ class CascadedTanks(_AbstractSISO):
         constants ≈ 2√x/k ≈ 100 s. RK4 with 2 substeps of 2 s. ``kwargs`` override any field
         (e.g. ``process_noise``, ``obs_noise``, ``substeps``).
         """
-        params = dict(
-            k1=0.05, k2=0.05, k3=0.05, k4=0.025, h=10.0, phi=0.5, h2=10.0, offset=0.0, u0=0.0,
-            a1=0.5, a2=0.5,
-        )
+        params = dict(k1=0.05, k2=0.05, k3=0.05, k4=0.025, h=10.0, phi=0.5, h2=10.0)
+        params.update(offset=0.0, u0=0.0, a1=0.5, a2=0.5)
         return _with_defaults(
             cls, params, dict(dt=dt, substeps=2, process_noise=0.05, obs_noise=0.05), dtype, kwargs
         )
