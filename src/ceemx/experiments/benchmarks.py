@@ -2,8 +2,8 @@
 
 For each dataset (``../shared/data``; loaders :mod:`ceemx.datasets`): the continuous-time gray-box
 model of :mod:`ceemx.systems.benchmarks` (cascaded tanks with Torricelli outflows, overflow and
-sensor saturation; the Silverbox Duffing oscillator; the coupled drives' belt/pulley with the
-rectifying speed sensor) is fitted with CE-EM (the joint method by default, ``method="alternate"``
+sensor saturation; the Silverbox Duffing oscillator; the coupled drives' belt/pulley Wiener
+model with its even speed sensor) is fitted with CE-EM (the joint method by default, ``method="alternate"``
 for Algorithm 1) from its physical default guess and the default start (least squares and a
 smoothing pass); the ablation adds that model plus a learned term in its vector field and the
 learned term alone (:func:`_fit_learned`: :func:`ceemx.hybrid`, weight decay, early stopping on
@@ -11,7 +11,8 @@ the held-out tail of the training records); a linear baseline of the same order 
 N4SID with offsets and a simulation refit (:func:`ceemx.baselines.fit_affine_sid`). All are
 scored by the nonlinear-benchmarks protocol
 (:func:`ceemx.benchmark_score`: initial state from the first ``n_init`` test outputs, free-run
-simulation over the test input, RMSE on y[n_init:]) and printed beside the published results of
+simulation over the test input, RMSE on y[n_init:]; options per dataset in
+:data:`SCORE_OPTIONS`) and printed beside the published results of
 ``shared/data/README.md``. The figure (:func:`ceemx.plot_benchmark` per test record) shows
 measured and simulated test outputs, a zoomed window, the errors and the estimated hidden state.
 
@@ -45,8 +46,9 @@ DATASETS = ("cascaded_tanks", "silverbox", "coupled_electric_drives")
 MODEL_OPTIONS: dict[str, dict[str, Any]] = {
     "cascaded_tanks": {},
     "silverbox": {"hold": "foh", "process_noise": 1e-4},
-    # FOH measured no better (0.319 / 0.764 vs 0.297 / 0.739); process noise 0.002 (default
-    # 0.02): test 0.297 / 0.739 → 0.229 / 0.388 (physics), hybrid 0.222 / 0.370
+    # Former model (no offsets, p = 1, f0 guess 1 Hz): FOH measured no better (0.319 / 0.764 vs
+    # 0.297 / 0.739); process noise 0.002 (default 0.02): test 0.297 / 0.739 → 0.229 / 0.388.
+    # The present CoupledDrives: 0.1146 / 0.1447 (docs/results.md, drives_structure.py)
     "coupled_electric_drives": {"process_noise": 0.002},
 }
 #: Options of :func:`ceemx.benchmark_score` per dataset (every model's test and validation
