@@ -3,13 +3,13 @@
 For each dataset (``../shared/data``; loaders :mod:`ceemx.datasets`): the continuous-time gray-box
 model of :mod:`ceemx.systems.benchmarks` (cascaded tanks with Torricelli outflows, overflow and
 sensor saturation; the Silverbox Duffing oscillator; the coupled drives' belt/pulley Wiener
-model with its even speed sensor) is fitted with CE-EM (the joint method by default, ``method="alternate"``
-for Algorithm 1) from its physical default guess and the default start (least squares and a
-smoothing pass); the ablation adds that model plus a learned term in its vector field and the
-learned term alone (:func:`_fit_learned`: :func:`ceemx.hybrid`, weight decay, early stopping on
-the held-out tail of the training records); a linear baseline of the same order is fitted by
-N4SID with offsets and a simulation refit (:func:`ceemx.baselines.fit_affine_sid`). All are
-scored by the nonlinear-benchmarks protocol
+model with its even speed sensor) is fitted with CE-EM (the joint method by default,
+``method="alternate"`` for Algorithm 1) from its physical default guess and the default start
+(least squares and a smoothing pass); the ablation adds that model plus a learned term in its
+vector field and the learned term alone (:func:`_fit_learned`: :func:`ceemx.hybrid`, weight
+decay, early stopping on the held-out tail of the training records); a linear baseline of the
+same order is fitted by N4SID with offsets and a simulation refit
+(:func:`ceemx.baselines.fit_affine_sid`). All are scored by the nonlinear-benchmarks protocol
 (:func:`ceemx.benchmark_score`: initial state from the first ``n_init`` test outputs, free-run
 simulation over the test input, RMSE on y[n_init:]; options per dataset in
 :data:`SCORE_OPTIONS`) and printed beside the published results of
