@@ -144,6 +144,7 @@ def other_programs() -> None:
     ceemx.learn(guess, x0, data, ceemx.LBFGSLearner())
     ceemx.free_run(guess, jnp.zeros((2, 2)), data.u)
     ceemx.estimate_initial_state(guess, data, 10)
+    ceemx.estimate_initial_state(guess, data, 10, warm_process_noise=(1.0, None))
     ceemx.predict_k_step(guess, data, 3)
     ceemx.predict_k_step(lin, ldata, 2)
 

@@ -156,3 +156,15 @@ def test_identify_drives_rate_and_gain():
     guess = CoupledDrives.default(a=1.3, gain=1.3, **options)
     u = _inputs(CoupledDrives, 1.0)
     _fit_check(true, guess, lambda s: (s.a, s.gain), u, [0.0, 0.0, 0.0], ("a", "gain"), 0.1)
+
+
+def test_drives_offsets_and_sensor_power():
+    """y = y₀ + (v² + ε)^{p/2} (p = 1: the smooth |v|); the motor is at rest when u = u₀."""
+    s = CoupledDrives.default(u0=0.3, y0=-0.1, power=2.0)
+    x = jnp.array([0.5, -1.5, 0.2])
+    np.testing.assert_allclose(s.observe(x, jnp.array([0.0]), 0), [-0.1 + 1.5**2 + 1e-3])
+    flat = CoupledDrives.default()
+    want = smooth_abs(jnp.array([-1.5]), 1e-3)
+    np.testing.assert_allclose(flat.observe(x, jnp.array([0.0]), 0), want)
+    f = s.vector_field(jnp.array([0.7, 0.0, 0.0]), jnp.array([0.3]), 0)
+    np.testing.assert_allclose(f[0], -float(s.a) * 0.7)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +43,8 @@ class EarlyStopping:
         start: the fit's starting model, scored as epoch 0 (recommended: :meth:`restore` then
             never returns a model worse on the validation record than the start, e.g. the
             physics model a hybrid starts from).
+        score_options: keyword options of :func:`ceemx.benchmark_score` for the validation
+            score (e.g. ``{"warm_process_noise": (1.0, None)}``: several initial-state starts).
 
     After the fit, :attr:`best_system`, :attr:`best_epoch` and :attr:`best_rmse` hold the best
     model; :meth:`restore` returns the fit's result with it (and notes the restore in its
@@ -58,6 +61,7 @@ class EarlyStopping:
         min_delta: float = 1e-3,
         every: int = 1,
         start: AbstractSystem | None = None,
+        score_options: dict[str, Any] | None = None,
     ):
         """See the class docstring."""
         if not isinstance(validation, Trajectories):
@@ -73,8 +77,13 @@ class EarlyStopping:
         check_nonnegative("min_delta", min_delta)
         if min_delta >= 1:
             raise ValueError(f"`min_delta` must be a number in [0, 1); got {min_delta!r}.")
+        if score_options is not None and not isinstance(score_options, dict):
+            raise TypeError(
+                f"`score_options` must be a dict or None; got {type(score_options).__name__}."
+            )
         self.validation = validation
         self.n_init = n_init
+        self.score_options = dict(score_options or {})
         self.patience = patience
         self.min_delta = float(min_delta)
         self.every = every
@@ -91,7 +100,7 @@ class EarlyStopping:
 
     def score(self, system: AbstractSystem) -> float:
         """The validation free-run RMSE of ``system`` (over all outputs)."""
-        s = benchmark_score(system, self.validation, self.n_init)
+        s = benchmark_score(system, self.validation, self.n_init, **self.score_options)
         return float(np.sqrt(np.mean(np.square(np.asarray(s.rmse)))))
 
     def __call__(self, info) -> dict | bool:

@@ -16,7 +16,9 @@ tolerances — are traced).
 
 from __future__ import annotations
 
+import math
 import operator
+from collections.abc import Sequence
 from typing import Any
 
 import equinox as eqx
@@ -36,7 +38,7 @@ from ceemx.inference.smoother import (
     smooth_batch,
 )
 from ceemx.infra.warn import warn
-from ceemx.lib.dense import cholesky_solve
+from ceemx.lib.dense import after, cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.tree import trace_numbers
@@ -258,11 +260,20 @@ def _output_error_one(
     return out.z, out.status
 
 
+def _window_error_one(system: AbstractSystem, x1, y, u, mask) -> Float[Array, ""]:
+    """The refine step's objective at x₁: Σ_t −log p_v(y_t − g(f^t(x₁))) (+ −log p(x₁))."""
+    r = y - _run_one(system, x1, u, jnp.zeros((), jnp.int32))[1]
+    value = jnp.sum(jax.vmap(system.obs_noise.nll)(r, mask))
+    if system.initial_prior is not None:
+        value = value + system.initial_prior.nll(x1)
+    return value
+
+
 @eqx.filter_jit
 def initial_state_batch(
     solver: LMSmoother,
     system: AbstractSystem,
-    weak: AbstractSystem | None,
+    weak: AbstractSystem | None | tuple[AbstractSystem | None, ...],
     window: Trajectories,
     x_init: States | None,
     refine: bool,
@@ -273,17 +284,41 @@ def initial_state_batch(
     one smoothing
     pass of ``weak`` (the system with weak dynamics weights, as :func:`ceemx.warm_start`); then
     the MAP smoothing of ``system`` and, with ``refine``, LM on x₁ of the window's simulation
-    error. Returns x̂₁ and the last solve's status.
+    error. Returns x̂₁ and the last solve's status. A tuple ``weak`` gives one start per entry
+    (``None``: no weak pass), run one after the other (:func:`ceemx.lib.dense.after`: no two
+    batched solves run concurrently); each trajectory keeps the x̂₁ of the lowest window
+    simulation error.
     """
-    x0 = from_observations(system, window) if x_init is None else x_init
-    if x_init is None and weak is not None:
-        x0 = smooth_batch(solver, weak, x0, window, False).states
-    sol = smooth_batch(solver, system, x0, window, False)
-    x1, status = sol.states[:, 0], sol.status
-    if refine:
-        one = lambda x, y, u, m: _output_error_one(solver, system, x, y, u, m)  # noqa: E731
-        x1, status = jax.vmap(one)(x1, window.y, window.u, window.mask)
-    return x1, status
+    starts = weak if isinstance(weak, tuple) else (weak,)
+    best = None
+    for w in starts:
+        x0 = from_observations(system, window) if x_init is None else x_init
+        if best is not None:
+            x0 = after(x0, best[0])
+        if x_init is None and w is not None:
+            x0 = smooth_batch(solver, w, x0, window, False).states
+        sol = smooth_batch(solver, system, x0, window, False)
+        x1, status = sol.states[:, 0], sol.status
+        if refine:
+            one = lambda x, y, u, m: _output_error_one(solver, system, x, y, u, m)  # noqa: E731
+            x1, status = jax.vmap(one)(x1, window.y, window.u, window.mask)
+        if len(starts) == 1:
+            return x1, status
+        err = jax.vmap(lambda x, y, u, m: _window_error_one(system, x, y, u, m))(
+            x1, window.y, window.u, window.mask
+        )
+        err = jnp.where(jnp.isfinite(err), err, jnp.inf)
+        if best is None:
+            best = (x1, status, err)
+        else:
+            take = err < best[2]
+            best = (
+                jnp.where(take[:, None], x1, best[0]),
+                select(take, status, best[1]),
+                jnp.where(take, err, best[2]),
+            )
+    assert best is not None
+    return best[0], best[1]
 
 
 @no_type_check  # validates its arguments
@@ -295,7 +330,7 @@ def estimate_initial_state(
     refine: bool = True,
     smoother: LMSmoother | None = None,
     x_init: ArrayLike | None = None,
-    warm_process_noise: float | None = 1.0,
+    warm_process_noise: float | None | Sequence[float | None] = 1.0,
     return_status: bool = False,
 ) -> Any:
     """x̂₁ of every trajectory from its first ``n_init`` outputs and inputs.
@@ -324,7 +359,11 @@ def estimate_initial_state(
             default :class:`ceemx.LMSmoother`).
         x_init: (B, max(n_init, 2), n) starting states of step 1 instead of the warm start.
         warm_process_noise: scale of the weak dynamics weights of the warm start (``None``: no
-            weak pass).
+            weak pass); a sequence of them: one start per entry (steps 1–2 from each), each
+            trajectory keeping the x̂₁ of the lowest window simulation error (the refine step's
+            objective) — for a model whose window
+            objective has several minima, e.g. a sign-insensitive sensor y = |v| (the coupled
+            drives: ``(1.0, None)``).
         return_status: also return the last solve's (B,) :class:`ceemx.RESULTS`.
 
     Data and ``x_init`` are cast to the dtype of the system's parameters, as by :func:`ceemx.fit`
@@ -359,9 +398,22 @@ def estimate_initial_state(
         x_init = jnp.asarray(x_init)
     dtype = window.y.dtype
     solver = trace_numbers(LMSmoother() if smoother is None else smoother, dtype)
-    weak = None
-    if warm_process_noise is not None:
-        weak = with_noise(system, process_noise=jnp.asarray(warm_process_noise, dtype))
+    many = isinstance(warm_process_noise, (tuple, list))
+    scales = tuple(warm_process_noise) if many else (warm_process_noise,)
+    for q in scales:
+        number = isinstance(q, (int, float, np.number)) and not isinstance(q, bool)
+        if q is not None and not (number and 0 < q < math.inf):
+            raise ValueError(
+                "`warm_process_noise` must be a positive finite number, None, or a non-empty "
+                f"sequence of them; got {warm_process_noise!r}."
+            )
+    if not scales:
+        raise ValueError("`warm_process_noise` must not be an empty sequence.")
+    weaks = tuple(
+        None if q is None else with_noise(system, process_noise=jnp.asarray(q, dtype))
+        for q in scales
+    )
+    weak = weaks if many else weaks[0]
     system, weak = strongly_typed((system, weak))
     x1, status = initial_state_batch(solver, system, weak, window, x_init, bool(refine))
     status = _flag_nonfinite(x1, status)
