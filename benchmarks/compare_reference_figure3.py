@@ -80,8 +80,8 @@ def time_to(eps: list[float], epoch_s: list[float], threshold: float) -> float |
 def slim_runs(runs: list[dict], info: dict) -> None:
     """Replace each run's θ per epoch by ε per epoch and the last θ (in place)."""
     for r in runs:
-        for name in ("reference", "alternate", "joint"):
-            if name in r and "theta" in r[name]:
+        for name in [k for k in r if isinstance(r[k], dict)]:
+            if "theta" in r[name]:
                 thetas = r[name].pop("theta")
                 r[name]["eps"] = [epsilon(t, info["truth"], info["test"]) for t in thetas]
                 r[name]["theta_last"] = thetas[-1] if thetas else None
@@ -137,7 +137,7 @@ def make_problem(
     return {"truth": truth, "test": test, "ceemx_x_init": np.asarray(x_init)}
 
 
-def ceemx_worker(problem_path: str, out_path: str) -> None:
+def ceemx_worker(problem_path: str, out_path: str, methods: str = "alternate,joint") -> None:
     """(Fresh process.) Alternating then JointLM from the problem's start; θ and time per epoch."""
     import jax
 
@@ -163,7 +163,7 @@ def ceemx_worker(problem_path: str, out_path: str) -> None:
     eps_stop = float(d["eps_stop"]) if "eps_stop" in d else 0.0
     truth = {k: d["truth_" + k] for k in ("sigma", "rho", "beta", "H")} if "test" in d else None
     out = {}
-    for method in ("alternate", "joint"):
+    for method in methods.split(","):
         thetas, times, eps = [], [], []
         clock = {"t": time.perf_counter()}
 
@@ -208,6 +208,16 @@ def ceemx_worker(problem_path: str, out_path: str) -> None:
     pathlib.Path(out_path).write_text(json.dumps(out))
 
 
+def _commit(src: str | None) -> str | None:
+    """The git commit of the tree holding ``src`` (``None`` without one)."""
+    if not src:
+        return None
+    proc = subprocess.run(
+        ["git", "-C", src, "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    )
+    return proc.stdout.strip() or None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--smoke", action="store_true")
@@ -217,7 +227,14 @@ def main() -> None:
     ap.add_argument("--time-to-eps", action="store_true")
     ap.add_argument("--budget", type=float, default=600.0, help="seconds per fit (--time-to-eps)")
     ap.add_argument("--eps-stop", type=float, default=0.01, help="stop at this ε (--time-to-eps)")
-    ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--before-src",
+        default=None,
+        help="also run ceemx from this source tree (e.g. /work/main/src) in each repetition, "
+        "alternated with the current one: before/after in the same run",
+    )
+    ap.add_argument("--methods", default="alternate,joint", help="ceemx's methods, comma-separated")
+    ap.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
         ceemx_worker(*args.worker)
@@ -252,16 +269,40 @@ def main() -> None:
                 rec["reference"] = json.loads((tmp / "ref.json").read_text())
             env = dict(os.environ, CEEMX_COMPILATION_CACHE="0")
             subprocess.run(
-                [sys.executable, __file__, "--worker", str(problem), str(tmp / "ceemx.json")],
+                [
+                    sys.executable,
+                    __file__,
+                    "--worker",
+                    str(problem),
+                    str(tmp / "ceemx.json"),
+                    args.methods,
+                ],
                 check=True,
                 env=env,
             )
             rec.update(json.loads((tmp / "ceemx.json").read_text()))
+            if args.before_src:  # the same worker on the earlier tree
+                env_b = dict(env, PYTHONPATH=args.before_src)
+                subprocess.run(
+                    [
+                        sys.executable,
+                        __file__,
+                        "--worker",
+                        str(problem),
+                        str(tmp / "before.json"),
+                        args.methods,
+                    ],
+                    check=True,
+                    env=env_b,
+                )
+                before = json.loads((tmp / "before.json").read_text())
+                rec.update({f"{k}_before": v for k, v in before.items()})
             rec["load_after"] = os.getloadavg()[0]
             runs.append(rec)
             print(f"rep {rep}: load {rec['load_before']:.2f} → {rec['load_after']:.2f}", flush=True)
     summary = {}
-    for name in ("reference", "alternate", "joint"):
+    names = ("reference", "alternate", "joint", "alternate_before", "joint_before")
+    for name in names:
         rs = [r[name] for r in runs if name in r]
         if not rs:
             continue
@@ -281,7 +322,7 @@ def main() -> None:
                 summary[name][f"time_to_eps_{th:g}_s"] = ts
     if "reference" in summary:
         ref = summary["reference"]["epoch_s_median"]
-        for name in ("alternate", "joint"):
+        for name in names[1:]:
             if name in summary and summary[name]["epoch_s_median"]:
                 summary[name]["speedup_per_epoch"] = ref / summary[name]["epoch_s_median"]
             if tte and name in summary:
@@ -312,6 +353,8 @@ def main() -> None:
         slim_runs(runs, info)
     result = {
         "date": time.strftime("%Y-%m-%d %H:%M"),
+        "before_src": args.before_src,
+        "before_commit": _commit(args.before_src),
         "setting": {"K": 6, "B": B, "T": T, "epochs": epochs, "reps": reps, "budget_s": budget},
         "summary": summary,
         "runs": runs,

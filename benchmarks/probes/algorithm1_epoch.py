@@ -1,17 +1,31 @@
-"""Algorithm-1 epoch on the Figure-3 problem: smoothing vs learning, and the learner's step bound.
+"""Algorithm-1 epoch on the Figure-3 problem: where the time goes, and the M-/E-step bounds.
 
-    python benchmarks/probes/algorithm1_epoch.py
+    python benchmarks/probes/algorithm1_epoch.py [--epochs 8] [--only NAME ...]
 
 6 coupled Lorenz, B = 8, T = 128, seed 42, the paper's weighting, states started at truth +
-N(0, 1) as ``ceemx experiment figure3``. For LM learners with ``max_steps`` 100, 2, 1 and the
-L-BFGS learner: median seconds per epoch, in smoothing and in learning (epochs 2–8), and ε(θ)
-after each epoch. Record ``uptime`` beside it.
+N(0, 1) as ``ceemx experiment figure3``. Prints, then writes to
+``benchmarks/results/algorithm1_epoch.json`` (with ``uptime``'s load before and after):
+
+1. the components of an epoch, timed alone (median of 5 after a compile call) at the start
+   point: the learner's Gauss–Newton build as one product of the batch's θ-Jacobian rows (the
+   default, ``LearningProblem.gauss_newton``) and as B per-trajectory products summed (the
+   earlier form, ``AbstractLearningProblem.gauss_newton``), the θ-Jacobians alone, the
+   learning objective's value, and one smoothing step;
+2. for each solver variant (learner and smoother bounds): median seconds per epoch, in
+   smoothing and in learning (epochs 2–N; epoch 1 carries the compile), the learner's and the
+   smoother's steps, and ε(θ) after each epoch.
 
 Backs: ``benchmarks/README.md`` ("Figure-3 problem vs the authors' code", profile of the
-Algorithm-1 epoch: "smoothing 0.12 s ..., learning 0.87 s with the LM learner", "``max_steps=1``
-**0.379 s**", "L-BFGS 0.321 s (**14.4×**)").
+Algorithm-1 epoch).
 """
 
+import argparse
+import json
+import os
+import pathlib
+import time
+
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -19,36 +33,119 @@ jax.config.update("jax_enable_x64", True)
 import ceemx  # noqa: E402
 from ceemx.evaluation import metrics as ev  # noqa: E402
 from ceemx.experiments import common, figure3  # noqa: E402
+from ceemx.identification.learning.gauss_newton import theta_rows  # noqa: E402
+from ceemx.identification.learning.problem import (  # noqa: E402
+    AbstractLearningProblem,
+    make_problem,
+)
+from ceemx.inference import smoother as smoothing  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
 
-true = common.true_lorenz(6)
-p = common.lorenz_problem(42, true, B=8, T=128, sigma_w=0.0, sigma_v=0.01, coupling=True)
-pn, on, rho_x = figure3.fit_setup("paper")
-system = with_noise(p.init_system, pn, on)
-k_x = jax.random.fold_in(jax.random.PRNGKey(42), 1)
-x_init = p.states + jax.random.normal(k_x, p.states.shape, p.states.dtype)
-learners = {
-    "lm (max_steps 100)": ceemx.LMLearner(),
-    "lm (max_steps 2)": ceemx.LMLearner(max_steps=2),
-    "lm (max_steps 1)": ceemx.LMLearner(max_steps=1),
-    "lbfgs (100 steps)": figure3.make_learner("lbfgs"),
-}
-for name, learner in learners.items():
-    eps = ev.DynamicsErrorCallback(true)
-    solver = ceemx.Alternating(smoother=ceemx.LMSmoother(rho_x=rho_x), learner=learner, rtol=0.0)
-    res = ceemx.fit(
-        system,
-        p.data,
-        x_init,
-        solver=solver,
-        trainable=common.LORENZ_PARAMS_H,
-        max_epochs=8,
-        progress=False,
-        callbacks=[eps],
+OUT = pathlib.Path(__file__).resolve().parents[1] / "results" / "algorithm1_epoch.json"
+
+
+def timed(f, *args, reps=5):
+    jax.block_until_ready(f(*args))
+    ts = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--epochs", type=int, default=8)
+    ap.add_argument("--only", nargs="*", default=None)
+    args = ap.parse_args()
+    true = common.true_lorenz(6)
+    p = common.lorenz_problem(42, true, B=8, T=128, sigma_w=0.0, sigma_v=0.01, coupling=True)
+    pn, on, rho_x = figure3.fit_setup("paper")
+    system = with_noise(p.init_system, pn, on)
+    k_x = jax.random.fold_in(jax.random.PRNGKey(42), 1)
+    x_init = p.states + jax.random.normal(k_x, p.states.shape, p.states.dtype)
+    out = {"load_before": os.getloadavg()[0], "components_s": {}, "variants": {}}
+
+    lp, th = make_problem(system, x_init, p.data, trainable=common.LORENZ_PARAMS_H)
+    d = p.data
+    comp = {
+        "gauss_newton (one product of the batch's rows)": eqx.filter_jit(
+            lambda lp, th: lp.gauss_newton(th)
+        ),
+        "gauss_newton (B per-trajectory products, earlier)": eqx.filter_jit(
+            lambda lp, th: AbstractLearningProblem.gauss_newton(lp, th)
+        ),
+        "θ-Jacobian rows alone": eqx.filter_jit(
+            lambda lp, th: jax.vmap(lambda x, y, u, m: theta_rows(lp.build, th, x, y, u, m)[2])(
+                lp.states, d.y, d.u, d.mask
+            )
+        ),
+        "learning objective's value": eqx.filter_jit(lambda lp, th: lp.value(th)),
+    }
+    for name, f in comp.items():
+        out["components_s"][name] = timed(f, lp, th)
+    sm = ceemx.LMSmoother(rho_x=rho_x)
+    out["components_s"]["smoothing step (LMSmoother default, from the start states)"] = timed(
+        lambda: smoothing.smooth_batch(sm, system, x_init, d, False).states
     )
-    h = res.history[1:]
-    med = {k: float(np.median([x[k] for x in h])) for k in ("time", "smooth_time", "learn_time")}
-    print(
-        f"{name:20s} epoch {med['time']:.3f} s (smoothing {med['smooth_time']:.3f}, learning "
-        f"{med['learn_time']:.3f}); ε per epoch {[round(x['eps'], 3) for x in res.history]}"
-    )
+    for k, v in out["components_s"].items():
+        print(f"  {k:60s} {v * 1e3:8.1f} ms", flush=True)
+
+    variants = {
+        "exact M-step: LMLearner() (the default before)": (
+            ceemx.LMSmoother(rho_x=rho_x),
+            ceemx.LMLearner(),
+        ),
+        "GEM: LMLearner(max_accepted=1)": (
+            ceemx.LMSmoother(rho_x=rho_x),
+            ceemx.LMLearner(max_accepted=1),
+        ),
+        "LMLearner(max_steps=1)": (ceemx.LMSmoother(rho_x=rho_x), ceemx.LMLearner(max_steps=1)),
+        "GEM + smoother max_steps=2": (
+            ceemx.LMSmoother(rho_x=rho_x, max_steps=2),
+            ceemx.LMLearner(max_accepted=1),
+        ),
+        "lbfgs (100 steps)": (ceemx.LMSmoother(rho_x=rho_x), figure3.make_learner("lbfgs")),
+    }
+    for name, (smoother, learner) in variants.items():
+        if args.only and not any(o in name for o in args.only):
+            continue
+        eps = ev.DynamicsErrorCallback(true)
+        solver = ceemx.Alternating(smoother=smoother, learner=learner, rtol=0.0)
+        res = ceemx.fit(
+            system,
+            p.data,
+            x_init,
+            solver=solver,
+            trainable=common.LORENZ_PARAMS_H,
+            max_epochs=args.epochs,
+            progress=False,
+            callbacks=[eps],
+        )
+        h = res.history[1:]
+        keys = ("time", "smooth_time", "learn_time")
+        med = {k: float(np.median([x[k] for x in h])) for k in keys}
+        rec = {
+            **{f"{k}_median_s": v for k, v in med.items()},
+            "first_epoch_s": res.history[0]["time"],
+            "learner_steps": [x["learner_steps"] for x in res.history],
+            "smoother_steps": [x["smoother_steps"] for x in res.history],
+            "eps": [x["eps"] for x in res.history],
+        }
+        out["variants"][name] = rec
+        print(
+            f"{name:48s} epoch {med['time']:.3f} s (smoothing {med['smooth_time']:.3f}, "
+            f"learning {med['learn_time']:.3f}); steps (learner, smoother) "
+            f"{rec['learner_steps']}, {rec['smoother_steps']}; "
+            f"ε per epoch {[round(x, 4) for x in rec['eps']]}",
+            flush=True,
+        )
+    out["load_after"] = os.getloadavg()[0]
+    out["date"] = time.strftime("%Y-%m-%d %H:%M")
+    print(f"load {out['load_before']:.2f} → {out['load_after']:.2f}")
+    OUT.write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

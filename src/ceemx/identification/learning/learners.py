@@ -68,18 +68,24 @@ class LMLearner(AbstractLearner):
     objective (up to round-off once the predicted decrease is below tolerance).
 
     Attributes:
-        max_steps: bound on LM iterations per EM epoch.
+        max_steps: bound on LM iterations (accepted or rejected) per EM epoch.
         rtol, atol: convergence on the decrease of the objective.
         damping: initial λ.
+        max_accepted: also stop after this many accepted steps (``None``: no such bound, the
+            M-step is solved to ``rtol``). ``1`` is a generalised-EM M-step: one Gauss–Newton
+            build and the first step that lowers the objective (rejected trials cost a value
+            each) — the default of :class:`ceemx.Alternating`.
     """
 
     max_steps: int = eqx.field(default=100, static=True)
     rtol: float = 1e-12
     atol: float = 0.0
     damping: float = 1e-3
+    max_accepted: int | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
         check_int("max_steps", self.max_steps, 1)
+        check_int("max_accepted", self.max_accepted, 1, none=True)
         for name in ("rtol", "atol", "damping"):
             check_nonnegative(name, getattr(self, name))
 
@@ -117,6 +123,7 @@ class LMLearner(AbstractLearner):
             atol=self.atol,
             max_steps=self.max_steps,
             damping=self.damping,
+            max_accepted=self.max_accepted,
             # Trial points need only the objective's value: the dense Gauss–Newton matrix is formed
             # at the start and where an accepted step is followed by another (not at rejected
             # trials nor at the final point).
