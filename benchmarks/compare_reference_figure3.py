@@ -300,6 +300,21 @@ def main() -> None:
             rec["load_after"] = os.getloadavg()[0]
             runs.append(rec)
             print(f"rep {rep}: load {rec['load_before']:.2f} → {rec['load_after']:.2f}", flush=True)
+            partial = {  # each repetition as it ends: a long run stopped early keeps its reps
+                f"rep {r['rep']}": {
+                    name: {
+                        "epoch_s": v["epoch_s"],
+                        "eps": [epsilon(t, info["truth"], info["test"]) for t in v["theta"]],
+                    }
+                    for name, v in r.items()
+                    if isinstance(v, dict) and "theta" in v
+                }
+                | {"load": [r["load_before"], r["load_after"]]}
+                for r in runs
+            }
+            pathlib.Path(out_path).with_suffix(".partial.json").write_text(
+                json.dumps(partial, indent=1)
+            )
     summary = {}
     names = ("reference", "alternate", "joint", "alternate_before", "joint_before")
     for name in names:

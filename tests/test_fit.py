@@ -60,8 +60,8 @@ def lorenz(theta, C, dtype=jnp.float64):
 def traces():
     """Route ``fit``'s two compiled entry points through fresh jit wrappers that record each trace.
 
-    A wrapper's Python body runs only while tracing. Every configuration (learner type, batch shape,
-    dtype) must be traced once per module: a second trace of the same one raises, whichever test
+    A wrapper's Python body runs only while tracing. Every configuration (learner type and static
+    options, batch shape, dtype) must be traced once per module: a second trace of the same one raises, whichever test
     causes it. The wrappers call the library's own compiled functions, so results are unchanged.
     """
     log = []
@@ -86,7 +86,10 @@ def traces():
 
     @eqx.filter_jit
     def learn_traced(learner, problem, theta, state):
-        record("learn", (type(learner).__name__, problem.states.shape, str(theta.dtype)))
+        # The learner's type and static options (its tree structure: max_steps, max_accepted).
+        record(
+            "learn", (jax.tree_util.tree_structure(learner), problem.states.shape, str(theta.dtype))
+        )
         return learn(learner, problem, theta, state)
 
     with pytest.MonkeyPatch.context() as mp:
@@ -265,7 +268,10 @@ def test_failed_trajectory_is_excluded_and_reported(prob):
     data3 = ceemx.Trajectories(y)
     x_bad = jnp.concatenate([prob.x_init, jnp.full((1, T, 3), 1e200)])
     with pytest.warns(UserWarning, match=r"smoothing failed.*\[2\]"):
-        res = ceemx.fit(prob.start, data3, x_bad, trainable=where_theta, max_epochs=10)
+        res = ceemx.fit(
+            prob.start, data3, x_bad, trainable=where_theta, max_epochs=10,
+            solver=ceemx.Alternating(learner=ceemx.LMLearner(), rtol=1e-10),  # as fit_a's
+        )  # fmt: skip
     status = codes(res.status)
     assert status[2] == codes(RESULTS.nonfinite)
     assert np.all(status[:2] != codes(RESULTS.nonfinite))

@@ -336,3 +336,21 @@ def test_lm_driver_lazy_linearisation_takes_the_same_steps():
     # eager: the start plus every trial; lazy: the start plus accepted points that continued
     assert calls["eager"] == 1 + int(eager.steps)
     assert calls["lazy"] == int(lazy.accepted)
+
+
+def test_lm_learner_max_accepted_is_the_first_accepted_step(noisy):
+    """``max_accepted=1`` (Alternating's GEM default) stops at the LM's first accepted step: the
+    point that ``max_steps`` = its iteration count reaches; the objective decreases."""
+    assert ceemx.Alternating().learner == ceemx.LMLearner(max_accepted=1)
+    gem, _, info = ceemx.learn(
+        noisy.start, noisy.states, noisy.data, ceemx.LMLearner(max_accepted=1),
+        trainable=where_theta,
+    )  # fmt: skip
+    k = int(info.steps)
+    assert 1 <= k and float(info.value_after) < float(info.value_before)
+    bounded, _, _ = ceemx.learn(
+        noisy.start, noisy.states, noisy.data, ceemx.LMLearner(max_steps=k), trainable=where_theta
+    )
+    np.testing.assert_array_equal(theta_of(gem), theta_of(bounded))
+    with pytest.raises(ValueError, match="max_accepted"):
+        ceemx.LMLearner(max_accepted=0)

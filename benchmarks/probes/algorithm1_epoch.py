@@ -1,16 +1,18 @@
 """Algorithm-1 epoch on the Figure-3 problem: where the time goes, and the M-/E-step bounds.
 
     python benchmarks/probes/algorithm1_epoch.py [--epochs 8] [--only NAME ...]
+    python benchmarks/probes/algorithm1_epoch.py --epochs 0   # the components only
 
 6 coupled Lorenz, B = 8, T = 128, seed 42, the paper's weighting, states started at truth +
 N(0, 1) as ``ceemx experiment figure3``. Prints, then writes to
-``benchmarks/results/algorithm1_epoch.json`` (with ``uptime``'s load before and after):
+``benchmarks/results/algorithm1_epoch.json`` (``algorithm1_epoch_components.json`` with
+``--epochs 0``), with the load before and after:
 
-1. the components of an epoch, timed alone (median of 5 after a compile call) at the start
-   point: the learner's Gauss–Newton build as one product of the batch's θ-Jacobian rows (the
+1. the components of an epoch, each compiled, then called in turn 5 times (medians), at the
+   start point: the learner's Gauss–Newton build as one product of the batch's θ-Jacobian rows (the
    default, ``LearningProblem.gauss_newton``) and as B per-trajectory products summed (the
    earlier form, ``AbstractLearningProblem.gauss_newton``), the θ-Jacobians alone, the
-   learning objective's value, and one smoothing step;
+   learning objective's value, and one smoothing step (default bound, and ``max_steps=2``);
 2. for each solver variant (learner and smoother bounds): median seconds per epoch, in
    smoothing and in learning (epochs 2–N; epoch 1 carries the compile), the learner's and the
    smoother's steps, and ε(θ) after each epoch.
@@ -44,14 +46,17 @@ from ceemx.models import with_noise  # noqa: E402
 OUT = pathlib.Path(__file__).resolve().parents[1] / "results" / "algorithm1_epoch.json"
 
 
-def timed(f, *args, reps=5):
-    jax.block_until_ready(f(*args))
-    ts = []
+def timed(fs: dict, reps=5) -> dict:
+    """Median seconds of each thunk, compiled first, then called in turn ``reps`` times (A/B)."""
+    for f in fs.values():
+        jax.block_until_ready(f())
+    ts = {k: [] for k in fs}
     for _ in range(reps):
-        t = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
+        for k, f in fs.items():
+            t = time.perf_counter()
+            jax.block_until_ready(f())
+            ts[k].append(time.perf_counter() - t)
+    return {k: float(np.median(v)) for k, v in ts.items()}
 
 
 def main():
@@ -83,12 +88,13 @@ def main():
         ),
         "learning objective's value": eqx.filter_jit(lambda lp, th: lp.value(th)),
     }
-    for name, f in comp.items():
-        out["components_s"][name] = timed(f, lp, th)
-    sm = ceemx.LMSmoother(rho_x=rho_x)
-    out["components_s"]["smoothing step (LMSmoother default, from the start states)"] = timed(
-        lambda: smoothing.smooth_batch(sm, system, x_init, d, False).states
-    )
+    thunks = {name: (lambda f=f: f(lp, th)) for name, f in comp.items()}
+    for steps in (50, 2):
+        sm = ceemx.LMSmoother(rho_x=rho_x, max_steps=steps)
+        thunks[f"smoothing step (LMSmoother(max_steps={steps}), from the start states)"] = (
+            lambda sm=sm: smoothing.smooth_batch(sm, system, x_init, d, False).states
+        )
+    out["components_s"] = timed(thunks)
     for k, v in out["components_s"].items():
         print(f"  {k:60s} {v * 1e3:8.1f} ms", flush=True)
 
@@ -108,7 +114,7 @@ def main():
         ),
         "lbfgs (100 steps)": (ceemx.LMSmoother(rho_x=rho_x), figure3.make_learner("lbfgs")),
     }
-    for name, (smoother, learner) in variants.items():
+    for name, (smoother, learner) in variants.items() if args.epochs > 0 else ():
         if args.only and not any(o in name for o in args.only):
             continue
         eps = ev.DynamicsErrorCallback(true)
@@ -144,7 +150,8 @@ def main():
     out["load_after"] = os.getloadavg()[0]
     out["date"] = time.strftime("%Y-%m-%d %H:%M")
     print(f"load {out['load_before']:.2f} → {out['load_after']:.2f}")
-    OUT.write_text(json.dumps(out, indent=1))
+    path = OUT if args.epochs > 0 else OUT.with_name("algorithm1_epoch_components.json")
+    path.write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,68 @@
+"""The learner's Gauss–Newton matrix as one product of the batch's θ-Jacobian rows.
+
+Oracle: the whitened residual vector r̃(θ) of every trajectory (``whitened_residuals``,
+−J = ½‖r̃‖² + const for Gaussian noise) differentiated by ``jax.jacfwd``: the Gauss–Newton matrix is
+Σ_b w_b J_bᵀJ_b and the gradient Σ_b w_b J_bᵀr̃_b. Single Lorenz (n = 3, m = 2), T = 12, B = 3 with
+weights (1, 0, 2) and a non-finite excluded trajectory; random states and data (the identities
+hold at any point).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ceemx
+from ceemx.identification.learning.gauss_newton import depends_on
+from ceemx.identification.learning.problem import make_problem
+from ceemx.inference.objective import whitened_residuals
+from ceemx.systems import CoupledLorenz, random_observation_matrix
+
+
+def test_depends_on_follows_the_data_flow():
+    def f(x, th):
+        return jnp.sin(x) * 2.0 + jnp.sum(jax.jit(lambda a: a * 0.0)(th[:1]))  # a path through θ
+
+    def g(x, th):
+        return jnp.cos(x) + th.shape[0]  # shape only: no data from θ
+
+    x, th = jnp.ones(3), jnp.ones(4)
+    assert depends_on(f, 1, x, th) and depends_on(f, 0, x, th)
+    assert not depends_on(g, 1, x, th) and depends_on(g, 0, x, th)
+
+
+@pytest.fixture(scope="module")
+def batch():
+    C = random_observation_matrix(jax.random.PRNGKey(0), 1, m=2)
+    s = jnp.asarray
+    system = CoupledLorenz(s([10.5]), s([27.0]), s([2.5]), C, obs_noise=0.3, process_noise=0.2)
+    rng = np.random.default_rng(0)  # any states and data will do: the identities are exact
+    x = np.asarray([-6.0, -6.0, 24.0]) + 5.0 * rng.standard_normal((3, 12, 3))
+    states = jnp.asarray(x)
+    data = ceemx.Trajectories(jnp.asarray(x[..., :2] + 0.3 * rng.standard_normal((3, 12, 2))))
+    states = states.at[1, 4].set(jnp.nan)  # excluded below: must not spoil the sums
+    return system, states, data, jnp.asarray([1.0, 0.0, 2.0])
+
+
+# observation rows absent (the default suite) / present
+@pytest.mark.parametrize("which", ["dynamics", pytest.param("all", marks=pytest.mark.slow)])
+def test_gauss_newton_matches_the_residual_jacobian(batch, which):
+    system, states, data, w = batch
+    trainable = (lambda s: (s.sigma, s.rho, s.beta)) if which == "dynamics" else None
+    problem, theta = make_problem(system, states, data, trainable=trainable, weights=w)
+    keep = np.flatnonzero(np.asarray(w) > 0)
+
+    @eqx.filter_jit
+    def both(problem, theta):
+        def r(th):
+            return whitened_residuals(problem.build(th), states[keep], data[keep])
+
+        return problem.gauss_newton(theta), jax.jacfwd(r)(theta), r(theta), problem.value(theta)
+
+    (value, grad, hess), J, r, v = both(problem, theta)  # J: (b, R, P)
+    wk = w[keep]
+    np.testing.assert_allclose(hess, jnp.einsum("b,brp,brq->pq", wk, J, J), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(grad, jnp.einsum("b,brp,br->p", wk, J, r), rtol=1e-11)
+    np.testing.assert_allclose(value, v, rtol=1e-13)
+    assert theta.shape[0] == (3 if which == "dynamics" else 3 + 6 + 9)  # σ ρ β (C, H)
