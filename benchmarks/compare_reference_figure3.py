@@ -23,6 +23,11 @@ included) to the first epoch with ε ≤ 10, 1, 0.01 is reported, with the best 
 there: a reference run takes up to the budget).
 
     python benchmarks/compare_reference_figure3.py [--epochs 5] [--reps 3] [--smoke]
+        [--before-src /work/main/src] [--methods alternate,joint]
+
+``--before-src``: ceemx from that source tree runs too, right after the current one in each
+repetition (``alternate_before``, ``joint_before``): before/after in the same run. Each repetition
+is written as it ends to ``compare_reference_figure3.partial.json`` (time and ε per epoch).
     python benchmarks/compare_reference_figure3.py --time-to-eps [--budget 600] [--reps 1]
 
 Backs: ``README.md`` (results table, time to ε ≤ 0.01: "451 s (110 epochs of 4.06 s)" against

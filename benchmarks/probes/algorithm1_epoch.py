@@ -95,6 +95,13 @@ def main():
             lambda sm=sm: smoothing.smooth_batch(sm, system, x_init, d, False).states
         )
     out["components_s"] = timed(thunks)
+    rows = comp["θ-Jacobian rows alone"](lp, th)
+    out["rows_per_trajectory"] = int(rows.shape[1])
+    out["rows_nonzero_fraction"] = float(np.mean(np.abs(np.asarray(rows)) > 0))
+    print(
+        f"  θ-Jacobian rows per trajectory {rows.shape[1]} × {rows.shape[2]}, "
+        f"{out['rows_nonzero_fraction']:.1%} of the entries nonzero"
+    )
     for k, v in out["components_s"].items():
         print(f"  {k:60s} {v * 1e3:8.1f} ms", flush=True)
 
