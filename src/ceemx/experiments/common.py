@@ -151,8 +151,9 @@ def make_solver(
     if method == "joint":
         return JointLM(rho_x=rho_x, rtol=rtol)
     if method == "alternate":  # without a learner: Alternating's default (a GEM M-step)
-        extra = {} if learner is None else {"learner": learner}
-        return Alternating(smoother=LMSmoother(rho_x=rho_x), rtol=rtol, **extra)
+        if learner is None:
+            return Alternating(smoother=LMSmoother(rho_x=rho_x), rtol=rtol)
+        return Alternating(smoother=LMSmoother(rho_x=rho_x), learner=learner, rtol=rtol)
     if method == "laplace":
         learner = LMLearner() if learner is None else learner
         return LaplaceEM(learner=learner, rtol=rtol)
