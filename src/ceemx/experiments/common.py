@@ -129,8 +129,8 @@ def make_solver(
     Args:
         method: ``"alternate"`` → :class:`ceemx.Alternating` (paper Algorithm 1) with an
             :class:`ceemx.LMSmoother` of trust-region weight ``rho_x`` and ``learner`` (default
-            Alternating's, ``LMLearner(max_accepted=1)``); ``"joint"`` → :class:`ceemx.JointLM`
-            with proximal weight ``rho_x`` on the states (``learner`` unused); ``"particle"`` →
+            :class:`ceemx.LMLearner`); ``"joint"`` → :class:`ceemx.JointLM` with proximal weight
+            ``rho_x`` on the states (``learner`` unused); ``"particle"`` →
             :class:`ceemx.ParticleEM` (particle filter + FFBSi + SAEM) with ``learner`` as its
             M-step, the initial-state prior ``initial`` and ``particle_options``; ``"laplace"`` →
             :class:`ceemx.LaplaceEM` (Gaussian E-step, cubature M-step by ``learner``; its smoother
@@ -150,9 +150,8 @@ def make_solver(
     """
     if method == "joint":
         return JointLM(rho_x=rho_x, rtol=rtol)
-    if method == "alternate":  # without a learner: Alternating's default (a GEM M-step)
-        if learner is None:
-            return Alternating(smoother=LMSmoother(rho_x=rho_x), rtol=rtol)
+    if method == "alternate":
+        learner = LMLearner() if learner is None else learner
         return Alternating(smoother=LMSmoother(rho_x=rho_x), learner=learner, rtol=rtol)
     if method == "laplace":
         learner = LMLearner() if learner is None else learner
