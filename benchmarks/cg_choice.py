@@ -56,7 +56,7 @@ def pieces(A, E, D):
 @jax.jit
 def ours(A, E, D, r):
     S_mv, m_inv = pieces(A, E, D)
-    x, steps, conv, broken = ah._pcg(S_mv, r, m_inv, 1e-10, r.shape[0])
+    x, steps, conv, broken = ah.pcg(S_mv, r, m_inv, 1e-10, r.shape[0])
     return x, steps, broken
 
 

@@ -39,6 +39,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
     from ceemx.identification.initialize import perturb, warm_start
     from ceemx.identification.learning import (
         AbstractLearner,
+        GaussNewtonCGLearner,
         LBFGSLearner,
         LearnInfo,
         LMLearner,
@@ -131,6 +132,7 @@ _LAZY = {
     "FitState": ".identification.solvers",
     "FitTimer": ".evaluation.metrics",
     "Fixed": ".models",
+    "GaussNewtonCGLearner": ".identification.learning",
     "GaussianPrior": ".models",
     "GreaterThan": ".models",
     "Hybrid": ".systems.hybrid",
@@ -235,6 +237,7 @@ __all__ = [
     "FitState",
     "FitTimer",
     "Fixed",
+    "GaussNewtonCGLearner",
     "GaussianPrior",
     "GreaterThan",
     "Hybrid",

@@ -19,6 +19,8 @@ Nothing here knows about EM, systems or data; the user-facing layer (``ceemx``) 
 
 from ceemx.lib.arrowhead import ArrowheadSolution as ArrowheadSolution
 from ceemx.lib.arrowhead import arrowhead_solve as arrowhead_solve
+from ceemx.lib.arrowhead import arrowhead_solve_matrix_free as arrowhead_solve_matrix_free
+from ceemx.lib.arrowhead import pcg as pcg
 from ceemx.lib.blocktri import BlockTridiagonal as BlockTridiagonal
 from ceemx.lib.blocktri import BlockTridiagonalCholesky as BlockTridiagonalCholesky
 from ceemx.lib.blocktri import add_to_diagonal as add_to_diagonal
@@ -47,6 +49,7 @@ __all__ = [
     "LMOutput",
     "add_to_diagonal",
     "arrowhead_solve",
+    "arrowhead_solve_matrix_free",
     "cho_solve",
     "cholesky",
     "cholesky_solve",
@@ -55,6 +58,7 @@ __all__ = [
     "logdet",
     "marquardt_scale",
     "matvec",
+    "pcg",
     "selected_inverse",
     "solve",
     "symmetrize",

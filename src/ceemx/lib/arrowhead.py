@@ -9,11 +9,17 @@ For ``B`` trajectories with states ``x_b`` (``T x n``) and a shared parameter ve
 with ``A_b`` symmetric positive-definite block-tridiagonal. It is solved through the Schur
 complement ``S = D - sum_b E_b^T A_b^{-1} E_b``. Every sum over trajectories is a plain
 ``jnp.sum`` over the leading axis, so sharding that axis later only adds a cross-device reduce.
+
+At very large ``theta`` neither ``S`` (``theta²``) nor the border ``E_b`` (``B·T·n·theta``) can be
+held: :func:`arrowhead_solve_matrix_free` takes the border as products instead (``E v``, ``D v`` and
+``Eᵀ w``, e.g. Jacobian-vector products of the residuals) and applies ``S`` by CG, each step one
+border product, one batched block-tridiagonal solve and one transposed border product.
 """
 
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import Literal
 
 import equinox as eqx
@@ -30,7 +36,7 @@ from ceemx.lib.blocktri import (
 )
 from ceemx.lib.dense import after, cholesky_solve
 
-__all__ = ["ArrowheadSolution", "arrowhead_solve"]
+__all__ = ["ArrowheadSolution", "arrowhead_solve", "arrowhead_solve_matrix_free", "pcg"]
 
 
 class ArrowheadSolution(eqx.Module):
@@ -46,7 +52,7 @@ class ArrowheadSolution(eqx.Module):
             reached ``cg_rtol`` within ``cg_max_steps`` (an unconverged CG step with ``ok`` True
             is still a descent direction for a Gauss-Newton step).
         cg_steps: Number of CG iterations taken (0 for the dense method).
-        method: ``"dense"`` or ``"cg"`` (static).
+        method: ``"dense"``, ``"cg"`` or ``"cg-matrix-free"`` (static).
     """
 
     dx: Float[Array, "B T n"]
@@ -86,11 +92,19 @@ def _schur_diag(L, E, chunk: int):
     return jax.lax.map(one, Ec).reshape(-1)[:P]
 
 
-def _pcg(S_mv, rhs, m_inv, rtol, max_steps):
-    """Bounded preconditioned CG that flags non-positive curvature.
+def pcg(S_mv, rhs, m_inv, rtol, max_steps):
+    """Bounded preconditioned CG on ``S x = rhs`` that flags non-positive curvature.
+
+    Args:
+        S_mv: ``v -> S v`` for a symmetric ``S`` (a vector of ``rhs``'s shape).
+        rhs: the right-hand side.
+        m_inv: the inverse of a diagonal preconditioner (same shape as ``rhs``).
+        rtol: stop at ``||r|| <= rtol ||rhs||``.
+        max_steps: bound on iterations (may be traced).
 
     Returns:
-        ``(x, steps, converged, broken)``.
+        ``(x, steps, converged, broken)``; ``broken`` when a direction of non-positive (or
+        non-finite) curvature was met (``x`` is then the iterate before it).
     """
     b_norm = jnp.linalg.norm(rhs)
     tol = rtol * b_norm
@@ -216,7 +230,7 @@ def arrowhead_solve(
             raise ValueError(f"unknown cg_preconditioner {cg_preconditioner!r}")
         m_inv = jnp.where(d > 0, 1.0 / jnp.where(d > 0, d, 1.0), 1.0)
         max_steps = P if cg_max_steps is None else cg_max_steps
-        dtheta, steps, converged, broken = _pcg(S_mv, rhs, m_inv, cg_rtol, max_steps)
+        dtheta, steps, converged, broken = pcg(S_mv, rhs, m_inv, cg_rtol, max_steps)
         s_ok = ~broken & jnp.all(jnp.isfinite(dtheta))
 
     dx = w - _solve_b(L, jnp.einsum("btnp,p->btn", E, dtheta))
@@ -228,4 +242,72 @@ def arrowhead_solve(
         converged=ok & converged,
         cg_steps=steps,
         method=method,
+    )
+
+
+def arrowhead_solve_matrix_free(
+    A: BlockTridiagonal,
+    border: Callable[[Array], tuple[Array, Array]],
+    border_t: Callable[[Array], Array],
+    r_x: Float[Array, "B T n"],
+    r_theta: Float[Array, " theta"],
+    *,
+    preconditioner: Float[Array, " theta"] | None = None,
+    cg_rtol: float | Float[Array, ""] = 1e-10,
+    cg_max_steps: int | Int[Array, ""] | None = None,
+) -> ArrowheadSolution:
+    """Solve the arrowhead system with the border and ``D`` given as products (matrix-free).
+
+    The same system as :func:`arrowhead_solve`, but neither ``E_b`` (``B·T·n·theta``) nor ``D``
+    nor ``S`` is formed: ``S dtheta = rhs`` is solved by preconditioned CG (:func:`pcg`), each
+    step costing one ``border`` product, one batched block-tridiagonal solve with the factors of
+    ``A_b`` (computed once) and one ``border_t`` product. Memory ``O(B T n² + theta)``.
+    Call it inside a compiled function (it takes Python callables).
+
+    Args:
+        A: Batched block-tridiagonal matrices (every leaf has leading axis ``B``), SPD.
+        border: ``v -> (E v, D v)`` for ``v`` of shape ``(theta,)``: the stacked ``E_b v``
+            ``(B, T, n)`` and ``D v`` ``(theta,)`` (one Jacobian-vector product in θ and one
+            vector-Jacobian product for Gauss–Newton matrices; damping of ``D`` included).
+        border_t: ``w -> sum_b E_b^T w_b`` for ``w`` of shape ``(B, T, n)``.
+        r_x: State right-hand sides, shape ``(B, T, n)``.
+        r_theta: Parameter right-hand side, shape ``(theta,)``.
+        preconditioner: a positive diagonal approximating ``S`` (e.g. the damped ``diag(D)``)
+            or ``None`` (no preconditioning). Non-positive entries fall back to 1.
+        cg_rtol: relative residual tolerance of CG (a truncated, inexact-Newton step when
+            loose: an unconverged CG step is still a descent direction of the model).
+        cg_max_steps: bound on CG iterations (default ``theta``).
+
+    Returns:
+        An :class:`ArrowheadSolution` with ``method="cg-matrix-free"``; ``ok`` False (and zero
+        steps) when an ``A_b`` factor is not finite or CG met non-positive curvature in ``S``.
+    """
+    P = r_theta.shape[0]
+    L = jax.vmap(cholesky)(A)
+    a_ok = jnp.all(jax.vmap(is_finite)(L))
+    w = _solve_b(L, r_x)  # A_b^{-1} r_b
+    rhs = r_theta - border_t(w)
+
+    def S_mv(v):
+        Ev, Dv = border(v)
+        return Dv - border_t(_solve_b(L, Ev))  # each solve reads the previous step's result
+
+    if preconditioner is None:
+        m_inv = jnp.ones((P,), r_theta.dtype)
+    else:
+        d = preconditioner
+        m_inv = jnp.where(d > 0, 1.0 / jnp.where(d > 0, d, 1.0), 1.0)
+    max_steps = P if cg_max_steps is None else cg_max_steps
+    dtheta, steps, converged, broken = pcg(S_mv, rhs, m_inv, cg_rtol, max_steps)
+    s_ok = ~broken & jnp.all(jnp.isfinite(dtheta))
+    Ed, _ = border(dtheta)
+    dx = w - _solve_b(L, Ed)
+    ok = a_ok & s_ok & jnp.all(jnp.isfinite(dx))
+    return ArrowheadSolution(
+        dx=jnp.where(ok, dx, 0.0).astype(r_x.dtype),
+        dtheta=jnp.where(ok, dtheta, 0.0).astype(r_theta.dtype),
+        ok=ok,
+        converged=ok & converged,
+        cg_steps=steps,
+        method="cg-matrix-free",
     )

@@ -4,6 +4,11 @@ from ceemx.identification.learning.expected import (
     ExpectedLearningProblem,
     expected_learning_problem,
 )
+from ceemx.identification.learning.gauss_newton_cg import (
+    GaussNewtonCGLearner,
+    gauss_newton_diagonal,
+    gauss_newton_product,
+)
 from ceemx.identification.learning.learners import (
     AbstractLearner,
     LBFGSLearner,
@@ -27,7 +32,10 @@ __all__ = [
     "AbstractLearningProblem",
     "ExpectedLearningProblem",
     "expected_learning_problem",
+    "gauss_newton_diagonal",
+    "gauss_newton_product",
     "AbstractLearner",
+    "GaussNewtonCGLearner",
     "LBFGSLearner",
     "LMLearner",
     "LearnInfo",

@@ -97,7 +97,8 @@ class LMLearner(AbstractLearner):
         check_fits(
             f"LMLearner's {B} per-trajectory dense {P} × {P} Gauss–Newton matrices",
             (B + 4) * P * P * theta.dtype.itemsize,
-            "use ceemx.LBFGSLearner or ceemx.OptaxLearner (matrix-free) for this many parameters.",
+            "use ceemx.GaussNewtonCGLearner (Gauss–Newton by Jacobian-vector products and CG) or "
+            "ceemx.LBFGSLearner (matrix-free) for this many parameters.",
         )
         offset = problem.offset(
             theta

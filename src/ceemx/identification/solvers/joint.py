@@ -57,6 +57,7 @@ from ceemx.identification.identifiability import (
     analyse,
 )
 from ceemx.identification.problem import FitProblem
+from ceemx.identification.solvers import joint_matrix_free
 from ceemx.identification.solvers.base import (
     AbstractFitSolver,
     FitState,
@@ -70,6 +71,7 @@ from ceemx.infra.distributed import to_host
 from ceemx.infra.memory import check_fits
 from ceemx.infra.options import (
     check_bool,
+    check_choice,
     check_int,
     check_nonnegative,
     check_positive,
@@ -112,7 +114,16 @@ class JointLM(AbstractFitSolver):
             matrix-free preconditioned CG on S), ``"dense"`` or ``"cg"``.
         dense_max_p: threshold of ``"auto"``.
         cg_rtol: relative residual tolerance of CG.
-        cg_max_steps: CG iteration bound (``None``: P).
+        cg_max_steps: CG iteration bound (``None``: P; with the matrix-free border, min(P, 100)).
+        border: ``"dense"`` (E_b, D formed: B·T·n·P and P² numbers) or ``"matrix-free"``: E_b,
+            E_bᵀ and D applied as Jacobian-vector products, S by preconditioned CG, truncated at
+            ``cg_rtol``/``cg_max_steps`` (an inexact Newton step): memory O(B·T·n² + P), for P
+            in the tens of thousands (:mod:`ceemx.identification.solvers.joint_matrix_free`).
+            ``linear_solver`` and ``dense_max_p`` do not apply to it.
+        border_scaling: with ``border="matrix-free"``, θ's damping scale and CG's Jacobi
+            preconditioner: ``"diagonal"`` (exact diag(D), about one dense θ-Jacobian's work
+            per iteration, one time step at a time) or ``"identity"`` (Levenberg damping in θ,
+            no preconditioner).
         max_theta_step: trust region of one step, in scaled variables: no θ_i moves by more than
             ``max_theta_step·max(|θ_i|, 1)`` (``inf``: unbounded).
         check_smoothing: before stopping, try one smoothing pass at the end θ and go on if it
@@ -139,6 +150,8 @@ class JointLM(AbstractFitSolver):
     check_smoothing: bool = eqx.field(default=True, static=True)
     check_rtol: float = 1e-6
     check_identifiability: bool = eqx.field(default=True, static=True)
+    border: str = eqx.field(default="dense", static=True)
+    border_scaling: str = eqx.field(default="diagonal", static=True)
 
     history_keys = {
         "trials": "LM trials in this iteration (accepted and rejected)",
@@ -165,6 +178,8 @@ class JointLM(AbstractFitSolver):
         check_int("cg_max_steps", self.cg_max_steps, 1, none=True)
         check_bool("check_smoothing", self.check_smoothing)
         check_bool("check_identifiability", self.check_identifiability)
+        check_choice("border", self.border, ("dense", "matrix-free"))
+        check_choice("border_scaling", self.border_scaling, ("diagonal", "identity"))
 
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
@@ -173,13 +188,24 @@ class JointLM(AbstractFitSolver):
         B, T, n = states.shape
         P = theta.shape[0]
         itemsize = states.dtype.itemsize
-        check_fits(
-            f"JointLM's linearisation (border E: {B} × {T} × {n} × {P}, θ-Jacobians of the same "
-            f"size, {P} × {P} blocks)",
-            (3 * B * T * n * P + (B + 4) * P * P) * itemsize,
-            "use ceemx.Alternating with a matrix-free learner (ceemx.LBFGSLearner) and, for "
-            "large n, LMSmoother(batch_chunk=...).",
-        )
+        if self.border == "matrix-free":
+            # A_b and its factor (2·B·T·n²), one batch of linearisations, a few θ-vectors.
+            check_fits(
+                f"JointLM(border='matrix-free')'s x-blocks ({B} × {T} × {n} × {n}, twice)",
+                (2 * B * T * n * n + 8 * P) * itemsize,
+                "use ceemx.Alternating with LMSmoother(batch_chunk=...) and a matrix-free "
+                "learner (ceemx.GaussNewtonCGLearner).",
+            )
+        else:
+            check_fits(
+                f"JointLM's linearisation (border E: {B} × {T} × {n} × {P}, θ-Jacobians of the "
+                f"same size, {P} × {P} blocks)",
+                (3 * B * T * n * P + (B + 4) * P * P) * itemsize,
+                "use JointLM(border='matrix-free') (border and Schur complement as "
+                "Jacobian-vector products and CG), or ceemx.Alternating with a matrix-free "
+                "learner (ceemx.GaussNewtonCGLearner) and, for large n, "
+                "LMSmoother(batch_chunk=...).",
+            )
         J = trajectory_log_likelihood(problem, theta, states)
         ok = np.isfinite(to_host(J))
         if not ok.all():
@@ -474,6 +500,8 @@ def _iteration(
 
     Returns (θ, x, λ, status, accepted steps, trials, −J_b at the new point).
     """
+    if opts.border == "matrix-free":
+        return joint_matrix_free.iteration(opts, problem, weights, theta, states, lam)
     ok_b = weights > 0
     dtype = states.dtype
     rho_x = jnp.asarray(opts.rho_x, dtype)
