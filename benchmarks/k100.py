@@ -87,6 +87,19 @@ def main(argv=None) -> dict:
     p.add_argument(
         "--chunk", type=int, default=None, help="trajectories per smoothing call (0: ceemx.fit)"
     )
+    p.add_argument(
+        "--method",
+        choices=("alt-lbfgs", "alt-gncg", "joint-mf"),
+        default="alt-lbfgs",
+        help="Algorithm 1 with LBFGSLearner or GaussNewtonCGLearner, or "
+        "JointLM(border='matrix-free')",
+    )
+    p.add_argument("--gn-steps", type=int, default=10, help="LM iterations of GaussNewtonCG")
+    p.add_argument("--cg-steps", type=int, default=50, help="CG bound per LM iteration")
+    p.add_argument("--cg-rtol", type=float, default=1e-3, help="CG relative tolerance")
+    p.add_argument(
+        "--scaling", choices=("diagonal", "identity"), default="diagonal", help="θ damping scale"
+    )
     p.add_argument("--smoke", action="store_true", help="K = 4, T = 32, B = 2, 2 epochs")
     p.add_argument("--out", type=str, default=None)
     args = p.parse_args(argv)
@@ -94,6 +107,8 @@ def main(argv=None) -> dict:
         args.K, args.T, args.B, args.max_epochs, args.budget = 4, 32, 2, 2, 120.0
     n = 3 * args.K
     chunk = args.chunk if args.chunk is not None else (2 if n >= 150 else 0)
+    if args.method == "joint-mf":
+        chunk = 0
     out_path = args.out if args.out else (None if args.smoke else DEFAULT_OUT)
 
     t_setup = time.perf_counter()
@@ -103,7 +118,26 @@ def main(argv=None) -> dict:
     eps0 = eps_cb.error(system)
     setup_s = time.perf_counter() - t_setup
     smoother = ceemx.LMSmoother(max_steps=args.smoother_steps)
-    learner = ceemx.LBFGSLearner(max_steps=args.lbfgs_steps)
+    if args.method == "alt-gncg":
+        learner = ceemx.GaussNewtonCGLearner(
+            max_steps=args.gn_steps,
+            cg_max_steps=args.cg_steps,
+            cg_rtol=args.cg_rtol,
+            scaling=args.scaling,
+        )
+    else:
+        learner = ceemx.LBFGSLearner(max_steps=args.lbfgs_steps)
+    if args.method == "joint-mf":
+        solver = ceemx.JointLM(
+            border="matrix-free",
+            cg_max_steps=args.cg_steps,
+            cg_rtol=args.cg_rtol,
+            border_scaling=args.scaling,
+            rtol=0.0,
+            check_identifiability=False,
+        )
+    else:
+        solver = ceemx.Alternating(smoother=smoother, learner=learner, rtol=0.0)
     result: dict = {
         "config": {
             "K": args.K,
@@ -116,7 +150,14 @@ def main(argv=None) -> dict:
             "budget_s": args.budget,
             "smoother_steps": args.smoother_steps,
             "lbfgs_steps": args.lbfgs_steps,
-            "driver": "ceemx.fit(Alternating)" if chunk == 0 else f"manual, chunk={chunk}",
+            "method": args.method,
+            "gn_steps": args.gn_steps,
+            "cg_steps": args.cg_steps,
+            "cg_rtol": args.cg_rtol,
+            "scaling": args.scaling,
+            "driver": (
+                f"ceemx.fit({type(solver).__name__})" if chunk == 0 else f"manual, chunk={chunk}"
+            ),
             "weighting": "likelihood (σ_w = σ_v = 0.01, ρ_x = 0)",
             "target": "eps <= 0.01 * eps_initial",
         },
@@ -179,9 +220,8 @@ def main(argv=None) -> dict:
 
         def callback(info):
             r = info.record
-            rec = {
-                k: r[k] for k in ("time", "smooth_time", "learn_time", "learner_steps") if k in r
-            }
+            keys = ("time", "smooth_time", "learn_time", "learner_steps", "trials", "damping")
+            rec = {k: r[k] for k in keys if k in r}
             if not log_epoch(info.epoch, info.system, r["J"], rec):
                 return False
             return None
@@ -190,7 +230,7 @@ def main(argv=None) -> dict:
             system,
             prob.data,
             x0,
-            solver=ceemx.Alternating(smoother=smoother, learner=learner, rtol=0.0),
+            solver=solver,
             trainable=common.LORENZ_PARAMS_H,
             max_epochs=args.max_epochs,
             callbacks=[callback],

@@ -52,30 +52,20 @@ def _curvature(system: AbstractSystem, r_obs, r_dyn, mask, weights):
     if on.diagonal_curvature:
         sv = jax.vmap(jax.vmap(on.sqrt_curvature_diagonal))(r_obs, mask)
         Wv = wb * sv**2
-
-        def apply_v(a):
-            return Wv * a
     else:
         Sv = jax.vmap(jax.vmap(on.sqrt_curvature))(r_obs, mask)
         Wv = wb[..., None] * jnp.swapaxes(Sv, -1, -2) @ Sv
-
-        def apply_v(a):
-            return jnp.einsum("btij,btj->bti", Wv, a)
-
     if pn.diagonal_curvature:
         sw = jax.vmap(jax.vmap(pn.sqrt_curvature_diagonal))(r_dyn)
         Ww = wb * sw**2
-
-        def apply_w(a):
-            return Ww * a
     else:
         Sw = jax.vmap(jax.vmap(pn.sqrt_curvature))(r_dyn)
         Ww = wb[..., None] * jnp.swapaxes(Sw, -1, -2) @ Sw
 
-        def apply_w(a):
-            return jnp.einsum("btij,btj->bti", Ww, a)
+    def weigh(W, a):  # a per-step diagonal (B, T, d) or matrix (B, T, d, d) curvature
+        return W * a if W.ndim == a.ndim else jnp.einsum("btij,btj->bti", W, a)
 
-    return apply_v, apply_w
+    return (lambda a: weigh(Wv, a)), (lambda a: weigh(Ww, a))
 
 
 def gauss_newton_product(
@@ -173,9 +163,7 @@ def gauss_newton_diagonal(
         d_dyn, _ = jax.lax.scan(dyn_step, zero, (x[:-1], u[:-1], r_dyn, ts[:-1]))
         return carry + w * (d_obs + d_dyn), None
 
-    out, _ = jax.lax.scan(
-        one, jnp.zeros_like(theta), (states, data.y, data.u, data.mask, weights)
-    )
+    out, _ = jax.lax.scan(one, jnp.zeros_like(theta), (states, data.y, data.u, data.mask, weights))
     return out
 
 
