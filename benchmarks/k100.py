@@ -8,11 +8,18 @@ truth + N(0, 1). Fitted with the likelihood weighting (σ_w = σ_v = 0.01, ρ_x 
 paper's Eq. 14 (``ceemx.evaluation.metrics.dynamics_error``); the target is ε ≤ 1 % of the initial ε
 within ``--budget`` seconds (default 600).
 
-Method: Algorithm 1 with a matrix-free learner — ``LMSmoother(max_steps=--smoother-steps)`` then
-``LBFGSLearner(max_steps=--lbfgs-steps)`` on (σ, ρ, β, H). The joint LM's dense Schur complement
-(P × P) and its border E (B·T·n·P) cannot be held at P ≈ 90 000, so it is not used.
+Methods (``--method``):
 
-Two drivers:
+* ``alt-lbfgs`` (default, the first attempt): Algorithm 1, ``LMSmoother(max_steps=--smoother-steps)``
+  then ``LBFGSLearner(max_steps=--lbfgs-steps)`` on (σ, ρ, β, H);
+* ``alt-gncg``: the same with ``GaussNewtonCGLearner(max_steps=--gn-steps,
+  cg_max_steps=--cg-steps, cg_rtol=--cg-rtol, scaling=--scaling)``;
+* ``joint-mf``: ``JointLM(border="matrix-free", cg_max_steps=--cg-steps, cg_rtol=--cg-rtol,
+  border_scaling=--scaling)`` through ``ceemx.fit`` (the joint LM's dense Schur complement,
+  P × P, and border, B·T·n·P, cannot be held at P ≈ 90 000; the matrix-free border forms only
+  the x-blocks A_b, B·T·n²).
+
+Two drivers for the ``alt-*`` methods (``joint-mf`` always uses ``ceemx.fit``):
 
 * ``--chunk 0``: ``ceemx.fit(..., solver=ceemx.Alternating(...))`` (the library's Algorithm 1;
   its smoother vmaps all B trajectories at once, so memory grows as B·T·n²);
@@ -29,6 +36,7 @@ Usage::
     python benchmarks/k100.py                   # the real attempt (K = 100, T = 256, B = 16)
     python benchmarks/k100.py --K 20 --budget 120   # a scaled-down probe
     python benchmarks/k100.py --smoke --out x.json  # K = 4, T = 32, B = 2, 2 epochs (seconds)
+    python benchmarks/k100.py --method joint-mf --K 10 --budget 150   # the matrix-free joint LM
 
 Backs: ``benchmarks/README.md`` ("K = 100 coupled Lorenz": "after epoch 1 **3.568 (5.4 % of ε₀)**",
 "**target ε ≤ 1 % of ε₀ in 10 min** | **not met**", and the scaled-down probes table with
@@ -195,6 +203,7 @@ def main(argv=None) -> dict:
         eps = eps_cb.error(sys_now)
         rec = {"epoch": epoch, "eps": eps, "J": J, "wall_s": time.perf_counter() - t0, **rec}
         rec["load"] = os.getloadavg()[0]
+        rec["cpu_s"] = resource.getrusage(resource.RUSAGE_SELF).ru_utime  # process CPU, cumulative
         result["epochs"].append(rec)
         print(
             f"epoch {epoch:3d}  ε = {eps:.6g} ({eps / eps0:.3%} of ε₀)  J = {J:.8g}  "
