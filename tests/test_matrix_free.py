@@ -144,3 +144,19 @@ def test_joint_matrix_free_iteration_equals_dense(setup):
     np.testing.assert_allclose(th_f, th_d, rtol=1e-7)
     np.testing.assert_allclose(res_f.states, res_d.states, rtol=1e-7, atol=1e-7)
     assert [h["J"] for h in res_f.history] == pytest.approx([h["J"] for h in res_d.history])
+
+
+def test_memory_guard_names_the_matrix_free_paths(setup, monkeypatch):
+    """The dense border's refusal names JointLM(border='matrix-free') and GaussNewtonCGLearner;
+    the matrix-free border has its own (B·T·n²) estimate and refuses before any compute too."""
+    from ceemx.infra import memory
+
+    guess, x0, data = setup
+    monkeypatch.setattr(memory, "physical_memory", lambda: 256)
+    kw = dict(trainable=trainable, max_epochs=1, progress=False)
+    with pytest.raises(ValueError, match="border='matrix-free'.*GaussNewtonCGLearner"):
+        ceemx.fit(guess, data, x0, solver=ceemx.JointLM(), **kw)
+    with pytest.raises(ValueError, match=r"matrix-free'\)'s x-blocks.*GaussNewtonCGLearner"):
+        ceemx.fit(guess, data, x0, solver=ceemx.JointLM(border="matrix-free"), **kw)
+    with pytest.raises(ValueError, match="LMLearner.*GaussNewtonCGLearner"):
+        ceemx.learn(guess, x0, data, ceemx.LMLearner(), trainable=trainable)
