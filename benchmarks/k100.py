@@ -10,7 +10,8 @@ within ``--budget`` seconds (default 600).
 
 Methods (``--method``):
 
-* ``alt-lbfgs`` (default, the first attempt): Algorithm 1, ``LMSmoother(max_steps=--smoother-steps)``
+* ``alt-lbfgs`` (default, the first attempt): Algorithm 1,
+  ``LMSmoother(max_steps=--smoother-steps)``
   then ``LBFGSLearner(max_steps=--lbfgs-steps)`` on (σ, ρ, β, H);
 * ``alt-gncg``: the same with ``GaussNewtonCGLearner(max_steps=--gn-steps,
   cg_max_steps=--cg-steps, cg_rtol=--cg-rtol, scaling=--scaling)``;
