@@ -257,7 +257,10 @@ class GaussNewtonCGLearner(AbstractLearner):
             else:
                 damp = lam * diag
                 precond = None
-            m_inv = jnp.ones_like(th) if precond is None else 1.0 / precond
+            if precond is None:
+                m_inv = jnp.ones_like(th)
+            else:  # a parameter without curvature (and λ = 0) keeps a unit preconditioner
+                m_inv = jnp.where(precond > 0, 1.0 / jnp.where(precond > 0, precond, 1.0), 1.0)
             delta, steps, _, broken = pcg(
                 lambda v: H(v) + damp * v, -g, m_inv, self.cg_rtol, self.cg_max_steps
             )
