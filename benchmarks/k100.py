@@ -42,7 +42,7 @@ Usage::
 Backs: ``benchmarks/README.md`` ("K = 100 coupled Lorenz": "after epoch 1 **3.568 (5.4 % of ε₀)**",
 "**target ε ≤ 1 % of ε₀ in 10 min** | **not met**", and the scaled-down probes table with
 ``--K 10|20|40``; ``benchmarks/results/k100.json``) and, with ``--method joint-mf``, "K = 100 with
-matrix-free Gauss–Newton" (one iteration: 0.31 % at K = 10, 1.40 % at K = 40;
+matrix-free Gauss–Newton" (one iteration: 0.31 % at K = 10, 1.40 % at K = 40, two: 0.18 % at K = 40;
 ``benchmarks/results/k100_joint_mf_k*.json``).
 """
 
