@@ -402,7 +402,7 @@ def estimate_initial_state(
     scales = tuple(warm_process_noise) if many else (warm_process_noise,)
     for q in scales:
         number = isinstance(q, (int, float, np.number)) and not isinstance(q, bool)
-        if q is not None and not (number and 0 < q < math.inf):
+        if q is not None and not (number and 0 < float(q) < math.inf):  # type: ignore[arg-type]
             raise ValueError(
                 "`warm_process_noise` must be a positive finite number, None, or a non-empty "
                 f"sequence of them; got {warm_process_noise!r}."

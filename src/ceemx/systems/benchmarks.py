@@ -330,7 +330,7 @@ class CoupledDrives(_AbstractSISO):
         self, x: Float[Array, " 3"], u: Float[Array, " p"], t: Real[ArrayLike, ""]
     ) -> Float[Array, " 1"]:
         """g_θ(x, u, t), the measured output (see the class docstring)."""
-        return self.y0 + (x[1:2] ** 2 + self.eps) ** (self.power / 2)
+        return jnp.asarray(self.y0 + (x[1:2] ** 2 + self.eps) ** (self.power / 2))
 
     def default_state_mean(self) -> Float[Array, " 3"]:
         """A typical state, for :func:`ceemx.evaluation.metrics.dynamics_error`."""

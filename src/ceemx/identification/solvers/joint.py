@@ -40,7 +40,7 @@ determine, and the result names it ("only a·b and a·c are determined by the da
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple, cast
 
 import equinox as eqx
 import jax
@@ -231,9 +231,9 @@ class JointLM(AbstractFitSolver):
         """
         weights = jnp.ones(states.shape[:1], states.dtype)
         lam = jnp.asarray(self.damping, states.dtype)
-        _iteration.lower(self, problem, weights, theta, states, lam).compile()
+        cast(Any, _iteration).lower(self, problem, weights, theta, states, lam).compile()
         if self.check_identifiability and theta.shape[0] <= MAX_P:
-            schur_complement.lower(problem, theta, states, weights).compile()
+            cast(Any, schur_complement).lower(problem, theta, states, weights).compile()
 
     def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict]:
         """One accepted LM step on (x, θ) (or the trials that failed to find one)."""
