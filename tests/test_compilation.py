@@ -72,3 +72,17 @@ def test_fast_compilation_after_jax_started_changes_nothing(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "")
     assert not use_fast_compilation()
     assert os.environ["XLA_FLAGS"] == ""
+
+
+def test_has_idle_core_follows_cpus_and_load(monkeypatch):
+    """fit compiles in the background only where a CPU is idle."""
+    from ceemx.infra import compilation
+
+    monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr(compilation.os, "getloadavg", lambda: (0.4, 0.0, 0.0))
+    assert compilation.has_idle_core()
+    monkeypatch.setattr(compilation.os, "getloadavg", lambda: (1.0, 0.0, 0.0))
+    assert not compilation.has_idle_core()  # 2 CPUs, one busy beside this process
+    monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    monkeypatch.setattr(compilation.os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    assert not compilation.has_idle_core()  # one CPU: nothing to compile beside

@@ -34,7 +34,7 @@ from ceemx.identification.solvers.laplace import LaplaceEM
 from ceemx.identification.solvers.particle_em import ParticleEM
 from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra import checkpoint as ckpt
-from ceemx.infra.compilation import compile_in_background
+from ceemx.infra.compilation import compile_in_background, has_idle_core
 from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.options import check_key
 from ceemx.infra.warn import warn
@@ -556,7 +556,11 @@ def _prepare(
         check_inputs(system, data, x_init)
     dtype = data.y.dtype  # the working dtype (promote_inputs)
     compiling = None
-    if mesh is None and type(solver).precompile is not AbstractFitSolver.precompile:
+    if (
+        mesh is None
+        and type(solver).precompile is not AbstractFitSolver.precompile
+        and has_idle_core()  # a second compiling thread on a busy machine only competes
+    ):
         compiling = _precompile(
             trace_numbers(solver, dtype), given, data, x_init, trainable, log_prior
         )

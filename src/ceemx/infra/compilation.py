@@ -31,6 +31,7 @@ __all__ = [
     "FAST_COMPILE_FLAGS",
     "compile_in_background",
     "default_cache_dir",
+    "has_idle_core",
     "enable_compilation_cache",
     "use_fast_compilation",
 ]
@@ -78,6 +79,26 @@ def enable_compilation_cache(
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return folder
+
+
+def has_idle_core() -> bool:
+    """Whether this process may use a core nobody else is using (for compiling in background).
+
+    True when the process may run on ≥ 2 CPUs and the 1-minute load average leaves at least one
+    of them idle (load ≤ CPUs − 1.5). On a busy machine a second compiling thread only competes
+    with the main thread (measured: the suite's JointLM test files 4–5 % more CPU, single core
+    1.07× slower wall; benchmarks/README.md "First-fit latency"), so :func:`ceemx.fit` compiles
+    in the foreground there.
+    """
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cpus = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return False
+    return cpus >= 2 and load <= cpus - 1.5
 
 
 def compile_in_background(
