@@ -51,6 +51,27 @@ def _fast_compilation() -> None:
         os.environ["CEEMX_TEST_XLA_DEFAULTS"] = "1"
 
 
+def _pin_xdist_worker() -> None:
+    """Give each xdist worker its own CPUs, before JAX starts (its thread pool follows them).
+
+    Unpinned, each of the two workers on a 2-core machine runs XLA's pool of two threads: four
+    threads on two cores, whose hand-offs stall when a sibling is descheduled (docs/design.md,
+    ``limit_cpu_threads``; benchmarks/README.md "Busy machines"). Only when every worker can have
+    at least one CPU of its own; test subprocesses inherit their worker's CPUs.
+    """
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if not worker.startswith("gw") or count < 2 or not hasattr(os, "sched_setaffinity"):
+        return
+    cpus = sorted(os.sched_getaffinity(0))
+    share = len(cpus) // count
+    if share < 1:
+        return
+    i = int(worker[2:]) % count
+    os.sched_setaffinity(0, cpus[i * share : (i + 1) * share])
+
+
+_pin_xdist_worker()
 _fast_compilation()
 # The CLI turns on JAX's persistent compilation cache. In-process it would stay on for the rest of
 # the session and write every later executable to disk (slower; and under load jaxlib 0.10.2

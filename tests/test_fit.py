@@ -381,6 +381,7 @@ _SCRIPT = textwrap.dedent(
     ceemx.fit(
         start, data, jnp.asarray(arrays["x_init"]), trainable=lambda s: (s.sigma, s.rho, s.beta),
         max_epochs=8, checkpoint=sys.argv[2], callbacks=[callback], progress=False,
+        solver=ceemx.Alternating(learner=ceemx.LMLearner()),  # fit_a's (the exact M-step)
     )
     print("FINISHED", flush=True)
     """
