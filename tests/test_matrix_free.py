@@ -3,9 +3,9 @@
 Oracles are the dense forms of the same quantities: the joint linearisation's E and D
 (:func:`ceemx.inference.objective.linearize`), :func:`ceemx.lib.arrowhead_solve` on the damped
 joint normal equations, :class:`ceemx.LMLearner`'s step and ``JointLM``'s dense iteration. The
-problem is coupled Lorenz with K = 2 (n = 6, θ = (σ, ρ, β, H): P = 42), T = 12, B = 2. The
-border's step, the option checks and the memory guards run in the default suite; the learner and
-JointLM comparisons compile two learners / two fits each and are marked slow.
+problem is coupled Lorenz with K = 2 (n = 6, θ = (σ, ρ, β, H): P = 42), T = 12, B = 2. The option
+checks and the memory guards run in the default suite; the border's step, the learner and the
+JointLM comparisons compile two linearisations / learners / fits each and are marked slow.
 """
 
 import equinox as eqx
@@ -85,6 +85,7 @@ def _border_steps(problem, x, th, lam):
     return dense, free, jnp.diag(D), gauss_newton_diagonal(problem.build, th, x, data, w)
 
 
+@pytest.mark.slow  # compiles the dense and the matrix-free linearisations (≈ 4 s)
 def test_matrix_free_border_step_equals_dense_arrowhead_solve(setup):
     """E_b v, D v, E_bᵀ w by JVPs and S by PCG give the dense Schur-complement step (1e-8)."""
     guess, x0, data = setup

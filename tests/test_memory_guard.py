@@ -44,7 +44,12 @@ def test_lm_learner_refuses_matrices_that_do_not_fit(problem, tiny_memory):
     trainable = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
     with pytest.raises(ValueError, match="LMLearner.*Gauss–Newton.*LBFGSLearner"):
         ceemx.learn(guess, states, data, ceemx.LMLearner(), trainable=trainable)
-    # A matrix-free learner runs.
+
+
+@pytest.mark.slow  # compiles an L-BFGS learning step (≈ 3 s)
+def test_matrix_free_learner_is_not_refused(problem, tiny_memory):
+    guess, states, data = problem
+    trainable = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
     new, _, _ = ceemx.learn(
         guess, states, data, ceemx.LBFGSLearner(max_steps=5), trainable=trainable
     )
