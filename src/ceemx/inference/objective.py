@@ -27,6 +27,7 @@ from ceemx.models.system import AbstractSystem
 
 __all__ = [
     "Linearization",
+    "auto_jacobian",
     "expected_neg_log_joint_single",
     "linearize",
     "linearize_expected",
@@ -141,7 +142,7 @@ class Linearization(NamedTuple):
     D: Array | None = None  # (theta, theta) J_θᵀ W J_θ
 
 
-def _jac(fun, argnum, in_dim, out_dim):
+def auto_jacobian(fun, argnum, in_dim, out_dim):
     """Jacobian by forward mode when the input is the smaller side, reverse mode otherwise."""
     return jax.jacfwd(fun, argnums=argnum) if in_dim <= out_dim else jax.jacrev(fun, argnums=argnum)
 
@@ -214,7 +215,9 @@ def linearize(
     grad = hess = x_blocks = None
     if wrt_x:
         # Per-step Jacobians with respect to x_t.
-        G = jax.vmap(_jac(obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)
+        G = jax.vmap(auto_jacobian(obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(
+            x, theta, y, u, ts
+        )
         F = jax.vmap(jax.jacfwd(dyn_res, argnums=0), in_axes=(0, None, 0, 0))(
             x[:-1], theta, u[:-1], ts[:-1]
         )  # (T-1,n,n)
@@ -236,8 +239,12 @@ def linearize(
         return Linearization(value, grad, hess)
 
     P = theta.shape[0]  # the length of θ
-    Gt = jax.vmap(_jac(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)  # (T,m,P)
-    Ft = jax.vmap(_jac(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(x[:-1], theta, u[:-1], ts[:-1])
+    Gt = jax.vmap(auto_jacobian(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(
+        x, theta, y, u, ts
+    )  # (T,m,P)
+    Ft = jax.vmap(auto_jacobian(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
+        x[:-1], theta, u[:-1], ts[:-1]
+    )
     SGt = Sv_mul(Gt)
     SFt = Sw_mul(Ft)
     D = jnp.einsum("tmp,tmq->pq", SGt, SGt) + jnp.einsum("tnp,tnq->pq", SFt, SFt)
@@ -341,10 +348,12 @@ def linearize_expected(
     on, pn = system.obs_noise, system.process_noise
     x, yy, uu, mk, t = obs_rows
     r_obs = jax.vmap(obs_res, in_axes=(None, 0, 0, 0, 0, 0))(theta, x, yy, uu, mk, t)
-    G = jax.vmap(_jac(obs_res, 0, P, m), in_axes=(None, 0, 0, 0, 0, 0))(theta, x, yy, uu, mk, t)
+    G = jax.vmap(auto_jacobian(obs_res, 0, P, m), in_axes=(None, 0, 0, 0, 0, 0))(
+        theta, x, yy, uu, mk, t
+    )
     z, uw, tw = dyn_rows
     r_dyn = jax.vmap(dyn_res, in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
-    F = jax.vmap(_jac(dyn_res, 0, P, n), in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
+    F = jax.vmap(auto_jacobian(dyn_res, 0, P, n), in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
     # Row scalings for diagonal noise (as in `linearize`): no d × d product per cubature point.
     if on.diagonal_curvature:
         SG = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mk)[..., None] * G

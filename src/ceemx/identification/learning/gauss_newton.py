@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ceemx.inference.objective import residuals
+from ceemx.inference.objective import auto_jacobian, residuals
 from ceemx.lib.typing import Scalar, Theta, Trajectory
 from ceemx.models.system import AbstractSystem
 
@@ -46,11 +46,6 @@ def depends_on(fun: Callable[..., Any], argnum: int, *args: Any) -> bool:
         if any(id(v) in hit for v in eqn.invars):
             hit.update(id(v) for v in eqn.outvars)
     return any(id(v) in hit for v in jaxpr.outvars)
-
-
-def _jacobian(fun, argnum, in_dim, out_dim):
-    """Forward mode when the input is the smaller side, reverse mode otherwise."""
-    return jax.jacfwd(fun, argnums=argnum) if in_dim <= out_dim else jax.jacrev(fun, argnums=argnum)
 
 
 def theta_rows(
@@ -86,7 +81,9 @@ def theta_rows(
     grad = jnp.zeros((P,), dtype)
     rows = []
     if depends_on(obs_res, 1, x[0], theta, y[0], u[0], ts[0]):
-        Gt = jax.vmap(_jacobian(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)
+        Gt = jax.vmap(auto_jacobian(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(
+            x, theta, y, u, ts
+        )
         grad = grad + jnp.einsum("tmp,tm->p", Gt, jax.vmap(jax.grad(on.nll))(r_obs, mask))
         if on.diagonal_curvature:
             SGt = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mask)[..., None] * Gt
@@ -94,7 +91,7 @@ def theta_rows(
             SGt = jax.vmap(on.sqrt_curvature)(r_obs, mask) @ Gt
         rows.append(SGt.reshape(-1, P))
     if T > 1 and depends_on(dyn_res, 1, x[0], theta, u[0], ts[0]):
-        Ft = jax.vmap(_jacobian(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
+        Ft = jax.vmap(auto_jacobian(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
             x[:-1], theta, u[:-1], ts[:-1]
         )
         grad = grad + jnp.einsum("tnp,tn->p", Ft, jax.vmap(jax.grad(pn.nll))(r_dyn))
