@@ -245,8 +245,8 @@ OPTION_VALUES = st.one_of(
 def _valid(kind: str, value) -> bool | None:
     """Whether ``value`` is valid for ``kind`` (None: either answer is right).
 
-    In the test session jaxtyping checks the annotations first, so an int for a float option may
-    be refused although ceemx accepts it: left open.
+    Where jaxtyping checks the annotations first (``--jaxtyping-packages``, CI's slow run), an int
+    for a float option may be refused although ceemx accepts it: left open.
     """
     if isinstance(value, bool | np.bool_) or not isinstance(value, int | float | np.floating):
         return False

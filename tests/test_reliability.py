@@ -94,9 +94,9 @@ def no_compute():
 def raises(exc, match):
     """``exc`` whose message contains ``match``.
 
-    In the test session jaxtyping + beartype check the annotations of every ceemx ``__init__``
-    first: a value of the wrong type (``rtol="abc"``) is then their ``TypeError``, naming the
-    parameter as 'rtol'; users get ceemx's own message (tested on the helpers below).
+    Where jaxtyping + beartype check the annotations of every ceemx ``__init__`` (the slow run in
+    CI, ``--jaxtyping-packages``), a value of the wrong type (``rtol="abc"``) is their
+    ``TypeError`` first, naming the parameter as 'rtol'; users get ceemx's own message.
     """
     if exc is TypeError and match.startswith("`"):
         name = match[1 : match.index("`", 1)]
@@ -208,7 +208,8 @@ def test_other_options(make, exc, match):
         (options.check_nonnegative, ("rtol", "abc"), TypeError, "`rtol` must be a real number"),
         (options.check_nonnegative, ("rtol", None), TypeError, "`rtol` must be a real number"),
         (options.check_nonnegative, ("rtol", True), TypeError, "`rtol` must be a real number"),
-        (options.check_nonnegative, ("atol", [1.0, np.nan]), ValueError, "`atol` must be finite"),
+        (options.check_nonnegative, ("atol", np.nan), ValueError, "`atol` must be finite"),
+        (options.check_nonnegative, ("atol", [1.0]), TypeError, "`atol` must be one real number"),
         (options.check_int, ("max_steps", 2.0, 1), TypeError, "`max_steps` must be an integer;"),
         (options.check_int, ("max_steps", True, 1), TypeError, "`max_steps` must be an integer;"),
         (options.check_positive, ("h", 0.0), ValueError, "`h` must be finite and > 0"),

@@ -28,9 +28,10 @@ __all__ = [
 
 
 def check_real(name: str, value: Any) -> np.ndarray | None:
-    """``value`` as a float64 NumPy array (``None`` for a traced value); ``TypeError`` otherwise.
+    """``value`` as a 0-d float64 NumPy array (``None`` for a traced value); ``TypeError`` otherwise.
 
-    Numbers and real arrays are accepted; booleans, strings, ``None`` and complex values are not.
+    Real numbers and 0-d real arrays are accepted; booleans, strings, ``None``, complex values and
+    sequences or arrays of several numbers are not (every option checked here is one number).
     """
     if isinstance(value, Tracer):
         return None
@@ -44,6 +45,8 @@ def check_real(name: str, value: Any) -> np.ndarray | None:
         np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
     ):
         raise TypeError(f"`{name}` must be a real number; got {value!r}.")
+    if a.ndim:
+        raise TypeError(f"`{name}` must be one real number; got shape {a.shape}: {value!r}.")
     return a.astype(np.float64)
 
 
