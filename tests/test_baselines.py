@@ -120,6 +120,7 @@ def test_returned_model_is_the_best_validation_one(lagged, lag_fits):
     np.testing.assert_allclose(again, min(info.valid_loss), rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_lstm_fits_a_filter_better_than_any_function_of_the_current_input():
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(4), 3)
     train, valid = _filter_data(k1, 32), _filter_data(k2, 8)

@@ -173,6 +173,7 @@ def interrupt(tmp_path, delay: float | str | None, signum=signal.SIGINT):
     return lines[0]
 
 
+@pytest.mark.slow
 def test_sigterm_like_sigint(tmp_path):
     """SIGTERM used to kill the run silently, leaving an empty ``--out`` folder (issue 24, item
     8): now one line, status 143, no folder — here sent once ``--out`` exists (≈ 0.5 s)."""

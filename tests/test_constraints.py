@@ -228,6 +228,7 @@ def simulated(T=60, B=3, seed=0):
     return true, data
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", ["alternating", pytest.param("joint", marks=pytest.mark.slow)])
 def test_fit_keeps_parameters_inside_and_reports_natural_units(solver):
     true, data = simulated()

@@ -68,6 +68,7 @@ def _unexplained(X, Y, n_train):
     return (R**2).mean(0) / Y[n_train:].var(0)
 
 
+@pytest.mark.slow
 def test_hidden_states_carry_what_the_current_input_misses():
     sim = heli_sim.simulate_flights(np.random.default_rng(0), 8, 400)
     assert sim["u"].shape == (8, 400, 10) and sim["hidden"].shape == (8, 400, 5)

@@ -143,6 +143,7 @@ def test_free_run_dtype_and_errors():
 # ---------------------------------------------------------------- initial states
 
 
+@pytest.mark.slow
 def test_initial_state_recovered_on_noise_free_data():
     x1 = np.array([[1.0, -0.5], [-0.3, 0.8]])
     lin = oscillator()
@@ -382,6 +383,7 @@ def _have_tanks():
         return False
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not _have_tanks(), reason="cascaded_tanks data not available")
 def test_official_protocol_on_the_cascaded_tanks():
     """A first-order ARX model on real data, scored by hand: closed-form x̂₁ and free run."""

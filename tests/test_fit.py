@@ -471,6 +471,7 @@ def test_rollout_equals_noise_free_simulation(prob):
     np.testing.assert_array_equal(x[:, 0], prob.x1)
 
 
+@pytest.mark.slow
 def test_fit_without_initial_states(prob):
     res = ceemx.fit(prob.start, prob.data, trainable=where_theta, max_epochs=3)
     x0 = ceemx.identification.initialize.warm_start(prob.start, prob.data)  # the default start

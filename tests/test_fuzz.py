@@ -188,6 +188,7 @@ def test_fit_options(max_epochs, rho, trainable, joint):
         assert all(np.all(np.isfinite(np.asarray(a))) for a in (result.system.A, result.system.C))
 
 
+@pytest.mark.slow
 @examples(100)
 @given(
     states=hnp.arrays(np.float64, (B, T, N), elements=FLOATS),

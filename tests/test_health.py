@@ -29,6 +29,7 @@ def theta(system):
     return np.array([float(system.sigma[0]), float(system.rho[0]), float(system.beta[0])])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "solver",
     [pytest.param(ceemx.JointLM(), marks=pytest.mark.slow), ceemx.Alternating()],

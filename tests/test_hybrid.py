@@ -211,6 +211,7 @@ def test_hybrid_learns_the_missing_cubic_stiffness(duffing):
     assert rmse < 0.02 and rmse_phys > 1.0, (rmse, rmse_phys)
 
 
+@pytest.mark.slow
 def test_windows_sum_to_the_record(duffing):
     """Σ over windows of −J = the record's −J (exactly when the windows tile the T − 1 = 399
     transitions, 133 = 399 / 3; with 57 the last window's overlap adds its shared transitions

@@ -73,6 +73,7 @@ def exact():
     return x, data, ceemx.fit(make(START), data, x, solver=ceemx.JointLM(), progress=False)
 
 
+@pytest.mark.slow
 def test_joint_names_the_determined_products(exact):
     """ε = 0: converged in a few epochs; a·b and a·c named and within 1 % of the truth."""
     *_, res = exact

@@ -217,6 +217,7 @@ def joint(lz):
     return fit(lz, ceemx.JointLM(rtol=1e-13))
 
 
+@pytest.mark.slow
 def test_joint_and_alternate_reach_the_same_optimum(lz, joint):
     alt = fit(
         lz,
@@ -293,6 +294,7 @@ def test_matrix_free_cg_matches_dense_schur(lz, joint):
     np.testing.assert_allclose(cg.states, joint.states, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_joint_excludes_nonfinite_trajectory_with_status(lz):
     x0 = lz["x3"].at[1].set(1e200)
     with pytest.warns(UserWarning, match="excluded"):

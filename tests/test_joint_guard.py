@@ -94,6 +94,7 @@ def test_both_methods_and_starts_reach_the_same_optimum(problem):
     assert joint.history[-1]["J"] == pytest.approx(alt.history[-1]["J"], rel=1e-9)
 
 
+@pytest.mark.slow
 def test_trust_region_bounds_every_theta_step(problem):
     """From the least-squares start (velocity 0) the bounded joint steps stay in the trust region
     (that the joint method converges from there to Algorithm 1's optimum is the slow test above)."""
@@ -110,6 +111,7 @@ def test_trust_region_bounds_every_theta_step(problem):
         ceemx.JointLM(max_theta_step=0.0)
 
 
+@pytest.mark.slow
 def test_smoothing_check_refuses_to_stop(problem):
     """A loose rtol would stop after one step; a smoothing pass still gains, so it goes on."""
     guess, data = problem

@@ -159,6 +159,7 @@ def _linear_problem(B=2, T=40):
     return system, data
 
 
+@pytest.mark.slow
 def test_laplace_e_step_and_cubature_have_no_concurrent_lapack_calls():
     """The compiled cubature step (the hang of issue 21: two batched eighs) and E-step (MAP
     smoothing, selected inverse, log-det) of Laplace EM: no two batched LAPACK calls independent

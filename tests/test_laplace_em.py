@@ -147,6 +147,7 @@ def test_cubature_expectation_matches_monte_carlo_on_lorenz():
         assert abs(plug - q_mc) > 100 * se  # the correction is material
 
 
+@pytest.mark.slow
 def test_cubature_gauss_newton_matches_autodiff():
     """The M-step's value and gradient agree with autodiff of the expected objective."""
     y, params = _lg_problem(B=1, T=6)

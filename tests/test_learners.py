@@ -90,7 +90,13 @@ LEARNERS = {
 }
 
 
-@pytest.mark.parametrize("name", list(LEARNERS))
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(n, marks=pytest.mark.slow) if n in ("lbfgs", "nelder_mead") else n
+        for n in LEARNERS
+    ],
+)
 def test_learners_recover_true_parameters(exact, name):
     make, rtol = LEARNERS[name]
     learner = make()
@@ -178,6 +184,7 @@ def test_huge_rho_theta_keeps_theta_at_start(noisy):
     assert float(info.value_after) <= float(info.value_before)
 
 
+@pytest.mark.slow
 def test_dominant_prior_moves_theta_to_prior_mean(exact):
     # Data weight tiny: enormous noise scales make −J nearly flat in θ; the prior is sharp.
     flat = lorenz(START, exact.C, process_noise=1e6, obs_noise=1e6)
@@ -220,6 +227,7 @@ def test_lm_learner_is_monotone(noisy, max_steps):
     assert int(info.steps) <= max_steps
 
 
+@pytest.mark.slow
 def test_trainable_callable_selects_one_leaf(exact):
     system, _, _ = ceemx.learn(exact.start, exact.states, exact.data, trainable=lambda s: s.sigma)
     assert float(system.sigma[0]) != START[0]

@@ -30,7 +30,14 @@ from ceemx.lib import (  # noqa: E402
     to_dense,
 )
 
-SHAPES = [(1, 1), (1, 5), (3, 1), (3, 4), pytest.param(5, 17, marks=pytest.mark.slow), (8, 32)]
+SHAPES = [
+    (1, 1),
+    (1, 5),
+    (3, 1),
+    (3, 4),
+    pytest.param(5, 17, marks=pytest.mark.slow),
+    pytest.param(8, 32, marks=pytest.mark.slow),
+]
 
 
 def random_spd(rng, n, T, shift=1.0):

@@ -59,6 +59,7 @@ def problem():
     return data, x, res
 
 
+@pytest.mark.slow
 def test_true_noise_is_consistent_and_rho_is_chi2(problem):
     """ρ = Σ r̂² / (N_res − B·T·n − P) has mean 1 and sd √(2/d): a few records, no warning.
 
@@ -116,6 +117,7 @@ def test_noise_check_bands_and_hand_built_results(problem):
     assert hand.noise_check is None and len(hand.messages()) == B
 
 
+@pytest.mark.slow
 def test_diagnostics_pass_at_the_truth_with_laplace_ratios_near_one(problem, tmp_path):
     _, _, res = problem
     diag = res.diagnostics()

@@ -68,7 +68,9 @@ def test_moment_gradient_matches_the_evidence(lin_data):
     assert g_obs == pytest.approx(fd_obs, rel=1e-4)
 
 
-@pytest.mark.parametrize("q_fac, r_fac", [(100.0, 1.0), (0.01, 1.0)])
+@pytest.mark.parametrize(
+    "q_fac, r_fac", [pytest.param(100.0, 1.0, marks=pytest.mark.slow), (0.01, 1.0)]
+)
 def test_estimate_noise_does_not_depend_on_the_guess(lin_data, estimate_from_truth, q_fac, r_fac):
     truth = estimate_from_truth
     est, _, _ = estimate_noise(linear(Q * q_fac, R * r_fac), lin_data)

@@ -53,7 +53,14 @@ def _check(n, T, dense=True):
 
 
 @pytest.mark.parametrize(
-    "n,T", [(1, 1), (2, 2), (2, 64), (3, 65), pytest.param(8, 33, marks=pytest.mark.slow)]
+    "n,T",
+    [
+        (1, 1),
+        (2, 2),
+        (2, 64),
+        pytest.param(3, 65, marks=pytest.mark.slow),
+        pytest.param(8, 33, marks=pytest.mark.slow),
+    ],
 )
 def test_parallel_solve_equals_sequential_and_dense(n, T):
     _check(n, T)
@@ -66,6 +73,7 @@ def test_parallel_solve_long(n, T):
     _check(n, T, dense=T * n <= 4000)
 
 
+@pytest.mark.slow
 def test_parallel_solve_vmaps_over_a_batch():
     rng = np.random.default_rng(0)
     mats = [random_spd(rng, 2, 65) for _ in range(3)]

@@ -315,8 +315,10 @@ def monte_carlo(problem):
 # --------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["observed", "missing"])
-@pytest.mark.parametrize("proposal", PROPOSALS)
+@pytest.mark.parametrize("name", ["observed", pytest.param("missing", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "proposal", [PROPOSALS[0], pytest.param(PROPOSALS[1], marks=pytest.mark.slow)]
+)
 @pytest.mark.parametrize("runs", RUNS)
 def test_likelihood_estimate_is_unbiased(problem, monte_carlo, runs, proposal, name):
     """E[p̂(y)] = p(y) (exact Kalman likelihood; missing components skipped) per trajectory: the
@@ -686,6 +688,7 @@ def pem_run(problem):
     return run_pem(problem, PEM_EPOCHS)
 
 
+@pytest.mark.slow
 def test_particle_em_approaches_mle(problem, pem_run):
     """From A₀ = A + 0.3·(±1), PEM_EPOCHS epochs of particle EM (with missing data) bring A within a
     tenth of the initial distance to the exact maximum-likelihood A (NumPy EM on the Kalman

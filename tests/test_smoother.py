@@ -273,6 +273,7 @@ def _stopped_after(system, data, x_init, solver):
     return lambda k: run(jnp.asarray(k), x_init, data.y, data.u, data.mask)
 
 
+@pytest.mark.slow
 def test_lorenz_objective_monotone(lorenz):
     after = _stopped_after(lorenz.system, lorenz.data, lorenz.x_init, SOLVER)
     K = int(np.max(np.asarray(lorenz.sol.iterations))) + 1
@@ -345,6 +346,7 @@ def test_lorenz_failing_trajectory_is_isolated(lorenz):
 # --------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_student_t_observation_noise():
     system, data, xs, mask, o = make_linear_problem(4, False)
     B, T, m = data.y.shape
@@ -418,6 +420,7 @@ def _to_float32(tree):
     return jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if is_float(a) else a, tree)
 
 
+@pytest.mark.slow
 def test_float32_in_float32_out_with_warning():
     system, data, xs, mask, o = make_linear_problem(4, False)
     system32, data32 = _to_float32(system), _to_float32(data)

@@ -128,6 +128,7 @@ def decay():
         )
 
 
+@pytest.mark.slow
 def test_constrained_parameters_use_the_delta_method(decay):
     res = decay
     assert res.problem is not None

@@ -96,7 +96,8 @@ def test_check_inputs_refuses_mixed_dtypes_naming_both():
 
 
 @pytest.mark.parametrize(
-    "sys_dtype, data_dtype", [(jnp.float32, np.float64), (jnp.float64, np.float32)]
+    "sys_dtype, data_dtype",
+    [pytest.param(jnp.float32, np.float64, marks=pytest.mark.slow), (jnp.float64, np.float32)],
 )
 @pytest.mark.parametrize(
     "solver",
