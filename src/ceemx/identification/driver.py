@@ -407,6 +407,8 @@ def fit(
     """
     if noise != "fixed":
         return _fit_learning_noise(noise, solver, system, data, x_init, locals())
+    if outliers not in OUTLIER_OPTIONS:
+        raise ValueError(f"`outliers` must be one of {OUTLIER_OPTIONS}; got {outliers!r}.")
     with contextlib.ExitStack() as hold:  # the checkpoint folder's lock, for the whole fit
         solver, data, states, key, max_epochs, spread, compiling = _prepare(
             system,
@@ -423,7 +425,6 @@ def fit(
             log_prior,
         )
         problem, theta = FitProblem.create(system, data, trainable=trainable, log_prior=log_prior)
-        _check_noise_learnable(problem, solver)
         all_states = states
         excluded, health = _screen_outliers(problem, theta, states, outliers)
         check_start(problem, theta, states, health, excluded)  # refuses absurd or non-finite starts
@@ -554,6 +555,8 @@ def _prepare(
     check_inputs(system, data)
     if x_init is not None:
         check_inputs(system, data, x_init)
+    # What the problem refuses (trainable leaves, noise a solver cannot learn), before any compute.
+    solver.check_problem(*FitProblem.create(given, data, trainable=trainable, log_prior=log_prior))
     dtype = data.y.dtype  # the working dtype (promote_inputs)
     compiling = None
     if (
@@ -637,23 +640,9 @@ def _precompile(solver, system, data, x_init, trainable, log_prior):
     return compile_in_background(lambda: solver.precompile(problem, theta, states))
 
 
-def _check_noise_learnable(problem: FitProblem, solver: AbstractFitSolver) -> None:
-    noise = [f for f in ("process_noise", "obs_noise") if problem.trains(f)]
-    if noise and not solver.learns_noise:
-        raise ValueError(
-            f"`trainable` selects the noise model{'s' if len(noise) > 1 else ''} "
-            f"{', '.join('system.' + f for f in noise)}, but {type(solver).__name__} maximises "
-            "the certainty-equivalent J(x, θ), which grows without bound as a noise scale → 0 "
-            "(the states absorb the residuals): noise cannot be learned by it. Use "
-            "solver=ceemx.LaplaceEM(), which learns noise covariances by EM, or fix the noise."
-        )
-
-
 def _screen_outliers(problem: FitProblem, theta, states, outliers: str):
     """The start-of-fit health test: (trajectories to exclude, the health record or ``None``)."""
     excluded = np.zeros((problem.data.batch_size,), bool)
-    if outliers not in OUTLIER_OPTIONS:
-        raise ValueError(f"`outliers` must be one of {OUTLIER_OPTIONS}; got {outliers!r}.")
     if outliers == "keep":
         return excluded, None
     health = trajectory_health(problem, theta, states)

@@ -28,7 +28,7 @@ __all__ = [
 
 
 def check_real(name: str, value: Any) -> np.ndarray | None:
-    """``value`` as a 0-d float64 NumPy array (``None`` for a traced value); ``TypeError`` otherwise.
+    """``value`` as a 0-d float64 NumPy array (``None`` if traced); ``TypeError`` otherwise.
 
     Real numbers and 0-d real arrays are accepted; booleans, strings, ``None``, complex values and
     sequences or arrays of several numbers are not (every option checked here is one number).

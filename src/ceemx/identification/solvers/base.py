@@ -176,6 +176,23 @@ class AbstractFitSolver(eqx.Module):
         chunk = own.batch_chunk if isinstance(own, LMSmoother) else None
         return warm_start(system, data, smoother=LMSmoother(batch_chunk=chunk))
 
+    def check_problem(self, problem: FitProblem, theta: Theta) -> None:
+        """Refuse a problem this method cannot fit, before any compute (:func:`ceemx.fit`).
+
+        Default: noise models selected by ``trainable`` are refused unless the method
+        ``learns_noise`` (the certainty-equivalent J grows without bound as a noise scale → 0).
+        """
+        del theta
+        noise = [f for f in ("process_noise", "obs_noise") if problem.trains(f)]
+        if noise and not self.learns_noise:
+            raise ValueError(
+                f"`trainable` selects the noise model{'s' if len(noise) > 1 else ''} "
+                f"{', '.join('system.' + f for f in noise)}, but {type(self).__name__} "
+                "maximises the certainty-equivalent J(x, θ), which grows without bound as a noise "
+                "scale → 0 (the states absorb the residuals): noise cannot be learned by it. Use "
+                "solver=ceemx.LaplaceEM(), which learns noise covariances by EM, or fix the noise."
+            )
+
     def precompile(self, problem: FitProblem, theta: Theta, states: States) -> None:
         """Compile the programs of ``step`` for these shapes, without running them (optional).
 

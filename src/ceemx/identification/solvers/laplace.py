@@ -290,6 +290,10 @@ class LaplaceEM(AbstractFitSolver):
             cache=e,
         )
 
+    def check_problem(self, problem: FitProblem, theta: Theta) -> None:
+        """Learned noise models must be Gaussian (their M-step is closed-form)."""
+        _check_learned_noise(problem, problem.build(theta))
+
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
     ) -> FitState:
