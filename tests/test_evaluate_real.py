@@ -163,6 +163,7 @@ def test_initial_state_recovered_on_noise_free_data():
     assert np.all(np.isfinite(one))
 
 
+@pytest.mark.slow
 def test_refinement_fits_the_window_when_process_noise_is_large():
     """With a large process noise the smoothed x₁ follows y by w_t; the refined one simulates it."""
     true = oscillator()

@@ -94,6 +94,7 @@ def test_every_trajectory_failing_is_an_error(lorenz):
         ceemx.fit(guess, data, jnp.full_like(x0, 1e200), trainable=WHERE, max_epochs=2)
 
 
+@pytest.mark.slow
 def test_messages_follow_converged(lorenz):
     """The driver's per-trajectory messages (Alternating on two trajectories: the programs of the
     outlier test's reference fit)."""

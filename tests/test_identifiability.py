@@ -93,6 +93,7 @@ def test_joint_names_the_determined_products(exact):
     assert Identifiability.from_record(records[-1]) == found
 
 
+@pytest.mark.slow
 def test_joint_stops_when_theta_only_wanders():
     """ε = 1e-3: stops, converged, within 10 epochs (before: 100 epochs, converged=False)."""
     x, data = data_for(1e-3)

@@ -54,6 +54,7 @@ def _trainable(s):
     return (s.A, s.C, s.process_noise, s.obs_noise)
 
 
+@pytest.mark.slow
 def test_e_step_is_the_rts_smoother_and_evidence_the_kalman_likelihood():
     y, (A, C, Q, R, mu0, P0) = _lg_problem()
     system = _system(A, C, Q, R, mu0, P0)

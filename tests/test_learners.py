@@ -93,7 +93,7 @@ LEARNERS = {
 @pytest.mark.parametrize(
     "name",
     [
-        pytest.param(n, marks=pytest.mark.slow) if n in ("lbfgs", "nelder_mead") else n
+        pytest.param(n, marks=pytest.mark.slow) if n in ("lbfgs", "nelder_mead", "adam") else n
         for n in LEARNERS
     ],
 )
@@ -123,6 +123,7 @@ def test_learners_recover_true_parameters(exact, name):
         assert state is None
 
 
+@pytest.mark.slow
 def test_lm_and_lbfgs_agree_on_noisy_problem(noisy):
     lm, _, _ = ceemx.learn(noisy.start, noisy.states, noisy.data, trainable=where_theta)
     lb, _, _ = ceemx.learn(
@@ -237,6 +238,7 @@ def test_trainable_callable_selects_one_leaf(exact):
     np.testing.assert_array_equal(system.H, exact.start.H)
 
 
+@pytest.mark.slow
 def test_trainable_boolean_filter_pytree(exact):
     spec = jtu.tree_map(lambda _: False, exact.start)
     spec = eqx.tree_at(lambda s: s.sigma, spec, replace=True)

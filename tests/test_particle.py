@@ -330,6 +330,7 @@ def test_likelihood_estimate_is_unbiased(problem, monte_carlo, runs, proposal, n
     np.testing.assert_array_less(np.abs(mean - 1.0), 4.0 * se)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["observed", "missing"])
 @pytest.mark.parametrize("runs", RUNS)
 def test_adapted_likelihood_has_lower_variance(monte_carlo, runs, name):
@@ -707,6 +708,7 @@ def test_particle_em_approaches_mle(problem, pem_run):
     assert result.epochs == PEM_EPOCHS and not result.converged
 
 
+@pytest.mark.slow
 def test_particle_em_history(pem_run):
     """History: the driver's keys plus ParticleEM.history_keys; SAEM step sizes γ_k = 1 for
     k ≤ burn_in, then (k − burn_in)^(−α); the kept SAEM mass follows the ring-buffer recursion
