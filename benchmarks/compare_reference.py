@@ -166,11 +166,17 @@ def run_reference(problem: pathlib.Path, out: pathlib.Path) -> dict:
 
 
 def run_ceemx(
-    problem: pathlib.Path, out: pathlib.Path, cache: str | None = None, fast: bool = False
+    problem: pathlib.Path,
+    out: pathlib.Path,
+    cache: str | None = None,
+    fast: bool = False,
+    src: str | None = None,
 ) -> dict:
     env = dict(os.environ, CEEMX_COMPILATION_CACHE="0", CEEMX_BENCH_FAST_COMPILE=str(int(fast)))
     if cache:
         env["CEEMX_BENCH_CACHE"] = cache
+    if src:  # ceemx from another source tree (--before-src)
+        env["PYTHONPATH"] = src
     t0 = time.perf_counter()
     subprocess.run(
         [sys.executable, __file__, "--worker", str(problem), str(out)], check=True, env=env
@@ -194,31 +200,35 @@ def summarise(runs: list[dict], seeds) -> dict:
             "process_s_median": float(np.median([r["process_s"] for r in ref])),
             "max_rel_error": float(np.max(np.abs(params / truth - 1))),
         }
-    for method in ("joint", "alternate"):
-        cold = [r["ceemx"][method][str(seeds[0])]["s"] for r in runs]
-        warm = [r["ceemx"][method][str(s)]["s"] for r in runs for s in seeds[1:]]
-        if method == "alternate":  # joint ran first in the process: its compile is in joint's
-            cold = [r["ceemx"][method][str(seeds[0])]["s"] for r in runs]
-        params = np.asarray([runs[0]["ceemx"][method][str(s)]["params"] for s in seeds])
-        out[method] = {
-            "first_fit_s_median": float(np.median(cold)),
-            "warm_fit_s_median": float(np.median(warm)) if warm else None,
-            "epochs": [runs[0]["ceemx"][method][str(s)]["epochs"] for s in seeds],
-            "max_rel_error": float(np.max(np.abs(params / truth - 1))),
-        }
-    out["ceemx_process_s_median"] = float(np.median([r["ceemx"]["process_s"] for r in runs]))
-    out["ceemx_import_s_median"] = float(np.median([r["ceemx"]["import_s"] for r in runs]))
-    if "reference" in out:
-        ref_fit = out["reference"]["fit_s_median"]
+    # "ceemx": this tree; "ceemx_before": --before-src, its keys suffixed "_before".
+    for tag, sfx in (("ceemx", ""), ("ceemx_before", "_before")):
+        if not all(tag in r for r in runs):
+            continue
         for method in ("joint", "alternate"):
-            m = out[method]
-            m["speedup_warm"] = ref_fit / m["warm_fit_s_median"] if m["warm_fit_s_median"] else None
-            m["speedup_first_fit"] = ref_fit / m["first_fit_s_median"]
-        # End to end, a fresh process each side, imports included: the reference fits the seeds
-        # once, ceemx twice (JointLM, then Alternating) — a ratio against ceemx's double work.
-        out["speedup_process"] = (
-            out["reference"]["process_s_median"] / out["ceemx_process_s_median"]
-        )
+            # joint ran first in the process: the first alternate fit carries less compile
+            cold = [r[tag][method][str(seeds[0])]["s"] for r in runs]
+            warm = [r[tag][method][str(s)]["s"] for r in runs for s in seeds[1:]]
+            params = np.asarray([runs[0][tag][method][str(s)]["params"] for s in seeds])
+            out[method + sfx] = {
+                "first_fit_s_median": float(np.median(cold)),
+                "warm_fit_s_median": float(np.median(warm)) if warm else None,
+                "epochs": [runs[0][tag][method][str(s)]["epochs"] for s in seeds],
+                "max_rel_error": float(np.max(np.abs(params / truth - 1))),
+            }
+        out[f"ceemx_process_s_median{sfx}"] = float(np.median([r[tag]["process_s"] for r in runs]))
+        out[f"ceemx_import_s_median{sfx}"] = float(np.median([r[tag]["import_s"] for r in runs]))
+        if "reference" in out:
+            ref_fit = out["reference"]["fit_s_median"]
+            for method in ("joint", "alternate"):
+                m = out[method + sfx]
+                w = m["warm_fit_s_median"]
+                m["speedup_warm"] = ref_fit / w if w else None
+                m["speedup_first_fit"] = ref_fit / m["first_fit_s_median"]
+            # End to end, a fresh process each side, imports included: the reference fits the
+            # seeds once, ceemx twice (JointLM, then Alternating) — a ratio against double work.
+            out[f"speedup_process{sfx}"] = (
+                out["reference"]["process_s_median"] / out[f"ceemx_process_s_median{sfx}"]
+            )
     return out
 
 
@@ -239,6 +249,12 @@ def main() -> None:
         action="store_true",
         help="the ceemx process calls ceemx.infra.compilation.use_fast_compilation() first "
         "(what the ceemx command does)",
+    )
+    ap.add_argument(
+        "--before-src",
+        default=None,
+        help="also run ceemx from this source tree in each repetition, right after the current "
+        "one: before/after in the same run",
     )
     ap.add_argument("--worker", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -266,6 +282,14 @@ def main() -> None:
             rec["ceemx"] = run_ceemx(
                 problem, tmp / f"ceemx{rep}.json", args.cache, args.fast_compile
             )
+            if args.before_src:  # the earlier tree, right after, in the same repetition
+                rec["ceemx_before"] = run_ceemx(
+                    problem,
+                    tmp / f"before{rep}.json",
+                    args.cache,
+                    args.fast_compile,
+                    args.before_src,
+                )
             rec["load_after"] = load()
             runs.append(rec)
             print(f"rep {rep}: load {rec['load_before']:.2f} → {rec['load_after']:.2f}", flush=True)
@@ -283,6 +307,7 @@ def main() -> None:
             "integrator": "midpoint",
             "fast_compile": bool(args.fast_compile),
             "cache": bool(args.cache),
+            "before_src": args.before_src,
         },
         "summary": summary,
         "runs": runs,
