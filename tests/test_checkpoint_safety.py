@@ -110,6 +110,7 @@ def test_other_method_raises_naming_both(folder):
         run(folder, solver=ceemx.JointLM(), max_epochs=3)
 
 
+@pytest.mark.slow
 def test_other_method_old_direction(tmp_path):
     """JointLM's checkpoint resumed by Alternating (used to be a TreePathError)."""
     run(tmp_path, solver=ceemx.JointLM(), max_epochs=1)

@@ -4,8 +4,11 @@ import os
 import subprocess
 import sys
 
+import jax
+import jax.numpy as jnp
 import pytest
 
+from ceemx.infra import compilation
 from ceemx.infra.compilation import default_cache_dir, enable_compilation_cache
 
 _SCRIPT = """
@@ -86,3 +89,29 @@ def test_has_idle_core_follows_cpus_and_load(monkeypatch):
     monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {0}, raising=False)
     monkeypatch.setattr(compilation.os, "getloadavg", lambda: (0.0, 0.0, 0.0))
     assert not compilation.has_idle_core()  # one CPU: nothing to compile beside
+
+
+def test_program_options_follow_the_environment(monkeypatch):
+    """ceemx's per-program XLA options: the fast-compile flags unless XLA_FLAGS or the user says."""
+    monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+    assert compilation.program_options() == {"xla_cpu_use_fusion_emitters": False}
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert compilation.program_options() == {}  # the user's flag wins
+    monkeypatch.delenv("XLA_FLAGS")
+    monkeypatch.setenv("CEEMX_XLA_DEFAULTS", "1")
+    assert compilation.program_options() == {}
+
+
+def test_jit_passes_its_options_to_xla(monkeypatch):
+    """The options reach the compiler: an unknown one fails to compile, the real ones give the
+    same numbers as XLA's defaults."""
+    monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    f = lambda x: jnp.sin(x) @ jnp.cos(x).T + 1.0  # noqa: E731
+    x = jnp.linspace(0.0, 1.0, 12).reshape(3, 4)
+    fast = compilation.jit(f)
+    assert float(jnp.max(jnp.abs(fast(x) - jax.jit(f)(x)))) < 1e-14
+    monkeypatch.setattr(compilation, "FAST_COMPILE_FLAGS", {"xla_not_an_option": "false"})
+    with pytest.raises(Exception, match="xla_not_an_option"):
+        compilation.jit(lambda x: jnp.cos(x) * 2.0)(x)

@@ -183,6 +183,7 @@ def test_refinement_fits_the_window_when_process_noise_is_large():
     assert off[True] < 0.03 and off[False] > 0.1  # measured: 0.01 and 0.18
 
 
+@pytest.mark.slow
 def test_initial_state_compiles_once_per_structure_and_window():
     system = duffing()
     d1 = noise_free(system, np.ones((2, 2)), inputs(2, 30, seed=4))

@@ -207,6 +207,7 @@ def pendulum(q_scale, r_scale):
     )
 
 
+@pytest.mark.slow
 def test_nonlinear_batch_equals_single_trajectories_and_isolates_failures():
     system = pendulum(0.05, 0.1)
     x0 = jnp.array([[0.5, 0.0], [-0.3, 0.4], [1.0, -0.5]])

@@ -108,6 +108,7 @@ def test_joint_stops_when_theta_only_wanders():
     np.testing.assert_allclose(products(res.system), [3.0, 1.0], rtol=1e-2)
 
 
+@pytest.mark.slow
 def test_identifiable_model_has_no_message():
     """ε = 0.5: a is determined by x2's decay, so a, b, c all are: nothing to report."""
     x, data = data_for(0.5)

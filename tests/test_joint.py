@@ -287,6 +287,7 @@ def test_numbers_are_traced(lz, instrumented):
     assert len({float(f.history_array("J")[-1]) for f in fitted}) == 3
 
 
+@pytest.mark.slow
 def test_matrix_free_cg_matches_dense_schur(lz, joint):
     cg = fit(lz, ceemx.JointLM(linear_solver="cg", cg_rtol=1e-13, rtol=1e-13))
     assert cg.converged

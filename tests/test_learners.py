@@ -250,6 +250,7 @@ def test_trainable_boolean_filter_pytree(exact):
     np.testing.assert_array_equal(system.C, exact.start.C)
 
 
+@pytest.mark.slow
 def test_default_trainable_learns_model_arrays_not_noise(noisy):
     prior = ceemx.GaussianPrior(jnp.zeros(3), ceemx.DiagonalGaussian(jnp.full(3, 5.0), 3))
     start = lorenz(START, noisy.C, initial_prior=prior)

@@ -134,6 +134,7 @@ def test_diagnostics_pass_at_the_truth_with_laplace_ratios_near_one(problem, tmp
     assert path.stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_whiteness_flags_missing_dynamics(problem):
     """The model with the wrong transition matrix: correlated one-step prediction errors."""
     data, x, _ = problem

@@ -40,6 +40,7 @@ def _std(noise):
     return float(np.sqrt(np.asarray(noise.covariance())[0, 0]))
 
 
+@pytest.mark.slow
 def test_laplace_ratios_are_one_at_the_truth(lin_data):
     # For a linear-Gaussian model the Laplace posterior is exact and the moments are EM's
     # statistic: at the truth the ratios are 1 up to sampling error (N ≈ 400 → SD ≈ 7 %).

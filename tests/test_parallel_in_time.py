@@ -84,6 +84,7 @@ def test_parallel_solve_vmaps_over_a_batch():
     assert rel_err(X, Xs) < 1e-10
 
 
+@pytest.mark.slow
 def test_parallel_solve_not_positive_definite_is_nan_and_float32_stays():
     rng = np.random.default_rng(1)
     A = random_spd(rng, 2, 17)

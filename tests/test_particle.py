@@ -340,8 +340,10 @@ def test_adapted_likelihood_has_lower_variance(monte_carlo, runs, name):
     np.testing.assert_array_less(var_adapted, 0.5 * var_bootstrap)
 
 
-@pytest.mark.parametrize("name", ["observed", "missing"])
-@pytest.mark.parametrize("proposal", PROPOSALS)
+@pytest.mark.parametrize("name", ["observed", pytest.param("missing", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "proposal", [pytest.param(PROPOSALS[0], marks=pytest.mark.slow), PROPOSALS[1]]
+)
 @pytest.mark.parametrize("runs", RUNS)
 def test_filtering_means_match_kalman(problem, monte_carlo, runs, proposal, name):
     """The particle filtering means E_N[x_t | y_{1:t}], averaged over runs, equal the Kalman
@@ -427,6 +429,7 @@ def test_nonfinite_trajectory_is_isolated(problem):
         np.testing.assert_array_equal(pf.particles[::2], clean.particles[::2])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "proposal", ["adapted", pytest.param("bootstrap", marks=pytest.mark.slow)]
 )  # each compiles its own float32 filter (~3 s)
@@ -740,6 +743,7 @@ def test_particle_em_history(pem_run):
     assert all(h["failed_trajectories"] == [] for h in result.history)
 
 
+@pytest.mark.slow
 def test_particle_em_resume_is_bitwise(problem, pem_run, tmp_path):
     """3 epochs with a checkpoint, then a second call with max_epochs = 6 on the same folder, give
     the very θ, states and history of an uninterrupted run (the first 6 epochs of ``pem_run``)."""

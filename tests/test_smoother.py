@@ -235,6 +235,7 @@ def lorenz():
     return types.SimpleNamespace(system=system, truth=truth, data=data, x_init=x_init, sol=sol)
 
 
+@pytest.mark.slow
 def test_lorenz_converges_accurately(lorenz):
     sol = lorenz.sol
     assert sol.states.shape == (B_LZ, T_LZ, 3 * K_LZ)
@@ -304,6 +305,7 @@ def test_lorenz_objective_monotone_public_api(lorenz):
     np.testing.assert_allclose(prev, lorenz.sol.objective, rtol=1e-13)
 
 
+@pytest.mark.slow
 def test_lorenz_masked_observations(lorenz):
     rng = np.random.default_rng(11)
     y = np.array(lorenz.data.y)
@@ -324,6 +326,7 @@ def test_lorenz_masked_observations(lorenz):
     assert err_gap < 0.01  # measured 2.8e-3
 
 
+@pytest.mark.slow
 def test_lorenz_failing_trajectory_is_isolated(lorenz):
     bad = 3
     x_init = lorenz.x_init.at[bad].set(1e200)  # finite, but RK4 overflows: −J is not finite
@@ -548,6 +551,7 @@ def test_linearize_gradient_and_gauss_newton_on_lorenz():
         np.testing.assert_allclose(dense.reshape(T * n, T * n), Jb.T @ Jb, rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.slow
 @pytest.mark.slow  # the chunked smoother equal to the unchunked (≈ 4 s)
 def test_batch_chunks_give_the_same_answers(lorenz):
     """``batch_chunk`` (memory bound for large n) smooths the trajectories in chunks — including a

@@ -183,6 +183,7 @@ def test_unidentifiable_parameter_gives_nan_and_a_warning():
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_summary_names_estimates_intervals_and_constraints(decay):
     """One row per parameter as written; SE as parameter_estimates; forward(ẑ ± 1.96 σ_z)."""
     from ceemx.identification.summary import parameter_rows
@@ -215,6 +216,7 @@ def test_summary_names_estimates_intervals_and_constraints(decay):
     assert max(len(line) for line in lines) <= 100  # wrapped for a terminal
 
 
+@pytest.mark.slow
 def test_summary_markdown_and_repr(decay):
     res = decay
     md = res.summary("markdown", level=0.9)

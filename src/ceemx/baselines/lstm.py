@@ -18,6 +18,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.prediction import AbstractPredictor
+from ceemx.infra.compilation import jit
 from ceemx.lib.typing import Observations
 
 __all__ = ["LSTMRegressor"]
@@ -109,7 +110,7 @@ class LSTMRegressor(AbstractPredictor):
         return _predict_lstm(self, data.u)
 
 
-@eqx.filter_jit
+@jit
 def _predict_lstm(model: LSTMRegressor, u: Float[Array, "B T p"]) -> Float[Array, "B T m"]:
     return jax.vmap(model)(u)
 

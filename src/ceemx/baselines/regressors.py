@@ -23,6 +23,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.prediction import AbstractPredictor
+from ceemx.infra.compilation import jit
 from ceemx.lib.typing import Observations
 
 __all__ = ["LagRegressor", "lag_windows"]
@@ -156,7 +157,7 @@ class LagRegressor(AbstractPredictor):
         return _predict_lag(self, data.u)
 
 
-@eqx.filter_jit
+@jit
 def _predict_lag(model: LagRegressor, u: Float[Array, "B T p"]) -> Float[Array, "B T m"]:
     if model.lags == 1:
         return jax.vmap(model.predict_inputs)(u)

@@ -34,6 +34,7 @@ from jaxtyping import ArrayLike, PRNGKeyArray
 from ceemx.baselines.lstm import LSTMRegressor
 from ceemx.baselines.regressors import LagRegressor
 from ceemx.data.trajectories import Trajectories
+from ceemx.infra.compilation import jit
 from ceemx.lib.typing import no_type_check
 
 __all__ = ["TrainInfo", "fit_lag", "fit_lstm", "fit_naive", "train_regressor"]
@@ -100,7 +101,7 @@ def _minibatch_loss(model, arrays, rows, scale, loss: str):
     return _group_loss(y[b] - pred, mask[b], scale, loss)
 
 
-@eqx.filter_jit
+@jit
 def _epoch(
     params, static, opt_state, key, lr, arrays, samples, scale, valid, *, batch, steps, loss, start
 ):

@@ -19,7 +19,6 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,6 +27,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ceemx.data.trajectories import Trajectories, rollout_one
 from ceemx.evaluation.simulation import estimate_initial_state, free_run_batch, strongly_typed
 from ceemx.inference.smoother import check_inputs, promote_inputs
+from ceemx.infra.compilation import jit
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import ObservationMask, Observations, States, no_type_check
@@ -52,7 +52,7 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 
 
-@eqx.filter_jit
+@jit
 def _dynamics_error(system, true_system, key, mean, std, num: int):
     n = mean.shape[0]
     x = mean[None, :] + std * jax.random.normal(key, (num, n), mean.dtype)
@@ -136,7 +136,7 @@ class SimulationRMSE(NamedTuple):
     predictions: Array
 
 
-@eqx.filter_jit
+@jit
 def _simulate_obs(system, x1, u):
     def one(x0, ub):
         xs = rollout_one(system, x0, ub)
@@ -239,7 +239,7 @@ class BenchmarkScore(NamedTuple):
     __str__ = __repr__
 
 
-@eqx.filter_jit
+@jit
 def score_batch(
     y: Observations,
     y_sim: Observations,

@@ -37,6 +37,7 @@ from ceemx.inference.smoother import (
     promote_inputs,
     smooth_batch,
 )
+from ceemx.infra.compilation import jit
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import after, cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
@@ -118,7 +119,7 @@ def _run_one(system: AbstractSystem, x1, u, t0):
     return xs, ys
 
 
-@eqx.filter_jit
+@jit
 def free_run_batch(
     system: AbstractSystem, x1: Float[Array, "B n"], u: Inputs, t0: Int[Array, ""]
 ) -> tuple[States, Observations]:
@@ -269,7 +270,7 @@ def _window_error_one(system: AbstractSystem, x1, y, u, mask) -> Float[Array, ""
     return value
 
 
-@eqx.filter_jit
+@jit
 def initial_state_batch(
     solver: LMSmoother,
     system: AbstractSystem,
@@ -457,7 +458,7 @@ def _k_step_one(system: AbstractSystem, xf, x0, u, k: int):
     return jax.vmap(system.observe)(z, u, s).astype(z.dtype)
 
 
-@eqx.filter_jit
+@jit
 def k_step_batch(
     system: AbstractSystem,
     filtered: States,

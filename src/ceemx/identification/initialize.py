@@ -18,6 +18,7 @@ import jax.tree_util as jtu
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from ceemx.data.trajectories import Trajectories, rollout_one
+from ceemx.infra.compilation import jit
 from ceemx.models.system import AbstractSystem, with_noise
 
 if TYPE_CHECKING:
@@ -28,7 +29,7 @@ __all__ = ["from_observations", "perturb", "rollout", "warm_start"]
 _T = TypeVar("_T")
 
 
-@eqx.filter_jit
+@jit
 def from_observations(
     system: AbstractSystem, data: Trajectories, x_guess=None, ridge: float = 1e-6
 ):
@@ -64,7 +65,7 @@ def from_observations(
     return jax.vmap(jax.vmap(one))(data.y, data.u, data.mask, ts)
 
 
-@eqx.filter_jit
+@jit
 def rollout(system: AbstractSystem, data: Trajectories, x1):
     """States by simulating the noise-free dynamics from guessed initial states ``x1`` (B, n)."""
     return jax.vmap(lambda x0, u: rollout_one(system, x0, u))(jnp.asarray(x1, data.y.dtype), data.u)

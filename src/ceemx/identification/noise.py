@@ -38,6 +38,7 @@ from ceemx.identification.learning.expected import cubature_points
 from ceemx.identification.solvers.laplace import noise_second_moments, updated_noise
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
 from ceemx.inference.smoother import LMSmoother, check_inputs, promote_inputs
+from ceemx.infra.compilation import jit
 from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import trace_numbers
 from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
@@ -83,7 +84,7 @@ class NoiseMoments(eqx.Module):
         return np.asarray(self.moments["obs_diag"]) / np.where(count > 0, count, 1.0)
 
 
-@eqx.filter_jit
+@jit
 def _moments(smoother: LMSmoother, system: AbstractSystem, x0, data: Trajectories):
     post = gaussian_posterior(smoother, system, x0, data)
     ok = post.status != RESULTS.nonfinite

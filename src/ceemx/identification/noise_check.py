@@ -64,7 +64,6 @@ from dataclasses import dataclass
 from statistics import NormalDist
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -72,6 +71,7 @@ from jaxtyping import Array, Float
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import residuals
+from ceemx.infra.compilation import jit
 from ceemx.lib.typing import States
 from ceemx.models.system import AbstractSystem
 
@@ -127,7 +127,7 @@ def _sums_single(system: AbstractSystem, x, y, u, mask):
     return obs, dyn, prior
 
 
-@eqx.filter_jit
+@jit
 def square_sums(
     system: AbstractSystem, states: States, data: Trajectories
 ) -> tuple[Float[Array, "B m"], Float[Array, "B n"], Float[Array, "B n"]]:

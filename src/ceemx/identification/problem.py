@@ -31,6 +31,7 @@ from jaxtyping import Array, Float, PyTree
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import neg_log_joint_single, nll_offset
+from ceemx.infra.compilation import jit
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 from ceemx.models.constraints import (
@@ -383,7 +384,7 @@ class FitProblem(eqx.Module):
         return value, grad, symmetrize(jax.hessian(self.neg_log_prior)(theta))
 
 
-@eqx.filter_jit
+@jit
 def per_trajectory_nll(problem: FitProblem, theta: Theta, states: States) -> PerTrajectory:
     """(B,) −J_b(x_b, θ), compiled once per problem shape.
 
@@ -392,7 +393,7 @@ def per_trajectory_nll(problem: FitProblem, theta: Theta, states: States) -> Per
     return problem.per_trajectory(theta, states)
 
 
-@eqx.filter_jit
+@jit
 def per_trajectory_offset(problem: FitProblem, theta: Theta) -> PerTrajectory:
     """(B,) the x-independent constants of −J_b (see :meth:`FitProblem.offset`), compiled."""
     return nll_offset(problem.build(theta), problem.data)

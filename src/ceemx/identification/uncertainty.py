@@ -48,6 +48,7 @@ from jaxtyping import Array, Bool, Float
 
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.joint import schur_complement
+from ceemx.infra.compilation import jit
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, States, Theta
@@ -78,7 +79,7 @@ _HELD = (
 )
 
 
-@eqx.filter_jit
+@jit
 def _laplace(
     problem: FitProblem,
     theta: Theta,

@@ -26,6 +26,7 @@ from jaxtyping import Array, Bool, Float
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.smoother import check_inputs, promote_inputs, promote_tree
+from ceemx.infra.compilation import jit
 from ceemx.lib import kalman
 from ceemx.lib.dense import cholesky, symmetrize
 from ceemx.lib.results import RESULTS, select
@@ -125,7 +126,7 @@ def _ekf_one(
     return y_hat, chol_S, x_pred, x_filt, chol_f, log_lik, ok
 
 
-@eqx.filter_jit
+@jit
 def ekf_batch(system: AbstractSystem, data: Trajectories, prior: GaussianPrior) -> FilterSolution:
     """The compiled kernel of :func:`ekf` (no validation; ``prior`` resolved)."""
     out = jax.vmap(lambda y, u, m: _ekf_one(system, prior, y, u, m))(data.y, data.u, data.mask)

@@ -34,6 +34,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.smoother import check_inputs, promote_inputs, promote_tree
 from ceemx.infra import options
+from ceemx.infra.compilation import jit
 from ceemx.lib import kalman
 from ceemx.lib import particles as lp
 from ceemx.lib.results import RESULTS, select
@@ -240,7 +241,7 @@ def _filter_one(
     return particles, log_weights, ancestors, ess_all, resampled, log_lik
 
 
-@eqx.filter_jit
+@jit
 def filter_batch(
     system: AbstractSystem,
     data: Trajectories,
@@ -361,7 +362,7 @@ def _ffbsi_one(system, particles, log_weights, u, key, n_samples: int):
     return jnp.swapaxes(traj, 0, 1)
 
 
-@eqx.filter_jit
+@jit
 def ffbsi_batch(
     system: AbstractSystem,
     data: Trajectories,

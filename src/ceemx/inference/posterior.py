@@ -18,6 +18,7 @@ from jaxtyping import Array, Float
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference import smoother as smoothing_solver
+from ceemx.infra.compilation import jit
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import PerTrajectory, States
 from ceemx.models.system import AbstractSystem
@@ -53,7 +54,7 @@ class GaussianPosterior(eqx.Module):
     iterations: Array
 
 
-@eqx.filter_jit
+@jit
 def gaussian_posterior(
     smoother: smoothing_solver.LMSmoother, system: AbstractSystem, x0: States, data: Trajectories
 ) -> GaussianPosterior:

@@ -14,6 +14,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ceemx import lib
 from ceemx.data.trajectories import Trajectories, cast_checked
 from ceemx.inference.objective import linearize, nll_offset_single
+from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_bool, check_choice, check_int, check_nonnegative
 from ceemx.infra.warn import warn
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
@@ -183,7 +184,7 @@ def _smooth_one(
     return out.z, out.lin.value, out.steps, out.status, out.lin.hess_x
 
 
-@eqx.filter_jit
+@jit
 def smooth_batch(
     solver: LMSmoother,
     system: AbstractSystem,

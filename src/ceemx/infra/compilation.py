@@ -20,12 +20,21 @@ the interpreter lock while it compiles, so two programs compile at once on two c
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import equinox as eqx
 import jax
+from jax.core import Tracer
+
+try:  # no public query of JAX's trace state; the arguments' tracers tell where it is absent
+    from jax._src.core import trace_state_clean as _trace_state_clean
+except ImportError:  # pragma: no cover
+    _trace_state_clean = None
 
 __all__ = [
     "FAST_COMPILE_FLAGS",
@@ -33,6 +42,8 @@ __all__ = [
     "default_cache_dir",
     "has_idle_core",
     "enable_compilation_cache",
+    "jit",
+    "program_options",
     "use_fast_compilation",
 ]
 
@@ -143,6 +154,55 @@ def use_fast_compilation() -> bool:
     extra = [f"--{k}={v}" for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags]
     os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
     return True
+
+
+def program_options() -> dict[str, Any]:
+    """The XLA options every ceemx entry point compiles with (:func:`jit`), from the environment.
+
+    :data:`FAST_COMPILE_FLAGS` as per-program options, so that a library user's programs compile
+    as fast as the ``ceemx`` command's without any process-wide setting; none that ``XLA_FLAGS``
+    sets already (the user's choice wins), none at all with ``CEEMX_XLA_DEFAULTS=1``. Read when a
+    ceemx module is imported.
+    """
+    if os.environ.get("CEEMX_XLA_DEFAULTS", "").strip() == "1":
+        return {}
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {k: v == "true" for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags}
+
+
+def jit(fun: Callable | None = None, /, **kwargs: Any) -> Any:
+    """``eqx.filter_jit`` with :func:`program_options` as the program's XLA ``compiler_options``.
+
+    The decorator of ceemx's compiled entry points. The options are per program (JAX's
+    ``jit(compiler_options=...)``): nothing global changes, and programs a user compiles
+    themselves keep XLA's defaults. A ceemx function called inside a user's own ``jax.jit`` is
+    inlined into it and compiles with the user's options (JAX refuses compiler options on a
+    nested jit). Usable bare (``@jit``) or with ``eqx.filter_jit``'s keywords
+    (``@jit(donate="all")``); ``.lower(...)`` compiles ahead of time with the options.
+    """
+    if fun is None:
+        return functools.partial(jit, **kwargs)
+    plain = eqx.filter_jit(fun, **kwargs)
+    options = program_options()
+    if not options:
+        return plain
+    top = eqx.filter_jit(fun, compiler_options=options, **kwargs)
+
+    # JAX accepts compiler options on top-level programs only: called inside another trace (a
+    # ceemx program calling another, or a user's jit), the function is the plain one, inlined.
+    @functools.wraps(fun)
+    def call(*args: Any, **kw: Any) -> Any:
+        return (plain if _tracing(args, kw) else top)(*args, **kw)
+
+    call.lower = top.lower  # type: ignore[attr-defined]  # ahead-of-time compilation (precompile)
+    return call
+
+
+def _tracing(args: Any, kwargs: Any) -> bool:
+    """Whether a call happens inside a JAX transformation (jit, vmap, grad, ...)."""
+    if _trace_state_clean is not None:
+        return not _trace_state_clean()
+    return any(isinstance(leaf, Tracer) for leaf in jax.tree.leaves((args, kwargs)))
 
 
 def _backend_started() -> bool:

@@ -17,7 +17,6 @@ only Gaussian ones. Tested against Monte Carlo over q in ``tests/test_laplace_em
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
@@ -25,6 +24,7 @@ from jaxtyping import Array, Float, Int
 from ceemx.identification.learning.problem import AbstractLearningProblem
 from ceemx.identification.problem import FitProblem
 from ceemx.inference.objective import expected_neg_log_joint_single, linearize_expected
+from ceemx.infra.compilation import jit
 from ceemx.lib.cubature import pair_covariances, sigma_points
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 
@@ -70,7 +70,7 @@ class ExpectedLearningProblem(AbstractLearningProblem):
         )(self.points, self.pairs, data.y, data.u, data.mask)
 
 
-@eqx.filter_jit
+@jit
 def cubature_points(
     states: States, covariances: Float[Array, "B T n n"], cross: Float[Array, "B T-1 n n"]
 ) -> tuple[Float[Array, "B T K n"], Float[Array, "B T-1 K2 n2"]]:

@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float, PRNGKeyArray
@@ -14,6 +13,7 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.identification.learning.learners import AbstractLearner, LearnInfo, LMLearner
 from ceemx.identification.learning.problem import AbstractLearningProblem, make_problem
 from ceemx.inference.smoother import check_inputs, promote_inputs
+from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_key, check_nonnegative
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, Theta
@@ -22,7 +22,7 @@ from ceemx.models.system import AbstractSystem
 __all__ = ["learn", "run_learner"]
 
 
-@eqx.filter_jit
+@jit
 def run_learner(
     learner: AbstractLearner, problem: AbstractLearningProblem, theta: Theta, state: Any
 ) -> tuple[Theta, Any, LearnInfo]:

@@ -35,6 +35,7 @@ from ceemx.identification.identifiability import Identifiability
 from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
 from ceemx.inference.smoother import LMSmoother
+from ceemx.infra.compilation import jit
 from ceemx.infra.distributed import to_host
 from ceemx.infra.options import check_nonnegative
 from ceemx.lib.results import RESULTS, select
@@ -80,7 +81,7 @@ def trajectory_log_likelihood(problem: FitProblem, theta: Theta, states: States)
     return -per_trajectory_nll(problem, theta, states)
 
 
-@eqx.filter_jit
+@jit
 def _offset(problem: FitProblem, theta: Theta, weights: PerTrajectory) -> Scalar:
     return problem.offset(theta, weights)
 

@@ -67,6 +67,7 @@ from ceemx.identification.solvers.base import (
 )
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.objective import linearize
+from ceemx.infra.compilation import jit
 from ceemx.infra.distributed import to_host
 from ceemx.infra.memory import check_fits
 from ceemx.infra.options import (
@@ -415,7 +416,7 @@ def _evaluator(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
     return evaluate
 
 
-@eqx.filter_jit
+@jit
 def linearize_joint(
     problem: FitProblem, weights: PerTrajectory, theta: Theta, states: States
 ) -> tuple[Scalar, JointLinearization]:
@@ -424,7 +425,7 @@ def linearize_joint(
     return _evaluator(problem, weights, offset)((states, theta))
 
 
-@eqx.filter_jit
+@jit
 def schur_complement(
     problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory
 ) -> tuple[Float[Array, "theta theta"], Bool[Array, ""]]:
@@ -485,7 +486,7 @@ def _value(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
     return value
 
 
-@eqx.filter_jit
+@jit
 def _iteration(
     opts: JointLM,
     problem: FitProblem,

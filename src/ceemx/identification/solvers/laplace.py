@@ -62,6 +62,7 @@ from ceemx.identification.solvers.laplace_qn import (
 )
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.posterior import E_STEP_SMOOTHER, GaussianPosterior, gaussian_posterior
+from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_choice
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import cho_solve, cholesky
@@ -94,7 +95,7 @@ def _masked_fill(S_oo, R, mask):
     return IK @ S_oo @ IK.T + cond
 
 
-@eqx.filter_jit
+@jit
 def noise_second_moments(
     system: AbstractSystem,
     points: Float[Array, "B T K n"],

@@ -19,6 +19,7 @@ import numpy as np
 from ceemx.identification.learning.expected import ExpectedLearningProblem, cubature_points
 from ceemx.identification.problem import FitProblem
 from ceemx.inference.posterior import GaussianPosterior
+from ceemx.infra.compilation import jit
 from ceemx.lib.results import RESULTS
 from ceemx.lib.typing import Theta
 from ceemx.models.noise import DiagonalGaussian
@@ -69,7 +70,7 @@ def bfgs_update(Hinv: np.ndarray, s: np.ndarray, y: np.ndarray) -> np.ndarray:
     return left @ Hinv @ left.T + rho * np.outer(s, s)
 
 
-@eqx.filter_jit
+@jit
 def q_derivatives(problem: FitProblem, theta: Theta, e: GaussianPosterior, *, hessian: bool):
     """(value, gradient[, Hessian]) in θ of −Q(θ | q) − log p(θ) with q = ``e`` (cubature)."""
     points, pairs = cubature_points(e.states, e.covariances, e.cross)

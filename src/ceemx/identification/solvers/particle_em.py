@@ -53,6 +53,7 @@ from ceemx.inference.particle import (
     initial_prior,
     resolve_proposal,
 )
+from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_nonnegative, check_real
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, select
@@ -298,7 +299,7 @@ def saem_problem(
     )
 
 
-@eqx.filter_jit
+@jit
 def _saem_update(
     solver: ParticleEM,
     problem: FitProblem,
