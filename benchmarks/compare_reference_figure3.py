@@ -194,7 +194,11 @@ def ceemx_worker(problem_path: str, out_path: str, methods: str = "alternate,joi
             return None
 
         if method == "alternate":  # the library's Alternating, its default learner included
-            solver = ceemx.Alternating(smoother=ceemx.LMSmoother(rho_x=rho_x), rtol=0.0)
+            # Alternating's defaults (GEM M-step, partial E-step) with the experiment's ρ_x.
+            steps = ceemx.Alternating().smoother.max_steps
+            solver = ceemx.Alternating(
+                smoother=ceemx.LMSmoother(rho_x=rho_x, max_steps=steps), rtol=0.0
+            )
         else:
             solver = common.make_solver(method, rho_x=rho_x, rtol=0.0)
         clock["t"] = clock["t0"] = t0 = time.perf_counter()
