@@ -25,7 +25,7 @@ import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, ParamSpec, TypeVar, cast, overload
 
 import equinox as eqx
 import jax
@@ -35,6 +35,9 @@ try:  # no public query of JAX's trace state; the arguments' tracers tell where 
     from jax._src.core import trace_state_clean as _trace_state_clean
 except ImportError:  # pragma: no cover
     _trace_state_clean = None
+
+_P = ParamSpec("_P")
+_T = TypeVar("_T")
 
 __all__ = [
     "FAST_COMPILE_FLAGS",
@@ -170,6 +173,14 @@ def program_options() -> dict[str, Any]:
     return {k: v == "true" for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags}
 
 
+@overload
+def jit(fun: Callable[_P, _T], /, **kwargs: Any) -> Callable[_P, _T]: ...
+
+
+@overload
+def jit(fun: None = None, /, **kwargs: Any) -> Callable[[Callable[_P, _T]], Callable[_P, _T]]: ...
+
+
 def jit(fun: Callable | None = None, /, **kwargs: Any) -> Any:
     """``eqx.filter_jit`` with :func:`program_options` as the program's XLA ``compiler_options``.
 
@@ -186,7 +197,7 @@ def jit(fun: Callable | None = None, /, **kwargs: Any) -> Any:
     options = program_options()
     if not options:
         return plain
-    top = eqx.filter_jit(fun, compiler_options=options, **kwargs)
+    top = cast(Any, eqx.filter_jit)(fun, compiler_options=options, **kwargs)  # a jax.jit keyword
 
     # JAX accepts compiler options on top-level programs only: called inside another trace (a
     # ceemx program calling another, or a user's jit), the function is the plain one, inlined.
