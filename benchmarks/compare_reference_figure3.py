@@ -350,9 +350,9 @@ def main() -> None:
                 ts = [time_to(e, r["epoch_s"], th) for e, r in zip(eps, rs, strict=True)]
                 summary[name][f"time_to_eps_{th:g}_s"] = ts
     if "reference" in summary:
-        ref = summary["reference"]["epoch_s_median"]
+        ref = summary["reference"]["epoch_s_median"]  # None when no epoch after the first ran
         for name in names[1:]:
-            if name in summary and summary[name]["epoch_s_median"]:
+            if ref and name in summary and summary[name]["epoch_s_median"]:
                 summary[name]["speedup_per_epoch"] = ref / summary[name]["epoch_s_median"]
             if tte and name in summary:
                 # the reference's best ε within its budget: how long ceemx takes to reach it

@@ -24,7 +24,7 @@ from ceemx.identification.solvers.joint import end_point_identifiability
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.infra.distributed import to_host
 from ceemx.infra.warn import warn
-from ceemx.lib.results import RESULTS, codes
+from ceemx.lib.results import RESULTS, codes, select
 from ceemx.lib.typing import States, Theta
 
 __all__ = ["E_STEP_MAX_STEPS", "Alternating"]
@@ -112,12 +112,15 @@ class Alternating(AbstractFitSolver):
         )
         theta.block_until_ready()
         t_learn = time.perf_counter() - t0
+        # A smoothing step that used its whole LM budget is a partial E-step, not a failure: the
+        # fit's convergence is judged on J (the default smoother is bounded to 2 steps).
+        status = select(sol.status == RESULTS.max_steps_reached, RESULTS.successful, sol.status)
         new = FitState(
             theta=theta,
             states=sol.states,
             J=trajectory_log_likelihood(problem, theta, sol.states),
             weights=weights,
-            status=sol.status,
+            status=status,
             solver_state=learner_state,
         )
         record = {
