@@ -151,12 +151,20 @@ def use_fast_compilation() -> bool:
         Whether the flags are in effect: ``False`` when JAX had already started (nothing is
         changed then) or ``CEEMX_XLA_DEFAULTS=1``.
     """
-    if os.environ.get("CEEMX_XLA_DEFAULTS", "").strip() == "1" or _backend_started():
+    add = _fast_flags_to_add()
+    if add is None or _backend_started():
         return False
-    flags = os.environ.get("XLA_FLAGS", "")
-    extra = [f"--{k}={v}" for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags]
-    os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
+    extra = [f"--{k}={v}" for k, v in add.items()]
+    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *extra]).strip()
     return True
+
+
+def _fast_flags_to_add() -> dict[str, str] | None:
+    """:data:`FAST_COMPILE_FLAGS` that ``XLA_FLAGS`` does not name (``None``: keep XLA's)."""
+    if os.environ.get("CEEMX_XLA_DEFAULTS", "").strip() == "1":
+        return None
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {k: v for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags}
 
 
 def program_options() -> dict[str, Any]:
@@ -167,10 +175,8 @@ def program_options() -> dict[str, Any]:
     sets already (the user's choice wins), none at all with ``CEEMX_XLA_DEFAULTS=1``. Read when a
     ceemx module is imported.
     """
-    if os.environ.get("CEEMX_XLA_DEFAULTS", "").strip() == "1":
-        return {}
-    flags = os.environ.get("XLA_FLAGS", "")
-    return {k: v == "true" for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags}
+    add = _fast_flags_to_add()
+    return {} if add is None else {k: v == "true" for k, v in add.items()}
 
 
 @overload
