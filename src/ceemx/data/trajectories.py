@@ -9,6 +9,7 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from ceemx.infra.compilation import jit
 from ceemx.lib.typing import (
     Inputs,
     ObservationMask,
@@ -335,24 +336,43 @@ def simulate(
         The true states (B, T, n) and the observations as :class:`Trajectories`.
     """
     x0 = jnp.asarray(x0)
-    B, n = x0.shape
+    B, _ = x0.shape
     T = int(num_steps)
-    dtype = x0.dtype
-    u = jnp.zeros((B, T, 0), dtype) if u is None else jnp.asarray(u, dtype)
-    kw, kv = jax.random.split(key)
+    u = jnp.zeros((B, T, 0), x0.dtype) if u is None else jnp.asarray(u, x0.dtype)
     pn = _resolve_noise(process_noise, system.process_noise)
     on = _resolve_noise(obs_noise, system.obs_noise)
-    w = (
-        sample_noise(pn, kw, (B, T - 1), dtype)
-        if pn is not None
-        else jnp.zeros((B, T - 1, n), dtype)
-    )
+    xs, y = _simulate(system, key, x0, u, pn, on)
+    # Built outside the compiled program, so that concrete observations are validated (a
+    # simulation that diverged to inf or NaN is refused here, naming the index).
+    return xs, Trajectories(y, u if u.shape[-1] else None)
+
+
+@jit
+def _simulate(
+    system: AbstractSystem,
+    key: PRNGKeyArray,
+    x0: Float[Array, "B n"],
+    u: Float[Array, "B T p"],
+    pn: AbstractNoise | None,
+    on: AbstractNoise | None,
+) -> tuple[States, Float[Array, "B T m"]]:
+    """The compiled body of :func:`simulate`: one program per shape and system structure.
+
+    Called eagerly, the same operations compiled one small program each, for every new shape
+    (a scan per call: ≈ 0.1 s per simulation on a 2 GHz core).
+    """
+    B, n = x0.shape
+    T, dtype = u.shape[1], x0.dtype
+    kw, kv = jax.random.split(key)
+    w = sample_noise(pn, kw, (B, T - 1), dtype) if pn is not None else None
+    if w is None:
+        w = jnp.zeros((B, T - 1, n), dtype)
     xs = jax.vmap(lambda a, b, c: rollout_one(system, a, b, c))(x0, u, w)
     ts = jnp.arange(T)
     y = jax.vmap(jax.vmap(system.observe))(xs, u, jnp.broadcast_to(ts, (B, T)))
     if on is not None:
         y = y + sample_noise(on, kv, (B, T), dtype)
-    return xs, Trajectories(y, u if u.shape[-1] else None)
+    return xs, y
 
 
 def foh_inputs(data: Trajectories | ArrayLike):

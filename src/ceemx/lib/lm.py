@@ -112,8 +112,8 @@ def levenberg_marquardt(
         lin0,
         jnp.asarray(damping, dtype),
         jnp.asarray(2.0, dtype),
-        jnp.asarray(0),
-        jnp.asarray(0),
+        jnp.zeros((), jnp.int32),  # not weakly typed: a weak carry makes JAX trace the body twice
+        jnp.zeros((), jnp.int32),
         ~finite0,
         RESULTS.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite),
         jnp.asarray(value is not None and init is None),  # lazy mode: lin not yet formed at z
