@@ -199,6 +199,10 @@ def _describe(value: Any) -> str:
     return repr(value)
 
 
+def _is_weak(a) -> bool:
+    return eqx.is_array(a) and bool(getattr(a, "weak_type", False))
+
+
 def _strong(a):
     return jnp.asarray(a, dtype=jnp.result_type(a)) if eqx.is_array(a) else a
 
@@ -241,8 +245,11 @@ class FitProblem(eqx.Module):
         mask = trainable_mask(system, trainable)
         params, static = eqx.partition(system, mask)
         constraints = tuple(_trainable_constraints(system, mask))
-        # Strongly typed θ and template: a weakly typed leaf (e.g. from jnp.asarray(10.0)) would
-        # make the second epoch, whose θ comes back from a solver strongly typed, compile again.
+        # Strongly typed θ, template and fixed leaves: a weakly typed leaf (e.g. a noise scale
+        # given as a Python float) would make the second epoch, whose θ comes back from a solver
+        # strongly typed, compile again, and the problem's system a different program from the
+        # promoted one the start states are smoothed with (the smoother traced twice).
+        static = jtu.tree_map(lambda a: _strong(a) if _is_weak(a) else a, static)
         leaves, treedef = jtu.tree_flatten(params)
         unconstrained = [
             c.inverse(_strong(leaf)) for c, leaf in zip(constraints, leaves, strict=True)

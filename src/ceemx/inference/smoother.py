@@ -282,10 +282,17 @@ def _promote_system(system: AbstractSystem, dtype) -> AbstractSystem:
     return _cast_floating(system, dtype)
 
 
+def _is_weak(leaf) -> bool:
+    return bool(getattr(leaf, "weak_type", False))
+
+
 def _cast_floating(tree, dtype):
     def cast(leaf):
-        if eqx.is_inexact_array(leaf) and leaf.dtype != dtype:
-            return leaf.astype(dtype)
+        # Weakly typed leaves (a scale given as a Python float) are made strong too: JAX keys
+        # compiled programs on weak types, so a weak and a strong copy of one system would
+        # trace and compile every program twice.
+        if eqx.is_inexact_array(leaf) and (leaf.dtype != dtype or _is_weak(leaf)):
+            return jax.lax.convert_element_type(leaf, dtype)
         return leaf
 
     return jax.tree_util.tree_map(cast, tree)
