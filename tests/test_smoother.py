@@ -257,8 +257,8 @@ def _stopped_after(system, data, x_init, solver):
     """Return k ↦ (objective, states, iterations) of the smoother stopped after ≤ k iterations.
 
     Runs the very per-trajectory routine that ``smooth`` vmaps, with ``max_steps`` a traced value
-    so that every k shares one compilation (``LMSmoother.max_steps`` is static, so ``smooth``
-    recompiles for each k: :func:`test_lorenz_objective_monotone_public_api` does exactly that).
+    so that every k shares one compilation (``smooth`` passes ``LMSmoother.max_steps`` to its
+    program as a number too: :func:`test_lorenz_objective_monotone_public_api` goes through it).
     """
     from ceemx.inference.smoother import _smooth_one
 
@@ -266,9 +266,10 @@ def _stopped_after(system, data, x_init, solver):
     def run(k, x0, y, u, mask):
         cfg = types.SimpleNamespace(
             rho_x=solver.rho_x, rtol=solver.rtol, atol=solver.atol, damping=solver.damping,
-            throw=False, max_steps=k,
+            throw=False,
         )  # fmt: skip
-        x, value, steps, _, _ = jax.vmap(lambda *a: _smooth_one(cfg, system, *a))(x0, y, u, mask)
+        one = lambda *a: _smooth_one(cfg, k, system, *a)  # noqa: E731
+        x, value, steps, _, _ = jax.vmap(one)(x0, y, u, mask)
         return value, x, steps
 
     return lambda k: run(jnp.asarray(k), x_init, data.y, data.u, data.mask)
@@ -294,7 +295,7 @@ def test_lorenz_objective_monotone(lorenz):
 
 @pytest.mark.slow
 def test_lorenz_objective_monotone_public_api(lorenz):
-    """The same check through ``smooth`` itself, max_steps = 1, 2, … (one compilation each)."""
+    """The same check through ``smooth`` itself, max_steps = 1, 2, …"""
     K = int(np.max(np.asarray(lorenz.sol.iterations)))
     prev = -np.asarray(log_joint(lorenz.system, lorenz.x_init, lorenz.data))
     for k in range(1, K + 1):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import equinox as eqx
@@ -134,7 +135,8 @@ class SmootherSolution(eqx.Module):
 
 
 def _smooth_one(
-    solver,  # an LMSmoother, or any object with its fields (a test harness traces max_steps)
+    solver,  # an LMSmoother, or any object with its fields
+    max_steps: Int[Array, ""],
     system: AbstractSystem,
     x0: Trajectory,
     y: Float[Array, "T m"],
@@ -178,13 +180,12 @@ def _smooth_one(
         x0,
         rtol=solver.rtol,
         atol=solver.atol,
-        max_steps=solver.max_steps,
+        max_steps=max_steps,
         damping=solver.damping,
     )
     return out.z, out.lin.value, out.steps, out.status, out.lin.hess_x
 
 
-@jit
 def smooth_batch(
     solver: LMSmoother,
     system: AbstractSystem,
@@ -192,7 +193,29 @@ def smooth_batch(
     data: Trajectories,
     covariance: bool,
 ) -> SmootherSolution:
-    """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced)."""
+    """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced).
+
+    ``solver.max_steps`` is passed to the program as a number, not compiled into it: smoothers
+    that differ only in their step bound (a fit's warm start and :class:`ceemx.Alternating`'s
+    partial E-step) run one program, traced and compiled once.
+    """
+    steps = solver.max_steps
+    if isinstance(steps, int | np.integer):
+        solver = copy.copy(solver)
+        object.__setattr__(solver, "max_steps", 0)  # one static configuration for every bound
+        steps = jnp.asarray(steps, jnp.int32)
+    return _smooth_batch(solver, steps, system, x_init, data, covariance)
+
+
+@jit
+def _smooth_batch(
+    solver: LMSmoother,
+    max_steps: Int[Array, ""],
+    system: AbstractSystem,
+    x_init: States,
+    data: Trajectories,
+    covariance: bool,
+) -> SmootherSolution:
     chunk = getattr(solver, "batch_chunk", None)
 
     def batched(f, *args):
@@ -202,7 +225,7 @@ def smooth_batch(
         return jax.lax.map(lambda a: f(*a), args, batch_size=chunk)
 
     def one(x0, y, u, mask):
-        x, value, steps, status, hess = _smooth_one(solver, system, x0, y, u, mask)
+        x, value, steps, status, hess = _smooth_one(solver, max_steps, system, x0, y, u, mask)
         if not covariance:
             return x, value, steps, status, None
         factor = lib.cholesky(hess)
@@ -448,8 +471,8 @@ def smooth(
     (:func:`promote_inputs`): the result is in the dtype of the system's parameters.
 
     Trajectories are processed with ``vmap``; compiled once per shape and solver type: the
-    solver's numbers (``rho_x``, ``rtol``, ``atol``, ``damping``) are traced, so changing them does
-    not recompile.
+    solver's numbers (``rho_x``, ``rtol``, ``atol``, ``damping``, ``max_steps``) are traced, so
+    changing them does not recompile.
     """
     solver = LMSmoother() if solver is None else solver
     if not isinstance(solver, LMSmoother):
