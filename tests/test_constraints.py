@@ -199,7 +199,10 @@ def test_theta_is_unconstrained_and_build_is_natural(dtype):
     for get in (lambda t: t.a, lambda t: t.gain.g, lambda t: t.gain.offset):
         np.testing.assert_allclose(get(built), get(s), rtol=1e-6)
         assert get(built).dtype == dtype
-    assert built.c is s.c  # fixed: part of the static rest
+    # fixed: part of the static rest, its value kept; strongly typed in the system's dtype (a weak
+    # leaf would make the problem's programs differ from those of the promoted system)
+    np.testing.assert_array_equal(built.c, s.c)
+    assert built.c.dtype == dtype and not built.c.weak_type
     # Any θ builds a system inside the constraints.
     far = problem.build(jnp.asarray([40.0, -30.0, 0.0], dtype))
     assert 0.0 < float(far.a) <= 1.0 and float(far.gain.g) > 0.0

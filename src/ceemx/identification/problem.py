@@ -43,7 +43,7 @@ from ceemx.models.constraints import (
     leaf_constraints,
 )
 from ceemx.models.noise import AbstractNoise
-from ceemx.models.system import AbstractSystem, GaussianPrior
+from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype
 
 __all__ = [
     "FitProblem",
@@ -200,7 +200,8 @@ def _describe(value: Any) -> str:
 
 
 def _is_weak(a) -> bool:
-    return eqx.is_array(a) and bool(getattr(a, "weak_type", False))
+    """A weakly typed floating array (e.g. ``jnp.asarray(0.1)``)."""
+    return eqx.is_inexact_array(a) and bool(getattr(a, "weak_type", False))
 
 
 def _strong(a):
@@ -249,7 +250,9 @@ class FitProblem(eqx.Module):
         # given as a Python float) would make the second epoch, whose θ comes back from a solver
         # strongly typed, compile again, and the problem's system a different program from the
         # promoted one the start states are smoothed with (the smoother traced twice).
-        static = jtu.tree_map(lambda a: _strong(a) if _is_weak(a) else a, static)
+        # A weak float acts in the system's dtype, so it is cast to that (exactly as before).
+        dtype = float_dtype(system)
+        static = jtu.tree_map(lambda a: a.astype(dtype) if _is_weak(a) else a, static)
         leaves, treedef = jtu.tree_flatten(params)
         unconstrained = [
             c.inverse(_strong(leaf)) for c, leaf in zip(constraints, leaves, strict=True)
