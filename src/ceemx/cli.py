@@ -433,7 +433,10 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
         return 2
     out = args.out if args.out is not None else _default_out(args)
     interrupts.created = _missing_folders(out)  # removed again if interrupted before writing
-    _check_out(parser, args.out, _default_out(args))
+    # A signal during the check waits for its end: the exit removing the folders the check is
+    # creating made the check fail and exit 2 instead (seen once under load).
+    with interrupts.critical():
+        _check_out(parser, args.out, _default_out(args))
     _limit_threads(parser, args)
     _start_jax()
     from ceemx.evaluation import report
