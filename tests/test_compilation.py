@@ -78,17 +78,30 @@ def test_fast_compilation_after_jax_started_changes_nothing(monkeypatch):
 
 
 def test_has_idle_core_follows_cpus_and_load(monkeypatch):
-    """fit compiles in the background only where a CPU is idle."""
+    """fit compiles in the background only where a CPU is idle: runnable tasks now, else load."""
     from ceemx.infra import compilation
 
     monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr(compilation, "_runnable_tasks", lambda: 1)
+    assert compilation.has_idle_core()  # this process alone
+    monkeypatch.setattr(compilation, "_runnable_tasks", lambda: 2)
+    assert not compilation.has_idle_core()  # 2 CPUs, one busy beside this process
+    monkeypatch.setattr(compilation, "_runnable_tasks", lambda: None)  # not Linux: the load
     monkeypatch.setattr(compilation.os, "getloadavg", lambda: (0.4, 0.0, 0.0))
     assert compilation.has_idle_core()
     monkeypatch.setattr(compilation.os, "getloadavg", lambda: (1.0, 0.0, 0.0))
-    assert not compilation.has_idle_core()  # 2 CPUs, one busy beside this process
+    assert not compilation.has_idle_core()
     monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {0}, raising=False)
-    monkeypatch.setattr(compilation.os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    monkeypatch.setattr(compilation, "_runnable_tasks", lambda: 1)
     assert not compilation.has_idle_core()  # one CPU: nothing to compile beside
+
+
+def test_runnable_tasks_counts_this_process():
+    """On Linux at least this process is runnable while it reads the count."""
+    from ceemx.infra import compilation
+
+    n = compilation._runnable_tasks()
+    assert n is None or n >= 1
 
 
 def test_program_options_follow_the_environment(monkeypatch):

@@ -23,6 +23,7 @@ from __future__ import annotations
 import functools
 import os
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ParamSpec, TypeVar, cast, overload
@@ -98,21 +99,45 @@ def enable_compilation_cache(
 def has_idle_core() -> bool:
     """Whether this process may use a core nobody else is using (for compiling in background).
 
-    True when the process may run on ≥ 2 CPUs and the 1-minute load average leaves at least one
-    of them idle (load ≤ CPUs − 1.5). On a busy machine a second compiling thread only competes
-    with the main thread (measured: the suite's JointLM test files 4–5 % more CPU, single core
-    1.07× slower wall; benchmarks/README.md "First-fit latency"), so :func:`ceemx.fit` compiles
-    in the foreground there.
+    True when the process may run on ≥ 2 CPUs and fewer tasks than those CPUs are runnable now,
+    this one included — Linux's instantaneous count of runnable tasks (``/proc/loadavg``, the
+    median of five readings 2 ms apart); elsewhere, when the 1-minute load average leaves one CPU
+    idle (load ≤ CPUs − 1.5). The load average lags by a minute: right after another process
+    finished (back-to-back runs, a test or benchmark just before) it still reads ≈ 1.5 on an idle
+    2-core machine, and the background compile was never used there (it takes the first JointLM
+    fit 10.9–11.2 → 9.7–9.9 s; benchmarks/README.md "First-fit latency"). On a busy machine a
+    second compiling thread only competes with the main thread (measured: the suite's JointLM
+    test files 4–5 % more CPU, single core 1.07× slower wall), so :func:`ceemx.fit` compiles in
+    the foreground there.
     """
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         cpus = os.cpu_count() or 1
+    if cpus < 2:
+        return False
+    running = _runnable_tasks()
+    if running is not None:
+        return running < cpus
     try:
         load = os.getloadavg()[0]
     except OSError:
         return False
-    return cpus >= 2 and load <= cpus - 1.5
+    return load <= cpus - 1.5
+
+
+def _runnable_tasks(samples: int = 5) -> int | None:
+    """The median number of runnable tasks on the machine now (``None`` where unknown)."""
+    counts = []
+    for i in range(samples):
+        try:
+            with open("/proc/loadavg") as f:
+                counts.append(int(f.read().split()[3].split("/")[0]))
+        except (OSError, ValueError, IndexError):
+            return None
+        if i + 1 < samples:
+            time.sleep(0.002)
+    return sorted(counts)[len(counts) // 2]
 
 
 def compile_in_background(
