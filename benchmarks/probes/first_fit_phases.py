@@ -10,6 +10,7 @@ compiled program, the seconds of tracing (``jaxpr_trace``), lowering to StableHL
 the retrieval); ``VERBOSE=1`` prints them per program, ``PROF=FILE`` writes a cProfile of the
 first fit. With ``CACHE_DIR`` the persistent compilation cache is on (run twice: fill, then
 warm). Process CPU seconds of the first fit are printed beside the wall time; record ``uptime``.
+``SOLVER=alternating`` fits with ``ceemx.Alternating()`` (Algorithm 1, the default solver) instead.
 ``XLA_FLAGS`` is read as usual (e.g. ``--xla_cpu_use_fusion_emitters=false``).
 
 Backs: ``benchmarks/README.md`` ("First-fit latency": the programs of a fit and their compile
@@ -73,7 +74,9 @@ def one():
     r = ceemx.fit(
         guess,
         ceemx.Trajectories(y),
-        solver=ceemx.JointLM(),
+        solver=ceemx.Alternating()
+        if os.environ.get("SOLVER") == "alternating"
+        else ceemx.JointLM(),
         trainable=common.LORENZ_PARAMS,
         progress=False,
     )

@@ -56,6 +56,11 @@ def select(pred: Bool[ArrayLike, ...], a: RESULTS, b: RESULTS) -> RESULTS:
     pred = jnp.asarray(pred)
     if pred.ndim == 0:
         return RESULTS.where(pred, a, b)
+    return _select(pred, a, b)
+
+
+@eqx.filter_jit  # compiled once per shape: eagerly, the vmap below was traced at every call
+def _select(pred: Bool[ArrayLike, ...], a: RESULTS, b: RESULTS) -> RESULTS:
     flat = pred.reshape(-1)
     a_b = jax.tree_util.tree_map(lambda v: jnp.broadcast_to(v, pred.shape).reshape(-1), a)
     b_b = jax.tree_util.tree_map(lambda v: jnp.broadcast_to(v, pred.shape).reshape(-1), b)
