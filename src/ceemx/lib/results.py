@@ -11,7 +11,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Bool
+from jaxtyping import Array, ArrayLike, Bool
 
 __all__ = ["RESULTS", "codes", "from_codes", "messages", "select"]
 
@@ -60,7 +60,7 @@ def select(pred: Bool[ArrayLike, ...], a: RESULTS, b: RESULTS) -> RESULTS:
 
 
 @eqx.filter_jit  # compiled once per shape: eagerly, the vmap below was traced at every call
-def _select(pred: Bool[ArrayLike, ...], a: RESULTS, b: RESULTS) -> RESULTS:
+def _select(pred: Bool[Array, ...], a: RESULTS, b: RESULTS) -> RESULTS:
     flat = pred.reshape(-1)
     a_b = jax.tree_util.tree_map(lambda v: jnp.broadcast_to(v, pred.shape).reshape(-1), a)
     b_b = jax.tree_util.tree_map(lambda v: jnp.broadcast_to(v, pred.shape).reshape(-1), b)
