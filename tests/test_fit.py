@@ -67,7 +67,7 @@ def traces():
     """
     log = []
     smooth, learn = (
-        ceemx.inference.smoother.smooth_batch,
+        ceemx.inference.smoother._smooth_batch,  # the compiled program (max_steps an argument)
         ceemx.identification.learning.step.run_learner,
     )
 
@@ -77,13 +77,13 @@ def traces():
         log.append((kind, key))
 
     @eqx.filter_jit
-    def smooth_traced(solver, system, states, data, covariance):
+    def smooth_traced(solver, max_steps, system, states, data, covariance):
         # The system's array types (weak or strong) are part of the configuration: the default
         # start smooths with a strongly typed process noise where a model may have a weak one.
         leaves = jax.tree_util.tree_leaves(eqx.filter(system, eqx.is_array))
         types_ = tuple(str(jax.typeof(a)) for a in leaves)
         record("smooth", (states.shape, str(states.dtype), types_))
-        return smooth(solver, system, states, data, covariance)
+        return smooth(solver, max_steps, system, states, data, covariance)
 
     @eqx.filter_jit
     def learn_traced(learner, problem, theta, state):
@@ -94,7 +94,7 @@ def traces():
         return learn(learner, problem, theta, state)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ceemx.inference.smoother, "smooth_batch", smooth_traced)
+        mp.setattr(ceemx.inference.smoother, "_smooth_batch", smooth_traced)
         mp.setattr(ceemx.identification.learning.step, "run_learner", learn_traced)
         yield log
 

@@ -44,7 +44,7 @@ def instrumented():
     raw_iteration = joint._iteration.__wrapped__
     raw_linearize = joint.linearize_joint.__wrapped__
     raw_evaluator = joint._evaluator
-    raw_smooth = smoothing.smooth_batch
+    raw_smooth = smoothing._smooth_batch  # the compiled program (max_steps an argument)
     log = _TraceLog()
 
     def counting_evaluator(problem, weights, offset):
@@ -69,8 +69,8 @@ def instrumented():
         return out
 
     @eqx.filter_jit
-    def smooth_batch(solver, system, states, data, covariance):
-        out = raw_smooth(solver, system, states, data, covariance)
+    def smooth_batch(solver, max_steps, system, states, data, covariance):
+        out = raw_smooth(solver, max_steps, system, states, data, covariance)
         log.record("smooth", states, covariance)
         return out
 
@@ -78,7 +78,7 @@ def instrumented():
         mp.setattr(joint, "_evaluator", counting_evaluator)
         mp.setattr(joint, "_iteration", iteration)
         mp.setattr(joint, "linearize_joint", linearize_joint)
-        mp.setattr(smoothing, "smooth_batch", smooth_batch)
+        mp.setattr(smoothing, "_smooth_batch", smooth_batch)
         yield log
 
 

@@ -61,12 +61,12 @@ def traces():
     function, so results are unchanged. Yields the data shapes traced so far.
     """
     log, seen = [], set()
-    raw = ceemx.inference.smoother.smooth_batch
+    raw = ceemx.inference.smoother._smooth_batch  # the compiled program (max_steps an argument)
 
     @eqx.filter_jit
-    def smooth_batch(solver, system, states, data, covariance):
-        out = raw(solver, system, states, data, covariance)
-        key = _signature((solver, system, states, data, covariance))
+    def smooth_batch(solver, max_steps, system, states, data, covariance):
+        out = raw(solver, max_steps, system, states, data, covariance)
+        key = _signature((solver, max_steps, system, states, data, covariance))
         if key in seen:
             raise AssertionError(f"smooth retraced for an already compiled configuration {key}")
         seen.add(key)
@@ -74,7 +74,7 @@ def traces():
         return out
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ceemx.inference.smoother, "smooth_batch", smooth_batch)
+        mp.setattr(ceemx.inference.smoother, "_smooth_batch", smooth_batch)
         yield log
 
 
