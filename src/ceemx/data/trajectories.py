@@ -364,9 +364,10 @@ def _simulate(
     B, n = x0.shape
     T, dtype = u.shape[1], x0.dtype
     kw, kv = jax.random.split(key)
-    w = sample_noise(pn, kw, (B, T - 1), dtype) if pn is not None else None
-    if w is None:
+    if pn is None:
         w = jnp.zeros((B, T - 1, n), dtype)
+    else:
+        w = sample_noise(pn, kw, (B, T - 1), dtype)
     xs = jax.vmap(lambda a, b, c: rollout_one(system, a, b, c))(x0, u, w)
     ts = jnp.arange(T)
     y = jax.vmap(jax.vmap(system.observe))(xs, u, jnp.broadcast_to(ts, (B, T)))

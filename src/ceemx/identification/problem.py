@@ -33,6 +33,7 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import neg_log_joint_single, nll_offset
 from ceemx.infra.compilation import jit
 from ceemx.lib.dense import symmetrize
+from ceemx.lib.tree import is_weak
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 from ceemx.models.constraints import (
     AbstractConstraint,
@@ -199,11 +200,6 @@ def _describe(value: Any) -> str:
     return repr(value)
 
 
-def _is_weak(a) -> bool:
-    """A weakly typed floating array (e.g. ``jnp.asarray(0.1)``)."""
-    return eqx.is_inexact_array(a) and bool(getattr(a, "weak_type", False))
-
-
 def _strong(a):
     return jnp.asarray(a, dtype=jnp.result_type(a)) if eqx.is_array(a) else a
 
@@ -252,7 +248,9 @@ class FitProblem(eqx.Module):
         # promoted one the start states are smoothed with (the smoother traced twice).
         # A weak float acts in the system's dtype, so it is cast to that (exactly as before).
         dtype = float_dtype(system)
-        static = jtu.tree_map(lambda a: a.astype(dtype) if _is_weak(a) else a, static)
+        static = jtu.tree_map(
+            lambda a: a.astype(dtype) if eqx.is_inexact_array(a) and is_weak(a) else a, static
+        )
         leaves, treedef = jtu.tree_flatten(params)
         unconstrained = [
             c.inverse(_strong(leaf)) for c, leaf in zip(constraints, leaves, strict=True)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 from typing import Any
 
 import equinox as eqx
@@ -21,7 +21,7 @@ from ceemx.infra.warn import warn
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.parallel_blocktri import parallel_solve
 from ceemx.lib.results import RESULTS, messages
-from ceemx.lib.tree import trace_numbers
+from ceemx.lib.tree import is_weak, trace_numbers
 from ceemx.lib.typing import PerTrajectory, States, Trajectory, no_type_check
 from ceemx.models.method_check import check_methods
 from ceemx.models.system import AbstractSystem, float_dtype
@@ -199,11 +199,8 @@ def smooth_batch(
     that differ only in their step bound (a fit's warm start and :class:`ceemx.Alternating`'s
     partial E-step) run one program, traced and compiled once.
     """
-    steps = solver.max_steps
-    if isinstance(steps, int | np.integer):
-        solver = copy.copy(solver)
-        object.__setattr__(solver, "max_steps", 0)  # one static configuration for every bound
-        steps = jnp.asarray(steps, jnp.int32)
+    steps = jnp.asarray(solver.max_steps, jnp.int32)
+    solver = dataclasses.replace(solver, max_steps=0)  # one static configuration for every bound
     return _smooth_batch(solver, steps, system, x_init, data, covariance)
 
 
@@ -305,16 +302,10 @@ def _promote_system(system: AbstractSystem, dtype) -> AbstractSystem:
     return _cast_floating(system, dtype)
 
 
-def _is_weak(leaf) -> bool:
-    return bool(getattr(leaf, "weak_type", False))
-
-
 def _cast_floating(tree, dtype):
     def cast(leaf):
-        # Weakly typed leaves (a scale given as a Python float) are made strong too: JAX keys
-        # compiled programs on weak types, so a weak and a strong copy of one system would
-        # trace and compile every program twice.
-        if eqx.is_inexact_array(leaf) and (leaf.dtype != dtype or _is_weak(leaf)):
+        # Weakly typed leaves (a scale given as a Python float) are made strong too (is_weak).
+        if eqx.is_inexact_array(leaf) and (leaf.dtype != dtype or is_weak(leaf)):
             return jax.lax.convert_element_type(leaf, dtype)
         return leaf
 

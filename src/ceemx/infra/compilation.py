@@ -105,10 +105,10 @@ def has_idle_core() -> bool:
     idle (load ≤ CPUs − 1.5). The load average lags by a minute: right after another process
     finished (back-to-back runs, a test or benchmark just before) it still reads ≈ 1.5 on an idle
     2-core machine, and the background compile was never used there (it takes the first JointLM
-    fit 10.9–11.2 → 9.7–9.9 s; benchmarks/README.md "First-fit latency"). On a busy machine a
-    second compiling thread only competes with the main thread (measured: the suite's JointLM
-    test files 4–5 % more CPU, single core 1.07× slower wall), so :func:`ceemx.fit` compiles in
-    the foreground there.
+    fit 10.9–11.2 → 9.7–9.9 s; benchmarks/README.md "One program per configuration"). On a
+    busy machine a second compiling thread only competes with the main thread (measured: the
+    suite's JointLM test files 4–5 % more CPU, single core 1.07× slower wall), so
+    :func:`ceemx.fit` compiles in the foreground there.
     """
     try:
         cpus = len(os.sched_getaffinity(0))

@@ -7,7 +7,7 @@ from typing import TypeVar
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
-__all__ = ["trace_numbers"]
+__all__ = ["is_weak", "trace_numbers"]
 
 _T = TypeVar("_T")
 
@@ -27,3 +27,12 @@ def trace_numbers(tree: _T, dtype) -> _T:
         return leaf
 
     return jtu.tree_map(convert, tree)
+
+
+def is_weak(leaf) -> bool:
+    """Whether ``leaf`` is a weakly typed JAX array (e.g. ``jnp.asarray(0.1)``).
+
+    JAX keys compiled programs on weak types: a weak and a strong copy of one system trace and
+    compile every program twice, so entry points make such leaves strong.
+    """
+    return bool(getattr(leaf, "weak_type", False))
