@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import dataclasses
+import copy
 from typing import Any
 
 import equinox as eqx
@@ -200,8 +200,12 @@ def smooth_batch(
     partial E-step) run one program, traced and compiled once.
     """
     steps = jnp.asarray(solver.max_steps, jnp.int32)
-    solver = dataclasses.replace(solver, max_steps=0)  # one static configuration for every bound
-    return _smooth_batch(solver, steps, system, x_init, data, covariance)
+    # One static configuration for every bound. A copy with the field set, not
+    # ``dataclasses.replace``: that calls ``__init__`` again, whose ``float`` annotations the
+    # traced numbers do not meet (and ``eqx.tree_at`` cannot reach a static field).
+    canonical = copy.copy(solver)
+    object.__setattr__(canonical, "max_steps", 0)
+    return _smooth_batch(canonical, steps, system, x_init, data, covariance)
 
 
 @jit
