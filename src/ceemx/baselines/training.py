@@ -35,6 +35,7 @@ from ceemx.baselines.lstm import LSTMRegressor
 from ceemx.baselines.regressors import LagRegressor
 from ceemx.data.trajectories import Trajectories
 from ceemx.infra.compilation import jit
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import no_type_check
 
 __all__ = ["TrainInfo", "fit_lag", "fit_lstm", "fit_naive", "train_regressor"]
@@ -377,7 +378,7 @@ def train_regressor(
     batch = min(c.batch_size, c.samples.shape[0])
     steps = c.steps_per_epoch or math.ceil(c.samples.shape[0] / batch)
     arrays, valid = _cast_data(train, valid, lags, dtype)
-    samples = jnp.asarray(c.samples)
+    samples = as_jax(c.samples)
     params, static = eqx.partition(model, eqx.is_inexact_array)
 
     def run_epoch(params, opt_state, e, k):

@@ -10,6 +10,7 @@ from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from ceemx.infra.compilation import jit
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import (
     Inputs,
     ObservationMask,
@@ -172,7 +173,7 @@ class Trajectories(eqx.Module):
                     )
             self.y = jnp.asarray(np.where(mask_np, y_np, np.zeros((), dtype)), dtype)
             self.u = jnp.asarray(u_np, dtype)
-            self.mask = jnp.asarray(mask_np)
+            self.mask = as_jax(mask_np)
         else:  # inside a transformation: trust the caller, only normalise.
             y = jnp.asarray(y)
             B, T, m = y.shape
@@ -269,7 +270,8 @@ class Trajectories(eqx.Module):
         if not (isinstance(step, (int, np.integer)) and step >= 1):
             raise ValueError(f"`step` must be an integer >= 1; got {step!r}.")
         starts = np.arange(0, T - length + 1, step)
-        idx = jnp.asarray(starts[:, None] + np.arange(length))
+        idx = starts[:, None] + np.arange(length)
+        idx = as_jax(idx)
 
         def cut(a):
             return a[:, idx].reshape((a.shape[0] * len(starts), length) + a.shape[2:])
@@ -335,7 +337,7 @@ def simulate(
     Returns:
         The true states (B, T, n) and the observations as :class:`Trajectories`.
     """
-    x0 = jnp.asarray(x0)
+    x0 = as_jax(x0)
     B, _ = x0.shape
     T = int(num_steps)
     u = jnp.zeros((B, T, 0), x0.dtype) if u is None else jnp.asarray(u, x0.dtype)
@@ -394,7 +396,7 @@ def foh_inputs(data: Trajectories | ArrayLike):
     """
     if isinstance(data, Trajectories):
         return eqx.tree_at(lambda d: d.u, data, foh_inputs(data.u))
-    u = jnp.asarray(data)
+    u = as_jax(data)
     if u.ndim < 2:
         raise ValueError(f"inputs must have shape (..., T, p); got {u.shape}.")
     following = jnp.concatenate([u[..., 1:, :], u[..., -1:, :]], axis=-2)

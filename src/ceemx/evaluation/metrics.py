@@ -30,6 +30,7 @@ from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra.compilation import jit
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, select
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import ObservationMask, Observations, States, no_type_check
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem, float_dtype
 
@@ -375,7 +376,7 @@ def _flag_diverged(start, rmse_overall, status: RESULTS) -> RESULTS:
         "inputs — so their RMSE, NRMSE and fit % are not finite. Their status is "
         "RESULTS.diverged (BenchmarkScore.status)."
     )
-    return select(jnp.asarray(~bad), status, RESULTS.diverged)
+    return select(as_jax(~bad), status, RESULTS.diverged)
 
 
 # --------------------------------------------------------------------------------------------

@@ -42,7 +42,7 @@ from ceemx.infra.warn import warn
 from ceemx.lib.dense import after, cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, select
-from ceemx.lib.tree import trace_numbers
+from ceemx.lib.tree import as_jax, trace_numbers
 from ceemx.lib.typing import Inputs, Observations, States, no_type_check
 from ceemx.models.system import AbstractSystem, GaussianPrior, with_noise
 
@@ -396,7 +396,7 @@ def estimate_initial_state(
         )
     if x_init is not None:
         check_inputs(system, window, x_init)
-        x_init = jnp.asarray(x_init)
+        x_init = as_jax(x_init)
     dtype = window.y.dtype
     solver = trace_numbers(LMSmoother() if smoother is None else smoother, dtype)
     many = isinstance(warm_process_noise, (tuple, list))
@@ -434,7 +434,7 @@ def _flag_nonfinite(x1: Float[Array, "B n"], status: RESULTS) -> RESULTS:
         "such as 1e-300, or a model that overflows in the window). Their status is "
         "RESULTS.nonfinite (return_status=True; BenchmarkScore.status)."
     )
-    return select(jnp.asarray(~bad), status, RESULTS.nonfinite)
+    return select(as_jax(~bad), status, RESULTS.nonfinite)
 
 
 # --------------------------------------------------------------------------------------------

@@ -39,7 +39,7 @@ from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.options import check_key
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, from_codes, messages, select
-from ceemx.lib.tree import trace_numbers
+from ceemx.lib.tree import as_jax, trace_numbers
 from ceemx.lib.typing import States, no_type_check
 from ceemx.models.system import AbstractSystem
 
@@ -170,7 +170,7 @@ class FitResult(eqx.Module):
         problem, _, states, weights = self._laplace_inputs()
         keep = np.flatnonzero(np.asarray(weights) > 0)
         data = problem.data[keep] if keep.size < states.shape[0] else problem.data
-        states = states[jnp.asarray(keep)] if keep.size < states.shape[0] else states
+        states = states[as_jax(keep)] if keep.size < states.shape[0] else states
         return residual_diagnostics(
             self.system, data, states, noise_check=self.noise_check, **options
         )
@@ -195,7 +195,7 @@ class FitResult(eqx.Module):
         if self.problem is None or self.theta is None:
             raise ValueError("This FitResult holds no problem: parameter uncertainty needs `fit`.")
         keep = np.setdiff1d(np.arange(self.states.shape[0]), np.asarray(self.excluded, int))
-        states = self.states if not self.excluded else self.states[jnp.asarray(keep)]
+        states = self.states if not self.excluded else self.states[as_jax(keep)]
         weights = self.weights
         if weights is None:
             weights = jnp.ones(states.shape[0], states.dtype)
@@ -570,7 +570,7 @@ def _prepare(
     if x_init is None:
         x_init = solver.initial_states(system, data)
         check_inputs(system, data, x_init)
-    states = jnp.asarray(x_init)
+    states = as_jax(x_init)
     if mesh is not None:
         data, states = shard_batch(data, states, mesh)
     solver = trace_numbers(solver, states.dtype)
@@ -580,7 +580,7 @@ def _prepare(
 
 def _local(tree):
     """``tree`` with every array gathered onto this process (after a multi-process fit)."""
-    return jax.tree.map(lambda a: jnp.asarray(to_host(a)) if eqx.is_array(a) else a, tree)
+    return jax.tree.map(lambda a: as_jax(to_host(a)) if eqx.is_array(a) else a, tree)
 
 
 def _local_problem(problem: FitProblem, system, trainable, log_prior) -> FitProblem:
@@ -636,7 +636,7 @@ def _precompile(solver, system, data, x_init, trainable, log_prior):
         B, T, _ = data.y.shape
         states = jnp.zeros((B, T, system.state_dim), data.y.dtype)
     else:
-        states = jnp.asarray(x_init)
+        states = as_jax(x_init)
     return compile_in_background(lambda: solver.precompile(problem, theta, states))
 
 
@@ -733,11 +733,11 @@ def _with_excluded(state: FitState, all_states, excluded: np.ndarray):
     """States and statuses of every trajectory: the excluded ones as given, status ``outlier``."""
     if not excluded.any():
         return state.states, state.status
-    keep = jnp.asarray(np.flatnonzero(~excluded))
+    keep = as_jax(np.flatnonzero(~excluded))
     out_states = all_states.at[keep].set(state.states)
     codes_all = np.full(excluded.shape, -1)
     codes_all[~excluded] = np.asarray(codes(state.status)).reshape(-1)
-    status = select(jnp.asarray(excluded), RESULTS.outlier, from_codes(np.maximum(codes_all, 0)))
+    status = select(as_jax(excluded), RESULTS.outlier, from_codes(np.maximum(codes_all, 0)))
     return out_states, status
 
 

@@ -349,8 +349,8 @@ def promote_inputs(
     if data.y.dtype != dtype or data.u.dtype != dtype:
         y, u, mask = data.y, data.u, data.mask
         if all(not isinstance(a, Tracer) for a in (y, u, mask)):
-            y = jnp.asarray(cast_checked("data.y", np.asarray(y), dtype, np.asarray(mask)))
-            u = jnp.asarray(cast_checked("data.u", np.asarray(u), dtype))
+            y = jnp.asarray(cast_checked("data.y", np.asarray(y), dtype, np.asarray(mask)), dtype)
+            u = jnp.asarray(cast_checked("data.u", np.asarray(u), dtype), dtype)
         data = eqx.tree_at(lambda d: (d.y, d.u), data, (y.astype(dtype), u.astype(dtype)))
     return system, data, _promote_array(name, x_init, dtype)
 

@@ -52,7 +52,7 @@ def _traced_once(fun: Callable[[Any], Any], z0: Any) -> tuple[Callable[[Any], An
     model code a second time (0.035 s against 0.15–0.46 s for the single-Lorenz linearisation).
     """
     closed, shapes = jax.make_jaxpr(fun, return_shape=True)(z0)
-    run_jaxpr = jax_core.jaxpr_as_fun(closed)
+    run_jaxpr = jax.jit(jax_core.jaxpr_as_fun(closed))
     out_tree = jtu.tree_structure(shapes)
 
     def replay(z):
@@ -112,8 +112,8 @@ def levenberg_marquardt(
         # Lazy: the first linearisation is formed inside the loop (one copy of ``evaluate`` in
         # the compiled program); a zero placeholder of its structure starts the carry.
         f0 = value(z0)
-        shapes = jax.eval_shape(lambda z: evaluate(z)[1], z0)
-        lin0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        evaluate, shapes = _traced_once(evaluate, z0)  # traced here, replayed in the loop
+        lin0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes[1])
     else:
         # Eager: z0 is evaluated by the loop's first pass, a zero step (so the compiled program
         # holds one copy of ``evaluate``, not two: its compile time is most of a small fit's).

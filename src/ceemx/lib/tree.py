@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from typing import TypeVar
+from typing import Any, TypeVar
 
+import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 
-__all__ = ["is_weak", "trace_numbers"]
+__all__ = ["as_jax", "is_weak", "trace_numbers"]
 
 _T = TypeVar("_T")
 
@@ -36,3 +38,17 @@ def is_weak(leaf) -> bool:
     compile every program twice, so entry points make such leaves strong.
     """
     return bool(getattr(leaf, "weak_type", False))
+
+
+def as_jax(a: Any) -> jax.Array:
+    """``jnp.asarray(a)``, without compiling a program for a NumPy array.
+
+    JAX 0.10's ``jnp.asarray`` of a NumPy array without a ``dtype`` goes through a compiled
+    identity (``lax.stage``): one XLA program per new shape and dtype, ≈ 20 ms each on a 2 GHz
+    core against 0.3 ms for a transfer. NumPy arrays and scalars are transferred
+    (``jax.device_put``, which canonicalises the dtype as ``asarray`` does); anything else goes
+    to ``jnp.asarray``.
+    """
+    if isinstance(a, (np.ndarray, np.generic)):
+        return jax.device_put(a)
+    return jnp.asarray(a)

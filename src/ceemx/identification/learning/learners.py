@@ -174,7 +174,9 @@ class LBFGSLearner(AbstractLearner):
             return th, st, k + 1, grad
 
         g0 = jax.grad(fun)(theta)
-        th, _, k, g = jax.lax.while_loop(cond, body, (theta, opt.init(theta), jnp.asarray(0), g0))
+        th, _, k, g = jax.lax.while_loop(
+            cond, body, (theta, opt.init(theta), jnp.zeros((), jnp.int32), g0)
+        )
         v1 = fun(th)
         ok = jnp.isfinite(v1) & (v1 <= v0)
         th = jnp.where(ok, th, theta)

@@ -82,7 +82,7 @@ from ceemx.lib.blocktri import BlockTridiagonal, cholesky, is_finite, solve
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, codes, select
-from ceemx.lib.tree import trace_numbers
+from ceemx.lib.tree import as_jax, trace_numbers
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 
 __all__ = [
@@ -220,7 +220,7 @@ class JointLM(AbstractFitSolver):
             states=states,
             J=J,
             weights=jnp.asarray(ok, states.dtype),
-            status=select(jnp.asarray(ok), RESULTS.successful, RESULTS.nonfinite),
+            status=select(as_jax(ok), RESULTS.successful, RESULTS.nonfinite),
             solver_state=jnp.asarray(self.damping, states.dtype),
         )
 
@@ -329,7 +329,7 @@ class JointLM(AbstractFitSolver):
         gain = float(np.sum(np.where(better, J_new - J_old, 0.0)))
         if not gain > float(self.check_rtol) * objective_scale(problem, state):
             return state, 0.0
-        keep = jnp.asarray(better)
+        keep = as_jax(better)
         states = jnp.where(keep[:, None, None], sol.states, state.states)
         return (
             FitState(

@@ -57,6 +57,7 @@ from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_nonnegative, check_real
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, select
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import Scalar, States, Theta
 from ceemx.models.system import GaussianPrior
 
@@ -212,7 +213,7 @@ class ParticleEM(AbstractFitSolver):
                 f"{np.flatnonzero(~ok_now).tolist()} at epoch {int(saem.epoch) + 1}; their draws "
                 "are left out of the M-step."
             )
-        ok = jnp.asarray(ok_now)
+        ok = as_jax(ok_now)
 
         t0 = time.perf_counter()
         theta, saem_new, info, q_value, gamma, mass = _saem_update(
