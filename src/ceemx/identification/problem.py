@@ -204,6 +204,20 @@ def _strong(a):
     return jnp.asarray(a, dtype=jnp.result_type(a)) if eqx.is_array(a) else a
 
 
+def _build(template, static, constraints, theta: Theta) -> AbstractSystem:
+    """:meth:`FitProblem.build` of the problem's parts."""
+    _, unravel = ravel_pytree(template)
+    params = unravel(theta)
+    if any(not isinstance(c, Unconstrained) for c in constraints):
+        leaves, treedef = jtu.tree_flatten(params)
+        natural = [c.forward(z) for c, z in zip(constraints, leaves, strict=True)]
+        params = jtu.tree_unflatten(treedef, natural)
+    return eqx.combine(params, static)
+
+
+_build_compiled = jit(_build)
+
+
 class FitProblem(eqx.Module):
     """Data, the model split into trainable θ and the rest, and an optional log-prior.
 
@@ -270,14 +284,16 @@ class FitProblem(eqx.Module):
         return cls(template, static, data, log_prior, constraints), _strong(theta)
 
     def build(self, theta: Theta) -> AbstractSystem:
-        """The system with trainable leaves set from the flat unconstrained vector θ."""
-        _, unravel = ravel_pytree(self.template)
-        params = unravel(theta)
-        if any(not isinstance(c, Unconstrained) for c in self.constraints):
-            leaves, treedef = jtu.tree_flatten(params)
-            natural = [c.forward(z) for c, z in zip(self.constraints, leaves, strict=True)]
-            params = jtu.tree_unflatten(treedef, natural)
-        return eqx.combine(params, self.static)
+        """The system with trainable leaves set from the flat unconstrained vector θ.
+
+        On the host (a concrete θ: the epoch loop, callbacks) one compiled program per problem
+        structure; op by op it dispatched and, at each new shape, compiled a dozen small
+        programs (unravel, constraints, casts: ≈ 1 ms per call in steady state, two calls per
+        Algorithm-1 epoch).
+        """
+        if isinstance(theta, Tracer):
+            return _build(self.template, self.static, self.constraints, theta)
+        return _build_compiled(self.template, self.static, self.constraints, theta)
 
     def theta_of(self, system: AbstractSystem) -> Theta:
         """The flat, unconstrained θ of ``system`` (of this problem's structure).
