@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -46,8 +48,8 @@ def _as_float(a, name: str, ndim: int = 1) -> Array:
 
 def coupling_mask(K: int, dtype=jnp.float64) -> Float[Array, "n n"]:
     """(3K, 3K) mask that is 0 on each attractor's own 3×3 block (no self-coupling), 1 elsewhere."""
-    own = jnp.kron(jnp.eye(K), jnp.ones((3, 3)))
-    return (1.0 - own).astype(dtype)
+    own = np.kron(np.eye(K), np.ones((3, 3)))  # NumPy: a constant, no program per K on the host
+    return jnp.asarray(1.0 - own, dtype)
 
 
 class CoupledLorenz(AbstractContinuousSystem):
@@ -167,6 +169,12 @@ def random_coupling(
     key: PRNGKeyArray, K: int, frobenius: float = 5.0, dtype=jnp.float64
 ) -> Float[Array, "n n"]:
     """Standard-normal H, own-attractor blocks zeroed, scaled to the given Frobenius norm."""
+    return _random_coupling(key, K, jnp.asarray(frobenius, dtype), dtype)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 3))
+def _random_coupling(key, K: int, frobenius, dtype):
+    # One compiled program per (K, dtype): op by op, each new K compiled a handful of programs.
     H = jax.random.normal(key, (3 * K, 3 * K), dtype) * coupling_mask(K, dtype)
     if K == 1:
         return H
@@ -188,5 +196,10 @@ def initial_states(
     key: PRNGKeyArray, B: int, K: int, dtype=jnp.float64, std: float = INITIAL_STD
 ) -> Float[Array, "B n"]:
     """(B, 3K) initial states from the paper's N((−6, −6, 24), std²) per attractor (std 2.5)."""
+    return _initial_states(key, B, K, dtype, jnp.asarray(std, dtype))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _initial_states(key, B: int, K: int, dtype, std):
     mean = jnp.tile(jnp.asarray(INITIAL_MEAN, dtype), K)
     return mean[None, :] + std * jax.random.normal(key, (B, 3 * K), dtype)
