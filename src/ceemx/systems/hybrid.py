@@ -53,6 +53,7 @@ from ceemx.lib.typing import State
 from ceemx.models.constraints import param
 from ceemx.models.noise import AbstractNoise
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem, GaussianPrior
+from ceemx.systems.neural import init_mlp
 
 __all__ = [
     "Blank",
@@ -191,11 +192,7 @@ def learned_term(
         check_int("width", width, 1)
         check_int("depth", depth, 0)
         n_in = n + (p if use_input else 0)
-        mlp = eqx.nn.MLP(n_in, out, width, depth, activation=activation, key=key, dtype=dtype)
-        last = mlp.layers[-1]
-        assert last.bias is not None  # eqx.nn.MLP's layers have biases by default
-        zero = (jnp.zeros_like(last.weight), jnp.zeros_like(last.bias))
-        net = eqx.tree_at(lambda m: (m.layers[-1].weight, m.layers[-1].bias), mlp, zero)
+        net = init_mlp(key, n_in, out, width, depth, activation, dtype, 0.0)  # output zero
     assert net is not None
     return LearnedTerm(
         net,
