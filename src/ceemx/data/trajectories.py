@@ -270,8 +270,7 @@ class Trajectories(eqx.Module):
         if not (isinstance(step, (int, np.integer)) and step >= 1):
             raise ValueError(f"`step` must be an integer >= 1; got {step!r}.")
         starts = np.arange(0, T - length + 1, step)
-        idx = starts[:, None] + np.arange(length)
-        idx = as_jax(idx)
+        idx = as_jax(starts[:, None] + np.arange(length))
 
         def cut(a):
             return a[:, idx].reshape((a.shape[0] * len(starts), length) + a.shape[2:])
