@@ -128,3 +128,99 @@ def test_jit_passes_its_options_to_xla(monkeypatch):
     monkeypatch.setattr(compilation, "FAST_COMPILE_FLAGS", {"xla_not_an_option": "false"})
     with pytest.raises(Exception, match="xla_not_an_option"):
         compilation.jit(lambda x: jnp.cos(x) * 2.0)(x)
+
+
+def test_one_shot_options_follow_the_environment(monkeypatch):
+    """One-shot programs add LLVM -O0 and one codegen module, unless XLA_FLAGS names them."""
+    monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert compilation.program_options(one_shot=True) == {
+        "xla_cpu_use_fusion_emitters": False,
+        "xla_backend_optimization_level": 0,
+        "xla_cpu_parallel_codegen_split_count": 1,
+    }
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=2")
+    assert compilation.program_options(one_shot=True) == {
+        "xla_cpu_use_fusion_emitters": False,
+        "xla_cpu_parallel_codegen_split_count": 1,
+    }
+
+
+def test_one_shot_program_reaches_xla_and_variants_alias_when_alike(monkeypatch):
+    """A one-shot program compiles with its options (an unknown one fails) and computes the same
+    numbers; the two variants are one object when they would compile alike."""
+    monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    f = lambda x: jnp.tanh(x) @ jnp.exp(x).T - 0.5  # noqa: E731
+    x = jnp.linspace(-1.0, 1.0, 12).reshape(3, 4)
+    optimised, one_shot = compilation.jit_variants(f)
+    assert optimised is not one_shot
+    assert float(jnp.max(jnp.abs(one_shot(x) - optimised(x)))) < 1e-13
+    monkeypatch.setenv("XLA_FLAGS", " ".join(f"--{k}={v}" for k, v in _all_flags().items()))
+    a, b = compilation.jit_variants(f)
+    assert a is b
+    monkeypatch.delenv("XLA_FLAGS")
+    monkeypatch.setattr(compilation, "ONE_SHOT_COMPILE_FLAGS", {"xla_not_a_one_shot": "0"})
+    with pytest.raises(Exception, match="xla_not_a_one_shot"):
+        compilation.jit(lambda x: jnp.cos(x) * 3.0, one_shot=True)(x)
+
+
+def _all_flags():
+    return {**compilation.FAST_COMPILE_FLAGS, **compilation.ONE_SHOT_COMPILE_FLAGS}
+
+
+def test_one_shot_choice_follows_the_size(monkeypatch):
+    """``one_shot_when`` picks by its predicate; the smoother compiles one-shot only when asked and
+    B·T·n² ≤ ONE_SHOT_MAX_WORK; the schur complement by B·T·n·P²; a joint fit's warm start asks,
+    Algorithm 1's (whose E-step is that program) does not."""
+    monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    picked = compilation.one_shot_when(lambda x: x.shape[0] < 3)(lambda x: x + 1.0)
+    assert float(picked(jnp.ones(2))[0]) == 2.0 and float(picked(jnp.ones(4))[0]) == 2.0
+
+    import ceemx
+    from ceemx.identification.solvers import joint
+    from ceemx.inference import smoother
+    from ceemx.systems import LinearSystem
+
+    calls = []
+
+    class Stop(Exception):
+        pass
+
+    def record(name):
+        def program(*args):
+            calls.append(name)
+            raise Stop
+
+        return program
+
+    monkeypatch.setattr(smoother, "_smooth_batch", record("optimised"))
+    monkeypatch.setattr(smoother, "_smooth_batch_one_shot", record("one_shot"))
+    solver = ceemx.LMSmoother()
+    n = 3
+    T_max = smoother.ONE_SHOT_MAX_WORK // n**2
+    for T, one_shot, want in [
+        (8, True, "one_shot"),
+        (8, False, "optimised"),
+        (T_max + 1, True, "optimised"),
+    ]:
+        x = jax.ShapeDtypeStruct((1, T, n), jnp.float64)
+        with pytest.raises(Stop):
+            smoother.smooth_batch(solver, None, x, None, False, one_shot)
+        assert calls.pop() == want, (T, one_shot)
+
+    P = 10
+    per_unit = 1 * n * P**2
+    theta = jax.ShapeDtypeStruct((P,), jnp.float64)
+    small = jax.ShapeDtypeStruct((1, joint.SCHUR_ONE_SHOT_MAX_WORK // per_unit, n), jnp.float64)
+    large = jax.ShapeDtypeStruct((1, joint.SCHUR_ONE_SHOT_MAX_WORK // per_unit + 1, n), jnp.float64)
+    assert joint.small_schur(None, theta, small, None)
+    assert not joint.small_schur(None, theta, large, None)
+
+    system = LinearSystem(jnp.eye(n), jnp.eye(n)[:2], process_noise=0.1, obs_noise=0.1)
+    data = ceemx.Trajectories(y=jnp.zeros((1, 8, 2)))
+    for solver, want in [(ceemx.JointLM(), "one_shot"), (ceemx.Alternating(), "optimised")]:
+        with pytest.raises(Stop):
+            solver.initial_states(system, data)
+        assert calls.pop() == want, type(solver).__name__

@@ -59,7 +59,8 @@ def identify(true, problem, *, method: str, max_epochs: int, say) -> Identified:
     compiling = precompile_fit(
         system, problem.data, solver=solver, trainable=common.LORENZ_PARAMS_H
     )
-    x_init = warm_start(system, problem.data)
+    # A joint fit never smooths at these shapes again: the warm start is a one-shot program.
+    x_init = warm_start(system, problem.data, one_shot=not solver.smooths_each_epoch)
     compiling.join()
 
     def show(info, eps):

@@ -29,7 +29,7 @@ __all__ = ["from_observations", "perturb", "rollout", "warm_start"]
 _T = TypeVar("_T")
 
 
-@jit
+@jit(one_shot=True)
 def from_observations(
     system: AbstractSystem, data: Trajectories, x_guess=None, ridge: float = 1e-6
 ):
@@ -77,6 +77,7 @@ def warm_start(
     *,
     process_noise: float = 1.0,
     smoother: LMSmoother | None = None,
+    one_shot: bool = False,
 ) -> Float[Array, "B T n"]:
     """Start states without knowing the true ones.
 
@@ -91,6 +92,8 @@ def warm_start(
         data: B observed trajectories.
         process_noise: scale of the process noise during the smoothing pass.
         smoother: the smoothing solver (default :class:`ceemx.LMSmoother`).
+        one_shot: smooth with a one-shot program (``ceemx.smooth(..., one_shot=True)``): when
+            nothing else smooths at these shapes (a fit whose epochs do not).
 
     Returns:
         (B, T, n) states.
@@ -98,7 +101,8 @@ def warm_start(
     from ceemx.inference.smoother import smooth  # imported here to avoid an import cycle
 
     x0 = from_observations(system, data)
-    return smooth(with_noise(system, process_noise=process_noise), data, x0, smoother).states
+    weak = with_noise(system, process_noise=process_noise)
+    return smooth(weak, data, x0, smoother, one_shot=one_shot).states
 
 
 def perturb(

@@ -127,7 +127,7 @@ def _sums_single(system: AbstractSystem, x, y, u, mask):
     return obs, dyn, prior
 
 
-@jit
+@jit(one_shot=True)
 def square_sums(
     system: AbstractSystem, states: States, data: Trajectories
 ) -> tuple[Float[Array, "B m"], Float[Array, "B n"], Float[Array, "B n"]]:

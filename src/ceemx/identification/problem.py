@@ -408,7 +408,7 @@ class FitProblem(eqx.Module):
         return value, grad, symmetrize(jax.hessian(self.neg_log_prior)(theta))
 
 
-@jit
+@jit(one_shot=True)  # at a fit's start and end, once per epoch in Algorithm 1: cheap to run
 def per_trajectory_nll(problem: FitProblem, theta: Theta, states: States) -> PerTrajectory:
     """(B,) −J_b(x_b, θ), compiled once per problem shape.
 
@@ -417,7 +417,7 @@ def per_trajectory_nll(problem: FitProblem, theta: Theta, states: States) -> Per
     return problem.per_trajectory(theta, states)
 
 
-@jit
+@jit(one_shot=True)
 def per_trajectory_offset(problem: FitProblem, theta: Theta) -> PerTrajectory:
     """(B,) the x-independent constants of −J_b (see :meth:`FitProblem.offset`), compiled."""
     return nll_offset(problem.build(theta), problem.data)

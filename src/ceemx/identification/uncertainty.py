@@ -47,8 +47,8 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
 from ceemx.identification.problem import FitProblem
-from ceemx.identification.solvers.joint import schur_complement
-from ceemx.infra.compilation import jit
+from ceemx.identification.solvers.joint import schur_complement, small_schur
+from ceemx.infra.compilation import one_shot_when
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, States, Theta
@@ -79,7 +79,9 @@ _HELD = (
 )
 
 
-@jit
+@one_shot_when(
+    lambda problem, theta, states, weights, keep: small_schur(problem, theta, states, weights)
+)
 def _laplace(
     problem: FitProblem,
     theta: Theta,

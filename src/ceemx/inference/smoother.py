@@ -15,7 +15,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ceemx import lib
 from ceemx.data.trajectories import Trajectories, cast_checked
 from ceemx.inference.objective import linearize, nll_offset_single
-from ceemx.infra.compilation import jit
+from ceemx.infra.compilation import jit_variants
 from ceemx.infra.options import check_bool, check_choice, check_int, check_nonnegative
 from ceemx.infra.warn import warn
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
@@ -88,6 +88,12 @@ class LMSmoother(eqx.Module):
         check_int("batch_chunk", self.batch_chunk, 1, none=True)
         check_choice("time_parallel", self.time_parallel, (False, True, "auto"))
 
+
+#: ``smooth(..., one_shot=True)`` compiles a one-shot program up to this B·T·n² (the run time of an
+#: LM iteration is ≈ 0.5–2 µs per unit here): the unoptimised code's extra run time for one call
+#: (≈ 0.3 s at the bound) stays below the compile time it saves (1.4–2.5 s; benchmarks/README.md,
+#: "One-shot programs").
+ONE_SHOT_MAX_WORK = 5 * 10**5
 
 #: ``LMSmoother(time_parallel="auto")`` solves in parallel on an accelerator from this many steps
 AUTO_PARALLEL_MIN_T = 1024
@@ -192,12 +198,17 @@ def smooth_batch(
     x_init: States,
     data: Trajectories,
     covariance: bool,
+    one_shot: bool = False,
 ) -> SmootherSolution:
     """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced).
 
     ``solver.max_steps`` is passed to the program as a number, not compiled into it: smoothers
     that differ only in their step bound (a fit's warm start and :class:`ceemx.Alternating`'s
-    partial E-step) run one program, traced and compiled once.
+    partial E-step) run one program, traced and compiled once. ``one_shot``: the caller runs this
+    program once or a few times (a fit's warm start when its epochs do not smooth with it): it
+    compiles as a one-shot program (:data:`ceemx.infra.compilation.ONE_SHOT_COMPILE_FLAGS`) when
+    the problem is small enough that its run time stays below the compile time saved
+    (:data:`ONE_SHOT_MAX_WORK`).
     """
     steps = jnp.asarray(solver.max_steps, jnp.int32)
     # One static configuration for every bound. A copy with the field set, not
@@ -205,11 +216,13 @@ def smooth_batch(
     # traced numbers do not meet (and ``eqx.tree_at`` cannot reach a static field).
     canonical = copy.copy(solver)
     object.__setattr__(canonical, "max_steps", 0)
-    return _smooth_batch(canonical, steps, system, x_init, data, covariance)
+    B, T, n = x_init.shape
+    small = B * T * n**2 <= ONE_SHOT_MAX_WORK
+    program = _smooth_batch_one_shot if one_shot and small else _smooth_batch
+    return program(canonical, steps, system, x_init, data, covariance)
 
 
-@jit
-def _smooth_batch(
+def _smooth_batch_impl(
     solver: LMSmoother,
     max_steps: Int[Array, ""],
     system: AbstractSystem,
@@ -242,6 +255,9 @@ def _smooth_batch(
             x, jnp.any(status != RESULTS.successful), "smoothing failed on a trajectory"
         )
     return SmootherSolution(x, value, steps, status, cov, cross, log_det)
+
+
+_smooth_batch, _smooth_batch_one_shot = jit_variants(_smooth_batch_impl)
 
 
 def _working_dtype(system: AbstractSystem) -> np.dtype:
@@ -442,6 +458,7 @@ def smooth(
     solver: LMSmoother | None = None,
     *,
     covariance: bool = False,
+    one_shot: bool = False,
 ) -> SmootherSolution:
     """MAP state trajectories for every trajectory of ``data`` (the CE-EM smoothing step, Eq. 10).
 
@@ -452,6 +469,10 @@ def smooth(
         solver: the smoother configuration (default :class:`LMSmoother`).
         covariance: also return the marginal covariances of each x_t (Laplace approximation), from
             the selected inverse of the Gauss–Newton matrix at the solution.
+        one_shot: this shape is smoothed once or a few times (a start, a check): compile its
+            program for that — LLVM -O0, a third to a half of the compile time, 2–3× the run
+            time — on problems small enough that this pays (``B·T·n² ≤`` :data:`ONE_SHOT_MAX_WORK`;
+            optimised above). Results agree to rounding.
 
     Returns:
         A :class:`SmootherSolution`; inspect ``status`` for per-trajectory failures (a failed
@@ -475,5 +496,8 @@ def smooth(
     system, data, x_init = promote_inputs(system, data, x_init)
     check_inputs(system, data)
     check_inputs(system, data, x_init)
+    check_bool("one_shot", one_shot)
     x_init = jnp.asarray(x_init)
-    return smooth_batch(trace_numbers(solver, x_init.dtype), system, x_init, data, covariance)
+    return smooth_batch(
+        trace_numbers(solver, x_init.dtype), system, x_init, data, covariance, one_shot
+    )

@@ -42,11 +42,14 @@ _T = TypeVar("_T")
 
 __all__ = [
     "FAST_COMPILE_FLAGS",
+    "ONE_SHOT_COMPILE_FLAGS",
     "compile_in_background",
     "default_cache_dir",
     "has_idle_core",
     "enable_compilation_cache",
     "jit",
+    "jit_variants",
+    "one_shot_when",
     "program_options",
     "use_fast_compilation",
 ]
@@ -55,6 +58,16 @@ __all__ = [
 #: which compile ceemx's programs in about half the CPU time (benchmarks/README.md, "First-fit
 #: latency"); the same HLO optimisations and LLVM -O2 run either way.
 FAST_COMPILE_FLAGS = {"xla_cpu_use_fusion_emitters": "false"}
+
+#: XLA:CPU options added to the programs a fit runs once or a few times — its setup and its checks
+#: (``jit(..., one_shot=True)``): LLVM at -O0 and one code-generation module. The same HLO
+#: optimisations run; the machine code is not optimised, which compiles such a program in a third
+#: to a half of the CPU time and runs it up to about 1.5–2× slower (benchmarks/README.md, "One-shot
+#: programs") — a gain wherever the program's run time is small beside its compile time.
+ONE_SHOT_COMPILE_FLAGS = {
+    "xla_backend_optimization_level": "0",
+    "xla_cpu_parallel_codegen_split_count": "1",
+}
 
 _OFF = ("0", "off", "none", "false", "no")
 
@@ -184,24 +197,32 @@ def use_fast_compilation() -> bool:
     return True
 
 
-def _fast_flags_to_add() -> dict[str, str] | None:
-    """:data:`FAST_COMPILE_FLAGS` that ``XLA_FLAGS`` does not name (``None``: keep XLA's)."""
+def _fast_flags_to_add(flags: dict[str, str] | None = None) -> dict[str, str] | None:
+    """``flags`` (:data:`FAST_COMPILE_FLAGS`) that ``XLA_FLAGS`` does not name (``None``: none)."""
     if os.environ.get("CEEMX_XLA_DEFAULTS", "").strip() == "1":
         return None
-    flags = os.environ.get("XLA_FLAGS", "")
-    return {k: v for k, v in FAST_COMPILE_FLAGS.items() if f"--{k}=" not in flags}
+    named = os.environ.get("XLA_FLAGS", "")
+    flags = FAST_COMPILE_FLAGS if flags is None else flags
+    return {k: v for k, v in flags.items() if f"--{k}=" not in named}
 
 
-def program_options() -> dict[str, Any]:
+def program_options(one_shot: bool = False) -> dict[str, Any]:
     """The XLA options every ceemx entry point compiles with (:func:`jit`), from the environment.
 
     :data:`FAST_COMPILE_FLAGS` as per-program options, so that a library user's programs compile
-    as fast as the ``ceemx`` command's without any process-wide setting; none that ``XLA_FLAGS``
-    sets already (the user's choice wins), none at all with ``CEEMX_XLA_DEFAULTS=1``. Read when a
-    ceemx module is imported.
+    as fast as the ``ceemx`` command's without any process-wide setting; with ``one_shot``,
+    :data:`ONE_SHOT_COMPILE_FLAGS` too. None that ``XLA_FLAGS`` sets already (the user's choice
+    wins), none at all with ``CEEMX_XLA_DEFAULTS=1``. Read when a ceemx module is imported.
     """
-    add = _fast_flags_to_add()
-    return {} if add is None else {k: v == "true" for k, v in add.items()}
+    add = _fast_flags_to_add({**FAST_COMPILE_FLAGS, **(ONE_SHOT_COMPILE_FLAGS if one_shot else {})})
+    return {} if add is None else {k: _option_value(v) for k, v in add.items()}
+
+
+def _option_value(text: str) -> bool | int | str:
+    """An ``XLA_FLAGS`` value as the compiler option's Python value."""
+    if text in ("true", "false"):
+        return text == "true"
+    return int(text) if text.isdigit() else text
 
 
 @overload
@@ -212,7 +233,7 @@ def jit(fun: Callable[_P, _T], /, **kwargs: Any) -> Callable[_P, _T]: ...
 def jit(fun: None = None, /, **kwargs: Any) -> Callable[[Callable[_P, _T]], Callable[_P, _T]]: ...
 
 
-def jit(fun: Callable | None = None, /, **kwargs: Any) -> Any:
+def jit(fun: Callable | None = None, /, *, one_shot: bool = False, **kwargs: Any) -> Any:
     """``eqx.filter_jit`` with :func:`program_options` as the program's XLA ``compiler_options``.
 
     The decorator of ceemx's compiled entry points. The options are per program (JAX's
@@ -221,11 +242,13 @@ def jit(fun: Callable | None = None, /, **kwargs: Any) -> Any:
     inlined into it and compiles with the user's options (JAX refuses compiler options on a
     nested jit). Usable bare (``@jit``) or with ``eqx.filter_jit``'s keywords
     (``@jit(donate="all")``); ``.lower(...)`` compiles ahead of time with the options.
+    ``one_shot=True`` marks a program a fit runs once or a few times whatever the number of
+    epochs (setup, checks): it compiles with :data:`ONE_SHOT_COMPILE_FLAGS` too.
     """
     if fun is None:
-        return functools.partial(jit, **kwargs)
+        return functools.partial(jit, one_shot=one_shot, **kwargs)
     plain = eqx.filter_jit(fun, **kwargs)
-    options = program_options()
+    options = program_options(one_shot)
     if not options:
         return plain
     top = cast(Any, eqx.filter_jit)(fun, compiler_options=options, **kwargs)  # a jax.jit keyword
@@ -238,6 +261,46 @@ def jit(fun: Callable | None = None, /, **kwargs: Any) -> Any:
 
     call.lower = top.lower  # type: ignore[attr-defined]  # ahead-of-time compilation (precompile)
     return call
+
+
+def jit_variants(fun: Callable, **kwargs: Any) -> tuple[Any, Any]:
+    """``(optimised, one-shot)``: ``fun`` compiled by :func:`jit` without and with ``one_shot``.
+
+    One and the same object when the two would compile alike (``XLA_FLAGS`` names the one-shot
+    options already, as the test suite's does, or ``CEEMX_XLA_DEFAULTS=1``): a program is then
+    traced and compiled once for both uses.
+    """
+    optimised = jit(fun, **kwargs)
+    if program_options(True) == program_options(False):
+        return optimised, optimised
+    return optimised, jit(fun, one_shot=True, **kwargs)
+
+
+def one_shot_when(small: Callable[..., bool], **kwargs: Any) -> Callable[[Callable], Any]:
+    """:func:`jit` as a one-shot program when ``small(*args, **kw)``, optimised otherwise.
+
+    For programs that run once or twice per fit but whose run time grows with the problem (the
+    Schur complement of the identifiability check, say): on small problems the unoptimised
+    machine code's extra run time is far below the compile time it saves, on large ones not.
+    ``small`` sees the call's arguments (shapes only: it must not read array values). Both
+    programs exist lazily: only the variants called are compiled; ``.lower`` follows the same
+    choice.
+    """
+
+    def wrap(fun: Callable) -> Any:
+        optimised, one_shot = jit_variants(fun, **kwargs)
+
+        def pick(args: Any, kw: Any) -> Any:
+            return one_shot if small(*args, **kw) else optimised
+
+        @functools.wraps(fun)
+        def call(*args: Any, **kw: Any) -> Any:
+            return pick(args, kw)(*args, **kw)
+
+        call.lower = lambda *args, **kw: pick(args, kw).lower(*args, **kw)  # type: ignore[attr-defined]
+        return call
+
+    return wrap
 
 
 def _tracing(args: Any, kwargs: Any) -> bool:

@@ -71,6 +71,7 @@ class Alternating(AbstractFitSolver):
     rtol: float = 1e-10
     atol: float = 0.0
 
+    smooths_each_epoch = True  # the E-step is the warm start's program: compiled optimised once
     history_keys = {
         "smooth_time": "seconds in the smoothing step",
         "learn_time": "seconds in the learning step",

@@ -81,7 +81,7 @@ def trajectory_log_likelihood(problem: FitProblem, theta: Theta, states: States)
     return -per_trajectory_nll(problem, theta, states)
 
 
-@jit
+@jit(one_shot=True)
 def _offset(problem: FitProblem, theta: Theta, weights: PerTrajectory) -> Scalar:
     return problem.offset(theta, weights)
 
@@ -154,6 +154,10 @@ class AbstractFitSolver(eqx.Module):
     #: Whether the method can learn noise covariances (only :class:`ceemx.LaplaceEM`: the CE-EM
     #: objective J grows without bound as a noise scale → 0, so CE methods refuse them).
     learns_noise: ClassVar[bool] = False
+    #: Whether the epochs smooth with the warm start's program (:func:`ceemx.smooth`'s; Algorithm
+    #: 1): the warm start then compiles it optimised, once for both; otherwise (the joint method,
+    #: Laplace EM) as a one-shot program (``smooth(..., one_shot=True)``).
+    smooths_each_epoch: ClassVar[bool] = False
 
     def __check_init__(self):
         # Equinox runs every class's __check_init__: each solver's own checks come on top.
@@ -175,7 +179,8 @@ class AbstractFitSolver(eqx.Module):
 
         own = getattr(self, "smoother", None)
         chunk = own.batch_chunk if isinstance(own, LMSmoother) else None
-        return warm_start(system, data, smoother=LMSmoother(batch_chunk=chunk))
+        smoother = LMSmoother(batch_chunk=chunk)
+        return warm_start(system, data, smoother=smoother, one_shot=not self.smooths_each_epoch)
 
     def check_problem(self, problem: FitProblem, theta: Theta) -> None:
         """Refuse a problem this method cannot fit, before any compute (:func:`ceemx.fit`).

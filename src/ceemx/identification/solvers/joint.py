@@ -67,7 +67,7 @@ from ceemx.identification.solvers.base import (
 )
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.objective import linearize
-from ceemx.infra.compilation import jit
+from ceemx.infra.compilation import jit, one_shot_when
 from ceemx.infra.distributed import to_host
 from ceemx.infra.memory import check_fits
 from ceemx.infra.options import (
@@ -91,6 +91,7 @@ __all__ = [
     "end_point_identifiability",
     "identifiability_at",
     "schur_complement",
+    "small_schur",
 ]
 
 
@@ -322,6 +323,7 @@ class JointLM(AbstractFitSolver):
             state.states,
             problem.data,
             False,
+            one_shot=True,  # the warm start's program, when the shapes and noise models agree
         )
         J_new = to_host(trajectory_log_likelihood(problem, state.theta, sol.states))
         J_old = to_host(state.J)
@@ -425,7 +427,20 @@ def linearize_joint(
     return _evaluator(problem, weights, offset)((states, theta))
 
 
-@jit
+#: :func:`schur_complement` compiles as a one-shot program up to this B·T·n·P² (its
+#: Σ_b E_bᵀ A_b⁻¹ E_b in multiply–adds): there its extra run time (1.4× at the Figure-3 size,
+#: 3 s) stays below the compile time saved (2.2 s; benchmarks/README.md, "One-shot programs").
+SCHUR_ONE_SHOT_MAX_WORK = 2 * 10**9
+
+
+def small_schur(problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory) -> bool:
+    """Whether :func:`schur_complement` at these shapes compiles as a one-shot program."""
+    del problem, weights
+    B, T, n = states.shape
+    return B * T * n * theta.shape[0] ** 2 <= SCHUR_ONE_SHOT_MAX_WORK
+
+
+@one_shot_when(small_schur)  # once or twice per fit: the identifiability check, uncertainty
 def schur_complement(
     problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory
 ) -> tuple[Float[Array, "theta theta"], Bool[Array, ""]]:
