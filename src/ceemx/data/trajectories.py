@@ -348,7 +348,7 @@ def simulate(
     return xs, Trajectories(y, u if u.shape[-1] else None)
 
 
-@jit
+@jit(one_shot=True)  # data generation: once per data set, cheap to run beside its compile
 def _simulate(
     system: AbstractSystem,
     key: PRNGKeyArray,
