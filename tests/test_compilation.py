@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import types
 
 import jax
 import jax.numpy as jnp
@@ -179,6 +180,7 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
     assert float(picked(jnp.ones(2))[0]) == 2.0 and float(picked(jnp.ones(4))[0]) == 2.0
 
     import ceemx
+    from ceemx.evaluation import simulation
     from ceemx.identification.solvers import joint
     from ceemx.inference import smoother
     from ceemx.systems import LinearSystem
@@ -220,6 +222,9 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
 
     system = LinearSystem(jnp.eye(n), jnp.eye(n)[:2], process_noise=0.1, obs_noise=0.1)
     data = ceemx.Trajectories(y=jnp.zeros((1, 8, 2)))
+    window = types.SimpleNamespace(y=jax.ShapeDtypeStruct((1, T_max + 1, 2), jnp.float64))
+    assert simulation._small_window(None, system, None, data, None, True)
+    assert not simulation._small_window(None, system, None, window, None, True)
     for solver, want in [(ceemx.JointLM(), "one_shot"), (ceemx.Alternating(), "optimised")]:
         with pytest.raises(Stop):
             solver.initial_states(system, data)

@@ -7,11 +7,13 @@ Each case is compiled twice in one process — as every ceemx entry point (``jit
 ``ONE_SHOT_COMPILE_FLAGS``, LLVM -O0 and one code-generation module) — then called alternately
 ``--calls`` times each (median). Compile time is lowering + XLA (``lower(...).compile()``), apart
 from the steady calls; the break-even number of calls is compile saved / run time added. Cases:
-the smoother (``smooth_batch``) on the single-Lorenz problem of ``compare_reference.py`` (B = 4,
-T = 128, n = 3), on the Figure-3 problem (K = 6, n = 18, B = 8, T = 128), on one long record
-(n = 3, T = 20 000) and on K = 20 (n = 60, B = 2, T = 128); the identifiability check's Schur
-complement and the per-trajectory −J on the single-Lorenz and Figure-3 problems; the joint
-iteration (a hot program, for comparison). Record ``uptime``; XLA_FLAGS must not name the flags.
+the initial-state estimate of a score or prediction (``initial_state_batch``: a 50-step window
+of B = 4 single-Lorenz records); the demo's data simulation (``simulate``: K = 6 coupled Lorenz,
+RK4, B = 4, T = 128); the smoother (``smooth_batch``) on the single-Lorenz problem of
+``compare_reference.py`` (B = 4, T = 128, n = 3), on the Figure-3 problem (K = 6, n = 18, B = 8,
+T = 128), on one long record (n = 3, T = 20 000) and on K = 20 (n = 60, B = 2, T = 128); the
+identifiability check's Schur complement and the per-trajectory −J on the single-Lorenz and
+Figure-3 problems; the joint iteration (a hot program, for comparison). Record ``uptime``; XLA_FLAGS must not name the flags.
 
 Backs: ``benchmarks/README.md`` ("One-shot programs": the ratios, and ``ONE_SHOT_MAX_WORK`` in
 ``ceemx.inference.smoother``).
@@ -72,6 +74,26 @@ def problem_case(K, B, T, fn, coupling=False):
     return joint._iteration.__wrapped__, (opts, problem, weights, theta, states, lam)
 
 
+def initial_state_case(K, B, T):
+    from ceemx.evaluation import simulation
+
+    system, data, states = lorenz(K, B, T, False)
+    solver = trace_numbers(ceemx.LMSmoother(), states.dtype)
+    weak = ceemx.models.system.with_noise(system, process_noise=jnp.asarray(1.0, states.dtype))
+    system, weak = simulation.strongly_typed((system, weak))
+    return simulation.initial_state_batch.__wrapped__, (solver, system, weak, data, None, True)
+
+
+def simulate_case(K, B, T):
+    from ceemx.data import trajectories
+
+    true = common.true_lorenz(K, key=jax.random.PRNGKey(4), coupling=True)  # RK4, as the demo
+    x0 = jnp.ones((B, true.state_dim))
+    u = jnp.zeros((B, T, 0))
+    fn = trajectories._simulate.__wrapped__
+    return fn, (true, jax.random.PRNGKey(0), x0, u, None, true.obs_noise)
+
+
 CASES = {
     "smooth_lorenz": lambda: smoother_case(1, 4, 128),
     "smooth_fig3": lambda: smoother_case(6, 8, 128, True),
@@ -82,6 +104,8 @@ CASES = {
     "nll_lorenz": lambda: problem_case(1, 4, 128, "nll"),
     "nll_fig3": lambda: problem_case(6, 8, 128, "nll", True),
     "iteration_lorenz": lambda: problem_case(1, 4, 128, "iteration"),
+    "initial_state_lorenz": lambda: initial_state_case(1, 4, 50),
+    "simulate_demo": lambda: simulate_case(6, 4, 128),
 }
 
 

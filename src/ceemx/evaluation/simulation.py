@@ -31,13 +31,14 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import from_observations
 from ceemx.inference.ekf import ekf
 from ceemx.inference.smoother import (
+    ONE_SHOT_MAX_WORK,
     LMSmoother,
     check_inputs,
     promote_array,
     promote_inputs,
     smooth_batch,
 )
-from ceemx.infra.compilation import jit
+from ceemx.infra.compilation import jit, one_shot_when
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import after, cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
@@ -270,7 +271,16 @@ def _window_error_one(system: AbstractSystem, x1, y, u, mask) -> Float[Array, ""
     return value
 
 
-@jit
+def _small_window(
+    solver, system: AbstractSystem, weak, window: Trajectories, x_init, refine
+) -> bool:
+    """Whether :func:`initial_state_batch` compiles as a one-shot program (the smoother's bound)."""
+    del solver, weak, x_init, refine
+    B, T, _ = window.y.shape
+    return B * T * system.state_dim**2 <= ONE_SHOT_MAX_WORK
+
+
+@one_shot_when(_small_window)  # once per score or prediction: a short window's smoothing and LM
 def initial_state_batch(
     solver: LMSmoother,
     system: AbstractSystem,
