@@ -13,7 +13,8 @@ RK4, B = 4, T = 128); the smoother (``smooth_batch``) on the single-Lorenz probl
 ``compare_reference.py`` (B = 4, T = 128, n = 3), on the Figure-3 problem (K = 6, n = 18, B = 8,
 T = 128), on one long record (n = 3, T = 20 000) and on K = 20 (n = 60, B = 2, T = 128); the
 identifiability check's Schur complement and the per-trajectory −J on the single-Lorenz and
-Figure-3 problems; the joint iteration (a hot program, for comparison). Record ``uptime``; XLA_FLAGS must not name the flags.
+Figure-3 problems; the joint iteration (a hot program, for comparison). Record ``uptime``;
+``XLA_FLAGS`` must not name the flags.
 
 Backs: ``benchmarks/README.md`` ("One-shot programs": the ratios, and ``ONE_SHOT_MAX_WORK`` in
 ``ceemx.inference.smoother``).
