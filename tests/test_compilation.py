@@ -145,6 +145,9 @@ def test_one_shot_options_follow_the_environment(monkeypatch):
         "xla_cpu_use_fusion_emitters": False,
         "xla_cpu_parallel_codegen_split_count": 1,
     }
+    monkeypatch.delenv("XLA_FLAGS")
+    monkeypatch.setenv("CEEMX_ONE_SHOT", "0")  # every program optimised
+    assert compilation.program_options(one_shot=True) == compilation.program_options()
 
 
 def test_one_shot_program_reaches_xla_and_variants_alias_when_alike(monkeypatch):
@@ -219,6 +222,11 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
     large = jax.ShapeDtypeStruct((1, joint.SCHUR_ONE_SHOT_MAX_WORK // per_unit + 1, n), jnp.float64)
     assert joint.small_schur(None, theta, small, None)
     assert not joint.small_schur(None, theta, large, None)
+    per_step = n * (n + P) ** 2
+    small = jax.ShapeDtypeStruct((1, joint.ITERATION_TINY_WORK // per_step, n), jnp.float64)
+    large = jax.ShapeDtypeStruct((1, joint.ITERATION_TINY_WORK // per_step + 1, n), jnp.float64)
+    assert joint._tiny_iteration(None, None, None, theta, small, None)
+    assert not joint._tiny_iteration(None, None, None, theta, large, None)
 
     system = LinearSystem(jnp.eye(n), jnp.eye(n)[:2], process_noise=0.1, obs_noise=0.1)
     data = ceemx.Trajectories(y=jnp.zeros((1, 8, 2)))

@@ -208,7 +208,9 @@ def smooth_batch(
     program once or a few times (a fit's warm start when its epochs do not smooth with it): it
     compiles as a one-shot program (:data:`ceemx.infra.compilation.ONE_SHOT_COMPILE_FLAGS`) when
     the problem is small enough that its run time stays below the compile time saved
-    (:data:`ONE_SHOT_MAX_WORK`).
+    (:data:`ONE_SHOT_MAX_WORK`). Where it runs every epoch (Algorithm 1's E-step) it stays
+    optimised even on the smallest problems: unoptimised, the single-Lorenz E-step costs ≈ 7 ms
+    more an epoch, 0.38 s a 57-epoch fit, against 0.74 s of compile saved once.
     """
     steps = jnp.asarray(solver.max_steps, jnp.int32)
     # One static configuration for every bound. A copy with the field set, not

@@ -211,9 +211,12 @@ def program_options(one_shot: bool = False) -> dict[str, Any]:
 
     :data:`FAST_COMPILE_FLAGS` as per-program options, so that a library user's programs compile
     as fast as the ``ceemx`` command's without any process-wide setting; with ``one_shot``,
-    :data:`ONE_SHOT_COMPILE_FLAGS` too. None that ``XLA_FLAGS`` sets already (the user's choice
-    wins), none at all with ``CEEMX_XLA_DEFAULTS=1``. Read when a ceemx module is imported.
+    :data:`ONE_SHOT_COMPILE_FLAGS` too (unless ``CEEMX_ONE_SHOT=0``: every program optimised, for
+    long batch runs that fit the same small shapes many times). None that ``XLA_FLAGS`` sets
+    already (the user's choice wins), none at all with ``CEEMX_XLA_DEFAULTS=1``. Read when a
+    ceemx module is imported.
     """
+    one_shot = one_shot and os.environ.get("CEEMX_ONE_SHOT", "").strip().lower() not in _OFF
     add = _fast_flags_to_add({**FAST_COMPILE_FLAGS, **(ONE_SHOT_COMPILE_FLAGS if one_shot else {})})
     return {} if add is None else {k: _option_value(v) for k, v in add.items()}
 

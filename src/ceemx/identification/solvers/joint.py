@@ -501,7 +501,21 @@ def _value(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
     return value
 
 
-@jit
+#: Up to this B·T·n·(n + P)² (the Gauss–Newton build's work) the joint iteration compiles as a
+#: one-shot program although it runs every epoch: on the single-Lorenz problem (B·T·n·(n + P)² =
+#: 55 296) it compiles in 2.2 s instead of 5.0 s and runs 7 ms longer, a break-even above 400
+#: iterations, where its fits take 5–12 (benchmarks/README.md, "One-shot programs").
+ITERATION_TINY_WORK = 10**5
+
+
+def _tiny_iteration(opts, problem, weights, theta: Theta, states: States, lam) -> bool:
+    """Whether the joint iteration at these shapes compiles as a one-shot program."""
+    del opts, problem, weights, lam
+    B, T, n = states.shape
+    return B * T * n * (n + theta.shape[0]) ** 2 <= ITERATION_TINY_WORK
+
+
+@one_shot_when(_tiny_iteration)
 def _iteration(
     opts: JointLM,
     problem: FitProblem,
