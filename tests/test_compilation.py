@@ -179,11 +179,28 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
     Algorithm 1's (whose E-step is that program) does not."""
     monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
     monkeypatch.delenv("XLA_FLAGS", raising=False)
-    picked = compilation.one_shot_when(lambda x: x.shape[0] < 3)(lambda x: x + 1.0)
-    assert float(picked(jnp.ones(2))[0]) == 2.0 and float(picked(jnp.ones(4))[0]) == 2.0
+
+    class Variant:
+        def __init__(self, name):
+            self.name = name
+
+        def __call__(self, *args):
+            return self.name
+
+        def lower(self, *args):
+            return f"{self.name} lowered"
+
+    with monkeypatch.context() as m:
+        variants = (Variant("optimised"), Variant("one_shot"))
+        m.setattr(compilation, "jit_variants", lambda fun, **kw: variants)
+        picked = compilation.one_shot_when(lambda x: x.shape[0] < 3)(lambda x: x)
+    assert picked(jnp.ones(2)) == "one_shot" and picked(jnp.ones(4)) == "optimised"
+    assert picked.lower(jnp.ones(2)) == "one_shot lowered"
+    assert picked.lower(jnp.ones(4)) == "optimised lowered"
 
     import ceemx
     from ceemx.evaluation import simulation
+    from ceemx.identification import initialize
     from ceemx.identification.solvers import joint
     from ceemx.inference import smoother
     from ceemx.systems import LinearSystem
@@ -230,6 +247,8 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
 
     system = LinearSystem(jnp.eye(n), jnp.eye(n)[:2], process_noise=0.1, obs_noise=0.1)
     data = ceemx.Trajectories(y=jnp.zeros((1, 8, 2)))
+    # The warm start's least-squares states are not what is tested (and would compile).
+    monkeypatch.setattr(initialize, "from_observations", lambda s, d: jnp.zeros((1, 8, n)))
     window = types.SimpleNamespace(y=jax.ShapeDtypeStruct((1, T_max + 1, 2), jnp.float64))
     assert simulation._small_window(None, system, None, data, None, True)
     assert not simulation._small_window(None, system, None, window, None, True)

@@ -31,9 +31,9 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import from_observations
 from ceemx.inference.ekf import ekf
 from ceemx.inference.smoother import (
-    ONE_SHOT_MAX_WORK,
     LMSmoother,
     check_inputs,
+    one_shot_pays,
     promote_array,
     promote_inputs,
     smooth_batch,
@@ -277,7 +277,7 @@ def _small_window(
     """Whether :func:`initial_state_batch` compiles as a one-shot program (the smoother's bound)."""
     del solver, weak, x_init, refine
     B, T, _ = window.y.shape
-    return B * T * system.state_dim**2 <= ONE_SHOT_MAX_WORK
+    return one_shot_pays(B, T, system.state_dim)
 
 
 @one_shot_when(_small_window)  # once per score or prediction: a short window's smoothing and LM

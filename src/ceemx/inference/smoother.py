@@ -95,6 +95,12 @@ class LMSmoother(eqx.Module):
 #: "One-shot programs").
 ONE_SHOT_MAX_WORK = 5 * 10**5
 
+
+def one_shot_pays(B: int, T: int, n: int) -> bool:
+    """Whether smoothing B trajectories of T steps and n states once pays as a one-shot program."""
+    return B * T * n**2 <= ONE_SHOT_MAX_WORK
+
+
 #: ``LMSmoother(time_parallel="auto")`` solves in parallel on an accelerator from this many steps
 AUTO_PARALLEL_MIN_T = 1024
 
@@ -218,9 +224,7 @@ def smooth_batch(
     # traced numbers do not meet (and ``eqx.tree_at`` cannot reach a static field).
     canonical = copy.copy(solver)
     object.__setattr__(canonical, "max_steps", 0)
-    B, T, n = x_init.shape
-    small = B * T * n**2 <= ONE_SHOT_MAX_WORK
-    program = _smooth_batch_one_shot if one_shot and small else _smooth_batch
+    program = _smooth_batch_one_shot if one_shot and one_shot_pays(*x_init.shape) else _smooth_batch
     return program(canonical, steps, system, x_init, data, covariance)
 
 

@@ -61,9 +61,9 @@ FAST_COMPILE_FLAGS = {"xla_cpu_use_fusion_emitters": "false"}
 
 #: XLA:CPU options added to the programs a fit runs once or a few times — its setup and its checks
 #: (``jit(..., one_shot=True)``): LLVM at -O0 and one code-generation module. The same HLO
-#: optimisations run; the machine code is not optimised, which compiles such a program in a third
-#: to a half of the CPU time and runs it up to about 1.5–2× slower (benchmarks/README.md, "One-shot
-#: programs") — a gain wherever the program's run time is small beside its compile time.
+#: optimisations run; the machine code is not optimised, which compiled ceemx's programs 1.7–10×
+#: faster and ran them 1.2–3.3× slower (benchmarks/README.md, "One-shot programs") — a gain
+#: wherever the program's run time is small beside its compile time.
 ONE_SHOT_COMPILE_FLAGS = {
     "xla_backend_optimization_level": "0",
     "xla_cpu_parallel_codegen_split_count": "1",
@@ -189,7 +189,7 @@ def use_fast_compilation() -> bool:
         Whether the flags are in effect: ``False`` when JAX had already started (nothing is
         changed then) or ``CEEMX_XLA_DEFAULTS=1``.
     """
-    add = _fast_flags_to_add()
+    add = _flags_to_add(FAST_COMPILE_FLAGS)
     if add is None or _backend_started():
         return False
     extra = [f"--{k}={v}" for k, v in add.items()]
@@ -197,12 +197,11 @@ def use_fast_compilation() -> bool:
     return True
 
 
-def _fast_flags_to_add(flags: dict[str, str] | None = None) -> dict[str, str] | None:
-    """``flags`` (:data:`FAST_COMPILE_FLAGS`) that ``XLA_FLAGS`` does not name (``None``: none)."""
+def _flags_to_add(flags: dict[str, str]) -> dict[str, str] | None:
+    """``flags`` that ``XLA_FLAGS`` does not name (``None``: ``CEEMX_XLA_DEFAULTS=1``, none)."""
     if os.environ.get("CEEMX_XLA_DEFAULTS", "").strip() == "1":
         return None
     named = os.environ.get("XLA_FLAGS", "")
-    flags = FAST_COMPILE_FLAGS if flags is None else flags
     return {k: v for k, v in flags.items() if f"--{k}=" not in named}
 
 
@@ -217,7 +216,7 @@ def program_options(one_shot: bool = False) -> dict[str, Any]:
     ceemx module is imported.
     """
     one_shot = one_shot and os.environ.get("CEEMX_ONE_SHOT", "").strip().lower() not in _OFF
-    add = _fast_flags_to_add({**FAST_COMPILE_FLAGS, **(ONE_SHOT_COMPILE_FLAGS if one_shot else {})})
+    add = _flags_to_add({**FAST_COMPILE_FLAGS, **(ONE_SHOT_COMPILE_FLAGS if one_shot else {})})
     return {} if add is None else {k: _option_value(v) for k, v in add.items()}
 
 
