@@ -1,24 +1,29 @@
 """Test configuration: float64, strict dtype promotion and rank-promotion errors; fast compilation.
 
 XLA compilation dominates the run time of this suite: each distinct shape, dtype and solver
-structure compiles the smoother, the learner or the joint iteration (about 1300 programs, nearly
+structure compiles the smoother, the learner or the joint iteration (about 1700 programs, nearly
 all distinct: a session-wide persistent cache finds 6 % of them again). Three XLA:CPU flags make
 each compilation cheaper; CPU seconds of test_health + test_joint + test_benchmark_systems (two
 runs each, a shared 2-core machine): classic emitters instead of the MLIR fusion emitters
 (``--xla_cpu_use_fusion_emitters=false``) 81–83; plus LLVM at -O0 instead of -O2
 (``--xla_backend_optimization_level=0``) 47–52; plus one LLVM module instead of a split for
 parallel code generation (``--xla_cpu_parallel_codegen_split_count=1``) 41–43 (the last two
-without the first: 94). The same HLO optimisations run either way; -O0 machine code runs slower (a
-run-time-bound file such as test_particle by ~5 %) and rounds some results differently in the last
-bits, which every oracle's tolerance allows. The flags are added here, before JAX starts its
+without the first: 94). They are the library's own per-program options
+(``ceemx.infra.compilation``: ``FAST_COMPILE_FLAGS``, ``ONE_SHOT_COMPILE_FLAGS``), here for every
+program of the process. The same HLO optimisations run either way; -O0 machine code runs slower
+(a run-time-bound file such as test_particle by ~5 %) and rounds some results differently in the
+last bits, which every oracle's tolerance allows. The flags are added here, before JAX starts its
 backend, so that test subprocesses and xdist workers inherit them; each one unless ``XLA_FLAGS``
-already sets it; none when ``CEEMX_TEST_XLA_DEFAULTS=1`` asks for XLA's defaults, or when this
-jaxlib does not know them (XLA aborts on unknown flags, so a subprocess tries them first, once per
-session).
+already sets it; none when ``CEEMX_TEST_XLA_DEFAULTS=1`` asks for XLA's defaults. No probe for
+unknown flags: the library passes the same options to every program it compiles, so a jaxlib
+without them fails its tests either way.
+
+The xdist controller runs no test: it neither imports JAX nor configures it (about a second
+before the workers start); each worker, and a run without xdist, does in ``pytest_configure``,
+before any test module is imported.
 """
 
 import os
-import subprocess
 import sys
 
 # Bytecode caches on, even where the environment turns them off (PYTHONDONTWRITEBYTECODE): every
@@ -28,9 +33,9 @@ import sys
 sys.dont_write_bytecode = False
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
-import jax  # noqa: E402
-
-_FLAGS = {
+# The library's per-program options (ceemx.infra.compilation), spelled out so that the controller
+# need not import the library (tests/test_compilation.py checks that they agree).
+TEST_XLA_FLAGS = {
     "xla_cpu_use_fusion_emitters": "false",
     "xla_backend_optimization_level": "0",
     "xla_cpu_parallel_codegen_split_count": "1",
@@ -38,24 +43,14 @@ _FLAGS = {
 
 
 def _with_flags(flags: str) -> str:
-    extra = [f"--{name}={value}" for name, value in _FLAGS.items() if name not in flags]
+    extra = [f"--{name}={value}" for name, value in TEST_XLA_FLAGS.items() if name not in flags]
     return " ".join([flags, *extra]).strip()
 
 
 def _fast_compilation() -> None:
-    flags = os.environ.get("XLA_FLAGS", "")
-    if os.environ.get("CEEMX_TEST_XLA_DEFAULTS") == "1" or _with_flags(flags) == flags.strip():
-        return
-    probe = subprocess.run(
-        [sys.executable, "-c", "import jax; jax.devices('cpu')"],
-        env={**os.environ, "XLA_FLAGS": _with_flags(flags)},
-        capture_output=True,
-        timeout=300,
-    )
-    if probe.returncode == 0:  # xdist workers and test subprocesses inherit the flags
-        os.environ["XLA_FLAGS"] = _with_flags(flags)
-    else:  # an unknown flag: keep XLA's defaults, and do not try again in xdist workers
-        os.environ["CEEMX_TEST_XLA_DEFAULTS"] = "1"
+    """Add the flags to ``XLA_FLAGS``: xdist workers and test subprocesses inherit them."""
+    if os.environ.get("CEEMX_TEST_XLA_DEFAULTS") != "1":
+        os.environ["XLA_FLAGS"] = _with_flags(os.environ.get("XLA_FLAGS", ""))
 
 
 def _pin_xdist_worker() -> None:
@@ -86,8 +81,23 @@ _fast_compilation()
 # cache itself pass their own folder (tests/test_compilation.py).
 if "CEEMX_COMPILATION_CACHE" not in os.environ:
     os.environ["CEEMX_COMPILATION_CACHE"] = "off"
-jax.config.update("jax_enable_x64", True)
-jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+def _is_xdist_controller(config) -> bool:
+    """Whether this process hands the tests to xdist workers (and runs none itself)."""
+    if hasattr(config, "workerinput"):
+        return False
+    dist = getattr(config.option, "dist", "no")
+    return bool(getattr(config.option, "numprocesses", None)) and dist != "no"
+
+
+def pytest_configure(config):
+    if _is_xdist_controller(config):
+        return
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
 # The suite's files by their measured wall time, heaviest first (seconds in one xdist worker,

@@ -1,7 +1,7 @@
 """The ``ceemx`` command under interrupts and bad arguments, and atomic result files.
 
 - Usage errors (``--seeds 0``, an ``--out`` that cannot be written) exit 2 with one line, before
-  any compute.
+  any compute and without importing JAX (``ceemx --help`` too: parsing is import-light).
 - Result files are replaced atomically; under :func:`ceemx.evaluation.report.deferred_writes`
   nothing is written until the commit, ``results.json`` last.
 - SIGINT: exit status 130, exactly one line on stderr, no ``results.json``; SIGTERM the same with
@@ -66,17 +66,33 @@ def test_unwritable_out_is_a_usage_error(capsys, tmp_path):
     assert a_file.read_text() == "x"
 
 
+def imported(stderr: str) -> tuple[set[str], list[str]]:
+    """The modules a ``python -X importtime`` process imported, and its other lines of stderr."""
+    modules, other = set(), []
+    for line in stderr.splitlines():
+        if line.startswith("import time:"):
+            modules.add(line.rsplit("|", 1)[-1].strip())
+        else:
+            other.append(line)
+    return modules, other
+
+
 def test_usage_error_subprocess_one_line(tmp_path):
-    """The installed path (``python -m ceemx``): status 2, one line on stderr, nothing written."""
+    """The installed path (``python -m ceemx``): status 2, one line on stderr, nothing written,
+    and JAX never imported (a usage error answers at once; ``-X importtime`` lists the imports)."""
     out = tmp_path / "out"
+    args = ["experiment", "figure3", "--seeds", "0", "--out", str(out)]
     r = subprocess.run(
-        [sys.executable, "-m", "ceemx", "experiment", "figure3", "--seeds", "0", "--out", str(out)],
+        [sys.executable, "-X", "importtime", "-m", "ceemx", *args],
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert r.returncode == 2
-    assert len(r.stderr.splitlines()) == 1, r.stderr
+    modules, lines = imported(r.stderr)
+    assert len(lines) == 1, lines
+    assert "ceemx.cli" in modules
+    assert not modules & {"jax", "jaxlib", "equinox"}, sorted(modules)
     assert not out.exists()
 
 

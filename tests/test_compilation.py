@@ -66,6 +66,17 @@ def test_fast_compilation_flags(monkeypatch):
     assert os.environ["XLA_FLAGS"] == ""
 
 
+def test_suite_compiles_with_the_library_options():
+    """The suite's process-wide XLA flags (tests/conftest.py) are the library's per-program ones,
+    so that the library's optimised and one-shot variants coincide here (``jit_variants``)."""
+    from conftest import TEST_XLA_FLAGS
+
+    assert TEST_XLA_FLAGS == {
+        **compilation.FAST_COMPILE_FLAGS,
+        **compilation.ONE_SHOT_COMPILE_FLAGS,
+    }
+
+
 def test_fast_compilation_after_jax_started_changes_nothing(monkeypatch):
     import jax.numpy as jnp
 

@@ -6,8 +6,15 @@ other exception, never NaN returned.
 
 Compiled calls reuse ONE tiny system and ONE data shape (values vary, shapes do not), so JAX
 compiles a handful of programs; shapes vary only on validation paths that fail before compute.
+
+Two tiers. The default suite checks every property on a few dozen examples, shapes drawn from a
+short fixed list (``SHAPES``: the valid ones and one of each kind of wrong one), so that JAX
+compiles one smoother program for the file (~3 s). Each property has a ``slow``-marked twin (CI's
+slow run, with jaxtyping + beartype) that draws any shape up to rank 4 and side 4, with the
+example counts of the single tier this file had before (3× to 11× the default tier's). Fitting
+and learning are fuzzed in the slow run only (a compiled fit or learner per property).
 Profiles: ``default`` (modest, deadline-free) and ``slow`` (``CEEMX_FUZZ=slow`` or
-``HYPOTHESIS_PROFILE=slow``: ten times the examples).
+``HYPOTHESIS_PROFILE=slow``: ten times the examples, both tiers).
 """
 
 import os
@@ -37,10 +44,37 @@ def examples(n: int):
     return settings(max_examples=n * SCALE)
 
 
-B, T, M, N = 2, 5, 2, 2
+B, T, M, N = 2, 5, 2, 2  # M == N: (B, T, M) is also a valid x_init
 
 SPECIAL = st.sampled_from([np.nan, np.inf, -np.inf, 1e300, -1e300, 1e39, 0.0, -0.0, 1e-320])
 FLOATS = st.one_of(st.floats(-1e3, 1e3, allow_nan=False), SPECIAL)
+
+# The default tier's shapes: valid ones first (Hypothesis starts from the first), then one of each
+# kind of wrong shape — T < 2, an empty batch, m = 0 (p = 0: no input, valid for u), a mismatched
+# B or T, a wrong rank.
+SHAPES = [
+    (B, T, M),
+    (B, T),
+    (B, T, 1),
+    (B, T, 0),
+    (B, 1, M),
+    (0, T, M),
+    (1, T, M),
+    (B, T + 1, M),
+    (B, T, M, 1),
+    (T,),
+    (),
+]
+
+
+def few_shapes(min_dims: int, max_dims: int):
+    """The default tier: a shape of ``SHAPES`` of rank ``min_dims`` to ``max_dims``."""
+    return st.sampled_from([s for s in SHAPES if min_dims <= len(s) <= max_dims])
+
+
+def any_shape(min_dims: int, max_dims: int):
+    """The slow tier: any shape of rank ``min_dims`` to ``max_dims``, sides 1 to 4."""
+    return hnp.array_shapes(min_dims=min_dims, max_dims=max_dims, max_side=4)
 
 
 def names_an_argument(err: Exception, *names: str) -> bool:
@@ -67,9 +101,10 @@ DTYPES = st.sampled_from(
 
 
 @st.composite
-def arrays(draw, ndim_range=(0, 4)):
+def arrays(draw, shapes):
+    """An array of any of ``DTYPES`` and a shape drawn from ``shapes``."""
     dtype = draw(DTYPES)
-    shape = draw(hnp.array_shapes(min_dims=ndim_range[0], max_dims=ndim_range[1], max_side=4))
+    shape = draw(shapes)
     if np.issubdtype(dtype, np.floating):
         a = draw(hnp.arrays(np.float64, shape, elements=FLOATS))
         with np.errstate(over="ignore"):
@@ -80,13 +115,8 @@ def arrays(draw, ndim_range=(0, 4)):
 OTHER = st.sampled_from([None, "abc", [[[1.0], [2.0]], [[1.0]]], 3.0, object()])
 
 
-@examples(340)
-@given(
-    y=st.one_of(arrays(), OTHER),
-    u=st.one_of(st.none(), arrays(), OTHER),
-    mask=st.one_of(st.none(), arrays((2, 3)), OTHER),
-)
-def test_trajectories_any_arguments(y, u, mask):
+def check_trajectories(y, u, mask):
+    """Any arguments: a clean refusal, or finite data of ``y``'s shape in one floating dtype."""
     data = expect_clean(lambda: ceemx.Trajectories(y, u, mask), "y", "u", "mask")
     if data is None:
         return
@@ -97,14 +127,30 @@ def test_trajectories_any_arguments(y, u, mask):
     assert data.y.dtype == data.u.dtype and jnp.issubdtype(data.y.dtype, jnp.floating)
 
 
-@examples(200)
+@examples(30)
 @given(
-    values=hnp.arrays(np.float64, (B, T, M), elements=FLOATS),
-    masked=hnp.arrays(np.bool_, (B, T, M)),
-    u=hnp.arrays(np.float64, (B, T, 1), elements=FLOATS),
-    dtype=st.sampled_from([np.float64, np.float32]),
+    y=st.one_of(arrays(few_shapes(0, 4)), OTHER),
+    u=st.one_of(st.none(), arrays(few_shapes(0, 4)), OTHER),
+    mask=st.one_of(st.none(), arrays(few_shapes(2, 3)), OTHER),
 )
-def test_trajectories_values_cast_then_checked(values, masked, u, dtype):
+def test_trajectories_any_arguments(y, u, mask):
+    """``check_trajectories`` on the ``SHAPES`` in any dtype, and on non-arrays."""
+    check_trajectories(y, u, mask)
+
+
+@pytest.mark.slow
+@examples(340)
+@given(
+    y=st.one_of(arrays(any_shape(0, 4)), OTHER),
+    u=st.one_of(st.none(), arrays(any_shape(0, 4)), OTHER),
+    mask=st.one_of(st.none(), arrays(any_shape(2, 3)), OTHER),
+)
+def test_trajectories_any_arguments_any_shape(y, u, mask):
+    """``check_trajectories`` on any shape up to rank 4 in any dtype, and on non-arrays."""
+    check_trajectories(y, u, mask)
+
+
+def check_values_cast_then_checked(values, masked, u, dtype):
     """Right shapes: accepted exactly when every unmasked y and every u is finite in y's dtype."""
     mask = ~masked
     with np.errstate(over="ignore", invalid="ignore"):
@@ -115,6 +161,29 @@ def test_trajectories_values_cast_then_checked(values, masked, u, dtype):
     if data is not None:
         assert np.all(np.isfinite(np.asarray(data.y))) and np.all(np.isfinite(np.asarray(data.u)))
         assert data.y.dtype == data.u.dtype == dtype
+
+
+TRAJECTORY_VALUES = dict(
+    values=hnp.arrays(np.float64, (B, T, M), elements=FLOATS),
+    masked=hnp.arrays(np.bool_, (B, T, M)),
+    u=hnp.arrays(np.float64, (B, T, 1), elements=FLOATS),
+    dtype=st.sampled_from([np.float64, np.float32]),
+)
+
+
+@examples(30)
+@given(**TRAJECTORY_VALUES)
+def test_trajectories_values_cast_then_checked(values, masked, u, dtype):
+    """``check_values_cast_then_checked``, thirty examples."""
+    check_values_cast_then_checked(values, masked, u, dtype)
+
+
+@pytest.mark.slow
+@examples(200)
+@given(**TRAJECTORY_VALUES)
+def test_trajectories_values_cast_then_checked_more_examples(values, masked, u, dtype):
+    """``check_values_cast_then_checked``, 200 examples."""
+    check_values_cast_then_checked(values, masked, u, dtype)
 
 
 # --- smooth: fixed shapes for compiled calls, any shape for validation -----------------------
@@ -130,27 +199,35 @@ SYSTEM = tiny_system()
 DATA = ceemx.Trajectories(np.random.default_rng(0).standard_normal((B, T, M)))
 
 
-@examples(150)
-@given(x=arrays((1, 4)))
-def test_smooth_x_init_any_shape(x):
+def check_smooth_x_init(x):
+    """Any ``x_init``: a clean refusal naming it, or finite states of shape (B, T, N)."""
     sol = expect_clean(lambda: ceemx.smooth(SYSTEM, DATA, x), "x_init")
     if sol is not None:
         assert sol.states.shape == (B, T, N)
         assert np.all(np.isfinite(np.asarray(sol.states)))
 
 
+@examples(20)
+@given(x=arrays(few_shapes(1, 4)))
+def test_smooth_x_init(x):
+    """``check_smooth_x_init`` on the ``SHAPES`` (one of them valid) in any dtype."""
+    check_smooth_x_init(x)
+
+
+@pytest.mark.slow
+@examples(150)
+@given(x=arrays(any_shape(1, 4)))
+def test_smooth_x_init_any_shape(x):
+    """``check_smooth_x_init`` on any shape up to rank 4 in any dtype."""
+    check_smooth_x_init(x)
+
+
 NUMBERS = st.one_of(st.floats(-1.0, 10.0, allow_nan=False), SPECIAL)
 
 
-@examples(150)
-@given(
-    x=hnp.arrays(np.float64, (B, T, N), elements=st.floats(-5.0, 5.0)),
-    rho_x=NUMBERS,
-    rtol=NUMBERS,
-    damping=NUMBERS,
-    xdtype=st.sampled_from([np.float64, np.float32]),
-)
-def test_smooth_options_and_values(x, rho_x, rtol, damping, xdtype):
+def check_smooth_options_and_values(x, rho_x, rtol, damping, xdtype):
+    """Any smoother options: a clean refusal naming one, or a finite float64 solution."""
+
     def run():
         solver = ceemx.LMSmoother(rho_x=rho_x, rtol=rtol, damping=damping, max_steps=5)
         return ceemx.smooth(SYSTEM, DATA, x.astype(xdtype), solver)
@@ -160,6 +237,30 @@ def test_smooth_options_and_values(x, rho_x, rtol, damping, xdtype):
         assert sol.states.shape == (B, T, N) and sol.states.dtype == jnp.float64
         assert np.all(np.isfinite(np.asarray(sol.states)))
         assert np.all(np.isfinite(np.asarray(sol.objective)))
+
+
+SMOOTH_OPTIONS = dict(
+    x=hnp.arrays(np.float64, (B, T, N), elements=st.floats(-5.0, 5.0)),
+    rho_x=NUMBERS,
+    rtol=NUMBERS,
+    damping=NUMBERS,
+    xdtype=st.sampled_from([np.float64, np.float32]),
+)
+
+
+@examples(20)
+@given(**SMOOTH_OPTIONS)
+def test_smooth_options_and_values(x, rho_x, rtol, damping, xdtype):
+    """``check_smooth_options_and_values``, twenty examples (one compiled program)."""
+    check_smooth_options_and_values(x, rho_x, rtol, damping, xdtype)
+
+
+@pytest.mark.slow
+@examples(150)
+@given(**SMOOTH_OPTIONS)
+def test_smooth_options_and_values_more_examples(x, rho_x, rtol, damping, xdtype):
+    """``check_smooth_options_and_values``, 150 examples."""
+    check_smooth_options_and_values(x, rho_x, rtol, damping, xdtype)
 
 
 # --- fit and learn: cheap options ------------------------------------------------------------
@@ -210,6 +311,7 @@ def test_learn_arguments(states, rho, trainable):
 # --- every option of every solver and learner: pure validation --------------------------------
 
 _NONNEG, _POS_INT, _NONNEG_INT, _FRACTION = "nonneg", "int>=1", "int>=0", "fraction"
+_POS_INT_OR_NONE = "int>=1 or None"
 OPTIONS = [
     *[
         (cls, name, _NONNEG)
@@ -233,7 +335,7 @@ OPTIONS = [
     (ceemx.LBFGSLearner, "gtol", _NONNEG),
     *[(ceemx.LBFGSLearner, name, _POS_INT) for name in ("max_steps", "memory_size")],
     *[(ceemx.NelderMeadLearner, name, _NONNEG) for name in ("rtol", "atol")],
-    (ceemx.NelderMeadLearner, "max_steps", _POS_INT),
+    (ceemx.NelderMeadLearner, "max_steps", _POS_INT_OR_NONE),  # None: 200 per parameter
 ]
 OPTION_VALUES = st.one_of(
     SPECIAL,
@@ -249,17 +351,17 @@ def _valid(kind: str, value) -> bool | None:
     Where jaxtyping checks the annotations first (``--jaxtyping-packages``, CI's slow run), an int
     for a float option may be refused although ceemx accepts it: left open.
     """
+    if value is None and kind == _POS_INT_OR_NONE:
+        return True
     if isinstance(value, bool | np.bool_) or not isinstance(value, int | float | np.floating):
         return False
-    if kind in (_POS_INT, _NONNEG_INT):
-        return isinstance(value, int) and value >= (1 if kind == _POS_INT else 0)
+    if kind in (_POS_INT, _POS_INT_OR_NONE, _NONNEG_INT):
+        return isinstance(value, int) and value >= (0 if kind == _NONNEG_INT else 1)
     ok = np.isfinite(value) and value >= 0 and (kind != _FRACTION or value <= 1)
     return None if isinstance(value, int) and ok else bool(ok)
 
 
-@examples(300)
-@given(case=st.sampled_from(OPTIONS), value=OPTION_VALUES)
-def test_every_option_validated(case, value):
+def check_option_validated(case, value):
     """Issue 24: no invalid value silently accepted, no valid one refused, the option named."""
     cls, name, kind = case
     valid = _valid(kind, value)
@@ -270,6 +372,29 @@ def test_every_option_validated(case, value):
         assert valid is not True, f"{cls.__name__}({name}={value!r}) refused: {err}"
         return
     assert valid is not False, f"{cls.__name__}({name}={value!r}) silently accepted"
+
+
+@examples(100)
+@given(case=st.sampled_from(OPTIONS), value=OPTION_VALUES)
+def test_every_option_validated(case, value):
+    """``check_option_validated``, a hundred examples (construction only: no compile)."""
+    check_option_validated(case, value)
+
+
+@pytest.mark.slow
+@examples(300)
+@given(case=st.sampled_from(OPTIONS), value=OPTION_VALUES)
+def test_every_option_validated_more_examples(case, value):
+    """``check_option_validated``, 300 examples."""
+    check_option_validated(case, value)
+
+
+def test_option_kinds():
+    """``_valid``'s rule, on values of known answer: the NelderMead step bound accepts None."""
+    assert _valid(_POS_INT_OR_NONE, None) and _valid(_POS_INT_OR_NONE, 3)
+    assert _valid(_POS_INT, None) is False and _valid(_POS_INT_OR_NONE, 0) is False
+    assert _valid(_NONNEG_INT, 0) and _valid(_NONNEG, 1) is None and _valid(_FRACTION, 1.5) is False
+    ceemx.NelderMeadLearner(max_steps=None)
 
 
 def test_profile_is_registered():

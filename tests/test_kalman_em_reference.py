@@ -10,7 +10,6 @@ from kalman_em_reference import (
     kalman_smoother,
     m_step,
 )
-from scipy.stats import multivariate_normal
 
 
 def _random_spd(rng, k, scale=1.0):
@@ -99,6 +98,8 @@ def test_loglik_matches_dense_density(small_model):
     y, A, C, Q, R, mu0, P0 = small_model
     T = y.shape[0]
     _, _, mu_y, Syy, _ = _dense_joint(A, C, Q, R, mu0, P0, T)
+    from scipy.stats import multivariate_normal  # on use: scipy.stats takes 1-2 s to import
+
     expected = multivariate_normal(mean=mu_y, cov=Syy).logpdf(y.reshape(-1))
     sm = kalman_smoother(y, A, C, Q, R, mu0, P0)
     assert abs(sm["loglik"] - expected) < 1e-10

@@ -16,7 +16,6 @@ import jax.tree_util as jtu
 import numpy as np
 import optax
 import pytest
-import scipy.optimize
 
 import ceemx
 from ceemx.identification.learning.step import make_problem
@@ -150,6 +149,8 @@ def dense_minimise(problem, theta0):
     def fun(th):
         value, grad = _value_and_grad(problem, jnp.asarray(th))
         return float(value), np.asarray(grad)
+
+    import scipy.optimize  # on use: each xdist worker imports every test module
 
     res = scipy.optimize.minimize(
         fun, np.asarray(theta0), jac=True, method="BFGS", options={"gtol": 1e-8, "maxiter": 2000}

@@ -74,9 +74,11 @@ def test_cli_threads_usage_errors(capsys):
 
 
 def test_cli_bad_threads_env_is_a_usage_error(tmp_path):
+    """Exit 2 before any compute, and before JAX is imported (``-X importtime`` lists imports)."""
     env = dict(os.environ, CEEMX_THREADS="many")
+    args = ["demo", "--smoke", "--out", str(tmp_path)]
     proc = subprocess.run(
-        [sys.executable, "-m", "ceemx", "demo", "--smoke", "--out", str(tmp_path)],
+        [sys.executable, "-X", "importtime", "-m", "ceemx", *args],
         capture_output=True,
         text=True,
         timeout=300,
@@ -85,3 +87,5 @@ def test_cli_bad_threads_env_is_a_usage_error(tmp_path):
     assert proc.returncode == 2
     assert "CEEMX_THREADS" in proc.stderr and "integer >= 1" in proc.stderr
     assert not any(tmp_path.iterdir())  # nothing computed or written
+    modules = {ln.rsplit("|", 1)[-1].strip() for ln in proc.stderr.splitlines() if "|" in ln}
+    assert "ceemx.cli" in modules and not modules & {"jax", "jaxlib", "equinox"}

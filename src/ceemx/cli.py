@@ -190,8 +190,15 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
+# Parsing and checking the arguments imports neither JAX nor equinox: ``ceemx --help`` and every
+# usage error answer at once (importing them takes seconds). What the checks need lives in light
+# modules: ``METHODS`` and ``parse_seeds`` in :mod:`ceemx.experiments`, ``output_dir`` in
+# :mod:`ceemx.infra.paths` (tests/test_cli_reliability.py checks that a usage error leaves JAX
+# unimported).
+
+
 def _seeds(text: str):
-    from ceemx.experiments.common import parse_seeds
+    from ceemx.experiments import parse_seeds
 
     try:
         return parse_seeds(text)
@@ -288,8 +295,7 @@ def _add_experiment_options(exp) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for documentation and tests)."""
-    from ceemx.experiments import EXPERIMENTS
-    from ceemx.experiments.common import METHODS
+    from ceemx.experiments import EXPERIMENTS, METHODS  # a light module (no JAX)
 
     parser = _Parser(
         prog="ceemx",
@@ -344,7 +350,7 @@ def main(argv: Sequence[str] | None = None, *, handle_sigint: bool | None = None
 
 
 def _check_out(parser: argparse.ArgumentParser, out: str | None, default: str) -> None:
-    from ceemx.evaluation.report import output_dir
+    from ceemx.infra.paths import output_dir
 
     try:
         output_dir(out, default)
@@ -363,16 +369,21 @@ def _default_out(args: argparse.Namespace) -> str:
     return default
 
 
-def _limit_threads(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Size JAX's CPU thread pool from ``--threads`` or ``CEEMX_THREADS`` (before JAX starts)."""
+def _thread_count(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int | None:
+    """``--threads``, else ``CEEMX_THREADS`` (a bad value is a usage error), else ``None``."""
     threads = args.threads
     if threads is None and os.environ.get("CEEMX_THREADS", "").strip():
         try:
             threads = _threads(os.environ["CEEMX_THREADS"].strip())
         except argparse.ArgumentTypeError as e:
             parser.error(f"CEEMX_THREADS: {e}")
+    return threads
+
+
+def _limit_threads(threads: int | None) -> None:
+    """Size JAX's CPU thread pool to ``threads`` CPUs (before JAX starts; ``None``: all)."""
     if threads is not None:
-        from ceemx.infra.runtime import limit_cpu_threads
+        from ceemx.infra.runtime import limit_cpu_threads  # imports JAX, does not start it
 
         limit_cpu_threads(threads)  # before JAX starts: XLA sizes its thread pool then
 
@@ -425,7 +436,11 @@ def _experiment_kwargs(parser: argparse.ArgumentParser, args: argparse.Namespace
 
 
 def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
-    """Parse and check the arguments, start JAX, run the command; returns the exit status."""
+    """Parse and check the arguments, start JAX, run the command; returns the exit status.
+
+    Everything up to the last usage error runs without importing JAX (see ``_seeds``); then the
+    thread limit, then JAX's start (the limit must come before JAX's backend starts).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -437,11 +452,13 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
     # creating made the check fail and exit 2 instead (seen once under load).
     with interrupts.critical():
         _check_out(parser, args.out, _default_out(args))
-    _limit_threads(parser, args)
+    threads = _thread_count(parser, args)
+    kwargs = _experiment_kwargs(parser, args) if args.command == "experiment" else None
+    _limit_threads(threads)
     _start_jax()
     from ceemx.evaluation import report
 
-    if args.command == "demo":
+    if kwargs is None:  # demo
         from ceemx.experiments import demo
 
         with report.deferred_writes() as held:
@@ -451,7 +468,6 @@ def _main(argv: Sequence[str] | None, interrupts: _Interrupts) -> int:
     from ceemx.experiments import get
 
     module = get(args.name)
-    kwargs = _experiment_kwargs(parser, args)
     with report.deferred_writes() as held, _noise_warnings_counted():
         module.run(**kwargs)
     return _commit(held, interrupts)

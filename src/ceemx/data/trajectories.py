@@ -30,6 +30,52 @@ def _is_concrete(a) -> bool:
     return not isinstance(a, Tracer)
 
 
+def _on_host(tree) -> bool:
+    """Whether every array leaf of ``tree`` may be indexed by NumPy instead of JAX.
+
+    Eager JAX indexing compiles a small program per new shape (≈ 20 ms each); a NumPy view of a
+    concrete array held on one CPU device gives the same values at no compile. Traced, sharded,
+    accelerator-held (a round trip through the host) and weakly typed leaves (whose type a round
+    trip through NumPy would not keep) stay with JAX.
+    """
+    for a in jax.tree_util.tree_leaves(tree):
+        if isinstance(a, np.ndarray):
+            continue
+        if (
+            not isinstance(a, jax.Array)
+            or isinstance(a, Tracer)
+            or a.weak_type
+            or len(a.sharding.device_set) != 1
+            or next(iter(a.sharding.device_set)).platform != "cpu"
+        ):
+            return False
+    return True
+
+
+def _host_index(idx):
+    """``idx`` for NumPy, or ``None`` where JAX indexes (traced, a list or tuple).
+
+    An int, slice or NumPy array is kept, a concrete JAX array becomes a NumPy one; lists and
+    tuples stay with JAX, which reads them its own way (a list is refused).
+    """
+    if isinstance(idx, Tracer):
+        return None
+    if isinstance(idx, jax.Array):
+        return np.asarray(idx)
+    if isinstance(idx, (slice, np.ndarray, int, np.integer)):
+        return idx
+    return None
+
+
+def _back_like(out: np.ndarray, like) -> jax.Array | np.ndarray:
+    """NumPy's result ``out`` as a JAX array placed as ``like`` is (a transfer, no program)."""
+    if isinstance(like, np.ndarray):
+        return out
+    if isinstance(like, jax.Array) and like.committed:
+        return jax.device_put(out, like.sharding)
+    return as_jax(out)
+
+
 def _first_bad(bad: np.ndarray) -> tuple[int, ...]:
     return tuple(int(i) for i in np.argwhere(bad)[0])
 
@@ -209,6 +255,14 @@ class Trajectories(eqx.Module):
         """Select trajectories along the batch axis (the result keeps a batch axis)."""
         if isinstance(idx, (int, np.integer)):
             idx = slice(idx, idx + 1) if idx != -1 else slice(-1, None)
+        host_idx = _host_index(idx)
+        if host_idx is not None and _on_host(self):
+            try:  # NumPy indexes exactly as JAX does; no program per shape (see _on_host)
+                return jax.tree_util.tree_map(
+                    lambda a: _back_like(np.asarray(a)[host_idx], a) if np.ndim(a) else a, self
+                )
+            except (IndexError, TypeError):  # NumPy refuses what JAX clamps: JAX decides
+                pass
         return jax.tree_util.tree_map(lambda a: a[idx] if jnp.ndim(a) else a, self)
 
     @classmethod
@@ -270,10 +324,16 @@ class Trajectories(eqx.Module):
         if not (isinstance(step, (int, np.integer)) and step >= 1):
             raise ValueError(f"`step` must be an integer >= 1; got {step!r}.")
         starts = np.arange(0, T - length + 1, step)
-        idx = as_jax(starts[:, None] + np.arange(length))
+        idx = starts[:, None] + np.arange(length)
+        host = _on_host(self)
+        if not host:
+            idx = as_jax(idx)
 
         def cut(a):
-            return a[:, idx].reshape((a.shape[0] * len(starts), length) + a.shape[2:])
+            shape = (a.shape[0] * len(starts), length) + a.shape[2:]
+            if host:  # NumPy's gather: no program per shape (see _on_host)
+                return _back_like(np.asarray(a)[:, idx].reshape(shape), a)
+            return a[:, idx].reshape(shape)
 
         return Trajectories(cut(self.y), cut(self.u), cut(self.mask))
 

@@ -41,7 +41,6 @@ import math
 import time
 
 import numpy as np
-from scipy import signal
 
 from ceemx.datasets.helicopter import HelicopterData, normalise_splits
 
@@ -146,6 +145,8 @@ def _band_limited(
 
     The cutoff of each row is drawn log-uniformly from [lo, hi] Hz.
     """
+    from scipy import signal  # imported on use: scipy.signal alone takes 1-2 s to import
+
     F, n = shape
     white = rng.standard_normal((F, n + 200))
     cut = np.exp(rng.uniform(math.log(lo), math.log(hi), F))
@@ -190,6 +191,8 @@ def _schedule(rng: np.random.Generator, F: int, n: int, dt: float) -> np.ndarray
                 freq = rng.uniform(0.3, 1.5)
                 ref[8, f, sl] = rng.uniform(0.3, 0.7) * np.sin(2 * np.pi * freq * t_axis[sl])
             t += length
+    from scipy import signal
+
     a = math.exp(-dt / 0.3)
     return np.asarray(signal.lfilter([1.0 - a], [1.0, -a], ref, axis=-1))
 

@@ -167,12 +167,18 @@ def simulation_rmse(
             f"`x1` must have shape (B, n) = {(data.batch_size, system.state_dim)}; got {x1.shape}."
         )
     pred = _simulate_obs(system, x1, data.u)
-    mask = data.mask
-    sq = jnp.where(mask, (pred - data.y) ** 2, 0.0)
+    per, overall = _rmse(pred, data.y, data.mask)
+    return SimulationRMSE(per, overall, pred)
+
+
+@jit(one_shot=True)  # on the host: one program, where op by op it compiled a dozen small ones
+def _rmse(pred, y, mask):
+    """(per-trajectory, overall) RMSE of ``pred`` against ``y`` over the entries of ``mask``."""
+    sq = jnp.where(mask, (pred - y) ** 2, 0.0)
     count = jnp.sum(mask, axis=(1, 2))
     per = jnp.sqrt(jnp.sum(sq, axis=(1, 2)) / jnp.maximum(count, 1))
     overall = jnp.sqrt(jnp.sum(sq) / jnp.maximum(jnp.sum(count), 1))
-    return SimulationRMSE(per, overall, pred)
+    return per, overall
 
 
 # --------------------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ import jax
 import numpy as np
 
 from ceemx.evaluation.metrics import Estimate, mean_se
+from ceemx.infra.paths import output_dir
 
 __all__ = [
     "Deferred",
@@ -250,21 +251,6 @@ def score_table(
 # --------------------------------------------------------------------------------------------
 # Files
 # --------------------------------------------------------------------------------------------
-
-
-def output_dir(out: str | os.PathLike | None, default: str | os.PathLike) -> Path:
-    """The folder ``out`` (``default`` when ``None``), created if missing and checked writable.
-
-    Raises:
-        OSError: the folder cannot be created, or a file cannot be created in it (checked with a
-            probe file that is removed at once, so that a run fails before any compute).
-    """
-    path = Path(default if out is None else out)
-    path.mkdir(parents=True, exist_ok=True)
-    fd, probe = tempfile.mkstemp(dir=path, prefix=".ceemx-probe.", suffix=".tmp")
-    os.close(fd)
-    os.unlink(probe)
-    return path
 
 
 def _jsonable(obj: Any):

@@ -205,8 +205,11 @@ def free_run(
 def _window(data: Trajectories, n_init: int) -> Trajectories:
     """The first ``max(n_init, 2)`` steps, outputs from step ``n_init`` on masked."""
     L = max(n_init, 2)
-    keep = (jnp.arange(L) < n_init)[None, :, None]
-    return Trajectories(data.y[:, :L], data.u[:, :L], data.mask[:, :L] & keep)
+    keep = (np.arange(L) < n_init)[None, :, None]
+    # NumPy on the host (the constructor reads its arguments there anyway): JAX's slices
+    # compiled a small program per new shape.
+    y, u, mask = (np.asarray(a)[:, :L] for a in (data.y, data.u, data.mask))
+    return Trajectories(y, u, mask & keep)
 
 
 def _output_error_one(

@@ -19,8 +19,10 @@ command line with ``ceemx experiment NAME [--smoke]`` or ``ceemx demo``.
 from importlib import import_module
 
 EXPERIMENTS = ("table1", "figure2", "figure3", "figure4", "benchmarks", "laplace")
+#: The identification methods of ``--method`` (:func:`ceemx.experiments.common.make_solver`).
+METHODS = ("joint", "alternate", "particle", "laplace")
 
-__all__ = ["EXPERIMENTS", "get"]
+__all__ = ["EXPERIMENTS", "METHODS", "get", "parse_seeds"]
 
 
 def get(name: str):
@@ -28,3 +30,27 @@ def get(name: str):
     if name not in (*EXPERIMENTS, "demo"):
         raise ValueError(f"unknown experiment {name!r}; choose from {', '.join(EXPERIMENTS)}.")
     return import_module(f"{__name__}.{name}")
+
+
+def parse_seeds(text: str) -> int | tuple[int, ...]:
+    """``--seeds`` of the command line: ``"N"`` → N (a count); ``"42,44"`` or ``"42,"`` → seeds.
+
+    Raises:
+        ValueError: when ``text`` is not a positive integer or a comma list of at least one
+            integer (zero runs are an error, never an empty result).
+    """
+    text = text.strip()
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()] if "," in text else None
+        n = int(text) if seeds is None else len(seeds)
+    except ValueError:
+        raise ValueError(
+            f"expected a count N or a comma list of integer seeds; got {text!r}."
+        ) from None
+    if seeds is not None:
+        if not seeds:
+            raise ValueError("a comma list of seeds must name at least one seed.")
+        return tuple(seeds)
+    if n < 1:
+        raise ValueError(f"the number of seeds must be >= 1; got {n}.")
+    return n

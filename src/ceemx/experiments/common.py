@@ -25,6 +25,7 @@ from ceemx import (
     ParticleEM,
 )
 from ceemx.data.trajectories import Trajectories, simulate
+from ceemx.experiments import METHODS, parse_seeds
 from ceemx.identification.initialize import perturb
 from ceemx.models.noise import DiagonalGaussian
 from ceemx.systems.lorenz import (
@@ -53,7 +54,6 @@ __all__ = [
 ]
 
 TRUE_SIGMA, TRUE_RHO, TRUE_BETA = TRUE_PARAMS
-METHODS = ("joint", "alternate", "particle", "laplace")
 
 
 def enable_x64() -> None:
@@ -64,30 +64,6 @@ def enable_x64() -> None:
 # --------------------------------------------------------------------------------------------
 # Seeds and methods
 # --------------------------------------------------------------------------------------------
-
-
-def parse_seeds(text: str) -> int | tuple[int, ...]:
-    """``--seeds`` of the command line: ``"N"`` → N (a count); ``"42,44"`` or ``"42,"`` → seeds.
-
-    Raises:
-        ValueError: when ``text`` is not a positive integer or a comma list of at least one
-            integer (zero runs are an error, never an empty result).
-    """
-    text = text.strip()
-    try:
-        seeds = [int(s) for s in text.split(",") if s.strip()] if "," in text else None
-        n = int(text) if seeds is None else len(seeds)
-    except ValueError:
-        raise ValueError(
-            f"expected a count N or a comma list of integer seeds; got {text!r}."
-        ) from None
-    if seeds is not None:
-        if not seeds:
-            raise ValueError("a comma list of seeds must name at least one seed.")
-        return tuple(seeds)
-    if n < 1:
-        raise ValueError(f"the number of seeds must be >= 1; got {n}.")
-    return n
 
 
 def seed_list(seeds: int | str | Sequence[int] | None, *, first: int, default: int) -> list[int]:

@@ -105,6 +105,25 @@ def warm_start(
     return smooth(weak, data, x0, smoother, one_shot=one_shot).states
 
 
+def _perturb_leaves(key: PRNGKeyArray, leaves: list, frac: float) -> list:
+    """:func:`perturb` of a list of leaves: leaf i by the i-th key split from ``key``."""
+    where = tuple(i for i, leaf in enumerate(leaves) if eqx.is_inexact_array(leaf))
+    new = _perturbed(key, [leaves[i] for i in where], where, len(leaves), frac)
+    out = list(leaves)
+    for i, leaf in zip(where, new, strict=True):
+        out[i] = leaf
+    return out
+
+
+@jit(one_shot=True)  # on the host one program per structure (op by op: several per leaf shape)
+def _perturbed(key: PRNGKeyArray, arrays: list, where: tuple, count: int, frac: float) -> list:
+    keys = jax.random.split(key, max(count, 1))
+    return [
+        a * (1.0 + jax.random.uniform(keys[i], a.shape, a.dtype, -frac, frac))
+        for i, a in zip(where, arrays, strict=True)
+    ]
+
+
 def perturb(
     key: PRNGKeyArray,
     tree: _T,
@@ -128,12 +147,5 @@ def perturb(
     """
     target = tree if where is None else where(tree)
     leaves, treedef = jtu.tree_flatten(target)
-    keys = jax.random.split(key, max(len(leaves), 1))
-    out = [
-        leaf * (1.0 + jax.random.uniform(k, leaf.shape, leaf.dtype, -frac, frac))
-        if eqx.is_inexact_array(leaf)
-        else leaf
-        for k, leaf in zip(keys, leaves, strict=False)
-    ]
-    new = jtu.tree_unflatten(treedef, out)
+    new = jtu.tree_unflatten(treedef, _perturb_leaves(key, leaves, frac))
     return new if where is None else eqx.tree_at(where, tree, new)

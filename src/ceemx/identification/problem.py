@@ -33,7 +33,7 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import neg_log_joint_single, nll_offset
 from ceemx.infra.compilation import jit
 from ceemx.lib.dense import symmetrize
-from ceemx.lib.tree import is_weak
+from ceemx.lib.tree import as_jax, is_weak
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 from ceemx.models.constraints import (
     AbstractConstraint,
@@ -218,6 +218,37 @@ def _build(template, static, constraints, theta: Theta) -> AbstractSystem:
 _build_compiled = jit(_build)
 
 
+def _unconstrain(constraints, leaves) -> tuple[list, list, Theta]:
+    """(z = inverse(x) per leaf, forward(z) per leaf, the flat θ of the z): θ of the leaves x."""
+    unconstrained = [c.inverse(_strong(x)) for c, x in zip(constraints, leaves, strict=True)]
+    back = [c.forward(z) for c, z in zip(constraints, unconstrained, strict=True)]
+    theta, _ = ravel_pytree(unconstrained)
+    return unconstrained, back, _strong(theta)
+
+
+# On the host one program per problem structure: op by op, every constraint's inverse and the
+# flattening compiled a handful of small programs at each new shape (≈ 20 ms each).
+_unconstrain_compiled = jit(_unconstrain, one_shot=True)
+
+
+def _unconstrained_leaves(constraints, leaves) -> tuple[list, list | None, Theta]:
+    """:func:`_unconstrain` (``None`` for forward(z) when traced: :func:`check_room` skips)."""
+    if leaves and not any(isinstance(x, Tracer) for x in leaves):
+        return _unconstrain_compiled(tuple(constraints), list(leaves))
+    unconstrained = [c.inverse(_strong(x)) for c, x in zip(constraints, leaves, strict=True)]
+    theta, _ = ravel_pytree(unconstrained)
+    return unconstrained, None, _strong(theta)
+
+
+def _cast_weak(a, dtype):
+    """A weakly typed inexact array as a strong one of ``dtype`` (cast on the host if concrete)."""
+    if not (eqx.is_inexact_array(a) and is_weak(a)):
+        return a
+    if isinstance(a, Tracer) or a.committed:
+        return a.astype(dtype)
+    return as_jax(np.asarray(a).astype(dtype))
+
+
 class FitProblem(eqx.Module):
     """Data, the model split into trainable θ and the rest, and an optional log-prior.
 
@@ -262,26 +293,22 @@ class FitProblem(eqx.Module):
         # promoted one the start states are smoothed with (the smoother traced twice).
         # A weak float acts in the system's dtype, so it is cast to that (exactly as before).
         dtype = float_dtype(system)
-        static = jtu.tree_map(
-            lambda a: a.astype(dtype) if eqx.is_inexact_array(a) and is_weak(a) else a, static
-        )
+        static = jtu.tree_map(lambda a: _cast_weak(a, dtype), static)
         leaves, treedef = jtu.tree_flatten(params)
-        unconstrained = [
-            c.inverse(_strong(leaf)) for c, leaf in zip(constraints, leaves, strict=True)
-        ]
+        unconstrained, back, theta = _unconstrained_leaves(constraints, leaves)
         template = jtu.tree_unflatten(treedef, unconstrained)
-        theta, _ = ravel_pytree(template)
         if theta.size == 0:
             raise ValueError(
                 "`trainable` selects no parameter to learn: it must pick at least one "
                 "floating-point array of the system that is not declared `ceemx.param(fixed=True)`."
             )
-        for where, c, x, z in zip(
-            _trainable_names(system, mask), constraints, leaves, unconstrained, strict=True
+        backs = [None] * len(leaves) if back is None else back
+        for where, c, x, z, b in zip(
+            _trainable_names(system, mask), constraints, leaves, unconstrained, backs, strict=True
         ):
-            check_room(c, x, z, where)
+            check_room(c, x, z, where, back=b)
         check_log_prior(log_prior, system)
-        return cls(template, static, data, log_prior, constraints), _strong(theta)
+        return cls(template, static, data, log_prior, constraints), theta
 
     def build(self, theta: Theta) -> AbstractSystem:
         """The system with trainable leaves set from the flat unconstrained vector θ.
@@ -302,12 +329,8 @@ class FitProblem(eqx.Module):
         """
         mask = jtu.tree_map(lambda v: v is not None, self.template, is_leaf=lambda v: v is None)
         params, _ = eqx.partition(system, mask)
-        leaves, treedef = jtu.tree_flatten(params)
-        unconstrained = [
-            c.inverse(_strong(leaf)) for c, leaf in zip(self.constraints, leaves, strict=True)
-        ]
-        theta, _ = ravel_pytree(jtu.tree_unflatten(treedef, unconstrained))
-        return _strong(theta)
+        leaves = jtu.tree_leaves(params)
+        return _unconstrained_leaves(self.constraints, leaves)[2]
 
     def natural(self, theta: Theta) -> Float[Array, " theta"]:
         """The flat θ in natural units: each entry through its constraint's ``forward``."""

@@ -48,7 +48,7 @@ from jaxtyping import Array, Bool, Float
 
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.joint import schur_complement, small_schur
-from ceemx.infra.compilation import one_shot_when
+from ceemx.infra.compilation import jit, one_shot_when
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, States, Theta
@@ -188,6 +188,12 @@ def parameter_covariance(
         flagged = [n for n, w in zip(_names(problem), np.asarray(weak), strict=True) if w]
         which = f" (weakly determined: {', '.join(flagged)})" if flagged else ""
         warn(_NOT_PD.format(which=which))
+    return _assemble(cov, noise, held, noise_var)
+
+
+@jit(one_shot=True)  # on the host: one program, where op by op it compiled four small ones
+def _assemble(cov, noise, held, noise_var):
+    """The covariance: 0 in the noise rows/columns, NaN in the held ones, noise variances added."""
     cov = jnp.where(noise[:, None] | noise[None, :], 0.0, cov)
     cov = jnp.where(held[:, None] | held[None, :], jnp.nan, cov)
     return cov + jnp.diag(jnp.where(noise, noise_var, 0.0))

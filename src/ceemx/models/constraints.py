@@ -51,6 +51,8 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, Float
 
+from ceemx.lib.tree import as_jax
+
 __all__ = [
     "CONSTRAINT_KEY",
     "AbstractConstraint",
@@ -306,7 +308,12 @@ def _as_parameter(value: Any) -> Any:
         raise TypeError(f"a parameter must be a number or an array; got {value!r}.")
     if isinstance(value, int | float):
         return jnp.asarray(float(value))
-    if isinstance(value, np.ndarray | np.generic | jax.Array):
+    if isinstance(value, np.ndarray | np.generic):  # host data: converted there, then a transfer
+        a = np.asarray(value, jax.dtypes.canonicalize_dtype(value.dtype))
+        if not jnp.issubdtype(a.dtype, jnp.inexact):
+            a = a.astype(jnp.result_type(float))
+        return as_jax(a)
+    if isinstance(value, jax.Array):
         a = jnp.asarray(value)
         return a if jnp.issubdtype(a.dtype, jnp.inexact) else a.astype(jnp.result_type(float))
     return value
@@ -471,7 +478,9 @@ def check_constraints(tree: Any, name: str = "system") -> None:
 ROOM_ULPS = 64
 
 
-def check_room(constraint: AbstractConstraint, x: Any, z: Any, where: str) -> None:
+def check_room(
+    constraint: AbstractConstraint, x: Any, z: Any, where: str, *, back: Any = None
+) -> None:
     """Refuse a trainable start value ``x`` that sits on its bound to within rounding.
 
     ``z`` is ``constraint.inverse(x)``, the unconstrained value a fit learns. Refused (host-side,
@@ -482,6 +491,8 @@ def check_room(constraint: AbstractConstraint, x: Any, z: Any, where: str) -> No
     b = 0) — ``upper=-2`` started at −2 − 4e-16, or ``lower=1, upper=5`` at 1 + 1e-15, where the
     transform is saturated: the representable values nearby are a few ulps apart, so no step can
     move the parameter and a fit stops at once, reporting success.
+
+    ``back``: ``forward(z)`` when the caller has it already (computed here otherwise).
 
     Raises:
         ValueError: naming ``where`` (e.g. ``system.k``), the value, the bound and what to do.
@@ -495,7 +506,7 @@ def check_room(constraint: AbstractConstraint, x: Any, z: Any, where: str) -> No
     lower, upper = constraint.bounds
     with np.errstate(all="ignore"):
         bad = ~np.isfinite(za)
-        back = np.asarray(constraint.forward(jnp.asarray(z)))
+        back = np.asarray(constraint.forward(jnp.asarray(z)) if back is None else back)
         bad |= ~np.asarray(constraint.contains(back), bool)
         for b in (lower, upper):
             if math.isfinite(b):

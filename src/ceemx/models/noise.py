@@ -23,9 +23,11 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from ceemx.lib.dense import eigh, masked_cholesky, solve_triangular, symmetrize, whitening_matrix
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import Scalar
 
 __all__ = [
@@ -38,6 +40,11 @@ __all__ = [
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
+
+
+@jax.jit  # one program per shape (op by op: a transfer, the factorisation and tril compiled)
+def _cholesky_tril(cov: Array) -> Array:
+    return jnp.tril(jnp.linalg.cholesky(cov))
 
 
 def _full_mask(r: Float[Array, " d"], mask: Bool[Array, " d"] | None) -> Bool[Array, " d"]:
@@ -201,8 +208,11 @@ class CholeskyGaussian(AbstractGaussianNoise):
         if (chol is None) == (cov is None):
             raise ValueError("CholeskyGaussian: give exactly one of `chol` or `cov`.")
         if cov is not None:
-            chol = jnp.linalg.cholesky(jnp.asarray(cov))
-        self.chol = jnp.tril(jnp.asarray(chol))
+            self.chol = _cholesky_tril(cov if isinstance(cov, jax.Array) else np.asarray(cov))
+        elif chol is None or isinstance(chol, jax.Array) or np.ndim(chol) < 2:  # traced, on device
+            self.chol = jnp.tril(jnp.asarray(chol))
+        else:  # host data: NumPy's tril and a transfer (JAX's compiled a program per shape)
+            self.chol = as_jax(np.tril(np.asarray(chol)))
 
     def cholesky(self) -> Float[Array, "d d"]:
         """The stored factor."""

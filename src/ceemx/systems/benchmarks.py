@@ -21,8 +21,10 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, DTypeLike, Float, Real
 
+from ceemx.lib.tree import as_jax
 from ceemx.models.constraints import param
 from ceemx.models.system import AbstractContinuousSystem
 
@@ -67,7 +69,17 @@ def soft_min(x: Float[Array, "*s"], bound: ArrayLike, sharpness: ArrayLike) -> F
 def _with_defaults(cls, params: dict, options: dict, dtype: DTypeLike, overrides: dict):
     """``cls`` from default parameters (cast to ``dtype``), options, and the caller's overrides."""
     merged = {**params, **options, **overrides}
-    return cls(**{k: jnp.asarray(v, dtype=dtype) if k in params else v for k, v in merged.items()})
+    return cls(**{k: _as_param(v, dtype) if k in params else v for k, v in merged.items()})
+
+
+def _as_param(value, dtype: DTypeLike):
+    """``jnp.asarray(value, dtype)``; a number or NumPy array by NumPy and a transfer.
+
+    (``jnp.asarray`` with a dtype compiles a small conversion program per shape and dtype.)
+    """
+    if isinstance(value, int | float | np.ndarray | np.generic):
+        return as_jax(np.asarray(value, jax.dtypes.canonicalize_dtype(dtype)))
+    return jnp.asarray(value, dtype=dtype)
 
 
 class _AbstractSISO(AbstractContinuousSystem):

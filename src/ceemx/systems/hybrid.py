@@ -49,6 +49,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real, Scalar
 
 from ceemx.infra.options import check_int, check_positive
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import State
 from ceemx.models.constraints import param
 from ceemx.models.noise import AbstractNoise
@@ -154,15 +155,18 @@ def learned_term(
     Raises:
         ValueError: non-positive or non-finite scales, mismatched lengths, bad width/depth.
     """
-    x_mean = jnp.asarray(x_mean)
-    dtype = dtype or (x_mean.dtype if jnp.issubdtype(x_mean.dtype, jnp.floating) else None)
-    dtype = dtype or jnp.zeros(()).dtype
+    # Host-side (NumPy) conversions and checks: op by op in JAX each compiled a small program.
+    x_mean = np.asarray(x_mean)
+    x_dtype = jax.dtypes.canonicalize_dtype(x_mean.dtype)
+    dtype = dtype or (x_dtype if jnp.issubdtype(x_dtype, jnp.floating) else None)
+    dtype = dtype or jax.dtypes.canonicalize_dtype(float)
+    stored = jax.dtypes.canonicalize_dtype(dtype)  # what jnp.asarray(·, dtype) would store
     arrays = {
-        "x_mean": jnp.atleast_1d(jnp.asarray(x_mean, dtype)),
-        "x_scale": jnp.atleast_1d(jnp.asarray(x_scale, dtype)),
-        "u_mean": jnp.asarray(() if u_mean is None else u_mean, dtype).reshape(-1),
-        "u_scale": jnp.asarray(() if u_scale is None else u_scale, dtype).reshape(-1),
-        "out_scale": jnp.atleast_1d(jnp.asarray(out_scale, dtype)),
+        "x_mean": np.atleast_1d(np.asarray(x_mean, stored)),
+        "x_scale": np.atleast_1d(np.asarray(x_scale, stored)),
+        "u_mean": np.asarray(() if u_mean is None else u_mean, stored).reshape(-1),
+        "u_scale": np.asarray(() if u_scale is None else u_scale, stored).reshape(-1),
+        "out_scale": np.atleast_1d(np.asarray(out_scale, stored)),
     }
     n, p, out = arrays["x_mean"].shape[0], arrays["u_mean"].shape[0], arrays["out_scale"].shape[0]
     for name, length in (("x_scale", n), ("u_scale", p)):
@@ -173,10 +177,10 @@ def learned_term(
             )
     for name in ("x_scale", "u_scale", "out_scale"):
         a = arrays[name]
-        if not bool(jnp.all(jnp.isfinite(a) & (a > 0))):
+        if not bool(np.all(np.isfinite(a) & (a > 0))):
             raise ValueError(f"`{name}` must be positive and finite; got {a}.")
     for name in ("x_mean", "u_mean"):
-        if not bool(jnp.all(jnp.isfinite(arrays[name]))):
+        if not bool(np.all(np.isfinite(arrays[name]))):
             raise ValueError(f"`{name}` must be finite; got {arrays[name]}.")
     if targets is not None:
         targets = tuple(int(i) for i in targets)
@@ -200,7 +204,7 @@ def learned_term(
         use_input=use_input,
         targets=targets,
         size=size,
-        **arrays,
+        **{k: as_jax(a) for k, a in arrays.items()},
     )
 
 

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Real
 
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import State
 from ceemx.models.noise import AbstractNoise, as_noise
 from ceemx.models.system import AbstractSystem, GaussianPrior
@@ -35,16 +36,17 @@ class LinearSystem(AbstractSystem):
         obs_noise: AbstractNoise | ArrayLike = 1.0,
         initial_prior: GaussianPrior | None = None,
     ):
-        self.A = jnp.asarray(A)
-        self.C = jnp.asarray(C)
+        # as_jax and NumPy zeros: a transfer where jnp.asarray / jnp.zeros compiled a program.
+        self.A = as_jax(A)
+        self.C = as_jax(C)
         n, m = self.A.shape[0], self.C.shape[0]
         if self.A.shape != (n, n):
             raise ValueError(f"`A` must be square; got shape {self.A.shape}.")
         if self.C.shape != (m, n):
             raise ValueError(f"`C` must have shape (m, {n}); got {self.C.shape}.")
-        self.B = jnp.zeros((n, 0), self.A.dtype) if B is None else jnp.asarray(B)
+        self.B = as_jax(np.zeros((n, 0), self.A.dtype)) if B is None else as_jax(B)
         p = self.B.shape[1]
-        self.D = jnp.zeros((m, p), self.A.dtype) if D is None else jnp.asarray(D)
+        self.D = as_jax(np.zeros((m, p), self.A.dtype)) if D is None else as_jax(D)
         if self.B.shape != (n, p) or self.D.shape != (m, p):
             raise ValueError(
                 f"`B` must be ({n}, p) and `D` ({m}, p); got {self.B.shape}, {self.D.shape}."
