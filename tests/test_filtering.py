@@ -133,11 +133,16 @@ def check_against_textbook(sol, data, m0, p0):
 
 def test_ekf_on_a_linear_model_is_the_kalman_filter():
     data = linear_data()
+    # An explicit `initial` overrides the system's own prior (one compiled program for both: the
+    # system's pytree and the prior's noise type are the same in the two calls).
+    m1, p1 = np.array([-0.2, 0.3]), np.array([[0.6, -0.1], [-0.1, 1.1]])
     sol = ekf(
-        linear_system(), data, initial=GaussianPrior(jnp.asarray(M0), CholeskyGaussian(cov=P0))
+        linear_system(prior=True),
+        data,
+        initial=GaussianPrior(jnp.asarray(m1), CholeskyGaussian(cov=p1)),
     )
     assert isinstance(sol, FilterSolution)
-    check_against_textbook(sol, data, M0, P0)
+    check_against_textbook(sol, data, m1, p1)
     # The system's own prior is the default ...
     check_against_textbook(ekf(linear_system(prior=True), data), data, M0, P0)
     # ... and without one, N(0, I) (the authors' evaluation).

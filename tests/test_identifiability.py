@@ -68,8 +68,15 @@ def products(system):
 
 
 @pytest.fixture(scope="module")
-def exact():
-    x, data = data_for(0.0)
+def records():
+    """ε = 0: (true states, data)."""
+    return data_for(0.0)
+
+
+@pytest.fixture(scope="module")
+def exact(records):
+    """The joint fit at ε = 0 (slow tests only: the default test needs the records, not it)."""
+    x, data = records
     return x, data, ceemx.fit(make(START), data, x, solver=ceemx.JointLM(), progress=False)
 
 
@@ -119,10 +126,10 @@ def test_identifiable_model_has_no_message():
     assert not any("determine" in m for m in res.messages())
 
 
-def test_alternating_end_point_names_the_products(exact):
+def test_alternating_end_point_names_the_products(records):
     """Algorithm 1 crawls here (EM with a hidden state): after 20 epochs it has not converged,
     and the end-point analysis names what the data determine."""
-    x, data, _ = exact
+    x, data = records
     res = ceemx.fit(make(START), data, x, max_epochs=20, progress=False)
     assert not res.converged
     found = res.identifiability

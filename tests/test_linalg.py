@@ -30,11 +30,15 @@ from ceemx.lib import (  # noqa: E402
     to_dense,
 )
 
+# (1, 1) is the edge of both n = 1 (1×1 blocks) and T = 1 (empty sub-diagonal, zero-length
+# scans), (3, 4) the general case; (1, 5) and (3, 1) check each edge again with the other dimension
+# general (no code path of ceemx.lib.blocktri depends on n = 1 or T = 1), so they are slow with the
+# larger shapes. Every test of the family uses these shapes: one compilation per shape.
 SHAPES = [
     (1, 1),
-    (1, 5),
-    (3, 1),
     (3, 4),
+    pytest.param(1, 5, marks=pytest.mark.slow),
+    pytest.param(3, 1, marks=pytest.mark.slow),
     pytest.param(5, 17, marks=pytest.mark.slow),
     pytest.param(8, 32, marks=pytest.mark.slow),
 ]
@@ -51,6 +55,19 @@ def random_spd(rng, n, T, shift=1.0):
     return BlockTridiagonal(diagonal=jnp.asarray(diag), lower=jnp.asarray(lower))
 
 
+def dense_np(A):
+    """The dense matrix of a block-tridiagonal ``A`` in NumPy (no compilation)."""
+    diag, lower = np.asarray(A.diagonal), np.asarray(A.lower)
+    T, n = diag.shape[:2]
+    K = np.zeros((T, n, T, n))
+    for t in range(T):
+        K[t, :, t, :] = diag[t]
+    for t in range(T - 1):
+        K[t + 1, :, t, :] = lower[t]
+        K[t, :, t + 1, :] = lower[t].T
+    return K.reshape(T * n, T * n)
+
+
 def rel_err(a, b):
     a, b = np.asarray(a), np.asarray(b)
     return np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-300)
@@ -58,8 +75,9 @@ def rel_err(a, b):
 
 @jax.jit
 def _factor_and_solve(A, x, X, b, Bm):
-    """Every block-tridiagonal operation at once: one compilation per shape (eager op-by-op
-    evaluation compiles each operation separately and costs seconds)."""
+    """Every block-tridiagonal operation at once: one compilation per shape, shared by the tests
+    of this family (eager op-by-op evaluation compiles each operation separately and costs
+    seconds)."""
     L = cholesky(A)
     return dict(
         dense=to_dense(A),
@@ -71,21 +89,29 @@ def _factor_and_solve(A, x, X, b, Bm):
         solve_B=solve(L, Bm),
         cho_solve=cho_solve(A, b),
         logdet=logdet(L),
+        selected_inverse=selected_inverse(L),
     )
+
+
+def _everything(rng, A):
+    """``_factor_and_solve`` of ``A`` with random right-hand sides (returned first)."""
+    T, n = A.diagonal.shape[:2]
+    x = rng.standard_normal((T, n))
+    X = rng.standard_normal((T, n, 3))
+    b = rng.standard_normal((T, n))
+    Bm = rng.standard_normal((T, n, 4))
+    return (x, X, b, Bm), _factor_and_solve(A, x, X, b, Bm)
 
 
 @pytest.mark.parametrize("n,T", SHAPES)
 def test_dense_matvec_solve_logdet(n, T):
     rng = np.random.default_rng(n * 100 + T)
     A = random_spd(rng, n, T)
-    x = rng.standard_normal((T, n))
-    X = rng.standard_normal((T, n, 3))
-    b = rng.standard_normal((T, n))
-    Bm = rng.standard_normal((T, n, 4))
-    out = _factor_and_solve(A, x, X, b, Bm)
+    (x, X, b, Bm), out = _everything(rng, A)
 
     Ad = np.asarray(out["dense"])
     assert Ad.shape == (T * n, T * n)
+    np.testing.assert_array_equal(Ad, dense_np(A))
     np.testing.assert_allclose(Ad, Ad.T)
     np.testing.assert_allclose(out["Ax"], (Ad @ x.ravel()).reshape(T, n), rtol=1e-12)
     np.testing.assert_allclose(out["AX"], (Ad @ X.reshape(T * n, 3)).reshape(T, n, 3), rtol=1e-12)
@@ -108,8 +134,9 @@ def test_dense_matvec_solve_logdet(n, T):
 def test_selected_inverse(n, T):
     rng = np.random.default_rng(7 + n * 100 + T)
     A = random_spd(rng, n, T)
-    inv = np.linalg.inv(np.asarray(to_dense(A))).reshape(T, n, T, n)
-    S = selected_inverse(cholesky(A))
+    _, out = _everything(rng, A)
+    inv = np.linalg.inv(dense_np(A)).reshape(T, n, T, n)
+    S = out["selected_inverse"]
     assert S.diagonal.shape == (T, n, n) and S.lower.shape == (T - 1, n, n)
     t = np.arange(T)
     assert rel_err(S.diagonal, inv[t, :, t, :]) < 1e-10
@@ -119,25 +146,33 @@ def test_selected_inverse(n, T):
 
 def test_jit_and_vmap():
     rng = np.random.default_rng(0)
-    n, T, batch = 3, 6, 4
+    n, T, batch = 3, 4, 4
     mats = [random_spd(rng, n, T) for _ in range(batch)]
     A = jax.tree.map(lambda *xs: jnp.stack(xs), *mats)
     b = rng.standard_normal((batch, T, n))
-    x = jax.jit(jax.vmap(cho_solve))(A, b)
-    ld = jax.jit(jax.vmap(lambda a: logdet(cholesky(a))))(A)
+
+    @jax.jit  # one compilation of the three vmapped operations
+    @jax.vmap
+    def batched(a, b):
+        x = cho_solve(a, b)
+        return x, logdet(cholesky(a)), matvec(a, x)
+
+    x, ld, Ax = batched(A, b)
     for i, Ai in enumerate(mats):
-        Ad = np.asarray(to_dense(Ai))
+        Ad = dense_np(Ai)
         assert rel_err(x[i], np.linalg.solve(Ad, b[i].ravel()).reshape(T, n)) < 1e-10
         assert abs(float(ld[i]) - np.linalg.slogdet(Ad)[1]) < 1e-9
-    np.testing.assert_allclose(jax.vmap(matvec)(A, x), b, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(Ax, b, rtol=1e-9, atol=1e-10)
 
 
 def test_not_pd_is_detected():
     rng = np.random.default_rng(1)
-    A = random_spd(rng, 3, 5)
-    bad = BlockTridiagonal(diagonal=A.diagonal.at[3].add(-1e3 * jnp.eye(3)), lower=A.lower)
-    assert not bool(is_finite(cholesky(bad)))
-    assert bool(jax.jit(lambda a: is_finite(cholesky(a)))(A))
+    A = random_spd(rng, 3, 4)  # a shape of SHAPES: the compiled _factor_and_solve
+    diag = np.array(A.diagonal)
+    diag[2] -= 1e3 * np.eye(3)  # in NumPy: an eager `.at[].add` compiles a program
+    bad = BlockTridiagonal(diagonal=jnp.asarray(diag), lower=A.lower)
+    assert not bool(_everything(rng, bad)[1]["finite"])
+    assert bool(_everything(rng, A)[1]["finite"])
 
 
 def test_float32_in_float32_out():
@@ -159,14 +194,17 @@ def test_float32_in_float32_out():
     assert S.diagonal.dtype == jnp.float32 and S.lower.dtype == jnp.float32
     assert dense.dtype == jnp.float32
     np.testing.assert_allclose(
-        x, np.linalg.solve(np.asarray(to_dense(A64)), np.ones(12)).reshape(4, 3), rtol=1e-4
+        x, np.linalg.solve(dense_np(A64), np.ones(12)).reshape(4, 3), rtol=1e-4
     )
 
 
 # ----------------------------------------------------------------------------- arrowhead
 
-# Compiled once per shapes and (static) options; tests share shapes where they can.
+# Compiled once per shapes and (static) options: every arrowhead test uses the shapes ARROW and
+# the CG options CG where it can (cg_chunk = 3 < p = 5: two chunks, the second padded).
 solve_arrow = eqx.filter_jit(arrowhead_solve)
+ARROW = (2, 4, 2, 5)  # B, T, n, p
+CG = dict(method="cg", cg_preconditioner="schur_diag", cg_chunk=3)
 
 
 def arrow_problem(rng, B, T, n, p, scale_E=0.3):
@@ -180,13 +218,22 @@ def arrow_problem(rng, B, T, n, p, scale_E=0.3):
     return mats, A, E, D, r_x, r_t
 
 
+def schur_part(mats, E):
+    """Σ_b E_bᵀ A_b⁻¹ E_b in NumPy."""
+    B, T, n, p = E.shape
+    return sum(
+        E[b].reshape(T * n, p).T @ np.linalg.solve(dense_np(Ab), E[b].reshape(T * n, p))
+        for b, Ab in enumerate(mats)
+    )
+
+
 def dense_arrow(mats, E, D, r_x, r_t):
     B, T, n, p = E.shape
     N = B * T * n
     K = np.zeros((N + p, N + p))
     for b, Ab in enumerate(mats):
         sl = slice(b * T * n, (b + 1) * T * n)
-        K[sl, sl] = np.asarray(to_dense(Ab))
+        K[sl, sl] = dense_np(Ab)
         K[sl, N:] = E[b].reshape(T * n, p)
         K[N:, sl] = E[b].reshape(T * n, p).T
     K[N:, N:] = D
@@ -194,7 +241,17 @@ def dense_arrow(mats, E, D, r_x, r_t):
     return sol[:N].reshape(B, T, n), sol[N:]
 
 
-@pytest.mark.parametrize("B,T,n,p", [(1, 1, 1, 1), (3, 5, 2, 4), (2, 7, 3, 6)])
+# (1, 1, 1, 1): every dimension at its edge; ARROW: every dimension general. The two other
+# general shapes are second oracles of the same code path.
+@pytest.mark.parametrize(
+    "B,T,n,p",
+    [
+        (1, 1, 1, 1),
+        ARROW,
+        pytest.param(3, 5, 2, 4, marks=pytest.mark.slow),
+        pytest.param(2, 7, 3, 6, marks=pytest.mark.slow),
+    ],
+)
 def test_arrowhead_dense_matches_numpy(B, T, n, p):
     rng = np.random.default_rng(10 + B + T + n + p)
     mats, A, E, D, r_x, r_t = arrow_problem(rng, B, T, n, p)
@@ -206,13 +263,23 @@ def test_arrowhead_dense_matches_numpy(B, T, n, p):
     assert rel_err(sol.dtheta, dt_ref) < 1e-9
 
 
-@pytest.mark.parametrize("precond", ["schur_diag", "d_diag", "none"])
+# "d_diag" and "none" change only the diagonal handed to the same PCG loop (one line each, no
+# other code path): second oracles of the CG solve that "schur_diag" (the default, with the chunked
+# exact diagonal) checks.
+@pytest.mark.parametrize(
+    "precond",
+    [
+        "schur_diag",
+        pytest.param("d_diag", marks=pytest.mark.slow),
+        pytest.param("none", marks=pytest.mark.slow),
+    ],
+)
 def test_arrowhead_cg_matches_dense(precond):
     rng = np.random.default_rng(3)
-    B, T, n, p = 3, 6, 2, 7
+    B, T, n, p = ARROW
     _, A, E, D, r_x, r_t = arrow_problem(rng, B, T, n, p)
     dense = solve_arrow(A, E, D, r_x, r_t, method="dense")
-    cg = solve_arrow(A, E, D, r_x, r_t, method="cg", cg_preconditioner=precond, cg_chunk=3)
+    cg = solve_arrow(A, E, D, r_x, r_t, **{**CG, "cg_preconditioner": precond})
     assert cg.method == "cg" and bool(cg.ok) and bool(cg.converged)
     assert 0 < int(cg.cg_steps) <= p
     assert rel_err(cg.dtheta, dense.dtheta) < 1e-6
@@ -221,18 +288,11 @@ def test_arrowhead_cg_matches_dense(precond):
 
 def test_arrowhead_auto_method():
     rng = np.random.default_rng(4)
-    _, A, E, D, r_x, r_t = arrow_problem(rng, 2, 4, 2, 5)
+    _, A, E, D, r_x, r_t = arrow_problem(rng, *ARROW)
     # The method is static: tracing (no compilation) shows the choice.
     assert jax.eval_shape(lambda: arrowhead_solve(A, E, D, r_x, r_t)).method == "dense"
     sol = solve_arrow(A, E, D, r_x, r_t, dense_max_p=4)
     assert sol.method == "cg" and bool(sol.ok)
-
-
-@jax.jit
-def _schur_part(A, E):
-    L = jax.vmap(cholesky)(A)
-    Z = jax.vmap(solve)(L, jnp.asarray(E))
-    return jnp.einsum("btnp,btnq->pq", E, Z)
 
 
 # CG only detects non-positive curvature it meets, so a singular (rank-deficient PSD) S is
@@ -242,24 +302,26 @@ def _schur_part(A, E):
 )
 def test_arrowhead_bad_schur(kind, method):
     rng = np.random.default_rng(5)
-    B, T, n, p = 2, 4, 2, 5
-    _, A, E, _, r_x, r_t = arrow_problem(rng, B, T, n, p)
-    P = np.asarray(_schur_part(A, E))
+    B, T, n, p = ARROW
+    mats, A, E, _, r_x, r_t = arrow_problem(rng, B, T, n, p)
+    P = schur_part(mats, E)
     if kind == "indefinite":
         D = P - np.eye(p)  # S = -I
     else:
         v = rng.standard_normal((p, 1))
         D = P + v @ v.T  # S = v v^T, rank one
-    sol = solve_arrow(A, E, D, r_x, r_t, method=method)
+    sol = solve_arrow(A, E, D, r_x, r_t, **(CG if method == "cg" else dict(method="dense")))
     assert not bool(sol.ok)
     assert np.all(np.isfinite(sol.dx)) and np.all(np.isfinite(sol.dtheta))
 
 
 def test_arrowhead_bad_state_block():
     rng = np.random.default_rng(6)
-    _, A, E, D, r_x, r_t = arrow_problem(rng, 2, 4, 2, 5)  # the shapes of test_arrowhead_bad_schur
-    A = BlockTridiagonal(diagonal=A.diagonal.at[1, 2].set(-10 * jnp.eye(2)), lower=A.lower)
-    for method in ("dense", "cg"):
-        sol = solve_arrow(A, E, D, r_x, r_t, method=method)
+    _, A, E, D, r_x, r_t = arrow_problem(rng, *ARROW)
+    diag = np.array(A.diagonal)
+    diag[1, 2] = -10 * np.eye(2)  # in NumPy: an eager `.at[].set` compiles a program
+    A = BlockTridiagonal(diagonal=jnp.asarray(diag), lower=A.lower)
+    for kw in (dict(method="dense"), CG):
+        sol = solve_arrow(A, E, D, r_x, r_t, **kw)
         assert not bool(sol.ok)
         assert np.all(np.isfinite(sol.dx)) and np.all(np.isfinite(sol.dtheta))

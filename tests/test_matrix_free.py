@@ -4,8 +4,9 @@ Oracles are the dense forms of the same quantities: the joint linearisation's E 
 (:func:`ceemx.inference.objective.linearize`), :func:`ceemx.lib.arrowhead_solve` on the damped
 joint normal equations, :class:`ceemx.LMLearner`'s step and ``JointLM``'s dense iteration. The
 problem is coupled Lorenz with K = 2 (n = 6, θ = (σ, ρ, β, H): P = 42), T = 12, B = 2. The option
-checks and the memory guards run in the default suite; the border's step, the learner and the
-JointLM comparisons compile two linearisations / learners / fits each and are marked slow.
+checks and the memory guards run in the default suite (the guards on a problem of the same sizes
+drawn in NumPy: they refuse by sizes); the border's step, the learner and the JointLM comparisons
+compile two linearisations / learners / fits each and are marked slow.
 """
 
 import equinox as eqx
@@ -48,6 +49,24 @@ def setup():
     )  # fmt: skip
     x0 = states + 0.05 * jax.random.normal(jax.random.PRNGKey(4), states.shape)
     return guess, x0, data
+
+
+@pytest.fixture(scope="module")
+def sizes():
+    """``setup``'s problem sizes with random values drawn in NumPy (no simulation to compile):
+    the memory guards refuse by sizes alone."""
+    n = 3 * K
+    rng = np.random.default_rng(0)
+    s = jnp.asarray
+    H = 0.5 * rng.standard_normal((n, n)) * np.kron(1 - np.eye(K), np.ones((3, 3)))  # coupling
+    C = rng.standard_normal((n - 1, n))  # a random observation matrix
+    guess = CoupledLorenz(
+        s(np.full(K, 10.5)), s(np.full(K, 27.0)), s(np.full(K, 2.8)), s(C),
+        H=s(H), process_noise=0.05, obs_noise=0.1,
+    )  # fmt: skip
+    x0 = np.asarray([-6.0, -6.0, 24.0] * K) + 5.0 * rng.standard_normal((B, T, n))
+    data = ceemx.Trajectories(s(x0[..., 1:] + 0.1 * rng.standard_normal((B, T, n - 1))))
+    return guess, s(x0), data
 
 
 @eqx.filter_jit
@@ -120,7 +139,7 @@ def test_gauss_newton_cg_learner_step_equals_lm_learner_step(setup, damping):
     np.testing.assert_allclose(i_free.value_after, i_dense.value_after, rtol=1e-10)
 
 
-def test_gauss_newton_cg_learner_checks_options_and_problem(setup):
+def test_gauss_newton_cg_learner_checks_options_and_problem():
     with pytest.raises(ValueError, match="scaling"):
         ceemx.GaussNewtonCGLearner(scaling="exact")
     with pytest.raises(ValueError, match="cg_max_steps"):
@@ -150,12 +169,12 @@ def test_joint_matrix_free_iteration_equals_dense(setup):
     assert [h["J"] for h in res_f.history] == pytest.approx([h["J"] for h in res_d.history])
 
 
-def test_memory_guard_names_the_matrix_free_paths(setup, monkeypatch):
+def test_memory_guard_names_the_matrix_free_paths(sizes, monkeypatch):
     """The dense border's refusal names JointLM(border='matrix-free') and GaussNewtonCGLearner;
     the matrix-free border has its own (B·T·n²) estimate and refuses before any compute too."""
     from ceemx.infra import memory
 
-    guess, x0, data = setup
+    guess, x0, data = sizes
     monkeypatch.setattr(memory, "physical_memory", lambda: 256)
     kw = dict(trainable=trainable, max_epochs=1, progress=False)
     with pytest.raises(ValueError, match="border='matrix-free'.*GaussNewtonCGLearner"):

@@ -107,20 +107,40 @@ def test_best_validation_keeps_the_best_epoch():
     assert cb.rmse[0] < cb.rmse[1]
 
 
+def _neural_matrices():
+    return 0.9 * jnp.eye(3), jnp.ones((3, 2)), jnp.ones((4, 3)), jnp.zeros((4, 2))
+
+
 def test_neural_observation_system_is_eq17_and_validates():
     key = jax.random.PRNGKey(0)
-    A, B = 0.9 * jnp.eye(3), jnp.ones((3, 2))
-    C, D = jnp.ones((4, 3)), jnp.zeros((4, 2))
+    A, B, C, D = _neural_matrices()
     s = NeuralObservationSystem(A, B, C, D, key=key, gain=0.1)
-    s0 = NeuralObservationSystem(A, B, C, D, key=key, gain=0.0)
     x, u = jnp.arange(3.0), jnp.ones(2)
     np.testing.assert_allclose(s.dynamics(x, u, 0), A @ x + B @ u)
-    np.testing.assert_allclose(s0.observe(x, u, 0), C @ x + D @ u, atol=1e-14)
     nn = s.observe(x, u, 0) - (C @ x + D @ u)
     np.testing.assert_allclose(nn, s.net(jnp.concatenate([x, u])), rtol=1e-12)
     assert 0 < float(jnp.max(jnp.abs(nn))) < 1.0  # gain 0.1: a small correction at the start
+    # `gain` scales the last layer only: Equinox draws a Linear layer's weight and bias from
+    # U(±1/√in), so the last layer's (128 + 4 entries) lie within 0.1/√32 and its largest beyond
+    # half of that (a gain of 1 or 0 fails), while a hidden layer's largest is beyond 0.5/√32.
+    last, hidden = s.net.layers[-1], s.net.layers[-2]
+    bound = 1 / np.sqrt(32)
+    top = max(float(jnp.max(jnp.abs(last.weight))), float(jnp.max(jnp.abs(last.bias))))
+    assert 0.05 * bound < top <= 0.1 * bound, top / bound
+    assert float(jnp.max(jnp.abs(hidden.weight))) > 0.5 * bound
     assert (s.state_dim, s.obs_dim, s.input_dim) == (3, 4, 2)
     with pytest.raises(ValueError, match="`D`"):
         NeuralObservationSystem(A, B, C, jnp.zeros((4, 3)), key=key)
     with pytest.raises(ValueError, match="`C`"):
         NeuralObservationSystem(A, B, jnp.ones((4, 2)), D, key=key)
+
+
+# A second oracle of the gain (checked above by the last layer's range; the zero output of
+# init_mlp with gain 0 by test_hybrid's zero-initialised hybrid): gain = 0.0 compiles the network's
+# initialisation again (the gain is a static argument of `_init_mlp`, ≈ 3 s).
+@pytest.mark.slow
+def test_neural_observation_system_with_zero_gain_is_linear():
+    A, B, C, D = _neural_matrices()
+    s0 = NeuralObservationSystem(A, B, C, D, key=jax.random.PRNGKey(0), gain=0.0)
+    x, u = jnp.arange(3.0), jnp.ones(2)
+    np.testing.assert_allclose(s0.observe(x, u, 0), C @ x + D @ u, atol=1e-14)
