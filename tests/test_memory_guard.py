@@ -68,3 +68,19 @@ def test_joint_method_refuses_a_border_that_does_not_fit(problem, tiny_memory):
             max_epochs=1,
             progress=False,
         )
+
+
+@pytest.mark.parametrize("solver", ["joint", "alternating"])
+def test_fit_refuses_before_any_compute(problem, tiny_memory, monkeypatch, solver):
+    """Through ``fit``, the guard refuses before the start states are computed (no x_init: the
+    warm start would smooth first) and before the first learning step, for both solvers."""
+    from ceemx.identification import initialize
+
+    def no_warm_start(*args, **kwargs):
+        raise AssertionError("the warm start ran before the memory guard")
+
+    monkeypatch.setattr(initialize, "warm_start", no_warm_start)
+    guess, _, data = problem
+    solver = ceemx.JointLM() if solver == "joint" else ceemx.Alternating()
+    with pytest.raises(ValueError, match="more than this machine.s"):
+        ceemx.fit(guess, data, solver=solver, trainable=lambda s: (s.sigma, s.rho, s.beta))

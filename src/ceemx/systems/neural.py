@@ -5,7 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real
 
 from ceemx.lib.typing import State
@@ -130,9 +132,12 @@ def init_mlp(key, n_in: int, out: int, width: int, depth: int, activation, dtype
     """``eqx.nn.MLP(n_in, out, width, depth)`` with its last layer's weight and bias × ``gain``.
 
     Built by one compiled program per configuration: op by op, Equinox's initialisation compiled
-    two random draws per layer and the scaling more at every new shape (≈ 20–150 ms each).
+    two random draws per layer and the scaling more at every new shape (≈ 20–150 ms each). The
+    gain is an argument of that program, not part of the configuration: the zero-initialised
+    learned terms (gain 0) and the Eq.-17 networks (gain 0.1) share it.
     """
-    return _init_mlp(key, n_in, out, width, depth, activation, dtype, float(gain))
+    gain_array = np.asarray(float(gain), jax.dtypes.canonicalize_dtype(dtype or float))
+    return _init_mlp(key, n_in, out, width, depth, activation, dtype, gain_array)
 
 
 @eqx.filter_jit

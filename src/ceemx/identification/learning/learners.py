@@ -51,6 +51,15 @@ class AbstractLearner(eqx.Module):
         """The learner's persistent state (default: none)."""
         return None
 
+    def check_memory(self, n_params: int, batch_size: int, itemsize: int) -> None:
+        """Refuse, before any compute, a problem whose arrays would not fit in memory.
+
+        :func:`ceemx.fit` calls it (through the solver's ``check_problem``) before the start
+        states are computed, so that a learner that cannot run fails at once rather than after
+        the first smoothing step. Default: nothing (matrix-free learners).
+        """
+        del n_params, batch_size, itemsize
+
     @abc.abstractmethod
     def run(
         self, problem: AbstractLearningProblem, theta: Theta, state: Any
@@ -88,17 +97,21 @@ class LMLearner(AbstractLearner):
         for name in ("rtol", "atol", "damping"):
             check_nonnegative(name, getattr(self, name))
 
+    def check_memory(self, n_params: int, batch_size: int, itemsize: int) -> None:
+        """The B + 4 dense P × P Gauss–Newton matrices of a step must fit in memory."""
+        P, B = n_params, batch_size
+        check_fits(
+            f"LMLearner's {B} per-trajectory dense {P} × {P} Gauss–Newton matrices",
+            (B + 4) * P * P * itemsize,
+            "use ceemx.GaussNewtonCGLearner (Gauss–Newton by Jacobian-vector products and CG) or "
+            "ceemx.LBFGSLearner (matrix-free) for this many parameters.",
+        )
+
     def run(
         self, problem: AbstractLearningProblem, theta: Theta, state: Any
     ) -> tuple[Theta, Any, LearnInfo]:
         """LM iterations from θ."""
-        P, B = theta.shape[0], problem.batch_size
-        check_fits(
-            f"LMLearner's {B} per-trajectory dense {P} × {P} Gauss–Newton matrices",
-            (B + 4) * P * P * theta.dtype.itemsize,
-            "use ceemx.GaussNewtonCGLearner (Gauss–Newton by Jacobian-vector products and CG) or "
-            "ceemx.LBFGSLearner (matrix-free) for this many parameters.",
-        )
+        self.check_memory(theta.shape[0], problem.batch_size, theta.dtype.itemsize)
         offset = problem.offset(
             theta
         )  # tolerances are relative to the objective less its constants

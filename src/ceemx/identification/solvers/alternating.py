@@ -83,6 +83,15 @@ class Alternating(AbstractFitSolver):
     def __check_init__(self):
         check_alternation(self.smoother, self.learner, self.rho_theta)
 
+    def check_problem(self, problem: FitProblem, theta: Theta) -> None:
+        """The base class's refusals, and the learner's memory guard, before any compute.
+
+        (The first learning step would otherwise refuse only after the warm start and a
+        smoothing step.)
+        """
+        super().check_problem(problem, theta)
+        self.learner.check_memory(theta.shape[0], problem.data.batch_size, theta.dtype.itemsize)
+
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
     ) -> FitState:

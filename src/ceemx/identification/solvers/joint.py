@@ -183,13 +183,15 @@ class JointLM(AbstractFitSolver):
         check_choice("border", self.border, ("dense", "matrix-free"))
         check_choice("border_scaling", self.border_scaling, ("diagonal", "identity"))
 
-    def init(
-        self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
-    ) -> FitState:
-        """θ, x as given; trajectories non-finite at the start are excluded (with a warning)."""
-        B, T, n = states.shape
-        P = theta.shape[0]
-        itemsize = states.dtype.itemsize
+    def check_problem(self, problem: FitProblem, theta: Theta) -> None:
+        """The base class's refusals, and the memory guard, before any compute."""
+        super().check_problem(problem, theta)
+        system = eqx.combine(problem.template, problem.static)  # θ's shapes: enough for sizes
+        B, T = problem.data.y.shape[:2]
+        self._check_memory(B, T, system.state_dim, theta.shape[0], theta.dtype.itemsize)
+
+    def _check_memory(self, B: int, T: int, n: int, P: int, itemsize: int) -> None:
+        """Refuse arrays that would not fit in memory (:func:`ceemx.infra.memory.check_fits`)."""
         if self.border == "matrix-free":
             # The x-blocks A_b, their damped copy, factors and the LM loop's copies: ≈ 12
             # B·T·n² arrays at the measured peak (6.5 GB at n = 120, B = 16, T = 256).
@@ -209,6 +211,13 @@ class JointLM(AbstractFitSolver):
                 "learner (ceemx.GaussNewtonCGLearner) and, for large n, "
                 "LMSmoother(batch_chunk=...).",
             )
+
+    def init(
+        self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
+    ) -> FitState:
+        """θ, x as given; trajectories non-finite at the start are excluded (with a warning)."""
+        B, T, n = states.shape
+        self._check_memory(B, T, n, theta.shape[0], states.dtype.itemsize)
         J = trajectory_log_likelihood(problem, theta, states)
         ok = np.isfinite(to_host(J))
         if not ok.all():

@@ -292,8 +292,12 @@ class LaplaceEM(AbstractFitSolver):
         )
 
     def check_problem(self, problem: FitProblem, theta: Theta) -> None:
-        """Learned noise models must be Gaussian (their M-step is closed-form)."""
+        """Learned noise models must be Gaussian (their M-step is closed-form).
+
+        And the learner's memory guard, before any compute.
+        """
         _check_learned_noise(problem, problem.build(theta))
+        self.learner.check_memory(theta.shape[0], problem.data.batch_size, theta.dtype.itemsize)
 
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
