@@ -22,6 +22,7 @@ print(float(f(jnp.ones((3, 3))).sum()))
 """
 
 
+@pytest.mark.slow  # two Python processes (≈ 3 s), like the command line's other process tests
 def test_cache_is_written_and_reused(tmp_path):
     """A second process finds the first one's executable in the folder (no new entries)."""
     folder = tmp_path / "cache"

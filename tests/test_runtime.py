@@ -49,6 +49,7 @@ def test_limit_before_jax_starts_pins_the_process_and_sizes_the_pool():
     assert proc.stdout.split() == ["1", "1"]
 
 
+@pytest.mark.slow  # a Python process of its own (≈ 2 s); the limit itself: the test above
 @needs_affinity
 def test_limit_after_jax_started_warns():
     proc = _run(
