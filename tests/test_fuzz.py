@@ -127,12 +127,17 @@ def check_trajectories(y, u, mask):
     assert data.y.dtype == data.u.dtype and jnp.issubdtype(data.y.dtype, jnp.floating)
 
 
+def trajectory_arguments(shape):
+    """Strategies for ``Trajectories(y, u, mask)``, array shapes drawn by ``shape(min, max)``."""
+    return dict(
+        y=st.one_of(arrays(shape(0, 4)), OTHER),
+        u=st.one_of(st.none(), arrays(shape(0, 4)), OTHER),
+        mask=st.one_of(st.none(), arrays(shape(2, 3)), OTHER),
+    )
+
+
 @examples(30)
-@given(
-    y=st.one_of(arrays(few_shapes(0, 4)), OTHER),
-    u=st.one_of(st.none(), arrays(few_shapes(0, 4)), OTHER),
-    mask=st.one_of(st.none(), arrays(few_shapes(2, 3)), OTHER),
-)
+@given(**trajectory_arguments(few_shapes))
 def test_trajectories_any_arguments(y, u, mask):
     """``check_trajectories`` on the ``SHAPES`` in any dtype, and on non-arrays."""
     check_trajectories(y, u, mask)
@@ -140,11 +145,7 @@ def test_trajectories_any_arguments(y, u, mask):
 
 @pytest.mark.slow
 @examples(340)
-@given(
-    y=st.one_of(arrays(any_shape(0, 4)), OTHER),
-    u=st.one_of(st.none(), arrays(any_shape(0, 4)), OTHER),
-    mask=st.one_of(st.none(), arrays(any_shape(2, 3)), OTHER),
-)
+@given(**trajectory_arguments(any_shape))
 def test_trajectories_any_arguments_any_shape(y, u, mask):
     """``check_trajectories`` on any shape up to rank 4 in any dtype, and on non-arrays."""
     check_trajectories(y, u, mask)

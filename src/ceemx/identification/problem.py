@@ -235,9 +235,8 @@ def _unconstrained_leaves(constraints, leaves) -> tuple[list, list | None, Theta
     """:func:`_unconstrain` (``None`` for forward(z) when traced: :func:`check_room` skips)."""
     if leaves and not any(isinstance(x, Tracer) for x in leaves):
         return _unconstrain_compiled(tuple(constraints), list(leaves))
-    unconstrained = [c.inverse(_strong(x)) for c, x in zip(constraints, leaves, strict=True)]
-    theta, _ = ravel_pytree(unconstrained)
-    return unconstrained, None, _strong(theta)
+    unconstrained, _, theta = _unconstrain(constraints, leaves)  # traced: forward(z) unused
+    return unconstrained, None, theta
 
 
 def _cast_weak(a, dtype):

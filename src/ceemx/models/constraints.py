@@ -308,14 +308,12 @@ def _as_parameter(value: Any) -> Any:
         raise TypeError(f"a parameter must be a number or an array; got {value!r}.")
     if isinstance(value, int | float):
         return jnp.asarray(float(value))
-    if isinstance(value, np.ndarray | np.generic):  # host data: converted there, then a transfer
-        a = np.asarray(value, jax.dtypes.canonicalize_dtype(value.dtype))
+    if isinstance(value, np.ndarray | np.generic | jax.Array):
+        host = not isinstance(value, jax.Array)  # host data: converted there, then a transfer
+        a = np.asarray(value, jax.dtypes.canonicalize_dtype(value.dtype)) if host else value
         if not jnp.issubdtype(a.dtype, jnp.inexact):
             a = a.astype(jnp.result_type(float))
-        return as_jax(a)
-    if isinstance(value, jax.Array):
-        a = jnp.asarray(value)
-        return a if jnp.issubdtype(a.dtype, jnp.inexact) else a.astype(jnp.result_type(float))
+        return as_jax(a) if host else a
     return value
 
 
