@@ -12,6 +12,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ceemx import (
     AbstractFitSolver,
@@ -27,6 +28,7 @@ from ceemx import (
 from ceemx.data.trajectories import Trajectories, simulate
 from ceemx.experiments import METHODS, parse_seeds
 from ceemx.identification.initialize import perturb
+from ceemx.infra.compilation import jit
 from ceemx.models.noise import DiagonalGaussian
 from ceemx.systems.lorenz import (
     INITIAL_MEAN,
@@ -163,10 +165,10 @@ def true_lorenz(
     (``coupling=False``: H = 0).
     """
     key = jax.random.PRNGKey(4) if key is None else key
-    kc, kh = jax.random.split(key)
+    kc, kh = split_key(key, 2)
     C = random_observation_matrix(kc, K, m)
-    H = random_coupling(kh, K) if coupling and K > 1 else jnp.zeros((3 * K, 3 * K))
-    ones = jnp.ones((K,))
+    H = random_coupling(kh, K) if coupling and K > 1 else np.zeros((3 * K, 3 * K))
+    ones = np.ones((K,))  # NumPy: no eager program per K
     return CoupledLorenz(
         TRUE_SIGMA * ones,
         TRUE_RHO * ones,
@@ -178,6 +180,16 @@ def true_lorenz(
         process_noise=process_noise,
         obs_noise=obs_noise,
     )
+
+
+@jit(one_shot=True)
+def _split(key, n: int):
+    return tuple(jax.random.split(key, n))
+
+
+def split_key(key, n: int) -> tuple:
+    """``jax.random.split(key, n)`` as a tuple, by one one-shot program (the same keys)."""
+    return _split(key, n)
 
 
 LORENZ_PARAMS = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731
@@ -224,7 +236,7 @@ def lorenz_problem(
     (none when σ_w = 0), observation noise N(0, σ_v²), and the initial guess
     θ·(1 + U(−0.1, 0.1)) (of H too when ``coupling``).
     """
-    k_x1, k_sim, k_theta = jax.random.split(jax.random.PRNGKey(seed), 3)
+    k_x1, k_sim, k_theta = split_key(jax.random.PRNGKey(seed), 3)
     K = true_system.K
     x1 = initial_states(k_x1, B, K, std=x1_std)
     pn = DiagonalGaussian(sigma_w, 3 * K) if sigma_w > 0 else False

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Literal
@@ -34,7 +33,7 @@ from ceemx.identification.solvers.laplace import LaplaceEM
 from ceemx.identification.solvers.particle_em import ParticleEM
 from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra import checkpoint as ckpt
-from ceemx.infra.compilation import compile_in_background, has_idle_core
+from ceemx.infra.compilation import BackgroundCompile, compile_in_background, has_idle_core
 from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.options import check_key
 from ceemx.infra.warn import warn
@@ -598,7 +597,7 @@ def precompile_fit(
     solver: AbstractFitSolver | None = None,
     trainable=None,
     log_prior: Callable[[AbstractSystem], Any] | None = None,
-) -> threading.Thread:
+) -> BackgroundCompile:
     """Start compiling the epoch programs of the same :func:`fit` call, in a background thread.
 
     :func:`fit` does this itself while it computes the start states; call this when the start
@@ -610,7 +609,8 @@ def precompile_fit(
     without one). Arguments are validated as by :func:`fit`.
 
     Returns:
-        The started thread.
+        The started :class:`~ceemx.infra.compilation.BackgroundCompile`; its ``join()`` runs
+        the jobs the worker has not started yet in the calling thread, then waits for the worker.
     """
     solver = Alternating() if solver is None else solver
     if not isinstance(solver, AbstractFitSolver):
@@ -637,7 +637,7 @@ def _precompile(solver, system, data, x_init, trainable, log_prior):
         states = jnp.zeros((B, T, system.state_dim), data.y.dtype)
     else:
         states = as_jax(x_init)
-    return compile_in_background(lambda: solver.precompile(problem, theta, states))
+    return compile_in_background(solver.precompile(problem, theta, states))
 
 
 def _screen_outliers(problem: FitProblem, theta, states, outliers: str):

@@ -218,6 +218,35 @@ def _build(template, static, constraints, theta: Theta) -> AbstractSystem:
 _build_compiled = jit(_build)
 
 
+def _natural(template, constraints, theta: Theta) -> tuple[Array, Array]:
+    """:meth:`FitProblem.natural` and :meth:`FitProblem.natural_jacobian` of θ, together."""
+    _, unravel = ravel_pytree(template)
+    leaves = jtu.tree_leaves(unravel(theta))
+    constraints = constraints or (Unconstrained(),) * len(leaves)
+    pairs = [
+        jax.jvp(c.forward, (z,), (jnp.ones_like(z),))
+        for c, z in zip(constraints, leaves, strict=True)
+    ]
+    natural, _ = ravel_pytree([p[0] for p in pairs])
+    slope, _ = ravel_pytree([p[1] for p in pairs])
+    return natural, slope
+
+
+# On the host one one-shot program per problem structure (the identifiability analysis and the
+# parameter covariance ask once per fit): op by op, a dozen small programs at each new shape.
+_natural_compiled = jit(_natural, one_shot=True)
+
+
+def _sign_definite(c: AbstractConstraint) -> bool:
+    """Whether constraint ``c`` keeps its natural value on one side of zero."""
+    lower, upper = getattr(c, "lower", None), getattr(c, "upper", None)
+    return bool(
+        isinstance(c, Positive)
+        or (lower is not None and lower >= 0)
+        or (upper is not None and upper <= 0)
+    )
+
+
 def _unconstrain(constraints, leaves) -> tuple[list, list, Theta]:
     """(z = inverse(x) per leaf, forward(z) per leaf, the flat θ of the z): θ of the leaves x."""
     unconstrained = [c.inverse(_strong(x)) for c, x in zip(constraints, leaves, strict=True)]
@@ -333,46 +362,31 @@ class FitProblem(eqx.Module):
 
     def natural(self, theta: Theta) -> Float[Array, " theta"]:
         """The flat θ in natural units: each entry through its constraint's ``forward``."""
-        flat, _ = ravel_pytree(self._leafwise(theta, lambda c, z: c.forward(z)))
-        return flat
+        if isinstance(theta, Tracer):
+            return _natural(self.template, self.constraints, theta)[0]
+        return _natural_compiled(self.template, self.constraints, theta)[0]
 
     def natural_jacobian(self, theta: Theta) -> Float[Array, " theta"]:
         """(P,) d natural / dθ, elementwise (every constraint acts entry by entry)."""
-
-        def slope(c: AbstractConstraint, z):
-            return jax.jvp(c.forward, (z,), (jnp.ones_like(z),))[1]
-
-        flat, _ = ravel_pytree(self._leafwise(theta, slope))
-        return flat
+        if isinstance(theta, Tracer):
+            return _natural(self.template, self.constraints, theta)[1]
+        return _natural_compiled(self.template, self.constraints, theta)[1]
 
     def sign_definite(self, theta: Theta) -> np.ndarray:
         """(P,) bool: whether each entry's constraint keeps its natural value off zero's far side.
 
         True for :class:`Positive`, ``GreaterThan(lower ≥ 0)``, ``LessThan(upper ≤ 0)`` and an
         ``Interval`` that does not contain 0 in its interior: such a parameter never changes sign,
-        so relative (log) changes are its natural unit.
+        so relative (log) changes are its natural unit. (The constraints decide, not θ's values.)
         """
-
-        def definite(c: AbstractConstraint, z):
-            lower, upper = getattr(c, "lower", None), getattr(c, "upper", None)
-            yes = (
-                isinstance(c, Positive)
-                or (lower is not None and lower >= 0)
-                or (upper is not None and upper <= 0)
-            )
-            return jnp.full(jnp.shape(z), 1.0 if yes else 0.0)
-
-        flat, _ = ravel_pytree(self._leafwise(theta, definite))
-        return np.asarray(flat) > 0.5
-
-    def _leafwise(self, theta: Theta, fn) -> Any:
-        _, unravel = ravel_pytree(self.template)
-        leaves, treedef = jtu.tree_flatten(unravel(theta))
-        if self.constraints:
-            leaves = [fn(c, z) for c, z in zip(self.constraints, leaves, strict=True)]
-        else:  # a problem built by hand: every entry unconstrained
-            leaves = [fn(Unconstrained(), z) for z in leaves]
-        return jtu.tree_unflatten(treedef, leaves)
+        del theta
+        leaves = jtu.tree_leaves(self.template)
+        constraints = self.constraints or (Unconstrained(),) * len(leaves)
+        flags = [
+            np.full(np.size(z), _sign_definite(c), bool)
+            for c, z in zip(constraints, leaves, strict=True)
+        ]
+        return np.concatenate(flags) if flags else np.zeros((0,), bool)
 
     def parameter_names(self) -> list[str]:
         """One name per entry of θ, as the user wrote the field: ``k``, ``H[2,3]``, ``sub.k``."""

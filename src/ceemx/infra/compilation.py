@@ -20,11 +20,12 @@ the interpreter lock while it compiles, so two programs compile at once on two c
 
 from __future__ import annotations
 
+import collections
 import functools
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, ParamSpec, TypeVar, cast, overload
 
@@ -41,6 +42,7 @@ _P = ParamSpec("_P")
 _T = TypeVar("_T")
 
 __all__ = [
+    "BackgroundCompile",
     "FAST_COMPILE_FLAGS",
     "ONE_SHOT_COMPILE_FLAGS",
     "compile_in_background",
@@ -153,28 +155,59 @@ def _runnable_tasks(samples: int = 5) -> int | None:
     return sorted(counts)[len(counts) // 2]
 
 
-def compile_in_background(
-    work: Callable[[], object], name: str = "ceemx-compile"
-) -> threading.Thread:
-    """Run ``work`` (ahead-of-time ``lower(...).compile()`` calls) in a daemon thread; started.
+class BackgroundCompile:
+    """Compile jobs run by a daemon thread; :meth:`join` runs what it has not started yet.
 
-    A compiled program lands in JAX's in-memory caches, so the later call with arguments of the
-    same shapes, dtypes (weak types included) and static parts runs it without compiling again;
-    a call with other arguments compiles as usual. ``work`` must only lower and compile, never
-    execute: programs running concurrently can contend for the LAPACK thread pool. Any exception
-    in ``work`` is dropped (the later call compiles and reports it). ``join()`` the thread before
-    the calls it prepares: two threads compiling the same program both pay for it.
+    Returned by :func:`compile_in_background`. The worker takes the jobs in order; a thread
+    that calls :meth:`join` takes the jobs still waiting and runs them itself, then waits for
+    the worker's current one — so a caller whose own work ended before the worker's does not
+    sit idle while a second program waits for its turn (the demo: JointLM's identifiability
+    program compiled beside the joint iteration instead of after it).
     """
 
-    def run() -> None:
-        try:
-            work()
-        except Exception:  # noqa: BLE001 — the real call compiles and raises it
-            pass
+    def __init__(self, jobs: Sequence[Callable[[], object]], name: str = "ceemx-compile"):
+        self._jobs = collections.deque(jobs)
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._drain, name=name, daemon=True)
+        self._thread.start()
 
-    thread = threading.Thread(target=run, name=name, daemon=True)
-    thread.start()
-    return thread
+    def _next(self) -> Callable[[], object] | None:
+        with self._lock:
+            return self._jobs.popleft() if self._jobs else None
+
+    def _drain(self) -> None:
+        while (job := self._next()) is not None:
+            try:
+                job()
+            except Exception:  # noqa: BLE001 — the real call compiles and raises it
+                pass
+
+    def join(self, timeout: float | None = None) -> None:
+        """Run the jobs not yet started in this thread, then wait for the worker."""
+        self._drain()
+        self._thread.join(timeout)
+
+    def is_alive(self) -> bool:
+        """Whether the worker is still compiling."""
+        return self._thread.is_alive()
+
+
+def compile_in_background(
+    work: Callable[[], object] | Sequence[Callable[[], object]], name: str = "ceemx-compile"
+) -> BackgroundCompile:
+    """Run compile jobs (ahead-of-time ``lower(...).compile()`` calls) in a daemon thread; started.
+
+    ``work`` is one job or a sequence of them, taken in order (largest first: a caller that
+    ``join()``s early takes the later ones; :class:`BackgroundCompile`). A compiled program
+    lands in JAX's in-memory caches, so the later call with arguments of the same shapes,
+    dtypes (weak types included) and static parts runs it without compiling again; a call with
+    other arguments compiles as usual. A job must only lower and compile, never execute:
+    programs running concurrently can contend for the LAPACK thread pool. Any exception in a
+    job is dropped (the later call compiles and reports it). ``join()`` before the calls it
+    prepares: two threads compiling the same program both pay for it.
+    """
+    jobs = [work] if callable(work) else list(work)
+    return BackgroundCompile(jobs, name)
 
 
 def use_fast_compilation() -> bool:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real
 
+from ceemx.infra.compilation import jit
 from ceemx.lib.typing import State
 from ceemx.models.noise import AbstractNoise, as_noise
 from ceemx.models.system import AbstractContinuousSystem, GaussianPrior
@@ -105,7 +104,9 @@ class CoupledLorenz(AbstractContinuousSystem):
         self.C = _as_float(C, "C", ndim=2)
         if self.C.ndim != 2 or self.C.shape[1] != n:
             raise ValueError(f"`C` must have shape (m, {n}); got {self.C.shape}.")
-        self.H = jnp.zeros((n, n), self.sigma.dtype) if H is None else _as_float(H, "H", 2)
+        self.H = (
+            jnp.asarray(np.zeros((n, n), self.sigma.dtype)) if H is None else _as_float(H, "H", 2)
+        )
         if self.H.shape != (n, n):
             raise ValueError(f"`H` must have shape ({n}, {n}); got {self.H.shape}.")
         m = self.C.shape[0]
@@ -172,9 +173,9 @@ def random_coupling(
     return _random_coupling(key, K, jnp.asarray(frobenius, dtype), dtype)
 
 
-@functools.partial(jax.jit, static_argnums=(1, 3))
+@jit(one_shot=True)
 def _random_coupling(key, K: int, frobenius, dtype):
-    # One compiled program per (K, dtype): op by op, each new K compiled a handful of programs.
+    # One program per (K, dtype), run once: op by op, each new K compiled a handful of programs.
     H = jax.random.normal(key, (3 * K, 3 * K), dtype) * coupling_mask(K, dtype)
     if K == 1:
         return H
@@ -186,7 +187,7 @@ def random_observation_matrix(
 ) -> Float[Array, "m n"]:
     """Standard-normal C ∈ R^{m×3K}, m = 3K − 2 by default (full row rank with probability one)."""
     m = 3 * K - 2 if m is None else m
-    C = jax.random.normal(key, (m, 3 * K), dtype)
+    C = _standard_normal(key, (m, 3 * K), dtype)
     if np.linalg.matrix_rank(np.asarray(C)) < min(m, 3 * K):  # pragma: no cover - measure zero
         raise RuntimeError("drew a rank-deficient C; use another key")
     return C
@@ -199,7 +200,12 @@ def initial_states(
     return _initial_states(key, B, K, dtype, jnp.asarray(std, dtype))
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+@jit(one_shot=True)
+def _standard_normal(key, shape: tuple[int, ...], dtype):
+    return jax.random.normal(key, shape, dtype)
+
+
+@jit(one_shot=True)
 def _initial_states(key, B: int, K: int, dtype, std):
     mean = jnp.tile(jnp.asarray(INITIAL_MEAN, dtype), K)
     return mean[None, :] + std * jax.random.normal(key, (B, 3 * K), dtype)

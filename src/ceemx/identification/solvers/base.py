@@ -23,7 +23,7 @@ trust-region weights do not recompile either.
 from __future__ import annotations
 
 import abc
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -199,17 +199,21 @@ class AbstractFitSolver(eqx.Module):
                 "solver=ceemx.LaplaceEM(), which learns noise covariances by EM, or fix the noise."
             )
 
-    def precompile(self, problem: FitProblem, theta: Theta, states: States) -> None:
-        """Compile the programs of ``step`` for these shapes, without running them (optional).
+    def precompile(
+        self, problem: FitProblem, theta: Theta, states: States
+    ) -> Sequence[Callable[[], object]]:
+        """Jobs compiling the programs of ``step`` for these shapes, without running them.
 
-        :func:`ceemx.fit` calls it in a background thread
-        (:func:`ceemx.infra.compilation.compile_in_background`) with the problem, θ and start
-        states ``init`` will receive (the states may be placeholders of the right shape and
-        dtype, computed meanwhile). Only ``lower(...).compile()`` of the programs, with arguments
-        of exactly the shapes, dtypes and static parts of the later calls; nothing may execute
-        here. Default: nothing.
+        :func:`ceemx.fit` runs them in a background thread, largest first
+        (:func:`ceemx.infra.compilation.compile_in_background`; the main thread takes the ones
+        still waiting when its start states are ready) with the problem, θ and start states
+        ``init`` will receive (the states may be placeholders of the right shape and dtype,
+        computed meanwhile). A job only does ``lower(...).compile()`` of a program, with
+        arguments of exactly the shapes, dtypes and static parts of the later calls; nothing
+        may execute. Default: none.
         """
         del problem, theta, states
+        return ()
 
     @abc.abstractmethod
     def init(

@@ -40,6 +40,7 @@ determine, and the result names it ("only a·b and a·c are determined by the da
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any, NamedTuple, cast
 
 import equinox as eqx
@@ -234,17 +235,27 @@ class JointLM(AbstractFitSolver):
             solver_state=jnp.asarray(self.damping, states.dtype),
         )
 
-    def precompile(self, problem: FitProblem, theta: Theta, states: States) -> None:
-        """Compile the joint iteration and the identifiability check's S (nothing runs).
+    def precompile(
+        self, problem: FitProblem, theta: Theta, states: States
+    ) -> tuple[Callable[[], object], ...]:
+        """Jobs compiling the joint iteration and the identifiability check's S (nothing runs).
 
         The arguments are built as :meth:`init` and :meth:`step` build theirs (weights and λ
         of the states' dtype), so the epochs find both programs compiled.
         """
-        weights = jnp.ones(states.shape[:1], states.dtype)
-        lam = jnp.asarray(self.damping, states.dtype)
-        cast(Any, _iteration).lower(self, problem, weights, theta, states, lam).compile()
-        if self.check_identifiability and theta.shape[0] <= MAX_P:
+
+        def iteration() -> None:
+            weights = jnp.ones(states.shape[:1], states.dtype)
+            lam = jnp.asarray(self.damping, states.dtype)
+            cast(Any, _iteration).lower(self, problem, weights, theta, states, lam).compile()
+
+        def check() -> None:
+            weights = jnp.ones(states.shape[:1], states.dtype)
             cast(Any, schur_complement).lower(problem, theta, states, weights).compile()
+
+        if self.check_identifiability and theta.shape[0] <= MAX_P:
+            return (iteration, check)
+        return (iteration,)
 
     def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict]:
         """One accepted LM step on (x, θ) (or the trials that failed to find one)."""
