@@ -14,9 +14,8 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx.identification.learning.gauss_newton import depends_on
 from ceemx.identification.learning.problem import make_problem
-from ceemx.inference.objective import whitened_residuals
+from ceemx.inference.objective import depends_on, whitened_residuals
 from ceemx.systems import CoupledLorenz
 
 

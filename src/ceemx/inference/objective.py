@@ -28,6 +28,7 @@ from ceemx.models.system import AbstractSystem
 __all__ = [
     "Linearization",
     "auto_jacobian",
+    "depends_on",
     "expected_neg_log_joint_single",
     "linearize",
     "linearize_expected",
@@ -147,6 +148,27 @@ def auto_jacobian(fun, argnum, in_dim, out_dim):
     return jax.jacfwd(fun, argnums=argnum) if in_dim <= out_dim else jax.jacrev(fun, argnums=argnum)
 
 
+def depends_on(fun: Callable[..., Any], argnum: int, *args: Any) -> bool:
+    """Whether any output of ``fun(*args)`` depends on ``args[argnum]`` in its traced program.
+
+    A data-flow walk over the jaxpr: an equation with a dependent input makes all its outputs
+    dependent (conservative inside nested programs: ``pjit``, ``scan``, custom derivatives), so a
+    ``False`` is exact — the Jacobian with respect to that argument is identically zero — and a
+    ``True`` may be a structural dependence only. Shapes are all that matter (``args`` may be
+    tracers or ``jax.ShapeDtypeStruct``).
+    """
+    args = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(jnp.shape(a), a.dtype), args)
+    closed = jax.make_jaxpr(fun)(*args)
+    jaxpr = closed.jaxpr
+    leaves = [len(jax.tree_util.tree_leaves(a)) for a in args]
+    start = sum(leaves[:argnum])
+    hit = {id(v) for v in jaxpr.invars[start : start + leaves[argnum]]}
+    for eqn in jaxpr.eqns:
+        if any(id(v) in hit for v in eqn.invars):
+            hit.update(id(v) for v in eqn.outvars)
+    return any(id(v) in hit for v in jaxpr.outvars)
+
+
 def linearize(
     build: Callable[[Any], AbstractSystem],
     theta: Any,
@@ -239,22 +261,31 @@ def linearize(
         return Linearization(value, grad, hess)
 
     P = theta.shape[0]  # the length of θ
-    Gt = jax.vmap(auto_jacobian(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(
-        x, theta, y, u, ts
-    )  # (T,m,P)
-    Ft = jax.vmap(auto_jacobian(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
-        x[:-1], theta, u[:-1], ts[:-1]
-    )
-    SGt = Sv_mul(Gt)
-    SFt = Sw_mul(Ft)
-    D = jnp.einsum("tmp,tmq->pq", SGt, SGt) + jnp.einsum("tnp,tnq->pq", SFt, SFt)
-    grad_theta = jnp.einsum("tmp,tm->p", Gt, gv) + jnp.einsum("tnp,tn->p", Ft, gw)
-    E = None
-    if x_blocks is not None:
-        SG, SF = x_blocks
-        E = mT(SG) @ SGt
-        E = E.at[:-1].add(mT(SF) @ SFt)
-        E = E.at[1:].add(SwT_mul(SFt))
+    # A factor whose residual does not depend on θ at all (the observation map when only the
+    # dynamics learn) has a zero θ-Jacobian: its products are skipped, decided at trace time.
+    D = jnp.zeros((P, P), dtype)
+    grad_theta = jnp.zeros((P,), dtype)
+    E = jnp.zeros((T, n, P), dtype) if x_blocks is not None else None
+    if depends_on(obs_res, 1, x[0], theta, y[0], u[0], ts[0]):
+        Gt = jax.vmap(auto_jacobian(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(
+            x, theta, y, u, ts
+        )  # (T,m,P)
+        SGt = Sv_mul(Gt)
+        D = D + jnp.einsum("tmp,tmq->pq", SGt, SGt)
+        grad_theta = grad_theta + jnp.einsum("tmp,tm->p", Gt, gv)
+        if x_blocks is not None:
+            E = E + mT(x_blocks[0]) @ SGt
+    if T > 1 and depends_on(dyn_res, 1, x[0], theta, u[0], ts[0]):
+        Ft = jax.vmap(auto_jacobian(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
+            x[:-1], theta, u[:-1], ts[:-1]
+        )
+        SFt = Sw_mul(Ft)
+        D = D + jnp.einsum("tnp,tnq->pq", SFt, SFt)
+        grad_theta = grad_theta + jnp.einsum("tnp,tn->p", Ft, gw)
+        if x_blocks is not None:
+            E = E.at[:-1].add(mT(x_blocks[1]) @ SFt)
+            E = E.at[1:].add(SwT_mul(SFt))
+    if E is not None:
         E = E.astype(dtype)
     if prior is not None:  # a prior whose mean depends on θ
 

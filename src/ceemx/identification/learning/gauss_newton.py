@@ -6,7 +6,8 @@ factor's curvature root S (:mod:`ceemx.models.noise`). Here the rows of every tr
 by √w_b, are stacked into one (R, P) matrix and the P × P matrix is formed by a single product
 RᵀR — not one P × P product per trajectory summed afterwards — and factors whose residual does not
 depend on θ at all (the observation model when only the dynamics learn, or the reverse) contribute
-no rows: that is decided at trace time from the residual's program (:func:`depends_on`), since
+no rows: that is decided at trace time from the residual's program
+(:func:`ceemx.inference.objective.depends_on`), since
 the θ-Jacobian of such a factor is identically zero and its product would be pure cost (on the
 Figure-3 problem half of the build).
 """
@@ -14,38 +15,16 @@ Figure-3 problem half of the build).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ceemx.inference.objective import auto_jacobian, residuals
+from ceemx.inference.objective import auto_jacobian, depends_on, residuals
 from ceemx.lib.typing import Scalar, Theta, Trajectory
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["depends_on", "gram", "theta_rows"]
-
-
-def depends_on(fun: Callable[..., Any], argnum: int, *args: Any) -> bool:
-    """Whether any output of ``fun(*args)`` depends on ``args[argnum]`` in its traced program.
-
-    A data-flow walk over the jaxpr: an equation with a dependent input makes all its outputs
-    dependent (conservative inside nested programs: ``pjit``, ``scan``, custom derivatives), so a
-    ``False`` is exact — the Jacobian with respect to that argument is identically zero — and a
-    ``True`` may be a structural dependence only. Shapes are all that matter (``args`` may be
-    tracers or ``jax.ShapeDtypeStruct``).
-    """
-    args = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(jnp.shape(a), a.dtype), args)
-    closed = jax.make_jaxpr(fun)(*args)
-    jaxpr = closed.jaxpr
-    leaves = [len(jax.tree_util.tree_leaves(a)) for a in args]
-    start = sum(leaves[:argnum])
-    hit = {id(v) for v in jaxpr.invars[start : start + leaves[argnum]]}
-    for eqn in jaxpr.eqns:
-        if any(id(v) in hit for v in eqn.invars):
-            hit.update(id(v) for v in eqn.outvars)
-    return any(id(v) in hit for v in jaxpr.outvars)
+__all__ = ["gram", "theta_rows"]
 
 
 def theta_rows(
