@@ -121,9 +121,14 @@ def test_program_options_follow_the_environment(monkeypatch):
     """ceemx's per-program XLA options: the fast-compile flags unless XLA_FLAGS or the user says."""
     monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
-    assert compilation.program_options() == {"xla_cpu_use_fusion_emitters": False}
-    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
-    assert compilation.program_options() == {}  # the user's flag wins
+    assert compilation.program_options() == {
+        "xla_cpu_use_fusion_emitters": False,
+        "xla_backend_optimization_level": 1,
+    }
+    monkeypatch.setenv(
+        "XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true --xla_backend_optimization_level=2"
+    )
+    assert compilation.program_options() == {}  # the user's flags win
     monkeypatch.delenv("XLA_FLAGS")
     monkeypatch.setenv("CEEMX_XLA_DEFAULTS", "1")
     assert compilation.program_options() == {}

@@ -45,6 +45,7 @@ __all__ = [
     "BackgroundCompile",
     "FAST_COMPILE_FLAGS",
     "ONE_SHOT_COMPILE_FLAGS",
+    "OPTIMISED_COMPILE_FLAGS",
     "compile_in_background",
     "default_cache_dir",
     "has_idle_core",
@@ -70,6 +71,14 @@ ONE_SHOT_COMPILE_FLAGS = {
     "xla_backend_optimization_level": "0",
     "xla_cpu_parallel_codegen_split_count": "1",
 }
+
+#: XLA:CPU options of every other (optimised) program: LLVM at -O1 instead of XLA's -O2. The
+#: heavy arithmetic runs in library kernels (dot, Cholesky), which the LLVM level does not touch;
+#: the fused loops ran as fast: the Figure-3 joint iteration compiled in 5.7–5.8 instead of
+#: 8.0–8.1 s and ran 0.98–0.99× the time, the single-Lorenz smoother 2.6 against 3.1 s and
+#: 1.03–1.05× the time, Algorithm 1's Figure-3 epoch 0.62 against 0.64 s; outputs bitwise
+#: equal (benchmarks/README.md, "LLVM -O1").
+OPTIMISED_COMPILE_FLAGS = {"xla_backend_optimization_level": "1"}
 
 _OFF = ("0", "off", "none", "false", "no")
 
@@ -249,7 +258,8 @@ def program_options(one_shot: bool = False) -> dict[str, Any]:
     ceemx module is imported.
     """
     one_shot = one_shot and os.environ.get("CEEMX_ONE_SHOT", "").strip().lower() not in _OFF
-    add = _flags_to_add({**FAST_COMPILE_FLAGS, **(ONE_SHOT_COMPILE_FLAGS if one_shot else {})})
+    tier = ONE_SHOT_COMPILE_FLAGS if one_shot else OPTIMISED_COMPILE_FLAGS
+    add = _flags_to_add({**FAST_COMPILE_FLAGS, **tier})
     return {} if add is None else {k: _option_value(v) for k, v in add.items()}
 
 
