@@ -31,12 +31,21 @@ from ceemx.lib.blocktri import (
     BlockTridiagonal,
     BlockTridiagonalCholesky,
     cholesky,
+    diagonal_inverses,
+    forward_solve,
     is_finite,
     solve,
 )
 from ceemx.lib.dense import after, cholesky_solve
 
-__all__ = ["ArrowheadSolution", "arrowhead_solve", "arrowhead_solve_matrix_free", "pcg"]
+__all__ = [
+    "ArrowheadSolution",
+    "arrowhead_solve",
+    "arrowhead_solve_matrix_free",
+    "factor",
+    "pcg",
+    "schur_terms",
+]
 
 
 class ArrowheadSolution(eqx.Module):
@@ -63,18 +72,39 @@ class ArrowheadSolution(eqx.Module):
     method: str = eqx.field(static=True)
 
 
-def _solve_b(L: BlockTridiagonalCholesky, b: Array) -> Array:
-    """Batched ``A_b^{-1} b_b`` over the leading trajectory axis."""
-    return jax.vmap(solve)(L, b)
+def _solve_b(L: BlockTridiagonalCholesky, b: Array, inv: Array | None = None) -> Array:
+    """Batched ``A_b^{-1} b_b`` over the leading trajectory axis (``inv``: see :func:`factor`)."""
+    return jax.vmap(solve)(L, b, inv)
 
 
-def _dense_schur(Z, E, D, rhs):
-    """Form and factor ``S`` from ``Z_b = A_b^{-1} E_b``; return ``(dtheta, S_ok)``."""
-    S = D - jnp.sum(jnp.einsum("btnp,btnq->bpq", E, Z), axis=0)
-    return cholesky_solve(S, rhs)
+def factor(A: BlockTridiagonal) -> tuple[BlockTridiagonalCholesky, Array | None]:
+    """The batched block Cholesky factors of ``A_b`` and their diagonal blocks' inverses.
+
+    The inverses (:func:`~ceemx.lib.blocktri.diagonal_inverses`, ``None`` for small blocks) are
+    computed once, by one LAPACK call after the factorisation, and passed to every solve with
+    these factors: the solves are then matrix products only.
+    """
+    L = jax.vmap(cholesky)(A)
+    return L, jax.vmap(diagonal_inverses)(L)
 
 
-def _schur_diag(L, E, chunk: int):
+def schur_terms(
+    L: BlockTridiagonalCholesky, inv: Array | None, E: Array, r: Array | None = None
+) -> tuple[Array, Array | None]:
+    """``(Σ_b E_bᵀ A_b⁻¹ E_b, Σ_b E_bᵀ A_b⁻¹ r_b)`` by forward substitution alone.
+
+    With W_b = L_b⁻¹ E_b and w_b = L_b⁻¹ r_b (one forward pass over [r_b | E_b]) the two are
+    Σ W_bᵀ W_b and Σ W_bᵀ w_b: half the triangular work of A_b⁻¹ E_b. ``r`` may be ``None``.
+    """
+    rhs = E if r is None else jnp.concatenate([r[..., None], E], axis=-1)
+    Wf = jax.vmap(forward_solve)(L, rhs, inv)
+    W = Wf if r is None else Wf[..., 1:]
+    EtE = jnp.sum(jnp.einsum("btnp,btnq->bpq", W, W), axis=0)
+    Etr = None if r is None else jnp.sum(jnp.einsum("btnp,btn->bp", W, Wf[..., 0]), axis=0)
+    return EtE, Etr
+
+
+def _schur_diag(L, E, chunk: int, inv: Array | None = None):
     """Exact ``diag(sum_b E_b^T A_b^{-1} E_b)``, computed over column chunks of ``E``.
 
     Peak memory is ``O(B T n chunk)`` instead of ``O(B T n theta)``.
@@ -87,7 +117,7 @@ def _schur_diag(L, E, chunk: int):
     Ec = jnp.moveaxis(Ep.reshape(*E.shape[:3], n_chunks, chunk), 3, 0)
 
     def one(Ei):
-        return jnp.sum(Ei * _solve_b(L, Ei), axis=(0, 1, 2))
+        return jnp.sum(Ei * _solve_b(L, Ei, inv), axis=(0, 1, 2))
 
     return jax.lax.map(one, Ec).reshape(-1)[:P]
 
@@ -197,31 +227,31 @@ def arrowhead_solve(
     if method not in ("dense", "cg"):
         raise ValueError(f"unknown method {method!r}")
 
-    L = jax.vmap(cholesky)(A)
+    L, inv = factor(A)
     a_ok = jnp.all(jax.vmap(is_finite)(L))
     # Batched block solves with the same factors are never left independent of each other (two
-    # batched LAPACK calls running at once can deadlock, ceemx.lib.dense): the dense method
-    # solves [r_b | E_b] in one multi-RHS pass, the CG method orders its solves after A_b⁻¹ r_b.
+    # batched LAPACK calls running at once can deadlock, ceemx.lib.dense): the solves read the
+    # inverses of the factors' diagonal blocks, computed once (no LAPACK call in the solves
+    # then); the dense method's final solve needs dθ, the CG method orders its solves after
+    # A_b⁻¹ r_b.
     if method == "dense":
-        wZ = _solve_b(L, jnp.concatenate([r_x[..., None], E], axis=-1))
-        w, Z = wZ[..., 0], wZ[..., 1:]  # A_b^{-1} r_b, A_b^{-1} E_b
-    else:
-        w, Z = _solve_b(L, r_x), None
-        E = after(E, w)
-    rhs = r_theta - jnp.sum(jnp.einsum("btnp,btn->bp", E, w), axis=0)
-
-    if method == "dense":
-        dtheta, s_ok = _dense_schur(Z, E, D, rhs)
+        EtZ, Etw = schur_terms(L, inv, E, r_x)
+        assert Etw is not None
+        dtheta, s_ok = cholesky_solve(D - EtZ, r_theta - Etw)
         steps = jnp.asarray(0, jnp.int32)
         converged = jnp.asarray(True)
+        dx = _solve_b(L, r_x - jnp.einsum("btnp,p->btn", E, dtheta), inv)
     else:
+        w = _solve_b(L, r_x, inv)
+        E = after(E, w)
+        rhs = r_theta - jnp.sum(jnp.einsum("btnp,btn->bp", E, w), axis=0)
 
         def S_mv(v):
             Ev = jnp.einsum("btnp,p->btn", E, v)
-            return D @ v - jnp.sum(jnp.einsum("btnp,btn->bp", E, _solve_b(L, Ev)), axis=0)
+            return D @ v - jnp.sum(jnp.einsum("btnp,btn->bp", E, _solve_b(L, Ev, inv)), axis=0)
 
         if cg_preconditioner == "schur_diag":
-            d = jnp.diagonal(D) - _schur_diag(L, E, cg_chunk)
+            d = jnp.diagonal(D) - _schur_diag(L, E, cg_chunk, inv)
         elif cg_preconditioner == "d_diag":
             d = jnp.diagonal(D)
         elif cg_preconditioner == "none":
@@ -232,8 +262,8 @@ def arrowhead_solve(
         max_steps = P if cg_max_steps is None else cg_max_steps
         dtheta, steps, converged, broken = pcg(S_mv, rhs, m_inv, cg_rtol, max_steps)
         s_ok = ~broken & jnp.all(jnp.isfinite(dtheta))
+        dx = w - _solve_b(L, jnp.einsum("btnp,p->btn", E, dtheta), inv)
 
-    dx = w - _solve_b(L, jnp.einsum("btnp,p->btn", E, dtheta))
     ok = a_ok & s_ok & jnp.all(jnp.isfinite(dx)) & jnp.all(jnp.isfinite(dtheta))
     return ArrowheadSolution(
         dx=jnp.where(ok, dx, 0.0).astype(r_x.dtype),
@@ -283,14 +313,14 @@ def arrowhead_solve_matrix_free(
         steps) when an ``A_b`` factor is not finite or CG met non-positive curvature in ``S``.
     """
     P = r_theta.shape[0]
-    L = jax.vmap(cholesky)(A)
+    L, inv = factor(A)
     a_ok = jnp.all(jax.vmap(is_finite)(L))
-    w = _solve_b(L, r_x)  # A_b^{-1} r_b
+    w = _solve_b(L, r_x, inv)  # A_b^{-1} r_b
     rhs = r_theta - border_t(w)
 
     def S_mv(v):
         Ev, Dv = border(v)
-        return Dv - border_t(_solve_b(L, Ev))  # each solve reads the previous step's result
+        return Dv - border_t(_solve_b(L, Ev, inv))
 
     if preconditioner is None:
         m_inv = jnp.ones((P,), r_theta.dtype)
@@ -301,7 +331,7 @@ def arrowhead_solve_matrix_free(
     dtheta, steps, converged, broken = pcg(S_mv, rhs, m_inv, cg_rtol, max_steps)
     s_ok = ~broken & jnp.all(jnp.isfinite(dtheta))
     Ed, _ = border(dtheta)
-    dx = w - _solve_b(L, Ed)
+    dx = w - _solve_b(L, Ed, inv)
     ok = a_ok & s_ok & jnp.all(jnp.isfinite(dx))
     return ArrowheadSolution(
         dx=jnp.where(ok, dx, 0.0).astype(r_x.dtype),

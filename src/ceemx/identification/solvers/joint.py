@@ -79,7 +79,8 @@ from ceemx.infra.options import (
     check_positive,
 )
 from ceemx.infra.warn import warn
-from ceemx.lib.blocktri import BlockTridiagonal, cholesky, is_finite, solve
+from ceemx.lib.arrowhead import factor, schur_terms
+from ceemx.lib.blocktri import BlockTridiagonal, is_finite
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, codes, select
@@ -195,10 +196,11 @@ class JointLM(AbstractFitSolver):
         """Refuse arrays that would not fit in memory (:func:`ceemx.infra.memory.check_fits`)."""
         if self.border == "matrix-free":
             # The x-blocks A_b, their damped copy, factors and the LM loop's copies: ≈ 12
-            # B·T·n² arrays at the measured peak (6.5 GB at n = 120, B = 16, T = 256).
+            # B·T·n² arrays at the measured peak (6.5 GB at n = 120, B = 16, T = 256), and the
+            # factors' inverted diagonal blocks (ceemx.lib.arrowhead.factor).
             check_fits(
-                f"JointLM(border='matrix-free')'s x-blocks (≈ 12 arrays of {B} × {T} × {n} × {n})",
-                (12 * B * T * n * n + 8 * P) * itemsize,
+                f"JointLM(border='matrix-free')'s x-blocks (≈ 13 arrays of {B} × {T} × {n} × {n})",
+                (13 * B * T * n * n + 8 * P) * itemsize,
                 "use fewer trajectories, or ceemx.Alternating with LMSmoother(batch_chunk=...) "
                 "and a matrix-free learner (ceemx.GaussNewtonCGLearner).",
             )
@@ -472,11 +474,10 @@ def schur_complement(
     solves that read it: no two LAPACK calls are independent in this program.
     """
     _, lin = linearize_joint(problem, weights, theta, states)
-    L = jax.vmap(cholesky)(lin.A)
+    L, inv = factor(lin.A)
     a_ok = jnp.all(jax.vmap(is_finite)(L))
-    Z = jax.vmap(solve)(L, lin.E)  # A_b⁻¹ E_b, (B, T, n, P)
-    S = lin.D - jnp.sum(jnp.einsum("btnp,btnq->bpq", lin.E, Z), axis=0)
-    return symmetrize(S), a_ok
+    EtZ, _ = schur_terms(L, inv, lin.E)  # Σ_b E_bᵀ A_b⁻¹ E_b by forward passes
+    return symmetrize(lin.D - EtZ), a_ok
 
 
 def identifiability_at(
