@@ -99,8 +99,8 @@ def schur_terms(
     rhs = E if r is None else jnp.concatenate([r[..., None], E], axis=-1)
     Wf = jax.vmap(forward_solve)(L, rhs, inv)
     W = Wf if r is None else Wf[..., 1:]
-    EtE = jnp.sum(jnp.einsum("btnp,btnq->bpq", W, W), axis=0)
-    Etr = None if r is None else jnp.sum(jnp.einsum("btnp,btn->bp", W, Wf[..., 0]), axis=0)
+    EtE = jnp.einsum("btnp,btnq->pq", W, W)  # one product over (b, t, n), not B summed
+    Etr = None if r is None else jnp.einsum("btnp,btn->p", W, Wf[..., 0])
     return EtE, Etr
 
 
