@@ -273,3 +273,30 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
         with pytest.raises(Stop):
             solver.initial_states(system, data)
         assert calls.pop() == want, type(solver).__name__
+
+
+def test_join_runs_the_jobs_the_worker_has_not_started():
+    """``join()`` takes the waiting compile jobs into the calling thread; a failing job is
+    dropped (the later call compiles and reports it)."""
+    import threading
+
+    started, release = threading.Event(), threading.Event()
+    ran = {}
+
+    def first():
+        started.set()
+        release.wait(10)
+        ran["first"] = threading.current_thread().name
+
+    def failing():
+        raise RuntimeError("dropped")
+
+    def last():
+        ran["last"] = threading.current_thread().name
+        release.set()
+
+    jobs = compilation.compile_in_background([first, failing, last])
+    assert started.wait(10)
+    jobs.join()
+    assert ran == {"first": "ceemx-compile", "last": threading.current_thread().name}
+    assert not jobs.is_alive()

@@ -29,14 +29,19 @@ from ceemx.lib import (  # noqa: E402
     solve,
     to_dense,
 )
+from ceemx.lib.arrowhead import factor, schur_terms  # noqa: E402
+from ceemx.lib.blocktri import backward_solve, forward_solve  # noqa: E402
 
 # (1, 1) is the edge of both n = 1 (1×1 blocks) and T = 1 (empty sub-diagonal, zero-length
-# scans), (3, 4) the general case; (1, 5) and (3, 1) check each edge again with the other dimension
-# general (no code path of ceemx.lib.blocktri depends on n = 1 or T = 1), so they are slow with the
-# larger shapes. Every test of the family uses these shapes: one compilation per shape.
+# scans), (3, 4) the general case of small blocks (elementwise kernels), (9, 3) that of large ones
+# (LAPACK factors, solves by the inverted diagonal blocks); (1, 5) and (3, 1) check each edge
+# again with the other dimension general (no code path of ceemx.lib.blocktri depends on n = 1 or
+# T = 1), so they are slow with the larger shapes. Every test of the family uses these shapes:
+# one compilation per shape.
 SHAPES = [
     (1, 1),
     (3, 4),
+    (9, 3),
     pytest.param(1, 5, marks=pytest.mark.slow),
     pytest.param(3, 1, marks=pytest.mark.slow),
     pytest.param(5, 17, marks=pytest.mark.slow),
@@ -80,6 +85,8 @@ def _factor_and_solve(A, x, X, b, Bm):
     seconds)."""
     L = cholesky(A)
     return dict(
+        forward_B=forward_solve(L, Bm),
+        backward_B=backward_solve(L, Bm),
         dense=to_dense(A),
         Ax=matvec(A, x),
         AX=matvec(A, X),
@@ -119,6 +126,10 @@ def test_dense_matvec_solve_logdet(n, T):
     assert bool(out["finite"])
     Ld = np.asarray(out["L"])
     assert rel_err(Ld @ Ld.T, Ad) < 1e-12
+    # The two halves of a solve: L⁻¹ B and L⁻ᵀ B (the Schur complement's forward passes).
+    B2 = Bm.reshape(T * n, 4)
+    assert rel_err(out["forward_B"], np.linalg.solve(Ld, B2).reshape(T, n, 4)) < 1e-10
+    assert rel_err(out["backward_B"], np.linalg.solve(Ld.T, B2).reshape(T, n, 4)) < 1e-10
 
     assert rel_err(out["solve_b"], np.linalg.solve(Ad, b.ravel()).reshape(T, n)) < 1e-10
     ref = np.linalg.solve(Ad, Bm.reshape(T * n, 4)).reshape(T, n, 4)
@@ -248,6 +259,7 @@ def dense_arrow(mats, E, D, r_x, r_t):
     [
         (1, 1, 1, 1),
         ARROW,
+        (2, 3, 9, 4),  # blocks above UNROLL_MAX
         pytest.param(3, 5, 2, 4, marks=pytest.mark.slow),
         pytest.param(2, 7, 3, 6, marks=pytest.mark.slow),
     ],
@@ -325,3 +337,17 @@ def test_arrowhead_bad_state_block():
         sol = solve_arrow(A, E, D, r_x, r_t, **kw)
         assert not bool(sol.ok)
         assert np.all(np.isfinite(sol.dx)) and np.all(np.isfinite(sol.dtheta))
+
+
+@pytest.mark.parametrize("n", [2, 9])  # elementwise kernels; inverted diagonal blocks
+def test_schur_terms_by_forward_passes(n):
+    """Σ_b E_bᵀ A_b⁻¹ E_b and Σ_b E_bᵀ A_b⁻¹ r_b from forward substitution alone = dense."""
+    rng = np.random.default_rng(70 + n)
+    mats, A, E, _, r_x, _ = arrow_problem(rng, 2, 3, n, 4)
+    EtE, Etr = jax.jit(lambda A, E, r: schur_terms(*factor(A), E, r))(A, E, r_x)
+    assert rel_err(EtE, schur_part(mats, E)) < 1e-10
+    ref = sum(
+        E[b].reshape(-1, 4).T @ np.linalg.solve(dense_np(Ab), r_x[b].ravel())
+        for b, Ab in enumerate(mats)
+    )
+    assert rel_err(Etr, ref) < 1e-10

@@ -273,7 +273,7 @@ def linearize(
         SGt = Sv_mul(Gt)
         D = D + jnp.einsum("tmp,tmq->pq", SGt, SGt)
         grad_theta = grad_theta + jnp.einsum("tmp,tm->p", Gt, gv)
-        if x_blocks is not None:
+        if E is not None and x_blocks is not None:
             E = E + mT(x_blocks[0]) @ SGt
     if T > 1 and depends_on(dyn_res, 1, x[0], theta, u[0], ts[0]):
         Ft = jax.vmap(auto_jacobian(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
@@ -282,7 +282,7 @@ def linearize(
         SFt = Sw_mul(Ft)
         D = D + jnp.einsum("tnp,tnq->pq", SFt, SFt)
         grad_theta = grad_theta + jnp.einsum("tnp,tn->p", Ft, gw)
-        if x_blocks is not None:
+        if E is not None and x_blocks is not None:
             E = E.at[:-1].add(mT(x_blocks[1]) @ SFt)
             E = E.at[1:].add(SwT_mul(SFt))
     if E is not None:

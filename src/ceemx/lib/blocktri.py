@@ -208,10 +208,11 @@ def diagonal_inverses(L: BlockTridiagonalCholesky) -> Float[Array, "T n n"] | No
     left independent of each other can deadlock, ``ceemx.lib.dense``); small blocks are solved
     by elementwise code and need none. Computed after the factorisation (it reads it).
     """
-    n = L.diagonal.shape[-1]
-    if n <= dense.UNROLL_MAX:
-        return None
-    eye = jnp.broadcast_to(jnp.eye(n, dtype=L.diagonal.dtype), L.diagonal.shape)
+    return None if L.diagonal.shape[-1] <= dense.UNROLL_MAX else _inverses(L)
+
+
+def _inverses(L: BlockTridiagonalCholesky) -> Float[Array, "T n n"]:
+    eye = jnp.broadcast_to(jnp.eye(L.diagonal.shape[-1], dtype=L.diagonal.dtype), L.diagonal.shape)
     return lapack_solve_triangular(L.diagonal, eye, lower=True)
 
 
@@ -226,7 +227,7 @@ def forward_solve(
     B, squeeze = _as_matrix_rhs(b)
     n = L.diagonal.shape[-1]
     if n > dense.UNROLL_MAX:
-        inv = diagonal_inverses(L) if inv is None else inv
+        inv = _inverses(L) if inv is None else inv
         Y = _forward_by_inverses(L, after(B, inv), inv)
     else:
         # XLA reads L.diagonal[0] from before the factorisation's scan: `after` orders it.
@@ -249,7 +250,7 @@ def backward_solve(
     Y, squeeze = _as_matrix_rhs(y)
     n = L.diagonal.shape[-1]
     if n > dense.UNROLL_MAX:
-        inv = diagonal_inverses(L) if inv is None else inv
+        inv = _inverses(L) if inv is None else inv
         X = _backward_by_inverses(L, after(Y, inv), inv)
     else:
         xT = _trsm(L.diagonal[-1], Y[-1], trans=True)
