@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,6 +24,7 @@ from ceemx.evaluation import metrics as ev
 from ceemx.experiments import common
 from ceemx.identification.driver import precompile_fit
 from ceemx.identification.initialize import warm_start
+from ceemx.identification.noise_check import NoiseCheckWarning
 from ceemx.models import with_noise
 from ceemx.systems import CoupledLorenz
 from ceemx.systems.lorenz import coupling_mask
@@ -75,17 +77,24 @@ def identify(true, problem, *, method: str, max_epochs: int, say) -> Identified:
     compiling.join()
     say(f"start: ε(θ) = {eps0:.6g}, state RMSE {state_rmse(problem, x_init):.4g}")
     timer = ev.FitTimer().start()
-    res = fit(
-        system,
-        problem.data,
-        x_init,
-        solver=solver,
-        trainable=common.LORENZ_PARAMS_H,
-        max_epochs=max_epochs,
-        callbacks=[record_eps, timer],
-        progress=False,
-    )
+    with warnings.catch_warnings():  # the noise check's finding is shown below, with its reason
+        warnings.simplefilter("ignore", NoiseCheckWarning)
+        res = fit(
+            system,
+            problem.data,
+            x_init,
+            solver=solver,
+            trainable=common.LORENZ_PARAMS_H,
+            max_epochs=max_epochs,
+            callbacks=[record_eps, timer],
+            progress=False,
+        )
     assert isinstance(res.system, CoupledLorenz)
+    if res.noise_check is not None and res.noise_check.message:
+        say(
+            "noise check (expected here: the simulated data have no process noise, the fit "
+            f"assumes σ_w = 0.01): {res.noise_check.message}"
+        )
     return Identified(res, [eps0] + [h["eps"] for h in res.history], timer.per_epoch())
 
 
