@@ -273,10 +273,9 @@ def solve(
 
     A forward scan solves ``L y = b`` and a backward scan solves ``L^T x = y``. Blocks above
     ``UNROLL_MAX`` use the inverted diagonal blocks (``inv``, :func:`diagonal_inverses`,
-    computed here when not given): every step is then matrix products (half of them, the
-    products with ``L[t, t]⁻¹`` of the right-hand side, batched over all t outside the scan)
-    instead of two LAPACK triangular solves, whose dispatch cost more than their arithmetic
-    (n = 18, 343 right-hand sides, B = 4, T = 128: 98 → … ms).
+    computed here when not given): every step is then two matrix products instead of a product
+    and a LAPACK triangular solve, whose dispatch cost more than its arithmetic (n = 18, 343
+    right-hand sides, B = 4, T = 128: 184 → 98 ms; benchmarks/README.md, "First result sooner").
 
     Args:
         L: Factor returned by :func:`cholesky`.
