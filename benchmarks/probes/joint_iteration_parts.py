@@ -8,14 +8,22 @@ parameters), the demo's data and warm start. Each program is compiled once, then
 identifiability check's Schur complement (``schur_complement``, compiled one-shot at this size),
 the whole joint iteration (``_iteration``), the batched block Cholesky of the state blocks, its
 diagonal blocks' inverses, the forward half of a solve with the 342 border columns, a whole
-solve with them, a one-right-hand-side solve, and Σ_b Wᵀ W. Record ``uptime``.
+solve with them, a one-right-hand-side solve, and Σ_b Wᵀ W. First, before any of those: the
+joint iteration's ahead-of-time compile in the fresh process — wall and process CPU seconds of
+``lower`` and of ``compile`` (the CPU above the wall is XLA:CPU's parallel code generation) —
+and the identifiability S's first call (compile and run); ``CEEMX_ONE_SHOT=0`` compiles S
+optimised instead of one-shot.
+Record ``uptime``.
 
 Backs: ``benchmarks/README.md`` ("First result sooner": the 343-right-hand-side solve, the joint
 iteration and S before/after the block solves by inverted diagonal blocks, the linearisation
-before/after the observation map's zero θ-Jacobian was skipped).
+before/after the observation map's zero θ-Jacobian was skipped; the iteration's compile CPU at
+-O1 against -O2 — ``XLA_FLAGS=--xla_backend_optimization_level=2`` — and S one-shot against
+optimised).
 """
 
 import os
+import resource
 import time
 
 import jax
@@ -45,6 +53,11 @@ def timeit(name, f, n=5):
     print(f"{name:28s} {np.median(ts) * 1e3:8.1f} ms  (min {min(ts) * 1e3:.1f})", flush=True)
 
 
+def cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def main() -> None:
     print("load", os.getloadavg())
     true = common.true_lorenz(6, key=jax.random.PRNGKey(4), obs_noise=0.01)
@@ -55,6 +68,18 @@ def main() -> None:
     w = jnp.ones((4,))
     solver = trace_numbers(ceemx.JointLM(), x.dtype)
     lam = jnp.asarray(solver.damping, x.dtype)
+    t, c = time.perf_counter(), cpu()
+    lowered = joint._iteration.lower(solver, problem, w, theta, x, lam)
+    t1, c1 = time.perf_counter(), cpu()
+    lowered.compile()
+    t2, c2 = time.perf_counter(), cpu()
+    print(
+        f"iteration: trace+lower {t1 - t:.2f} s (cpu {c1 - c:.2f}), "
+        f"compile {t2 - t1:.2f} s (cpu {c2 - c1:.2f})"
+    )
+    t = time.perf_counter()
+    jax.block_until_ready(joint.schur_complement(problem, theta, x, w))
+    print(f"schur_complement first call (compile + run) {time.perf_counter() - t:.2f} s")
     timeit("linearize_joint", lambda: joint.linearize_joint(problem, w, theta, x))
     timeit("schur_complement", lambda: joint.schur_complement(problem, theta, x, w))
     timeit("iteration", lambda: joint._iteration(solver, problem, w, theta, x, lam))

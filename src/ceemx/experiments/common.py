@@ -183,13 +183,9 @@ def true_lorenz(
 
 
 @jit(one_shot=True)
-def _split(key, n: int):
-    return tuple(jax.random.split(key, n))
-
-
 def split_key(key, n: int) -> tuple:
     """``jax.random.split(key, n)`` as a tuple, by one one-shot program (the same keys)."""
-    return _split(key, n)
+    return tuple(jax.random.split(key, n))
 
 
 LORENZ_PARAMS = lambda s: (s.sigma, s.rho, s.beta)  # noqa: E731

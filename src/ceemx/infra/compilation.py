@@ -17,8 +17,9 @@ space.
 the solver's epoch programs there while the main thread computes the start states (XLA releases
 the interpreter lock while it compiles), and the main thread's ``join()`` compiles the jobs the
 worker has not started. XLA:CPU already spreads one large program's code generation over the
-cores (the demo's joint iteration: 10 s of CPU in 5.5 s), so the gain is the main thread's idle
-time, not a second core.
+cores (the demo's joint iteration: 6.1 s of CPU in 3.5 s,
+``benchmarks/probes/joint_iteration_parts.py``), so the gain is the main thread's idle time,
+not a second core.
 """
 
 from __future__ import annotations
