@@ -352,9 +352,9 @@ def test_benchmarks_smoke(tmp_path):
     }
     for d in saved["datasets"]:
         for entry in d["tests"].values():
-            for key in ("graybox", "hybrid", "learned", "linear"):
+            for key in ("graybox", "hybrid", "neural", "linear_ceem", "linear"):
                 assert math.isfinite(entry[f"{key}_rmse"]) and entry[f"{key}_rmse"] > 0, key
-        assert set(d["learned"]) == {"hybrid", "learned"}
+        assert set(d["learned"]) == {"hybrid", "neural"}
         assert d["learned"]["hybrid"]["weights"] > 0
     with pytest.raises(SystemExit):
         cli.main(["experiment", "benchmarks", "--method", "particle"])
