@@ -343,3 +343,28 @@ def test_affine_sid_recovers_an_offset_system():
     x0 = np.linalg.lstsq(obs.reshape(-1, 2), (y[1] - sim).reshape(-1), rcond=None)[0]
     sim = sim + obs @ x0
     assert float(np.max(np.abs(sim - y[1]))) < 1e-6 * float(np.std(y))
+
+
+def test_refine_linear_refuses_bad_input():
+    """refine_linear names the argument and the problem before any compute."""
+    import jax.numpy as jnp
+
+    import ceemx
+    from ceemx.baselines import refine_linear, with_constant_input
+    from ceemx.systems import LinearSystem
+
+    model = LinearSystem(np.eye(2) * 0.5, np.ones((1, 2)), np.ones((2, 2)), np.zeros((1, 2)))
+    data = ceemx.Trajectories(jnp.ones((1, 20, 1)).at[0, ::2].set(2.0), jnp.ones((1, 20, 1)))
+    with pytest.raises(TypeError, match="`model`"):
+        refine_linear("A", with_constant_input(data))  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="`data`"):
+        refine_linear(model, np.ones((1, 20, 1)))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="with_constant_input"):
+        refine_linear(model, data)
+    with pytest.raises(ValueError, match="`process_noise`"):
+        refine_linear(model, with_constant_input(data), process_noise=0.0)
+    with pytest.raises(ValueError, match="`obs_noise`"):
+        refine_linear(model, with_constant_input(data), obs_noise=float("nan"))
+    flat = ceemx.Trajectories(jnp.ones((1, 20, 1)), jnp.ones((1, 20, 1)))
+    with pytest.raises(ValueError, match="vary"):
+        refine_linear(model, with_constant_input(flat))

@@ -6,7 +6,7 @@ inputs) or, for SID, linear state-space systems predicted by the Kalman filter.
 
 from ceemx.baselines.lstm import LSTMRegressor
 from ceemx.baselines.regressors import LagRegressor, lag_windows
-from ceemx.baselines.sid import fit_affine_sid, fit_sid, with_constant_input
+from ceemx.baselines.sid import fit_affine_sid, fit_sid, refine_linear, with_constant_input
 from ceemx.baselines.training import TrainInfo, fit_lag, fit_lstm, fit_naive, train_regressor
 
 __all__ = [
@@ -19,6 +19,7 @@ __all__ = [
     "fit_naive",
     "fit_sid",
     "lag_windows",
+    "refine_linear",
     "train_regressor",
     "with_constant_input",
 ]

@@ -18,7 +18,7 @@ data); ``fit_sid(data, subsets=10, subset_size=100)`` does that.
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import jax.numpy as jnp
 import numpy as np
@@ -30,7 +30,10 @@ from ceemx.models.noise import CholeskyGaussian
 from ceemx.models.system import GaussianPrior
 from ceemx.systems.linear import LinearSystem
 
-__all__ = ["fit_affine_sid", "fit_sid", "sid_system", "with_constant_input"]
+__all__ = ["fit_affine_sid", "fit_sid", "refine_linear", "sid_system", "with_constant_input"]
+
+if TYPE_CHECKING:
+    from ceemx.identification.driver import FitResult
 
 _TINY = float(np.finfo(np.float64).tiny)
 
@@ -322,3 +325,69 @@ def fit_affine_sid(
     fitted = dataclasses.replace(result, A=A, B=B, D=D, x0=x0, stabilized=stabilized)
     power = float(np.mean(np.concatenate([a.ravel() for a in ys]) ** 2))
     return sid_system(fitted, noise=noise, output_power=power, dtype=data.y.dtype)
+
+
+@no_type_check  # checks its arguments itself, with messages naming them
+def refine_linear(
+    model: LinearSystem,
+    data: Trajectories,
+    *,
+    process_noise: float = 1e-3,
+    obs_noise: float = 0.05,
+    max_epochs: int = 200,
+) -> FitResult:
+    """A linear model (e.g. :func:`fit_affine_sid`'s) refined by CE-EM for simulation.
+
+    The joint method (:class:`ceemx.JointLM`) on A, B, C, D from ``model``, with diagonal
+    process and observation noise of ``process_noise`` and ``obs_noise`` times the standard
+    deviation of ``data.y`` and no initial-state prior: a small process noise weights the
+    dynamics stiffly, so the CE fit comes close to an output-error (simulation-error) fit where
+    N4SID fits one-step prediction. On the cascaded tanks (order 2, affine) the free-run test
+    RMSE goes from 1.88 V (:func:`fit_affine_sid`) to 0.699 V, below the published best linear
+    approximation (0.75 V; docs/results.md). The result's states are a start for a learned
+    model on top: ``ceemx.hybrid(result.system, data, states=result.states)`` is a neural
+    state-space model x⁺ = A x + B u + N(x, u) that starts at the linear model.
+
+    The state coordinates of a linear model are free up to a similarity transform, so the fit
+    usually ends at ``max_epochs`` without ``converged`` (J flattens along the transform).
+
+    Args:
+        model: the linear start (for an affine one, ``data`` must carry the constant channel:
+            :func:`with_constant_input`).
+        data: the training records, as ``model`` reads them.
+        process_noise: process noise std relative to std(y).
+        obs_noise: observation noise std relative to std(y).
+        max_epochs: joint iterations at most.
+
+    Returns:
+        The :class:`ceemx.FitResult` (``result.system`` the refined model).
+    """
+    from ceemx.identification.driver import fit
+    from ceemx.identification.solvers.joint import JointLM
+
+    if not isinstance(model, LinearSystem):
+        raise TypeError(
+            f"`model` must be a ceemx.systems.LinearSystem; got {type(model).__name__}."
+        )
+    if not isinstance(data, Trajectories):
+        raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
+    if data.u.shape[-1] != model.input_dim:
+        raise ValueError(
+            f"`data` has {data.u.shape[-1]} input channels, `model` reads {model.input_dim}"
+            " (an affine model from fit_affine_sid reads with_constant_input(data))."
+        )
+    for name, value in (("process_noise", process_noise), ("obs_noise", obs_noise)):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"`{name}` must be positive and finite; got {value}.")
+    scale = float(np.nanstd(np.asarray(data.y)))
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError("`data.y` must vary (its standard deviation sets the noise scales).")
+    guess = LinearSystem(
+        model.A,
+        model.C,
+        model.B,
+        model.D,
+        process_noise=process_noise * scale,
+        obs_noise=obs_noise * scale,
+    )
+    return fit(guess, data, solver=JointLM(), max_epochs=max_epochs, diagnose=False)

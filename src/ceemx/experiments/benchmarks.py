@@ -293,33 +293,26 @@ def _fit_linear(train, order: int):
 
 
 def _refine_linear(n4sid, train, settings: Settings):
-    """The N4SID model refined by CE-EM: the joint method on A, B, C, D (:data:`LINEAR_NOISE`).
+    """N4SID's model refined by CE-EM (:func:`ceemx.baselines.refine_linear`, :data:`LINEAR_NOISE`).
 
     Returns the fit result (its states start the neural model) and its summary.
     """
-    from ceemx import JointLM, fit
-    from ceemx.baselines import with_constant_input
-    from ceemx.systems import LinearSystem
+    from ceemx.baselines import refine_linear, with_constant_input
 
-    data = with_constant_input(train)
-    scale = float(np.nanstd(np.asarray(train.y)))
-    guess = LinearSystem(
-        n4sid.A,
-        n4sid.C,
-        n4sid.B,
-        n4sid.D,
-        process_noise=LINEAR_NOISE[0] * scale,
-        obs_noise=LINEAR_NOISE[1] * scale,
-    )
     t0 = time.perf_counter()
-    result = fit(guess, data, solver=JointLM(), max_epochs=settings.max_epochs, diagnose=False)
+    result = refine_linear(
+        n4sid,
+        with_constant_input(train),
+        process_noise=LINEAR_NOISE[0],
+        obs_noise=LINEAR_NOISE[1],
+        max_epochs=settings.max_epochs,
+    )
     A = np.asarray(getattr(result.system, "A"))  # noqa: B009  (a LinearSystem)
-    radius = float(np.max(np.abs(np.linalg.eigvals(A))))
     return result, {
         "epochs": len(result.history),
         "converged": bool(result.converged),
         "wall_s": time.perf_counter() - t0,
-        "spectral_radius": radius,
+        "spectral_radius": float(np.max(np.abs(np.linalg.eigvals(A)))),
     }
 
 
