@@ -368,3 +368,33 @@ def test_refine_linear_refuses_bad_input():
     flat = ceemx.Trajectories(jnp.ones((1, 20, 1)), jnp.ones((1, 20, 1)))
     with pytest.raises(ValueError, match="vary"):
         refine_linear(model, with_constant_input(flat))
+
+
+def test_output_spread_counts_observed_entries_per_output():
+    """The noise scales of refine_linear: masked entries (stored as zeros) excluded, one spread
+    per output (outputs in different units), the pooled one for an output never observed."""
+    from ceemx.baselines.sid import output_spread
+
+    rng = np.random.default_rng(3)
+    y = np.stack([5.0 + rng.standard_normal((2, 50)), 100.0 * rng.standard_normal((2, 50)),
+                  rng.standard_normal((2, 50))], axis=-1)  # fmt: skip
+    mask = np.ones((2, 50, 3), bool)
+    mask[1, 30:, :] = False  # padding of a shorter record
+    mask[:, :, 2] = False  # an output never observed
+    data = ceemx_trajectories(y, mask)
+    pooled, per = output_spread(data)
+    observed = y[:, :, :2][mask[:, :, :2]]
+    assert pooled == pytest.approx(np.std(observed), rel=1e-12)
+    for j in range(2):
+        assert per[j] == pytest.approx(np.std(y[:, :, j][mask[:, :, j]]), rel=1e-12)
+    assert per[2] == pooled
+    with pytest.raises(ValueError, match="vary"):
+        output_spread(ceemx_trajectories(np.ones((1, 10, 1)), np.ones((1, 10, 1), bool)))
+
+
+def ceemx_trajectories(y, mask):
+    import jax.numpy as jnp
+
+    import ceemx
+
+    return ceemx.Trajectories(jnp.asarray(y), jnp.ones(y.shape[:2] + (1,)), jnp.asarray(mask))
