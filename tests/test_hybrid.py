@@ -278,7 +278,7 @@ def test_early_stopping_keeps_the_best_and_stops_after_patience(duffing):
     assert stop.best_system is true
 
 
-@pytest.mark.slow  # N4SID, a linear CE-EM fit and a JointLM fit of ≈ 100 weights (≈ 40 s)
+@pytest.mark.slow  # N4SID, a linear CE-EM fit and a JointLM fit of ≈ 100 weights (≈ 21 s)
 def test_neural_state_space_from_a_linear_start(duffing):
     """No physics: N4SID → CE-EM linear model → + learned term, scored on a held-out record.
 

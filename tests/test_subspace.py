@@ -381,7 +381,7 @@ def test_output_spread_counts_observed_entries_per_output():
     mask = np.ones((2, 50, 3), bool)
     mask[1, 30:, :] = False  # padding of a shorter record
     mask[:, :, 2] = False  # an output never observed
-    data = ceemx_trajectories(y, mask)
+    data = _masked_trajectories(y, mask)
     pooled, per = output_spread(data)
     observed = y[:, :, :2][mask[:, :, :2]]
     assert pooled == pytest.approx(np.std(observed), rel=1e-12)
@@ -389,10 +389,10 @@ def test_output_spread_counts_observed_entries_per_output():
         assert per[j] == pytest.approx(np.std(y[:, :, j][mask[:, :, j]]), rel=1e-12)
     assert per[2] == pooled
     with pytest.raises(ValueError, match="vary"):
-        output_spread(ceemx_trajectories(np.ones((1, 10, 1)), np.ones((1, 10, 1), bool)))
+        output_spread(_masked_trajectories(np.ones((1, 10, 1)), np.ones((1, 10, 1), bool)))
 
 
-def ceemx_trajectories(y, mask):
+def _masked_trajectories(y, mask):
     import jax.numpy as jnp
 
     import ceemx

@@ -366,11 +366,11 @@ def refine_linear(
     The joint method (:class:`ceemx.JointLM`) on A, B, C, D from ``model``, with diagonal
     process and observation noise of ``process_noise`` times the standard deviation of the
     observed ``data.y`` (pooled) and ``obs_noise`` times each output's, and no initial-state
-    prior: a small process noise weights the
-    dynamics stiffly, so the CE fit comes close to an output-error (simulation-error) fit where
-    N4SID fits one-step prediction. On the cascaded tanks (order 2, affine) the free-run test
-    RMSE goes from 1.88 V (:func:`fit_affine_sid`) to 0.699 V, below the published best linear
-    approximation (0.75 V; docs/results.md). The result's states are a start for a learned
+    prior: a small process noise weights the dynamics stiffly, so the CE fit comes close to an
+    output-error (simulation-error) fit where N4SID fits one-step prediction. On the cascaded
+    tanks (order 2, affine) the free-run test RMSE goes from 1.88 V (:func:`fit_affine_sid`) to
+    0.699 V, below the published best linear approximation (0.75 V; docs/results.md,
+    ``benchmarks/probes/linear_neural_start.py``). The result's states are a start for a learned
     model on top: ``ceemx.hybrid(result.system, data, states=result.states)`` is a neural
     state-space model x⁺ = A x + B u + N(x, u) that starts at the linear model.
 

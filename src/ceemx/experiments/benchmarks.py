@@ -174,12 +174,13 @@ def _learned_starts(name: str, ds, settings: Settings, method: str, physics, ref
     return start, None if n4sid is None else _refine_linear(n4sid, fit_part, settings)[0]
 
 
-def _fit_learned(name, base, states, ds, settings: Settings, *, neural: bool):
+def _fit_learned(name, base, states, ds, settings: Settings, *, neural: bool, observation=False):
     """A learned term on ``base``, trained by the joint method with early stopping.
 
     ``neural=False``: the hybrid (the physics fit plus a learned term in its vector field, the
     physical state bounds); ``neural=True``: the neural state-space model (the CE-EM linear
-    model plus a learned term in its transition; no physics, no bounds).
+    model plus a learned term in its transition; no physics, no bounds). ``observation``: a
+    learned term in the observation too (not used by the experiment; the probes' variant).
     """
     import jax.numpy as jnp
 
@@ -188,14 +189,13 @@ def _fit_learned(name, base, states, ds, settings: Settings, *, neural: bool):
 
     reads = _reads(base)
     fit_data, val = _split(name, ds, settings)
-    fit_data, val = reads(fit_data), reads(val)
-    if states is not None and name != "silverbox":
-        states = states[:, : fit_data.num_steps]
+    fit_data, val = reads(fit_data), reads(val)  # ``states`` are the fit part's (_learned_starts)
     model = hybrid(
         base,
         fit_data,
         states=states,
         dynamics=True if neural else TARGETS[name],
+        observation=observation,
         width=settings.width,
         depth=settings.depth,
         prior_std=settings.prior_std,
@@ -208,7 +208,7 @@ def _fit_learned(name, base, states, ds, settings: Settings, *, neural: bool):
     result = fit(
         model,
         fit_data,
-        None if states is None else jnp.asarray(states),
+        jnp.asarray(states),
         solver=JointLM(),
         trainable=model.trainable("both"),
         log_prior=weight_decay,
