@@ -94,7 +94,7 @@ def main(argv=None) -> dict:
     p.add_argument("--budget", type=float, default=600.0, help="wall seconds for the epochs")
     p.add_argument("--max-epochs", type=int, default=1000)
     p.add_argument("--smoother-steps", type=int, default=1, help="LM iterations per smoothing")
-    p.add_argument("--lbfgs-steps", type=int, default=100, help="L-BFGS iterations per epoch")
+    p.add_argument("--lbfgs-steps", type=int, default=150, help="L-BFGS iterations per epoch")
     p.add_argument(
         "--chunk", type=int, default=None, help="trajectories per smoothing call (0: ceemx.fit)"
     )

@@ -369,6 +369,37 @@ def test_lm_driver_lazy_linearisation_takes_the_same_steps():
     assert calls["eager"] == 1 + int(eager.steps)
     assert calls["lazy"] == int(lazy.accepted)
 
+    # Under vmap (the smoother's use, one problem per trajectory), with the start's value taken
+    # from the first linearisation: the same steps; no step at max_steps 0; a non-finite start
+    # stops before any step.
+    def batched(z0, steps):
+        return jax.vmap(
+            lambda z, k: levenberg_marquardt(
+                lambda z: make_evaluate("lazy")(z),
+                lambda lin: lin[0],
+                solve,
+                lambda lin, d: d @ lin[1] @ d,
+                z,
+                rtol=1e-14,
+                atol=0.0,
+                max_steps=k,
+                damping=1e-3,
+                value=lambda z: 0.5 * jnp.sum(residual(z) ** 2),
+            )
+        )(z0, steps)
+
+    z0 = jnp.array([[-1.2, 1.0], [-1.2, 1.0], [0.5, jnp.nan]])
+    out = jax.jit(batched)(z0, jnp.array([200, 0, 200]))
+    np.testing.assert_array_equal(np.asarray(out.z[0]), np.asarray(eager.z))
+    assert [int(k) for k in out.steps] == [int(eager.steps), 0, 0]
+    np.testing.assert_array_equal(np.asarray(out.z[1]), [-1.2, 1.0])
+    np.testing.assert_allclose(float(out.value[1]), 0.5 * float(jnp.sum(residual(z0[1]) ** 2)))
+    assert float(out.damping[1]) == 1e-3
+    R = ceemx.RESULTS
+    expected = [R.successful, R.max_steps_reached, R.nonfinite]
+    for b, status in enumerate(expected):
+        assert bool(np.asarray(out.status == status)[b]), (b, out.status)
+
 
 def test_lm_learner_max_accepted_is_the_first_accepted_step(noisy):
     """``max_accepted=1`` (Alternating's GEM default) stops at the LM's first accepted step: the

@@ -211,6 +211,33 @@ def test_linear_gaussian_states_to_1e9():
     np.testing.assert_allclose(sol.states, rts_states(data, mask, o), rtol=0, atol=1e-9)
 
 
+def test_trial_points_judged_by_value_match_kalman_rts():
+    """From ``LAZY_MIN_STATES`` states the smoother judges trial points by −J alone and linearises
+    only accepted ones (and, for the covariances, the final one): the same posterior."""
+    from ceemx.inference.smoother import LAZY_MIN_STATES, judges_by_value
+
+    n = LAZY_MIN_STATES
+    assert judges_by_value(n) and not judges_by_value(3)
+    system, data, xs, mask, o = make_linear_problem(5, False, n=n, m=6, T=10, missing=True)
+    B, T, _ = xs.shape
+    sol = ceemx.smooth(system, data, jnp.zeros((B, T, n)), LIN_SOLVER, covariance=True)
+    assert all_successful(sol), sol.messages()
+    y, u = np.asarray(data.y), np.asarray(data.u)
+    for b in range(B):
+        ms, Ps, cross = kalman_rts(**o, y=y[b], u=u[b], mask=mask[b])
+        np.testing.assert_allclose(sol.states[b], ms, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(sol.covariances[b], Ps, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(sol.cross_covariances[b], cross, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.objective, -log_joint(system, sol.states, data), rtol=1e-12)
+    # One bounded step: the objective reported is −J at the step's point, not at the start.
+    one = ceemx.smooth(  # the same program: the step bound is traced
+        system, data, jnp.zeros((B, T, n)), ceemx.LMSmoother(max_steps=1), covariance=True
+    )
+    np.testing.assert_array_equal(np.asarray(one.iterations), 1)
+    np.testing.assert_allclose(one.objective, -log_joint(system, one.states, data), rtol=1e-12)
+    assert np.all(np.asarray(one.objective) < np.asarray(-log_joint(system, 0 * sol.states, data)))
+
+
 # --------------------------------------------------------------------------------------------------
 # Coupled Lorenz, K = 6 (n = 18, m = 16), T = 128, B = 8
 # --------------------------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ceemx import lib
 from ceemx.data.trajectories import Trajectories, cast_checked
-from ceemx.inference.objective import linearize, nll_offset_single
+from ceemx.inference.objective import linearize, neg_log_joint_single, nll_offset_single
 from ceemx.infra.compilation import jit_variants
 from ceemx.infra.options import check_bool, check_choice, check_int, check_nonnegative
 from ceemx.infra.warn import warn
@@ -101,6 +101,25 @@ def one_shot_pays(B: int, T: int, n: int) -> bool:
     return B * T * n**2 <= ONE_SHOT_MAX_WORK
 
 
+#: From this many states per step the smoother judges trial points by −J alone and linearises
+#: only at accepted ones (``levenberg_marquardt``'s ``value``): under ``vmap`` an iteration then
+#: costs a linearisation and a value, against a linearisation per iteration plus one at the start.
+#: The linearisation (Jacobians and Gauss–Newton blocks, O(n³) a step) costs 12× the value at
+#: n = 9, 40× at 18, 150× at 120 (coupled Lorenz, B = 4, T = 128). Run time: K = 100 coupled
+#: Lorenz (n = 300, T = 256), one step for 2 trajectories 28.2 → 18.1 s; n = 18 (B = 8, T = 128)
+#: 156 → 121 ms for two steps, 326 → 289 ms for five. But the program holds the value's code
+#: too: XLA compile 9.6 → 11.5 s at n = 18 (load 3.5), which a short fit does not win back. At
+#: n = 48 (two steps, B = 2, T = 128, one core) the first call took 4.5 → 4.9 s and each later
+#: one 312 → 219 ms; at n = 120 6.96 → 6.63 s and 2.57 → 1.75 s (``benchmarks/probes/
+#: ab_first_call.py smoothK 16|40``; benchmarks/README.md, "K = 100 coupled Lorenz").
+LAZY_MIN_STATES = 48
+
+
+def judges_by_value(n: int) -> bool:
+    """Whether the smoother's trial points are judged by their value alone at n states."""
+    return n >= LAZY_MIN_STATES
+
+
 #: ``LMSmoother(time_parallel="auto")`` solves in parallel on an accelerator from this many steps
 AUTO_PARALLEL_MIN_T = 1024
 
@@ -116,8 +135,9 @@ class SmootherSolution(eqx.Module):
     """Result of :func:`smooth`.
 
     Attributes:
-        states: (B, T, n) MAP state trajectories (the initial states where a trajectory failed
-            with a non-finite objective).
+        states: (B, T, n) MAP state trajectories (the initial states where a trajectory's start
+            has a non-finite objective; from ``LAZY_MIN_STATES`` states, where a step is accepted
+            on its finite value and the gradient there is not finite, that point, ``nonfinite``).
         objective: (B,) −J(x, θ) at ``states`` (without the ρ_x term).
         iterations: (B,) iterations each trajectory took.
         status: (B,) codes from :class:`RESULTS`.
@@ -169,6 +189,11 @@ def _smooth_one(
             grad_x=lin.grad_x + 2.0 * rho * dx
         )
 
+    def value(x):
+        return neg_log_joint_single(system, x, y, u, mask) - offset + rho * jnp.sum((x - x0) ** 2)
+
+    lazy = judges_by_value(x0.shape[-1])
+
     parallel = uses_parallel_solve(getattr(solver, "time_parallel", False), x0.shape[0])
 
     def solve(lin, lam):
@@ -194,8 +219,14 @@ def _smooth_one(
         atol=solver.atol,
         max_steps=max_steps,
         damping=solver.damping,
+        value=value if lazy else None,
     )
-    return out.z, out.lin.value, out.steps, out.status, out.lin.hess_x
+    if not lazy:
+        return out.z, out.lin.value, out.steps, out.status, lambda: out.lin.hess_x
+    # The last accepted point's linearisation was not formed: the covariances form it. (A point
+    # accepted on its value whose gradient is not finite ends the run there, ``nonfinite``.)
+    raw = out.value + offset - rho * jnp.sum((out.z - x0) ** 2)
+    return out.z, raw, out.steps, out.status, lambda: evaluate(out.z)[1].hess_x
 
 
 def smooth_batch(
@@ -248,7 +279,7 @@ def _smooth_batch_impl(
         x, value, steps, status, hess = _smooth_one(solver, max_steps, system, x0, y, u, mask)
         if not covariance:
             return x, value, steps, status, None
-        factor = lib.cholesky(hess)
+        factor = lib.cholesky(hess())
         sel = lib.selected_inverse(factor)
         return x, value, steps, status, (sel.diagonal, sel.lower, lib.logdet(factor))
 

@@ -225,8 +225,7 @@ def forward_solve(
     half only.
     """
     B, squeeze = _as_matrix_rhs(b)
-    n = L.diagonal.shape[-1]
-    if n > dense.UNROLL_MAX:
+    if _by_inverses(L, squeeze, inv):
         inv = _inverses(L) if inv is None else inv
         Y = _forward_by_inverses(L, after(B, inv), inv)
     else:
@@ -248,8 +247,7 @@ def backward_solve(
 ) -> Float[Array, "T n *k"]:
     """``x = L⁻ᵀ y``, the backward half of :func:`solve` (``inv``: :func:`diagonal_inverses`)."""
     Y, squeeze = _as_matrix_rhs(y)
-    n = L.diagonal.shape[-1]
-    if n > dense.UNROLL_MAX:
+    if _by_inverses(L, squeeze, inv):
         inv = _inverses(L) if inv is None else inv
         X = _backward_by_inverses(L, after(Y, inv), inv)
     else:
@@ -272,10 +270,11 @@ def solve(
     """Solve ``A x = b`` given the block Cholesky factor of ``A``.
 
     A forward scan solves ``L y = b`` and a backward scan solves ``L^T x = y``. Blocks above
-    ``UNROLL_MAX`` use the inverted diagonal blocks (``inv``, :func:`diagonal_inverses`,
-    computed here when not given): every step is then two matrix products instead of a product
-    and a LAPACK triangular solve, whose dispatch cost more than its arithmetic (n = 18, 343
-    right-hand sides, B = 4, T = 128: 184 → 98 ms; benchmarks/README.md, "First result sooner").
+    ``UNROLL_MAX`` with several right-hand sides use the inverted diagonal blocks (``inv``,
+    :func:`diagonal_inverses`, computed here when not given): every step is then two matrix
+    products instead of a product and a LAPACK triangular solve, whose dispatch cost more than its
+    arithmetic (n = 18, 343 right-hand sides, B = 4, T = 128: 184 → 98 ms; benchmarks/README.md,
+    "First result sooner"). A vector right-hand side is solved step by step (``_by_inverses``).
 
     Args:
         L: Factor returned by :func:`cholesky`.
@@ -285,9 +284,23 @@ def solve(
     Returns:
         ``x`` with the same shape as ``b``.
     """
-    if inv is None and L.diagonal.shape[-1] > dense.UNROLL_MAX:
+    if inv is None and _by_inverses(L, b.ndim == 2, inv):
         inv = diagonal_inverses(L)
     return backward_solve(L, forward_solve(L, b, inv), inv)
+
+
+def _by_inverses(L: BlockTridiagonalCholesky, vector: bool, inv: Array | None) -> bool:
+    """Whether the solves go through the inverted diagonal blocks rather than per-step solves.
+
+    Blocks above ``UNROLL_MAX`` with several right-hand sides, or with the inverses at hand:
+    inverting costs n³ a step once, against a LAPACK dispatch per step and right-hand side.
+    A vector right-hand side is solved step by step (a LAPACK triangular solve of n² a step):
+    inverting first cost 2–2.2× as much at every n from 32 to 300 (T = 256, B = 2; n = 300:
+    1.30 against 0.62 s), and the same at n = 9–16.
+    """
+    if L.diagonal.shape[-1] <= dense.UNROLL_MAX:
+        return False
+    return inv is not None or not vector
 
 
 def _forward_by_inverses(L: BlockTridiagonalCholesky, B: Array, inv: Array) -> Array:

@@ -101,10 +101,14 @@ def levenberg_marquardt(
             matrix, a joint linearisation). Trial points are then judged by their value only and
             the linearisation is formed lazily, at the start of an iteration whose point has none
             yet (the first, unless ``init`` is given, and each after an accepted step): rejected
-            trials and the final accepted point cost one value each instead of a linearisation,
-            and the compiled program holds one copy of ``evaluate`` instead of two (compile
-            time). ``LMOutput.lin`` is then ``None``. Not for ``vmap``-ped use (the lazy
-            linearisation is a ``lax.cond``, which ``vmap`` turns into computing both branches).
+            trials and the final accepted point cost one value each instead of a linearisation.
+            The first iteration's linearisation also gives the starting value, so the compiled
+            program holds one copy of ``evaluate`` and one of ``value`` (compile time); that
+            iteration runs even when ``max_steps`` is 0 (it then takes no step).
+            ``LMOutput.lin`` is then ``None``. Under ``vmap`` the lazy linearisation (a
+            ``lax.cond``) is computed at every iteration, rejected ones included: an iteration
+            then costs a linearisation and a value, against a linearisation alone without
+            ``value`` — which also linearises the start once more.
 
     Returns:
         An :class:`LMOutput`: the last accepted point with its value and linearisation.
@@ -112,11 +116,11 @@ def levenberg_marquardt(
     if init is not None:
         f0, lin0 = init
     elif value is not None:
-        # Lazy: the first linearisation is formed inside the loop (one copy of ``evaluate`` in
-        # the compiled program); a zero placeholder of its structure starts the carry.
-        f0 = value(z0)
+        # Lazy: the first linearisation, and with it the starting value, is formed inside the
+        # loop (one copy of ``evaluate`` and one of ``value`` in the compiled program); zero
+        # placeholders of their structure start the carry.
         evaluate, shapes = _traced_once(evaluate, z0)  # traced here, replayed in the loop
-        lin0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes[1])
+        f0, lin0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     else:
         # Eager: z0 is evaluated by the loop's first pass, a zero step (so the compiled program
         # holds one copy of ``evaluate``, not two: its compile time is most of a small fit's).
@@ -125,6 +129,7 @@ def levenberg_marquardt(
         evaluate, shapes = _traced_once(evaluate, z0)
         f0, lin0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     first0 = init is None and value is None
+    unknown0 = init is None and value is not None  # lazy: the start's value not yet known
     finite0 = jnp.isfinite(f0) & _all_finite(grad_of(lin0))
     dtype = jnp.result_type(f0)
     carry = (
@@ -137,8 +142,8 @@ def levenberg_marquardt(
         jnp.zeros((), jnp.int32),
         ~finite0,
         RESULTS.where(finite0, RESULTS.max_steps_reached, RESULTS.nonfinite),
-        jnp.asarray(value is not None and init is None),  # lazy mode: lin not yet formed at z
-        jnp.asarray(first0),  # eager mode: the first pass evaluates z0
+        jnp.asarray(unknown0),  # lazy mode: lin not yet formed at z
+        jnp.asarray(first0 or unknown0),  # the first pass evaluates z0 (eager: only that)
     )
 
     def tol(f):
@@ -152,13 +157,18 @@ def levenberg_marquardt(
 
     def body(s):
         z, f, lin, lam, nu, step, acc, _, status, stale, first = s
+        allowed = jnp.asarray(True)
         if value is not None:
-            lin = jax.lax.cond(stale, lambda: evaluate(z)[1], lambda: lin)
+            f_z, lin = jax.lax.cond(stale, lambda: evaluate(z), lambda: (f, lin))
+            if unknown0:  # the first pass learns the start's value; it may take a step
+                f = jnp.where(first, f_z, f)
+                allowed = step < max_steps
         g = grad_of(lin)
-        # Lazy mode: an accepted point whose gradient turns out non-finite ends the run there.
-        broken = ~_all_finite(g)
+        # Lazy mode: an accepted point whose gradient turns out non-finite ends the run there
+        # (and a start whose value or gradient is not finite, before any step).
+        broken = ~_all_finite(g) | ~jnp.isfinite(f)
         delta, ok = solve(lin, lam)
-        ok = ok & _all_finite(delta) & ~broken & ~first
+        ok = ok & _all_finite(delta) & ~broken & allowed & ~(first & first0)
         delta = jtu.tree_map(lambda d: jnp.where(ok, d, 0.0), delta)
         pred = -(_vdot(g, delta) + 0.5 * quad(lin, delta))
         z_new = jtu.tree_map(jnp.add, z, delta)
@@ -186,6 +196,11 @@ def levenberg_marquardt(
         status = RESULTS.where(broken, RESULTS.nonfinite, status)
         done = converged | stalled | broken
         counted = accept
+        idle = first & first0  # a pass that takes no step and counts none
+        if unknown0:  # a step not allowed (max_steps 0) or a broken start changes nothing
+            idle = first & (broken | ~allowed)
+            lam_new = jnp.where(idle, lam, lam_new)
+            nu_new = jnp.where(idle, nu, nu_new)
         if first0:  # the first pass only evaluates z0 (δ = 0): it takes the start, or fails
             accept = jnp.where(first, finite_new, accept)
             counted = accept & ~first
@@ -206,7 +221,7 @@ def levenberg_marquardt(
             lin,
             lam_new,
             nu_new,
-            step + jnp.where(first, 0, 1),
+            step + jnp.where(idle, 0, 1),
             acc + counted.astype(jnp.int32),
             done,
             status,
