@@ -23,7 +23,8 @@ Methods (``--method``):
 Two drivers for the ``alt-*`` methods (``joint-mf`` always uses ``ceemx.fit``):
 
 * ``--chunk 0``: ``ceemx.fit(..., solver=ceemx.Alternating(...))`` (the library's Algorithm 1;
-  its smoother vmaps all B trajectories at once, so memory grows as B·T·n²);
+  from n = 150 its smoother takes two trajectories at a time, ``LMSmoother(batch_chunk=2)``,
+  otherwise all B at once, so memory grows as B·T·n²);
 * ``--chunk C`` (default 2 for n ≥ 150): the same epoch written out — ``ceemx.smooth`` on C
   trajectories at a time, then ``ceemx.learn`` on all of them — which bounds the smoother's
   memory to C trajectories.
@@ -128,7 +129,11 @@ def main(argv=None) -> dict:
     eps_cb = ev.DynamicsErrorCallback(true)
     eps0 = eps_cb.error(system)
     setup_s = time.perf_counter() - t_setup
-    smoother = ceemx.LMSmoother(max_steps=args.smoother_steps)
+    # ``ceemx.fit`` (``--chunk 0``) smooths in chunks of two trajectories from n = 150 (memory);
+    # the manual driver's calls hold two trajectories each anyway.
+    smoother = ceemx.LMSmoother(
+        max_steps=args.smoother_steps, batch_chunk=2 if n >= 150 else None
+    )
     if args.method == "alt-gncg":
         learner = ceemx.GaussNewtonCGLearner(
             max_steps=args.gn_steps,
