@@ -22,12 +22,12 @@ Methods (``--method``):
 
 Two drivers for the ``alt-*`` methods (``joint-mf`` always uses ``ceemx.fit``):
 
-* ``--chunk 0``: ``ceemx.fit(..., solver=ceemx.Alternating(...))`` (the library's Algorithm 1;
-  from n = 150 its smoother takes two trajectories at a time, ``LMSmoother(batch_chunk=2)``,
-  otherwise all B at once, so memory grows as B·T·n²);
-* ``--chunk C`` (default 2 for n ≥ 150): the same epoch written out — ``ceemx.smooth`` on C
-  trajectories at a time, then ``ceemx.learn`` on all of them — which bounds the smoother's
-  memory to C trajectories.
+* ``--chunk 0`` (default): ``ceemx.fit(..., solver=ceemx.Alternating(...))`` (the library's
+  Algorithm 1; from n = 150 its smoother takes two trajectories at a time,
+  ``LMSmoother(batch_chunk=2)``, otherwise all B at once, so memory grows as B·T·n²);
+* ``--chunk C``: the same epoch written out — ``ceemx.smooth`` on C trajectories at a time, then
+  ``ceemx.learn`` on all of them (per-call timings; the run stops inside a smoothing step that
+  ends past the budget).
 
 The run stops after the first epoch that ends past the budget, or earlier when the next epoch is
 not expected to fit; ε, J and the timings of every epoch are written to ``--out`` after each
@@ -36,11 +36,16 @@ epoch, so a killed run keeps what it did.
 Usage::
 
     python benchmarks/k100.py                   # the real attempt (K = 100, T = 256, B = 16)
+    python benchmarks/k100.py --chunk 2         # the same epochs written out, 2 trajectories a call
     python benchmarks/k100.py --K 20 --budget 120   # a scaled-down probe
     python benchmarks/k100.py --smoke --out x.json  # K = 4, T = 32, B = 2, 2 epochs (seconds)
     python benchmarks/k100.py --method joint-mf --K 10 --budget 150   # the matrix-free joint LM
 
-Backs: ``benchmarks/README.md`` ("K = 100 coupled Lorenz": "after epoch 1 **3.568 (5.4 % of ε₀)**",
+Backs: ``benchmarks/README.md`` ("K = 100 in 10 minutes": ``ceemx.fit`` two epochs, ε 0.81 % of
+ε₀ in 511 s, ``results/k100_session7_fit.json``; ``--chunk 2``: 563 s,
+``results/k100_session7.json``; ``--chunk 2 --lbfgs-steps 100``: 1.46 % in 447 s), earlier
+("K = 100 coupled Lorenz", with 100 L-BFGS steps and the manual driver: "after epoch 1 **3.568
+(5.4 % of ε₀)**",
 "**target ε ≤ 1 % of ε₀ in 10 min** | **not met**", and the scaled-down probes table with
 ``--K 10|20|40``; ``benchmarks/results/k100.json``) and, with ``--method joint-mf``, "K = 100 with
 matrix-free Gauss–Newton" (one iteration: 0.31 % at K = 10, 1.40 % at K = 40, two: 0.18 % at K = 40;
@@ -118,7 +123,7 @@ def main(argv=None) -> dict:
     if args.smoke:
         args.K, args.T, args.B, args.max_epochs, args.budget = 4, 32, 2, 2, 120.0
     n = 3 * args.K
-    chunk = args.chunk if args.chunk is not None else (2 if n >= 150 else 0)
+    chunk = args.chunk if args.chunk is not None else 0
     if args.method == "joint-mf":
         chunk = 0
     out_path = args.out if args.out else (None if args.smoke else DEFAULT_OUT)
