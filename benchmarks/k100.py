@@ -136,9 +136,7 @@ def main(argv=None) -> dict:
     setup_s = time.perf_counter() - t_setup
     # ``ceemx.fit`` (``--chunk 0``) smooths in chunks of two trajectories from n = 150 (memory);
     # the manual driver's calls hold two trajectories each anyway.
-    smoother = ceemx.LMSmoother(
-        max_steps=args.smoother_steps, batch_chunk=2 if n >= 150 else None
-    )
+    smoother = ceemx.LMSmoother(max_steps=args.smoother_steps, batch_chunk=2 if n >= 150 else None)
     if args.method == "alt-gncg":
         learner = ceemx.GaussNewtonCGLearner(
             max_steps=args.gn_steps,
