@@ -6,7 +6,8 @@ solver (Alternating with the LM and L-BFGS learners, JointLM, LaplaceEM with dia
 learned noise covariances and missing observations, ParticleEM), MAP smoothing with covariances,
 the EKF, the particle filter and FFBSi, free runs, x̂₁ estimation, k-step prediction, and the
 parameter covariances (Schur complement after the CE methods, the evidence covariance after
-Laplace EM). Sizes are small but every scan runs more than one step, so the compiled programs
+Laplace EM), and smoothing and a joint fit with blocks above ``UNROLL_MAX`` (coupled Lorenz,
+n = 9 and 48: LAPACK per step). Sizes are small but every scan runs more than one step, so the compiled programs
 have the structure of large ones.
 
 Usage: ``python .ci/lapack_programs.py [--quick]`` (``--quick``: Laplace EM only).
@@ -24,7 +25,13 @@ from jaxtyping import Array
 
 import ceemx
 from ceemx.data.trajectories import foh_inputs
-from ceemx.systems import LinearSystem
+from ceemx.systems import (
+    CoupledLorenz,
+    LinearSystem,
+    initial_states,
+    random_coupling,
+    random_observation_matrix,
+)
 
 jax.config.update("jax_enable_x64", True)
 warnings.simplefilter("ignore")
@@ -149,8 +156,28 @@ def other_programs() -> None:
     ceemx.predict_k_step(lin, ldata, 2)
 
 
+def large_block_programs() -> None:
+    """Blocks above ``lib.dense.UNROLL_MAX``: LAPACK factorisations and triangular solves per
+    step — n = 9 (the smoother's eager form, a joint fit with the inverted blocks) and n = 48
+    (the smoother judging trial points by value, its covariances linearised after the loop)."""
+    for K in (3, 16):
+        keys = jax.random.split(jax.random.PRNGKey(K), 4)
+        true = CoupledLorenz(
+            jnp.full(K, 10.0),
+            jnp.full(K, 28.0),
+            jnp.full(K, 8.0 / 3.0),
+            random_observation_matrix(keys[0], K),
+            H=random_coupling(keys[1], K),
+        )
+        x, data = ceemx.simulate(true, keys[2], initial_states(keys[3], 2, K), 12)
+        ceemx.smooth(true, data, x + 0.1, ceemx.LMSmoother(max_steps=3), covariance=True)
+        if K == 3:
+            ceemx.fit(true, data, x, solver=ceemx.JointLM(), max_epochs=2)
+
+
 if __name__ == "__main__":
     laplace_programs()
     if "--quick" not in sys.argv[1:]:
         other_programs()
+        large_block_programs()
     print("programs: done")
