@@ -174,7 +174,10 @@ def _smooth_one(
     y: Float[Array, "T m"],
     u: Float[Array, "T p"],
     mask: Bool[Array, "T m"],
+    covariance: bool = False,
 ):
+    """One trajectory's smoothing: (states, −J, iterations, status, the Gauss–Newton matrix at
+    the states where ``covariance``, else ``None``)."""
     rho = jnp.asarray(solver.rho_x, x0.dtype)
     ident = lambda s: s  # noqa: E731
 
@@ -222,11 +225,13 @@ def _smooth_one(
         value=value if lazy else None,
     )
     if not lazy:
-        return out.z, out.lin.value, out.steps, out.status, lambda: out.lin.hess_x
+        hess = out.lin.hess_x if covariance else None
+        return out.z, out.lin.value, out.steps, out.status, hess
     # The last accepted point's linearisation was not formed: the covariances form it. (A point
     # accepted on its value whose gradient is not finite ends the run there, ``nonfinite``.)
     raw = out.value + offset - rho * jnp.sum((out.z - x0) ** 2)
-    return out.z, raw, out.steps, out.status, lambda: evaluate(out.z)[1].hess_x
+    hess = evaluate(out.z)[1].hess_x if covariance else None
+    return out.z, raw, out.steps, out.status, hess
 
 
 def smooth_batch(
@@ -276,10 +281,12 @@ def _smooth_batch_impl(
         return jax.lax.map(lambda a: f(*a), args, batch_size=chunk)
 
     def one(x0, y, u, mask):
-        x, value, steps, status, hess = _smooth_one(solver, max_steps, system, x0, y, u, mask)
-        if not covariance:
+        x, value, steps, status, hess = _smooth_one(
+            solver, max_steps, system, x0, y, u, mask, covariance
+        )
+        if hess is None:
             return x, value, steps, status, None
-        factor = lib.cholesky(hess())
+        factor = lib.cholesky(hess)
         sel = lib.selected_inverse(factor)
         return x, value, steps, status, (sel.diagonal, sel.lower, lib.logdet(factor))
 
