@@ -176,8 +176,11 @@ def _smooth_one(
     mask: Bool[Array, "T m"],
     covariance: bool = False,
 ):
-    """One trajectory's smoothing: (states, −J, iterations, status, the Gauss–Newton matrix at
-    the states where ``covariance``, else ``None``)."""
+    """One trajectory's smoothing.
+
+    Returns (states, −J, iterations, status, the Gauss–Newton matrix at the states where
+    ``covariance``, else ``None``).
+    """
     rho = jnp.asarray(solver.rho_x, x0.dtype)
     ident = lambda s: s  # noqa: E731
 
