@@ -7,8 +7,8 @@ learned noise covariances and missing observations, ParticleEM), MAP smoothing w
 the EKF, the particle filter and FFBSi, free runs, x̂₁ estimation, k-step prediction, and the
 parameter covariances (Schur complement after the CE methods, the evidence covariance after
 Laplace EM), and smoothing and a joint fit with blocks above ``UNROLL_MAX`` (coupled Lorenz,
-n = 9 and 48: LAPACK per step). Sizes are small but every scan runs more than one step, so the compiled programs
-have the structure of large ones.
+n = 9 and 48: LAPACK per step). Sizes are small but every scan runs more than one step, so the
+compiled programs have the structure of large ones.
 
 Usage: ``python .ci/lapack_programs.py [--quick]`` (``--quick``: Laplace EM only).
 """

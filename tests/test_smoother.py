@@ -189,12 +189,17 @@ def test_linear_gaussian_matches_kalman_rts(full_cov, missing):
     system, data, xs, mask, o = make_linear_problem(3 if full_cov else 4, full_cov, missing=missing)
     B, T, n = xs.shape
     sol = ceemx.smooth(system, data, jnp.zeros((B, T, n)), LIN_SOLVER, covariance=True)
-    assert all_successful(sol), sol.messages()
     assert sol.covariances.shape == (B, T, n, n)
     assert sol.cross_covariances.shape == (B, T - 1, n, n)
+    assert_kalman_rts(sol, system, data, mask, o)
+
+
+def assert_kalman_rts(sol, system, data, mask, oracle):
+    """States, covariances and objective of a smoothing with covariances against Kalman/RTS."""
+    assert all_successful(sol), sol.messages()
     y, u = np.asarray(data.y), np.asarray(data.u)
-    for b in range(B):
-        ms, Ps, cross = kalman_rts(**o, y=y[b], u=u[b], mask=mask[b])
+    for b in range(len(y)):
+        ms, Ps, cross = kalman_rts(**oracle, y=y[b], u=u[b], mask=mask[b])
         # One Gauss–Newton step is exact for a linear-Gaussian model; the LM iterations reach it to
         # round-off (see also test_linear_gaussian_states_to_1e9).
         np.testing.assert_allclose(sol.states[b], ms, rtol=0, atol=1e-8)
@@ -221,14 +226,7 @@ def test_trial_points_judged_by_value_match_kalman_rts():
     system, data, xs, mask, o = make_linear_problem(5, False, n=n, m=6, T=10, missing=True)
     B, T, _ = xs.shape
     sol = ceemx.smooth(system, data, jnp.zeros((B, T, n)), LIN_SOLVER, covariance=True)
-    assert all_successful(sol), sol.messages()
-    y, u = np.asarray(data.y), np.asarray(data.u)
-    for b in range(B):
-        ms, Ps, cross = kalman_rts(**o, y=y[b], u=u[b], mask=mask[b])
-        np.testing.assert_allclose(sol.states[b], ms, rtol=0, atol=1e-8)
-        np.testing.assert_allclose(sol.covariances[b], Ps, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(sol.cross_covariances[b], cross, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(sol.objective, -log_joint(system, sol.states, data), rtol=1e-12)
+    assert_kalman_rts(sol, system, data, mask, o)
     # One bounded step: the objective reported is −J at the step's point, not at the start.
     one = ceemx.smooth(  # the same program: the step bound is traced
         system, data, jnp.zeros((B, T, n)), ceemx.LMSmoother(max_steps=1), covariance=True

@@ -104,11 +104,13 @@ def one_shot_pays(B: int, T: int, n: int) -> bool:
 #: From this many states per step the smoother judges trial points by −J alone and linearises
 #: only at accepted ones (``levenberg_marquardt``'s ``value``): under ``vmap`` an iteration then
 #: costs a linearisation and a value, against a linearisation per iteration plus one at the start.
-#: The linearisation (Jacobians and Gauss–Newton blocks, O(n³) a step) costs 12× the value at
-#: n = 9, 40× at 18, 150× at 120 (coupled Lorenz, B = 4, T = 128). Run time: K = 100 coupled
-#: Lorenz (n = 300, T = 256), one step for 2 trajectories 28.2 → 18.1 s; n = 18 (B = 8, T = 128)
-#: 156 → 121 ms for two steps, 326 → 289 ms for five. But the program holds the value's code
-#: too: XLA compile 9.6 → 11.5 s at n = 18 (load 3.5), which a short fit does not win back. At
+#: The linearisation (Jacobians and Gauss–Newton blocks, O(n³) a step) costs 6× the value at
+#: n = 9, 15× at 18, 37–42× at 36–60, 117× at 120 (coupled Lorenz, B = 4, T = 128, load 1.3;
+#: ``benchmarks/probes/smoother_large_n.py ratio``). Run time: K = 100 coupled Lorenz (n = 300,
+#: T = 256), one step for 2 trajectories 28.2 → 18.1 s (``smoother_large_n.py lazy 100 2 256
+#: 1``); n = 18 (B = 8, T = 128) 156 → 121 ms for two steps, 326 → 289 ms for five. But the
+#: program holds the value's code too: XLA compile 9.6 → 11.5 s at n = 18 (load 3.5;
+#: ``smoother_large_n.py lazy 6 8 128``), which a short fit does not win back. At
 #: n = 48 (two steps, B = 2, T = 128, one core) the first call took 4.5 → 4.9 s and each later
 #: one 312 → 219 ms; at n = 120 6.96 → 6.63 s and 2.57 → 1.75 s (``benchmarks/probes/
 #: ab_first_call.py smoothK 16|40``; benchmarks/README.md, "K = 100 coupled Lorenz").

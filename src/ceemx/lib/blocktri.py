@@ -295,8 +295,9 @@ def _by_inverses(L: BlockTridiagonalCholesky, vector: bool, inv: Array | None) -
     Blocks above ``UNROLL_MAX`` with several right-hand sides, or with the inverses at hand:
     inverting costs n³ a step once, against a LAPACK dispatch per step and right-hand side.
     A vector right-hand side is solved step by step (a LAPACK triangular solve of n² a step):
-    inverting first cost 2–2.2× as much at every n from 32 to 300 (T = 256, B = 2; n = 300:
-    1.30 against 0.62 s), and the same at n = 9–16.
+    inverting first cost 1.8–2.1× as much at every n from 32 to 300 (T = 256, B = 2; n = 300:
+    1.38 against 0.69 s), about even at n = 9–16 (``benchmarks/probes/smoother_large_n.py
+    solve``).
     """
     if L.diagonal.shape[-1] <= dense.UNROLL_MAX:
         return False
