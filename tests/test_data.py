@@ -162,6 +162,20 @@ def test_getitem_integer_keeps_batch_axis():
     assert ceemx.Trajectories(y_ok())[0].y.shape == (1, T, M)
 
 
+def test_head_keeps_the_first_steps_of_every_record():
+    mask = np.ones((B, T, M), bool)
+    mask[1, 2, 0] = False
+    data = ceemx.Trajectories(y_ok(), u_ok(), jnp.asarray(mask))
+    head = data.head(3)
+    assert head.y.shape == (B, 3, M) and head.u.shape == (B, 3, P) and head.mask.shape == (B, 3, M)
+    for got, full in ((head.y, data.y), (head.u, data.u), (head.mask, data.mask)):
+        np.testing.assert_array_equal(got, np.asarray(full)[:, :3])
+    assert not bool(head.mask[1, 2, 0])
+    for bad in (1, T + 1, 2.0):
+        with pytest.raises(ValueError, match="`steps` must be an integer in"):
+            data.head(bad)
+
+
 # --------------------------------------------------------------------------------------------------
 # smooth: checks before any compilation
 # --------------------------------------------------------------------------------------------------

@@ -499,3 +499,51 @@ def test_quasi_newton_reaches_the_em_fixed_point():
                 getattr(other.system, noise).covariance(),
                 atol=1e-4 if other is sq else 1e-6,
             )
+
+
+@pytest.mark.slow  # four quasi-Newton fits, one at the coarse start's shapes (≈ 20 s)
+def test_coarse_start_ends_at_the_same_fixed_point():
+    """``coarse_start``: a fit on the first 150 steps of one of the three trajectories starts the
+    fit on all of them (θ and, scaled by 150/600, the BFGS curvature); it ends at the fit's
+    fixed point without it (evidence to 1e-8, A, Q, R to 1e-6) in fewer epochs on all the data.
+    From a start the coarse fit cannot improve on (the optimum itself) the start stands, and
+    the fit is the one without the coarse start, bit for bit."""
+    y, (_, C, _, _, mu0, P0) = _lg_problem(T=200)
+    A0, _, Q0, R0 = _guess()
+    data = ceemx.Trajectories(jnp.asarray(y))
+    x0 = jnp.zeros(y.shape[:2] + (2,))
+
+    def run(system, states, coarse):
+        return ceemx.fit(
+            system,
+            data,
+            states,
+            solver=ceemx.LaplaceEM(acceleration="quasi_newton", rtol=1e-12, coarse_start=coarse),
+            trainable=lambda s: (s.A, s.process_noise, s.obs_noise),
+            max_epochs=200,
+            outliers="keep",
+            diagnose=False,
+        )
+
+    start = _system(A0, C, Q0, R0, mu0, P0)
+    plain, coarse = run(start, x0, None), run(start, x0, 150)
+    assert plain.converged and coarse.converged
+    first = coarse.history[0]
+    assert first["coarse_used"] and first["coarse_converged"] and first["coarse_steps"] == 150
+    assert not any(k.startswith("coarse") for k in coarse.history[1])
+    assert not any(k.startswith("coarse") for k in plain.history[0])
+    assert coarse.epochs < plain.epochs, (coarse.epochs, plain.epochs)
+    ev = [r.history[-1]["log_evidence"] for r in (plain, coarse)]
+    np.testing.assert_allclose(ev[1], ev[0], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(coarse.system.A, plain.system.A, atol=1e-6)
+    for noise in ("process_noise", "obs_noise"):
+        np.testing.assert_allclose(
+            getattr(coarse.system, noise).covariance(),
+            getattr(plain.system, noise).covariance(),
+            atol=1e-6,
+        )
+    kept = run(plain.system, plain.states, 150)
+    assert kept.history[0]["coarse_converged"] and kept.history[0]["coarse_used"] is False
+    same = run(plain.system, plain.states, None)
+    np.testing.assert_array_equal(kept.theta, same.theta)
+    assert kept.epochs == same.epochs

@@ -186,6 +186,8 @@ def test_optax_learner_options():
         ),
         (lambda: ceemx.LaplaceEM(acceleration="fast"), ValueError, "`acceleration` must be one of"),
         (lambda: ceemx.LaplaceEM(rho_theta="a"), TypeError, "`rho_theta` must be a real number"),
+        (lambda: ceemx.LaplaceEM(coarse_start=1), ValueError, "`coarse_start` must be an integer"),
+        (lambda: ceemx.LaplaceEM(coarse_start=1e4), TypeError, "`coarse_start` must be an integer"),
         (lambda: ceemx.JointLM(cg_rtol=np.nan), ValueError, "`cg_rtol` must be finite and >= 0"),
         (lambda: ceemx.JointLM(max_trials=0), ValueError, "`max_trials` must be an integer >= 1"),
         (lambda: ceemx.JointLM(cg_max_steps=0), ValueError, "`cg_max_steps` must be an integer"),

@@ -299,6 +299,20 @@ class Trajectories(eqx.Module):
         return cls(one(y, "y"), one(u, "u"), one(mask, "mask"))
 
     @no_type_check  # validates its arguments
+    def head(self, steps: int) -> Trajectories:
+        """The first ``steps`` steps of every record (inputs and mask with them).
+
+        Raises:
+            ValueError: ``steps`` outside [2, T].
+        """
+        T = self.num_steps
+        if not (isinstance(steps, (int, np.integer)) and 2 <= steps <= T):
+            raise ValueError(f"`steps` must be an integer in [2, T = {T}]; got {steps!r}.")
+        if _on_host(self):  # a NumPy view: no program per shape (see _on_host)
+            return jax.tree_util.tree_map(lambda a: _back_like(np.asarray(a)[:, :steps], a), self)
+        return jax.tree_util.tree_map(lambda a: a[:, :steps], self)
+
+    @no_type_check  # validates its arguments
     def windows(self, length: int, step: int | None = None) -> Trajectories:
         """Cut every record into windows of ``length`` steps, starting every ``step`` steps.
 

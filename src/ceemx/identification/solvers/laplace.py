@@ -26,7 +26,9 @@ history as ``log_evidence``; the fit stops when it changes by at most ``rtol·|J
 
 from __future__ import annotations
 
+import dataclasses
 import time
+import warnings
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -57,13 +59,13 @@ from ceemx.identification.solvers.laplace_qn import (
     Coordinates,
     bfgs_update,
     log_prior_value,
-    q_derivatives,
+    qn_gradient,
     qn_start,
 )
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.posterior import E_STEP_SMOOTHER, GaussianPosterior, gaussian_posterior
 from ceemx.infra.compilation import jit
-from ceemx.infra.options import check_choice
+from ceemx.infra.options import check_choice, check_int
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import cho_solve, cholesky
 from ceemx.lib.results import RESULTS, codes
@@ -75,6 +77,11 @@ __all__ = ["GaussianPosterior", "LaplaceEM", "gaussian_posterior", "noise_second
 
 
 _NOISE_FIELDS = ("process_noise", "obs_noise")
+
+#: a coarse start runs when the data hold at least this many times ``coarse_start`` time steps
+COARSE_FACTOR = 4
+#: the most epochs the coarse start's fit takes
+COARSE_MAX_EPOCHS = 100
 
 
 def _masked_fill(S_oo, R, mask):
@@ -231,6 +238,19 @@ class LaplaceEM(AbstractFitSolver):
             ``None``: one plain EM update per epoch (exact EM).
         rtol, atol: stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``
             in an epoch.
+        coarse_start: long data start from a fit on part of them. When the data hold at least
+            ``COARSE_FACTOR`` (4) × ``coarse_start`` time steps (B·T), this solver first fits
+            about ``coarse_start`` of them — the first b = ⌈coarse_start / T⌉ trajectories, each
+            cut to its first ⌈coarse_start / b⌉ steps — with the same options and tolerances (at
+            most ``COARSE_MAX_EPOCHS`` epochs), and its θ starts the fit on all the data when it
+            converged and the Laplace log-evidence (+ log-prior) of all the data is there at
+            least the given start's (else the given start stands). With
+            ``acceleration="quasi_newton"`` the coarse fit's BFGS curvature, scaled by the ratio
+            of the two sizes (the evidence's Hessian grows with the data), starts the curvature:
+            the epochs on all the data are then Newton-like from the first, where EM's metric
+            needs many to learn the missing information (a 10⁵-sample record: 4 epochs instead
+            of 27; ``benchmarks/README.md``).
+            ``None``: never. Epoch 1's history record says what it did (``coarse_*``).
     """
 
     smoother: smoothing_solver.LMSmoother = eqx.field(default_factory=lambda: E_STEP_SMOOTHER)
@@ -239,6 +259,7 @@ class LaplaceEM(AbstractFitSolver):
     acceleration: str | None = eqx.field(default="squarem", static=True)
     rtol: float = 1e-10
     atol: float = 0.0
+    coarse_start: int | None = eqx.field(default=10_000, static=True)
 
     learns_noise: ClassVar[bool] = True
     history_keys = {
@@ -253,10 +274,16 @@ class LaplaceEM(AbstractFitSolver):
         "qn_step": "quasi-Newton step length kept (None: the line search failed, an EM update)",
         "process_noise_std": "learned process-noise standard deviations (when trainable)",
         "obs_noise_std": "learned observation-noise standard deviations (when trainable)",
+        "coarse_steps": "epoch 1 only: time steps of the coarse start's data (``coarse_start``)",
+        "coarse_epochs": "epoch 1 only: epochs of the coarse start's fit",
+        "coarse_converged": "epoch 1 only: whether the coarse start's fit converged",
+        "coarse_time": "epoch 1 only: seconds in the coarse start (its fit and the check)",
+        "coarse_used": "epoch 1 only: whether the coarse fit's θ started the fit",
     }
 
     def __check_init__(self):
         check_choice("acceleration", self.acceleration, ("squarem", "quasi_newton", None))
+        check_int("coarse_start", self.coarse_start, 2, none=True)
         check_alternation(self.smoother, self.learner, self.rho_theta)
 
     def _posterior(
@@ -302,18 +329,80 @@ class LaplaceEM(AbstractFitSolver):
     def init(
         self, problem: FitProblem, theta: Theta, states: States, key: PRNGKeyArray
     ) -> FitState:
-        """The E-step at the initial θ from the given states; the learner's state from ``key``."""
+        """The E-step at the initial θ from the given states; the learner's state from ``key``.
+
+        On long data, first the coarse start (``coarse_start``): the E-step is then at the
+        coarse fit's θ when it has the larger evidence.
+        """
         _check_learned_noise(problem, problem.build(theta))
+        qn = self.acceleration == "quasi_newton"
+        if qn and theta.shape[0] > QN_MAX_PARAMETERS:
+            raise ValueError(
+                f"`acceleration='quasi_newton'` keeps a dense P × P curvature: θ has "
+                f"{theta.shape[0]} entries (at most {QN_MAX_PARAMETERS}); use 'squarem'."
+            )
         e = self._posterior(problem, theta, states)
         learner_state = self.learner.init(theta, key)
-        if self.acceleration == "quasi_newton":
-            if theta.shape[0] > QN_MAX_PARAMETERS:
-                raise ValueError(
-                    f"`acceleration='quasi_newton'` keeps a dense P × P curvature: θ has "
-                    f"{theta.shape[0]} entries (at most {QN_MAX_PARAMETERS}); use 'squarem'."
-                )
-            learner_state = (learner_state, *qn_start(problem, theta, e))
-        return self._state(problem, theta, e, states, learner_state)
+        coarse = self._coarse_start(problem, theta, e, key)
+        record: dict[str, Any] = {}
+        curvature = None
+        if coarse is not None:
+            theta, e, curvature, record = coarse
+        if qn:
+            if curvature is None:
+                learner_state = (learner_state, *qn_start(problem, theta, e))
+            else:
+                learner_state = (learner_state, curvature, qn_gradient(problem, theta, e))
+        state = self._state(problem, theta, e, states, learner_state)
+        return dataclasses.replace(state, cache=(e, record)) if record else state
+
+    def _coarse_start(self, problem: FitProblem, theta: Theta, e: GaussianPosterior, key):
+        """The coarse start (``coarse_start``): ``None`` when the data are short.
+
+        Else (θ, posteriors at θ, curvature or ``None``, epoch-1 record): the coarse fit's θ
+        when the evidence (+ log-prior) of all the data is there at least the start's (``e``
+        at ``theta``), else ``theta`` and ``e`` as given. Warnings of the coarse fit are not
+        shown (its failures fall back on the given start).
+        """
+        B, T = e.states.shape[:2]
+        if self.coarse_start is None or B * T < COARSE_FACTOR * self.coarse_start:
+            return None
+        t0 = time.perf_counter()
+        b = min(B, -(-self.coarse_start // T))
+        t = min(T, max(2, -(-self.coarse_start // b)))
+        sub = eqx.tree_at(lambda p: p.data, problem, problem.data[:b].head(t))
+        solver = dataclasses.replace(self, coarse_start=None)
+        epochs, converged, curvature, theta_c = 0, False, None, None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            state = solver.init(sub, theta, e.states[:b, :t], key)
+            stop = False
+            while epochs < COARSE_MAX_EPOCHS and not stop:
+                new, rec = solver.step(sub, state)
+                stop, converged = solver.terminate(sub, state, new, rec)
+                state, epochs = new, epochs + 1
+            # only a converged coarse fit: one that is not is no estimate (too few data for θ:
+            # a near-singular noise covariance, met on 40 samples of a 10-parameter model)
+            if converged and _valid(problem, state.theta):
+                theta_c = state.theta
+                e_c = self._posterior(problem, theta_c, e.states, quiet=True)
+        record = {
+            "coarse_steps": b * t,
+            "coarse_epochs": epochs,
+            "coarse_converged": converged,
+            "coarse_used": False,
+        }
+        if theta_c is not None and bool(jnp.all(e_c.status != RESULTS.nonfinite)):
+            f0 = _total(e.log_evidence, 1.0) + log_prior_value(problem, theta)
+            f0 = f0 if np.isfinite(f0) else -np.inf  # a failed start: any finite fit is better
+            f_c = _total(e_c.log_evidence, 1.0) + log_prior_value(problem, theta_c)
+            if np.isfinite(f_c) and f_c >= f0:
+                record["coarse_used"] = True
+                theta, e = theta_c, e_c
+                if self.acceleration == "quasi_newton":
+                    curvature = state.solver_state[0][1] * ((b * t) / (B * T))
+        record["coarse_time"] = time.perf_counter() - t0
+        return theta, e, curvature, record
 
     def _em_update(
         self, problem: FitProblem, theta: Theta, e: GaussianPosterior, learner_state, record: dict
@@ -374,6 +463,9 @@ class LaplaceEM(AbstractFitSolver):
             "learner_status": int(codes(RESULTS.successful)),
         }
         e0 = state.cache
+        if isinstance(e0, tuple):  # the first epoch after a coarse start: its record
+            e0, start_record = e0
+            record.update(start_record)
         if e0 is None:  # resumed from a checkpoint: the posteriors at θ, from the saved start
             # (as computed before the checkpoint; not counted in this epoch's record)
             e0 = self._posterior(problem, state.theta, start, quiet=True)
@@ -463,9 +555,8 @@ class LaplaceEM(AbstractFitSolver):
         else:
             record["qn_step"] = step
             _, theta, e = accepted
-            coords_new = Coordinates(problem, theta)
-            g_new = coords_new.ascent(q_derivatives(problem, theta, e, hessian=False)[1], theta)
-            Hinv = bfgs_update(Hinv, coords_new.z(theta) - z, g - g_new)
+            g_new = np.asarray(qn_gradient(problem, theta, e), float)
+            Hinv = bfgs_update(Hinv, Coordinates(problem, theta).z(theta) - z, g - g_new)
             g = g_new
             record["learn_time"] += time.perf_counter() - t0
         dtype = state.theta.dtype

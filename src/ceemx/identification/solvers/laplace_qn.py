@@ -33,6 +33,7 @@ __all__ = [
     "bfgs_update",
     "log_prior_value",
     "q_derivatives",
+    "qn_gradient",
     "qn_start",
 ]
 
@@ -105,6 +106,12 @@ def qn_start(problem: FitProblem, theta: Theta, e: GaussianPosterior):
     Hinv = (U / w) @ U.T
     g = coords.ascent(grad, theta)
     return jnp.asarray(Hinv, theta.dtype), jnp.asarray(g, theta.dtype)
+
+
+def qn_gradient(problem: FitProblem, theta: Theta, e: GaussianPosterior):
+    """The ascent gradient g in z at θ (of the log-evidence + log-prior; Fisher's identity)."""
+    grad = q_derivatives(problem, theta, e, hessian=False)[1]
+    return jnp.asarray(Coordinates(problem, theta).ascent(grad, theta), theta.dtype)
 
 
 def log_prior_value(problem: FitProblem, theta: Theta) -> float:
