@@ -372,7 +372,7 @@ class LaplaceEM(AbstractFitSolver):
         t = min(T, max(2, -(-self.coarse_start // b)))
         sub = eqx.tree_at(lambda p: p.data, problem, problem.data[:b].head(t))
         solver = dataclasses.replace(self, coarse_start=None)
-        epochs, converged, curvature, theta_c = 0, False, None, None
+        epochs, converged, curvature, e_c = 0, False, None, None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             state = solver.init(sub, theta, e.states[:b, :t], key)
@@ -383,8 +383,8 @@ class LaplaceEM(AbstractFitSolver):
                 state, epochs = new, epochs + 1
             # only a converged coarse fit: one that is not is no estimate (too few data for θ:
             # a near-singular noise covariance, met on 40 samples of a 10-parameter model)
-            if converged and _valid(problem, state.theta):
-                theta_c = state.theta
+            theta_c = state.theta
+            if converged and _valid(problem, theta_c):
                 e_c = self._posterior(problem, theta_c, e.states, quiet=True)
         record = {
             "coarse_steps": b * t,
@@ -392,7 +392,7 @@ class LaplaceEM(AbstractFitSolver):
             "coarse_converged": converged,
             "coarse_used": False,
         }
-        if theta_c is not None and bool(jnp.all(e_c.status != RESULTS.nonfinite)):
+        if e_c is not None and bool(jnp.all(e_c.status != RESULTS.nonfinite)):
             f0 = _total(e.log_evidence, 1.0) + log_prior_value(problem, theta)
             f0 = f0 if np.isfinite(f0) else -np.inf  # a failed start: any finite fit is better
             f_c = _total(e_c.log_evidence, 1.0) + log_prior_value(problem, theta_c)
