@@ -547,3 +547,67 @@ def test_coarse_start_ends_at_the_same_fixed_point():
     same = run(plain.system, plain.states, None)
     np.testing.assert_array_equal(kept.theta, same.theta)
     assert kept.epochs == same.epochs
+
+
+def test_expected_dynamics_terms_evaluate_each_distinct_previous_state_once():
+    """The pair points of a lower-triangular root keep x_t at its mean in 2n of their 4n points
+    (bitwise): the expected objective evaluates the dynamics at the 2n + 1 distinct x_t and
+    equals the sum over all 4n pair points (1e-13), as do the M-step's value and θ-gradient
+    (nonlinear: Lorenz, n = 3)."""
+    from ceemx.experiments import common
+    from ceemx.identification.learning.expected import cubature_points
+    from ceemx.identification.problem import FitProblem
+    from ceemx.inference.objective import expected_neg_log_joint_single, linearize_expected
+
+    true = common.true_lorenz(1, key=jax.random.PRNGKey(4), m=2, process_noise=0.1, obs_noise=0.5)
+    p = common.lorenz_problem(43, true, B=1, T=6, sigma_w=0.1, sigma_v=0.5, coupling=False)
+    rng = np.random.default_rng(0)
+    T, n = p.states.shape[1], p.states.shape[2]
+    M = rng.normal(size=(T * n, T * n))
+    S = 0.05 * (M @ M.T) / (T * n) + 0.01 * np.eye(T * n)  # a joint posterior covariance
+    blocks = S.reshape(T, n, T, n)
+    cov = jnp.asarray(np.stack([blocks[t, :, t] for t in range(T)]))[None]
+    cross = jnp.asarray(np.stack([blocks[t + 1, :, t] for t in range(T - 1)]))[None]
+    problem, theta = FitProblem.create(true, p.data, trainable=common.LORENZ_PARAMS)
+    d = p.data
+
+    @eqx.filter_jit
+    def both(problem, theta, states, cov, cross):
+        points, pairs = cubature_points(states, cov, cross)
+        pts, prs = points[0], pairs[0]
+        system = problem.build(theta)
+
+        def every_point(th):  # the rule's sum over all 4n pair points
+            s = problem.build(th)
+            ts = jnp.arange(T)
+            r_obs = jax.vmap(lambda xs, y, u, t: jax.vmap(lambda x: y - s.observe(x, u, t))(xs))(
+                pts, d.y[0], d.u[0], ts
+            )
+            r_dyn = jax.vmap(
+                lambda zs, u, t: jax.vmap(lambda z: z[n:] - s.dynamics(z[:n], u, t))(zs)
+            )(prs, d.u[0, :-1], ts[:-1])
+            mk = jnp.repeat(d.mask[0][:, None], pts.shape[1], axis=1)
+            obs = jax.vmap(s.obs_noise.nll)(
+                r_obs.reshape(-1, r_obs.shape[-1]), mk.reshape(-1, mk.shape[-1])
+            )
+            dyn = jax.vmap(s.process_noise.nll)(r_dyn.reshape(-1, n))
+            total = jnp.sum(obs) / pts.shape[1] + jnp.sum(dyn) / prs.shape[1]
+            if s.initial_prior is not None:
+                total = total + jnp.mean(jax.vmap(s.initial_prior.nll)(pts[0]))
+            return total
+
+        fast = expected_neg_log_joint_single(system, pts, prs, d.y[0], d.u[0], d.mask[0])
+        lin = linearize_expected(problem.build, theta, pts, prs, d.y[0], d.u[0], d.mask[0])
+        ref, ref_grad = jax.value_and_grad(every_point)(theta)
+        return pairs, fast, lin, ref, ref_grad
+
+    pairs, fast, (value, grad, _), ref, ref_grad = both(problem, theta, p.states, cov, cross)
+    x_prev = np.asarray(p.states[0, :-1])
+    for block in (slice(n, 2 * n), slice(3 * n, 4 * n)):  # x_t exactly at its mean
+        np.testing.assert_array_equal(
+            np.asarray(pairs[0, :, block, :n]), np.repeat(x_prev[:, None], n, 1)
+        )
+    assert not np.allclose(pairs[0, :, :n, :n], x_prev[:, None])  # the others move it
+    np.testing.assert_allclose(fast, ref, rtol=1e-13)
+    np.testing.assert_allclose(value, ref, rtol=1e-13)
+    np.testing.assert_allclose(grad, ref_grad, rtol=1e-10, atol=1e-10 * np.max(np.abs(ref_grad)))

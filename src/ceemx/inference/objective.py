@@ -22,6 +22,7 @@ from jaxtyping import Array, Bool, Float
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.lib.blocktri import BlockTridiagonal
+from ceemx.lib.cubature import pair_points_first_half
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Trajectory
 from ceemx.models.system import AbstractSystem
 
@@ -309,7 +310,14 @@ def linearize(
 
 
 def _expected_terms(theta_build, points, pairs, y, u, mask):
-    """Per-point residual functions of θ, flattened over (time, point): used by both functions."""
+    """Per-point residual functions of θ, flattened over (time, point): used by both functions.
+
+    The dynamics are evaluated once per distinct x_t of the pair points (``dyn_rows``, 2n + 1
+    per step, not 4n: :func:`ceemx.lib.cubature.pair_points_first_half`); ``spread`` takes
+    their values (or Jacobians), shaped (rows, …), to one per pair point, and ``z_next`` holds
+    each pair point's x_{t+1} in the same order: the dynamics residual of the pair points is
+    ``z_next − spread(f(dyn_rows))``.
+    """
     T, K1, n = points.shape
     K2 = pairs.shape[1]
     ts = jnp.arange(T)
@@ -320,19 +328,26 @@ def _expected_terms(theta_build, points, pairs, y, u, mask):
         jnp.repeat(mask, K1, axis=0),
         jnp.repeat(ts, K1),
     )
+    prev, spread_steps = pair_points_first_half(pairs, n)
+    D = prev.shape[1]
     dyn_rows = (
-        pairs.reshape((T - 1) * K2, 2 * n),
-        jnp.repeat(u[:-1], K2, axis=0),
-        jnp.repeat(ts[:-1], K2),
+        prev.reshape((T - 1) * D, n),
+        jnp.repeat(u[:-1], D, axis=0),
+        jnp.repeat(ts[:-1], D),
     )
+    z_next = pairs[..., n:].reshape((T - 1) * K2, n)
+
+    def spread(values):
+        per_step = spread_steps(values.reshape((T - 1, D) + values.shape[1:]))
+        return per_step.reshape(((T - 1) * K2,) + values.shape[1:])
 
     def obs_res(th, x, yt, ut, mk, t):
         return yt - theta_build(th).observe(x, ut, t)
 
-    def dyn_res(th, z, ut, t):
-        return z[n:] - theta_build(th).dynamics(z[:n], ut, t)
+    def dyn_fn(th, x, ut, t):
+        return theta_build(th).dynamics(x, ut, t)
 
-    return obs_rows, dyn_rows, obs_res, dyn_res, 1.0 / K1, 1.0 / K2
+    return obs_rows, (dyn_rows, z_next, spread), obs_res, dyn_fn, 1.0 / K1, 1.0 / K2
 
 
 def expected_neg_log_joint_single(
@@ -345,11 +360,11 @@ def expected_neg_log_joint_single(
 ) -> Scalar:
     """E_q[−log p(x, y | θ)] of one trajectory by cubature over marginal and pairwise points."""
     ident = lambda th: th  # noqa: E731
-    obs_rows, dyn_rows, obs_res, dyn_res, c1, c2 = _expected_terms(ident, points, pairs, y, u, mask)
+    obs_rows, dyn, obs_res, dyn_fn, c1, c2 = _expected_terms(ident, points, pairs, y, u, mask)
     x, yy, uu, mk, t = obs_rows
     r_obs = jax.vmap(obs_res, in_axes=(None, 0, 0, 0, 0, 0))(system, x, yy, uu, mk, t)
-    z, uw, tw = dyn_rows
-    r_dyn = jax.vmap(dyn_res, in_axes=(None, 0, 0, 0))(system, z, uw, tw)
+    (xp, uw, tw), z_next, spread = dyn
+    r_dyn = z_next - spread(jax.vmap(dyn_fn, in_axes=(None, 0, 0, 0))(system, xp, uw, tw))
     total = c1 * jnp.sum(jax.vmap(system.obs_noise.nll)(r_obs, mk))
     total = total + c2 * jnp.sum(jax.vmap(system.process_noise.nll)(r_dyn))
     if system.initial_prior is not None:
@@ -372,7 +387,7 @@ def linearize_expected(
     for the CE learning step; for Gaussian noise and a model linear in θ it is the exact Hessian.
     """
     system = build(theta)
-    obs_rows, dyn_rows, obs_res, dyn_res, c1, c2 = _expected_terms(build, points, pairs, y, u, mask)
+    obs_rows, dyn, obs_res, dyn_fn, c1, c2 = _expected_terms(build, points, pairs, y, u, mask)
     P = theta.shape[0]
     m = y.shape[-1]
     n = points.shape[-1]
@@ -382,9 +397,12 @@ def linearize_expected(
     G = jax.vmap(auto_jacobian(obs_res, 0, P, m), in_axes=(None, 0, 0, 0, 0, 0))(
         theta, x, yy, uu, mk, t
     )
-    z, uw, tw = dyn_rows
-    r_dyn = jax.vmap(dyn_res, in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
-    F = jax.vmap(auto_jacobian(dyn_res, 0, P, n), in_axes=(None, 0, 0, 0))(theta, z, uw, tw)
+    (xp, uw, tw), z_next, spread = dyn
+    r_dyn = z_next - spread(jax.vmap(dyn_fn, in_axes=(None, 0, 0, 0))(theta, xp, uw, tw))
+    # ∂r/∂θ = −∂f/∂θ at each pair point's x_t (x_{t+1} does not depend on θ)
+    F = -spread(
+        jax.vmap(auto_jacobian(dyn_fn, 0, P, n), in_axes=(None, 0, 0, 0))(theta, xp, uw, tw)
+    )
     # Row scalings for diagonal noise (as in `linearize`): no d × d product per cubature point.
     if on.diagonal_curvature:
         SG = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mk)[..., None] * G

@@ -26,7 +26,13 @@ from jaxtyping import Array, Float
 
 from ceemx.lib.dense import cholesky, eigh
 
-__all__ = ["pair_covariances", "psd_sqrt", "sigma_points", "sqrtm_psd"]
+__all__ = [
+    "pair_covariances",
+    "pair_points_first_half",
+    "psd_sqrt",
+    "sigma_points",
+    "sqrtm_psd",
+]
 
 
 def psd_sqrt(cov: Float[Array, "... d d"]) -> Float[Array, "... d d"]:
@@ -64,3 +70,29 @@ def pair_covariances(
     upper = jnp.concatenate([cov[:-1], jnp.swapaxes(cross, -1, -2)], axis=-1)
     lower = jnp.concatenate([cross, cov[1:]], axis=-1)
     return jnp.concatenate([upper, lower], axis=-2)
+
+
+def pair_points_first_half(pairs: Float[Array, "S K2 d2"], n: int):
+    """The distinct first halves x of the points of pairs (x, x'), and a map back to the points.
+
+    :func:`sigma_points` of a pair's Gaussian (d = 2n) lays out (μ + s_i) for i < 2n, then
+    (μ − s_i), s_i the scaled columns of the lower-triangular root: the columns i ≥ n are zero in
+    their first n entries, so those 2n points keep x exactly at its mean, and of the 4n points
+    only 2n + 1 differ in x — a function of x alone (the dynamics of a transition) need be
+    evaluated only there. Returns (S, D, n) those x (columns 0…n−1 with +, with −, then the
+    mean; D = 2n + 1) and ``spread``: values at them (S, D, …) → (S, 4n, …), one per point, by
+    static slices (a gather's reverse mode, a scatter-add, costs more than what it saves).
+    Points laid out otherwise (K₂ ≠ 4n): each is its own (D = K₂, ``spread`` the identity).
+    """
+    K2 = pairs.shape[1]
+    if K2 != 4 * n:
+        return pairs[..., :n], lambda values: values
+    first = jnp.concatenate(
+        [pairs[:, :n, :n], pairs[:, 2 * n : 3 * n, :n], pairs[:, n : n + 1, :n]], axis=1
+    )
+
+    def spread(values):
+        mean = jnp.broadcast_to(values[:, 2 * n :], (values.shape[0], n) + values.shape[2:])
+        return jnp.concatenate([values[:, :n], mean, values[:, n : 2 * n], mean], axis=1)
+
+    return first, spread

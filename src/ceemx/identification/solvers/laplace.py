@@ -67,6 +67,7 @@ from ceemx.inference.posterior import E_STEP_SMOOTHER, GaussianPosterior, gaussi
 from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_choice, check_int
 from ceemx.infra.warn import warn
+from ceemx.lib.cubature import pair_points_first_half
 from ceemx.lib.dense import cho_solve, cholesky
 from ceemx.lib.results import RESULTS, codes
 from ceemx.lib.typing import PerTrajectory, States, Theta
@@ -132,11 +133,13 @@ def noise_second_moments(
 
         S_obs, S_full = jax.vmap(obs_step)(xp, y, u, mask, ts)
 
-        def dyn_step(zs, ut, t):
-            r = jax.vmap(lambda z: z[n:] - system.dynamics(z[:n], ut, t))(zs)
-            return jnp.einsum("ki,kj->ij", r, r) / zs.shape[0]
-
-        S_dyn = jax.vmap(dyn_step)(zp, u[:-1], ts[:-1])
+        # the dynamics once per distinct x_t of the pair points (2n + 1 of 4n)
+        first, spread = pair_points_first_half(zp, n)
+        fx = jax.vmap(lambda xs, ut, t: jax.vmap(lambda x: system.dynamics(x, ut, t))(xs))(
+            first, u[:-1], ts[:-1]
+        )
+        r = zp[..., n:] - spread(fx)
+        S_dyn = jnp.einsum("tki,tkj->tij", r, r) / zp.shape[1]
         diag = jnp.diagonal(S_obs, axis1=-2, axis2=-1)
         return S_dyn.sum(0), diag.sum(0), mask.sum(0).astype(xp.dtype), S_full.sum(0)
 
