@@ -237,7 +237,11 @@ class LaplaceEM(AbstractFitSolver):
             the log-evidence and a plain EM update when that fails. An epoch costs one E-step
             and one gradient of Q (no M-step optimisation) and the steps learn the missing
             information EM creeps along; the learner and ``rho_theta`` are not used. For small
-            θ (≤ ``QN_MAX_PARAMETERS`` entries: the curvature is a dense P × P Hessian).
+            θ (≤ ``QN_MAX_PARAMETERS`` entries: the curvature is a dense P × P Hessian) and
+            models linear in the state, where its gradient is the evidence's: on a nonlinear
+            model (the Lorenz setting of ``ceemx experiment laplace``, 20 seeds) it took 13–220
+            epochs against SQUAREM's 15–22, and one fit stopped 0.55 nat below SQUAREM's
+            evidence (``benchmarks/probes/laplace_acceleration.py``).
             ``None``: one plain EM update per epoch (exact EM).
         rtol, atol: stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``
             in an epoch.
