@@ -74,15 +74,37 @@ from ceemx.lib.typing import PerTrajectory, States, Theta
 from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["GaussianPosterior", "LaplaceEM", "gaussian_posterior", "noise_second_moments"]
+__all__ = [
+    "COARSE_FACTOR",
+    "COARSE_STEPS",
+    "GaussianPosterior",
+    "LaplaceEM",
+    "coarse_shape",
+    "gaussian_posterior",
+    "noise_second_moments",
+]
 
 
 _NOISE_FIELDS = ("process_noise", "obs_noise")
 
+#: the default size (time steps, B·T) of the part of long data a coarse start fits first
+COARSE_STEPS = 10_000
 #: a coarse start runs when the data hold at least this many times ``coarse_start`` time steps
 COARSE_FACTOR = 4
 #: the most epochs the coarse start's fit takes
 COARSE_MAX_EPOCHS = 100
+
+
+def coarse_shape(B: int, T: int, steps: int | None = COARSE_STEPS) -> tuple[int, int] | None:
+    """(b, t) of the part of B records of T steps that a coarse start fits, or ``None``.
+
+    ``None`` when ``steps`` is ``None`` or the data hold fewer than ``COARSE_FACTOR``·``steps``
+    time steps; else the first b = ⌈steps / T⌉ records, each cut to its first ⌈steps / b⌉ steps.
+    """
+    if steps is None or B * T < COARSE_FACTOR * steps:
+        return None
+    b = min(B, -(-steps // T))
+    return b, min(T, max(2, -(-steps // b)))
 
 
 def _masked_fill(S_oo, R, mask):
@@ -266,7 +288,7 @@ class LaplaceEM(AbstractFitSolver):
     acceleration: str | None = eqx.field(default="squarem", static=True)
     rtol: float = 1e-10
     atol: float = 0.0
-    coarse_start: int | None = eqx.field(default=10_000, static=True)
+    coarse_start: int | None = eqx.field(default=COARSE_STEPS, static=True)
 
     learns_noise: ClassVar[bool] = True
     history_keys = {
@@ -372,11 +394,11 @@ class LaplaceEM(AbstractFitSolver):
         shown (its failures fall back on the given start).
         """
         B, T = e.states.shape[:2]
-        if self.coarse_start is None or B * T < COARSE_FACTOR * self.coarse_start:
+        shape = coarse_shape(B, T, self.coarse_start)
+        if shape is None:
             return None
         t0 = time.perf_counter()
-        b = min(B, -(-self.coarse_start // T))
-        t = min(T, max(2, -(-self.coarse_start // b)))
+        b, t = shape
         sub = eqx.tree_at(lambda p: p.data, problem, problem.data[:b].head(t))
         solver = dataclasses.replace(self, coarse_start=None)
         epochs, converged, curvature, e_c = 0, False, None, None
