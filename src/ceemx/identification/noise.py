@@ -313,8 +313,10 @@ class _EvidenceSearch:
         return f, -self.layout.gradient(self.layout.system(self.system, z), m)
 
     def refine(self, z):
-        """L-BFGS-B from z (SciPy, on the host), on the evidence per time step (so that its
-        first step, the gradient's length, is of the scales' order whatever the data's size).
+        """L-BFGS-B from z (SciPy, on the host), on the evidence per time step.
+
+        Per time step, so that its first step (the gradient's length) is of the scales' order
+        whatever the data's size; summed, it jumped to the bounds on a 10⁵-sample record.
         """
         from scipy.optimize import minimize
 
