@@ -83,6 +83,19 @@ def test_estimate_noise_does_not_depend_on_the_guess(lin_data, estimate_from_tru
     assert _std(est.obs_noise) == pytest.approx(R, rel=0.2)
 
 
+def test_estimate_noise_leaves_the_flat_evidence_of_a_vanishing_scale(
+    lin_data, estimate_from_truth
+):
+    # σ_w 10⁴× too small: the evidence is flat there (the output-error plateau: the states follow
+    # the dynamics, all the noise is the observations'), and L-BFGS alone stopped at σ_w 1e-5
+    # (139 nats below the maximum, measured). A decade step finds the slope again: without the
+    # grid, the same maximum as from the truth.
+    est, nm, _ = estimate_noise(linear(Q * 1e-4, R), lin_data, search=False)
+    truth = estimate_from_truth
+    assert _std(est.process_noise) == pytest.approx(_std(truth.process_noise), rel=1e-3)
+    assert _std(est.obs_noise) == pytest.approx(_std(truth.obs_noise), rel=1e-3)
+
+
 def test_learn_noise_validation(lin_data):
     with pytest.raises(ValueError, match="`noise` must be"):
         ceemx.fit(linear(), lin_data, noise="guess")  # type: ignore[arg-type]

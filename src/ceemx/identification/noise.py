@@ -201,6 +201,9 @@ def estimate_noise(
     hundreds of nats along the ridge where process noise grows and observation noise shrinks.
     So the scales are found by L-BFGS (SciPy, on the host; each evaluation one MAP smoothing and
     its posterior, warm-started) on the log-evidence in log-scale, which follows such ridges.
+    Where a scale → 0 the evidence goes flat (all the noise in the other model: the output-error
+    plateau) and L-BFGS stops; a decade step of each scale from its answer, and L-BFGS again from
+    any that gains, finds the slope beyond (up to three times).
 
     By default each noise model keeps its shape and learns one factor (its covariance times c²):
     the two factors of process and observation noise are what a guess gets wrong by orders of
@@ -222,13 +225,17 @@ def estimate_noise(
             start from the best point. The evidence has a second, degenerate maximum — all noise
             in the process, the observations fitted exactly (σ_v → 0) — whose basin a start far
             too loose in the process noise falls into; the grid finds the other basin when it
-            is higher. Only when every field takes one factor (``per_component=False``).
+            is higher. Only when every field takes one factor (``per_component=False``). On
+            long data (:func:`ceemx.identification.solvers.laplace.coarse_shape`: from 40 000
+            time steps) the grid and a first L-BFGS run on their first 10 000 steps, then
+            L-BFGS on all of them from there.
         max_evaluations: bound on the posterior evaluations of the L-BFGS refinement (≥ 1).
         smoother: the MAP smoother (default: Laplace EM's E-step smoother).
 
     Returns:
         ``(system, moments, evaluations)``: the system with the estimated noise, the moments
-        under it and the number of posterior evaluations made.
+        under it and the number of posterior evaluations made (on all the data and on their
+        first part, together).
 
     Raises:
         ValueError: for an unknown field, a noise model that is not Gaussian, or an invalid
