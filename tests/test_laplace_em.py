@@ -549,6 +549,7 @@ def test_coarse_start_ends_at_the_same_fixed_point():
     assert kept.epochs == same.epochs
 
 
+@pytest.mark.slow  # ≈ 3 s (a Lorenz program); the exact-EM test checks the same code linear
 def test_expected_dynamics_terms_evaluate_each_distinct_previous_state_once():
     """The pair points of a lower-triangular root keep x_t at its mean in 2n of their 4n points
     (bitwise): the expected objective evaluates the dynamics at the 2n + 1 distinct x_t and
