@@ -400,7 +400,9 @@ class LaplaceEM(AbstractFitSolver):
         t0 = time.perf_counter()
         b, t = shape
         sub = eqx.tree_at(lambda p: p.data, problem, problem.data[:b].head(t))
-        solver = dataclasses.replace(self, coarse_start=None)
+        # the part holds fewer than COARSE_FACTOR·coarse_start steps: its fit starts no coarse
+        # fit of its own (and the solver's numbers stay the traced arrays the driver made)
+        solver = self
         epochs, converged, curvature, e_c = 0, False, None, None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
