@@ -54,6 +54,17 @@ def _trainable(s):
     return (s.A, s.C, s.process_noise, s.obs_noise)
 
 
+def _assert_same_model(got, want, atol):
+    """A and both noise covariances of two fits of the linear-Gaussian model agree to ``atol``."""
+    np.testing.assert_allclose(got.system.A, want.system.A, atol=atol)
+    for noise in ("process_noise", "obs_noise"):
+        np.testing.assert_allclose(
+            getattr(got.system, noise).covariance(),
+            getattr(want.system, noise).covariance(),
+            atol=atol,
+        )
+
+
 @pytest.mark.slow
 def test_e_step_is_the_rts_smoother_and_evidence_the_kalman_likelihood():
     y, (A, C, Q, R, mu0, P0) = _lg_problem()
@@ -231,13 +242,7 @@ def test_squarem_stops_at_an_em_fixed_point_before_plain_em():
     assert not plain.converged and plain.epochs == 2 * fast.epochs
     assert fast.history[-1]["log_evidence"] > plain.history[-1]["log_evidence"]
     step = run(fast.system, fast.states, None, 1)
-    np.testing.assert_allclose(step.system.A, fast.system.A, atol=1e-5)
-    for noise in ("process_noise", "obs_noise"):
-        np.testing.assert_allclose(
-            getattr(step.system, noise).covariance(),
-            getattr(fast.system, noise).covariance(),
-            atol=1e-5,
-        )
+    _assert_same_model(step, fast, 1e-5)
 
 
 @pytest.mark.slow  # ≈ 5 s; noise learning on the linear-Gaussian model stays in the default suite
@@ -489,16 +494,9 @@ def test_quasi_newton_reaches_the_em_fixed_point():
     sq = run(start, x0, "squarem", 400)
     assert qn.converged and sq.converged
     assert qn.history[-1]["log_evidence"] >= sq.history[-1]["log_evidence"] - 1e-8
-    np.testing.assert_allclose(qn.system.A, sq.system.A, atol=1e-4)
+    _assert_same_model(sq, qn, 1e-4)
     step = run(qn.system, qn.states, None, 1)
-    np.testing.assert_allclose(step.system.A, qn.system.A, atol=1e-6)
-    for noise in ("process_noise", "obs_noise"):
-        for other in (sq, step):
-            np.testing.assert_allclose(
-                getattr(qn.system, noise).covariance(),
-                getattr(other.system, noise).covariance(),
-                atol=1e-4 if other is sq else 1e-6,
-            )
+    _assert_same_model(step, qn, 1e-6)
 
 
 @pytest.mark.slow  # four quasi-Newton fits, one at the coarse start's shapes (≈ 20 s)
@@ -535,13 +533,7 @@ def test_coarse_start_ends_at_the_same_fixed_point():
     assert coarse.epochs < plain.epochs, (coarse.epochs, plain.epochs)
     ev = [r.history[-1]["log_evidence"] for r in (plain, coarse)]
     np.testing.assert_allclose(ev[1], ev[0], rtol=0, atol=1e-8)
-    np.testing.assert_allclose(coarse.system.A, plain.system.A, atol=1e-6)
-    for noise in ("process_noise", "obs_noise"):
-        np.testing.assert_allclose(
-            getattr(coarse.system, noise).covariance(),
-            getattr(plain.system, noise).covariance(),
-            atol=1e-6,
-        )
+    _assert_same_model(coarse, plain, 1e-6)
     kept = run(plain.system, plain.states, 150)
     assert kept.history[0]["coarse_converged"] and kept.history[0]["coarse_used"] is False
     same = run(plain.system, plain.states, None)

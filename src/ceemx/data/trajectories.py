@@ -308,9 +308,7 @@ class Trajectories(eqx.Module):
         T = self.num_steps
         if not (isinstance(steps, (int, np.integer)) and 2 <= steps <= T):
             raise ValueError(f"`steps` must be an integer in [2, T = {T}]; got {steps!r}.")
-        if _on_host(self):  # a NumPy view: no program per shape (see _on_host)
-            return jax.tree_util.tree_map(lambda a: _back_like(np.asarray(a)[:, :steps], a), self)
-        return jax.tree_util.tree_map(lambda a: a[:, :steps], self)
+        return self.windows(steps, step=T)  # one window per record, at its start
 
     @no_type_check  # validates its arguments
     def windows(self, length: int, step: int | None = None) -> Trajectories:
