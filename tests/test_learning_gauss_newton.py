@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import ceemx
+from ceemx.identification.learning import gauss_newton as gn
 from ceemx.identification.learning.problem import make_problem
 from ceemx.inference.objective import depends_on, whitened_residuals
 from ceemx.systems import CoupledLorenz
@@ -44,10 +45,17 @@ def batch():
     return system, s(x), data, s([1.0, 0.0, 2.0])
 
 
-# observation rows absent (the default suite) / present
-@pytest.mark.parametrize("which", ["dynamics", pytest.param("all", marks=pytest.mark.slow)])
-def test_gauss_newton_matches_the_residual_jacobian(batch, which):
+# observation rows absent (the default suite) / present; all rows in one chunk, or chunks of 5
+# of the 36 time steps (8 chunks, the last padded by 4 weight-0 steps: each chunk's product
+# summed, the NaN trajectory inside chunks)
+@pytest.mark.parametrize(
+    "which, steps_per_chunk",
+    [("dynamics", None), ("dynamics", 5), pytest.param("all", None, marks=pytest.mark.slow)],
+)
+def test_gauss_newton_matches_the_residual_jacobian(batch, which, steps_per_chunk, monkeypatch):
     system, states, data, w = batch
+    if steps_per_chunk is not None:  # 3 transition rows of 3 parameters per step
+        monkeypatch.setattr(gn, "ROWS_CHUNK_BYTES", steps_per_chunk * 3 * 3 * 8)
     trainable = (lambda s: (s.sigma, s.rho, s.beta)) if which == "dynamics" else None
     problem, theta = make_problem(system, states, data, trainable=trainable, weights=w)
     keep = np.flatnonzero(np.asarray(w) > 0)
@@ -66,3 +74,11 @@ def test_gauss_newton_matches_the_residual_jacobian(batch, which):
     np.testing.assert_allclose(grad, np.einsum("b,brp,br->p", wk, J, r), rtol=1e-11)
     np.testing.assert_allclose(value, v, rtol=1e-13)
     assert theta.shape[0] == (3 if which == "dynamics" else 3 + 6 + 9)  # σ ρ β (C, H)
+
+
+def test_gram_by_column_blocks_equals_the_product():
+    # P = 400: 4 blocks of 100 columns, 10 block products mirrored; exactly symmetric
+    R = np.random.default_rng(1).standard_normal((50, 400))
+    D = np.asarray(jax.jit(gn.gram)(jnp.asarray(R)))
+    np.testing.assert_allclose(D, R.T @ R, rtol=1e-12, atol=1e-11)
+    np.testing.assert_array_equal(D, D.T)

@@ -36,6 +36,7 @@ from ceemx.infra import checkpoint as ckpt
 from ceemx.infra.compilation import BackgroundCompile, compile_in_background, has_idle_core
 from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.options import check_key
+from ceemx.infra.runtime import one_blas_thread
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, from_codes, messages, select
 from ceemx.lib.tree import as_jax, trace_numbers
@@ -313,6 +314,7 @@ def _check_max_epochs(max_epochs) -> int:
     return int(max_epochs)
 
 
+@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
 @no_type_check  # validates its arguments: check_inputs, solver and max_epochs checks
 def fit(
     system: AbstractSystem,

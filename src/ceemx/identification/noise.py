@@ -39,6 +39,7 @@ from ceemx.identification.solvers.laplace import coarse_shape, noise_second_mome
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
 from ceemx.inference.smoother import LMSmoother, check_inputs, promote_inputs
 from ceemx.infra.compilation import jit
+from ceemx.infra.runtime import one_blas_thread
 from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import trace_numbers
 from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
@@ -178,6 +179,7 @@ def with_noise_from_moments(
     return system
 
 
+@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
 def estimate_noise(
     system: AbstractSystem,
     data: Trajectories,

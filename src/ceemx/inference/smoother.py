@@ -17,6 +17,7 @@ from ceemx.data.trajectories import Trajectories, cast_checked
 from ceemx.inference.objective import linearize, neg_log_joint_single, nll_offset_single
 from ceemx.infra.compilation import jit_variants
 from ceemx.infra.options import check_bool, check_choice, check_int, check_nonnegative
+from ceemx.infra.runtime import one_blas_thread
 from ceemx.infra.warn import warn
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.parallel_blocktri import parallel_solve
@@ -27,9 +28,11 @@ from ceemx.models.method_check import check_methods
 from ceemx.models.system import AbstractSystem, float_dtype
 
 __all__ = [
+    "AUTO_CHUNK_BYTES",
     "AUTO_PARALLEL_MIN_T",
     "LMSmoother",
     "SmootherSolution",
+    "auto_batch_chunk",
     "check_inputs",
     "promote_array",
     "promote_inputs",
@@ -58,10 +61,11 @@ class LMSmoother(eqx.Module):
         max_steps: bound on iterations (accepted and rejected) per trajectory.
         damping: initial Marquardt damping λ₀.
         throw: raise (via ``eqx.error_if``) when any trajectory fails; otherwise report statuses.
-        batch_chunk: smooth at most this many trajectories at once (``None``: all of them).
-            Memory grows as (chunk)·T·n² (≈ 20 live (T, n, n) blocks per trajectory): a chunk
-            bounds it for large state dimensions; the answers are the same (each trajectory is
-            solved on its own either way).
+        batch_chunk: smooth at most this many trajectories at once (``None``: all of them;
+            ``"auto"``, the default: :func:`auto_batch_chunk`). Memory grows as (chunk)·T·n²
+            (≈ 20 live (T, n, n) blocks per trajectory): a chunk bounds it for large state
+            dimensions; the answers are the same (each trajectory is solved on its own either
+            way).
         time_parallel: how each iteration's block-tridiagonal system is solved. ``False``
             (default): block Cholesky and two sequential scans over time (depth O(T)).
             ``True``: ``lib.parallel_blocktri.parallel_solve``, two associative scans (depth
@@ -77,7 +81,7 @@ class LMSmoother(eqx.Module):
     max_steps: int = eqx.field(default=50, static=True)
     damping: float = 1e-3
     throw: bool = eqx.field(default=False, static=True)
-    batch_chunk: int | None = eqx.field(default=None, static=True)
+    batch_chunk: int | str | None = eqx.field(default="auto", static=True)
     time_parallel: bool | str = eqx.field(default=False, static=True)
 
     def __check_init__(self):
@@ -85,8 +89,30 @@ class LMSmoother(eqx.Module):
             check_nonnegative(name, getattr(self, name))
         check_int("max_steps", self.max_steps, 0)
         check_bool("throw", self.throw)
-        check_int("batch_chunk", self.batch_chunk, 1, none=True)
+        if self.batch_chunk != "auto":
+            check_int("batch_chunk", self.batch_chunk, 1, none=True)
         check_choice("time_parallel", self.time_parallel, (False, True, "auto"))
+
+
+#: ``LMSmoother(batch_chunk="auto")`` keeps a chunk's estimated working memory below this.
+#: XLA:CPU allocates a program's temporaries afresh at every call, and glibc serves blocks above
+#: 32 MB by ``mmap``: every call of a program with larger temporaries page-faults all of them in
+#: again. The Figure-3 E-step (B = 8, T = 128, n = 18: 38.4 MB of temporaries) took 77–98 ms a
+#: call inside a fit against 48 ms alone, 9 400 page faults a call; in chunks of 2, 60 ms and
+#: none, the same states bitwise (benchmarks/README.md, "Every row in one run").
+AUTO_CHUNK_BYTES = 16 * 2**20
+
+
+def auto_batch_chunk(B: int, T: int, n: int, itemsize: int) -> int | None:
+    """The trajectories :class:`LMSmoother` smooths at once under ``batch_chunk="auto"``.
+
+    ``None`` (all B at once) when the batch's estimated working memory, 20 (T, n, n) blocks per
+    trajectory, fits :data:`AUTO_CHUNK_BYTES`, or when fewer than 2 trajectories would (large
+    state dimensions, whose per-trajectory programs are not page-fault bound); else the most
+    that fit.
+    """
+    chunk = AUTO_CHUNK_BYTES // max(1, 20 * T * n * n * itemsize)
+    return int(chunk) if 2 <= chunk < B else None
 
 
 #: ``smooth(..., one_shot=True)`` compiles a one-shot program up to this B·T·n² (the run time of an
@@ -278,6 +304,9 @@ def _smooth_batch_impl(
     covariance: bool,
 ) -> SmootherSolution:
     chunk = getattr(solver, "batch_chunk", None)
+    if chunk == "auto":
+        B, T, n = x_init.shape
+        chunk = auto_batch_chunk(B, T, n, x_init.dtype.itemsize)
 
     def batched(f, *args):
         """``vmap`` over the trajectories, in chunks of ``solver.batch_chunk`` when set."""
@@ -499,6 +528,7 @@ def check_inputs(
             )
 
 
+@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
 @no_type_check  # validates its arguments: check_inputs
 def smooth(
     system: AbstractSystem,

@@ -12,16 +12,81 @@ pinned to one CPU, and 0.35 s on the idle machine (``benchmarks/README.md``, "Bu
 starts, which is the one control XLA honours (``XLA_FLAGS`` has no thread-count flag for the
 runtime; ``taskset -c 0 python ...`` does the same from the shell). The library never calls it by
 itself; the ``ceemx`` command does with ``--threads N`` or ``CEEMX_THREADS=N``.
+
+:func:`blas_threads` is the other half, and the library does use it: XLA's CPU LAPACK calls
+(Cholesky, triangular solves) run in SciPy's OpenBLAS, which starts its own thread pool beside
+XLA's and keeps those threads spinning after each call, on the cores XLA's threads need. Inside
+``fit``, ``smooth`` and ``learn`` the BLAS libraries run one thread each (``threadpoolctl``, for
+the duration of the call only; ``CEEMX_BLAS_THREADS=N`` chooses another N, ``0`` leaves them as
+they are). Measured on the Figure-3 Algorithm-1 epoch (B = 8, n = 18, 342 parameters, 2 cores):
+0.155–0.164 s → 0.096 s (smoothing 62–80 → 33 ms, learning 81–90 → 60 ms;
+``benchmarks/README.md``, "Every row in one run").
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
+from collections.abc import Callable, Iterator
+from typing import Any, TypeVar
 
 from ceemx.infra.warn import warn
 from ceemx.lib.typing import no_type_check
 
-__all__ = ["limit_cpu_threads"]
+__all__ = ["blas_threads", "limit_cpu_threads", "one_blas_thread"]
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+_controller: Any = None
+
+
+def _blas_controller() -> Any:
+    """threadpoolctl's view of the loaded BLAS libraries (built once; ``False`` if unavailable).
+
+    SciPy's LAPACK module is imported first: it loads the OpenBLAS that XLA's CPU LAPACK kernels
+    call, which JAX would otherwise load only at the first LAPACK program.
+    """
+    global _controller
+    if _controller is None:
+        try:
+            import scipy.linalg  # noqa: F401  (loads the BLAS behind jaxlib's LAPACK kernels)
+            from threadpoolctl import ThreadpoolController
+
+            _controller = ThreadpoolController()
+        except Exception:  # no threadpoolctl, or a BLAS it cannot read: leave the threads be
+            _controller = False
+    return _controller
+
+
+@contextlib.contextmanager
+def blas_threads(n: int | None = None) -> Iterator[None]:
+    """Within the block, the BLAS libraries (OpenBLAS, MKL, BLIS) run at most ``n`` threads.
+
+    ``None``: ``CEEMX_BLAS_THREADS`` if set (``0``: no limit), else 1. The previous limits are
+    restored on exit. Nested blocks are fine.
+    """
+    if n is None:
+        text = os.environ.get("CEEMX_BLAS_THREADS", "").strip()
+        n = int(text) if text.isdigit() else 1
+    controller = _blas_controller() if n > 0 else False
+    if not controller:
+        yield
+        return
+    with controller.limit(limits=n, user_api="blas"):
+        yield
+
+
+def one_blas_thread(fun: _F) -> _F:
+    """``fun`` run inside :func:`blas_threads` (its array results waited for before the exit)."""
+
+    @functools.wraps(fun)
+    def wrapped(*args: Any, **kwargs: Any) -> Any:
+        import jax
+
+        with blas_threads():
+            return jax.block_until_ready(fun(*args, **kwargs))
+
+    return wrapped  # type: ignore[return-value]
 
 
 @no_type_check  # validates its argument

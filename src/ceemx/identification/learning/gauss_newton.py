@@ -1,15 +1,18 @@
-"""The learning step's Gauss–Newton matrix as one product of the batch's whitened θ-Jacobian rows.
+"""The learning step's Gauss–Newton matrix from the batch's whitened θ-Jacobian rows, chunk by chunk.
 
 At fixed states, −J_b(θ) is a sum of per-step factors (observations, transitions, the initial
 prior). The Gauss–Newton matrix of Σ_b w_b (−J_b) is Σ_b w_b Σ_rows (S J_θ)ᵀ (S J_θ) with each
-factor's curvature root S (:mod:`ceemx.models.noise`). Here the rows of every trajectory, scaled
-by √w_b, are stacked into one (R, P) matrix and the P × P matrix is formed by a single product
-RᵀR — not one P × P product per trajectory summed afterwards — and factors whose residual does not
-depend on θ at all (the observation model when only the dynamics learn, or the reverse) contribute
-no rows: that is decided at trace time from the residual's program
-(:func:`ceemx.inference.objective.depends_on`), since
-the θ-Jacobian of such a factor is identically zero and its product would be pure cost (on the
-Figure-3 problem half of the build).
+factor's curvature root S (:mod:`ceemx.models.noise`). :func:`batch_gauss_newton` forms the rows
+of a chunk of time steps at a time (every trajectory's steps in one sequence, scaled by √w_b) and
+adds each chunk's RᵀR to the P × P sum in a ``lax.scan``: the rows of the whole batch are never
+held at once (at the Figure-3 size they were 50 MB, three such arrays a call: fresh pages from
+the kernel every call, 36 700 page faults, a third of the build's time; and B·T·n·P numbers on a
+long record), while each product stays large enough for the BLAS (``ROWS_CHUNK_BYTES``). Factors
+whose residual does not depend on θ at all (the observation model when only the dynamics learn,
+or the reverse) contribute no rows: that is decided at trace time from the residual's program
+(:func:`ceemx.inference.objective.depends_on`), since the θ-Jacobian of such a factor is
+identically zero and its product would be pure cost (on the Figure-3 problem half of the build).
+:func:`theta_rows` gives one trajectory's rows at once (the reference the tests compare with).
 """
 
 from __future__ import annotations
@@ -21,10 +24,16 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ceemx.inference.objective import auto_jacobian, depends_on, residuals
-from ceemx.lib.typing import Scalar, Theta, Trajectory
+from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta, Trajectory
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["gram", "theta_rows"]
+__all__ = ["ROWS_CHUNK_BYTES", "batch_gauss_newton", "gram", "theta_rows"]
+
+#: Bytes of θ-Jacobian rows :func:`batch_gauss_newton` forms at a time. Figure-3 learning step
+#: (B = 8, T = 128, 18 rows of 342 per step; ``python benchmarks/probes/algorithm1_epoch.py
+#: --epochs 0``): all rows at once (50 MB) 110–124 ms a build, 36 700 page faults a call;
+#: by chunks of ≈ 4 MB ≈ 65 ms, none (benchmarks/README.md, "Every row in one run").
+ROWS_CHUNK_BYTES = 4 * 2**20
 
 
 def theta_rows(
@@ -93,7 +102,130 @@ def theta_rows(
     return value, grad, out.astype(dtype)
 
 
+def batch_gauss_newton(
+    build: Callable[[Theta], AbstractSystem],
+    theta: Theta,
+    states: States,
+    y: Float[Array, "B T m"],
+    u: Float[Array, "B T p"],
+    mask: Bool[Array, "B T m"],
+    weights: PerTrajectory,
+    chunk_bytes: int | None = None,
+) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
+    """(Σ_b w_b (−J_b), its θ-gradient, Σ_b w_b RᵀR_b) at fixed states, rows formed by chunks.
+
+    The same sums as :func:`theta_rows` of every trajectory with weight w_b > 0 (trajectories of
+    weight 0 take no part, whatever their numbers); the B·T time steps are cut into chunks of at
+    most ``chunk_bytes`` (default :data:`ROWS_CHUNK_BYTES`) of rows, each chunk's rows formed,
+    multiplied out and dropped in a ``lax.scan``.
+    """
+    system = build(theta)
+    B, T, n = states.shape
+    m, P = y.shape[-1], theta.shape[0]
+    dtype = states.dtype
+    ok = weights > 0
+    w = jnp.where(ok, weights, 0.0)
+    on, pn = system.obs_noise, system.process_noise
+
+    def obs_res(xt, th, yt, ut, t):
+        return yt - build(th).observe(xt, ut, t)
+
+    def dyn_res(xt, th, ut, t):
+        return -build(th).dynamics(xt, ut, t)  # + x_{t+1}, which does not depend on θ
+
+    t0 = jnp.zeros((), jnp.int32)
+    with_obs = depends_on(obs_res, 1, states[0, 0], theta, y[0, 0], u[0, 0], t0)
+    with_dyn = T > 1 and depends_on(dyn_res, 1, states[0, 0], theta, u[0, 0], t0)
+    per_step = m * with_obs + n * with_dyn
+
+    def step(xt, xn, yt, ut, mt, t, wt):
+        """Weighted value, gradient and rows of the factors at step t (its transition if t < T−1)."""
+        has_next = t < T - 1
+        r_obs = yt - system.observe(xt, ut, t)
+        r_dyn = xn - system.dynamics(xt, ut, t)
+        value = on.nll(r_obs, mt) + jnp.where(has_next, pn.nll(r_dyn), 0.0)
+        grad = jnp.zeros((P,), dtype)
+        rows = []
+        if with_obs:
+            G = auto_jacobian(obs_res, 1, P, m)(xt, theta, yt, ut, t)
+            grad = grad + G.T @ jax.grad(on.nll)(r_obs, mt)
+            if on.diagonal_curvature:
+                rows.append(on.sqrt_curvature_diagonal(r_obs, mt)[:, None] * G)
+            else:
+                rows.append(on.sqrt_curvature(r_obs, mt) @ G)
+        if with_dyn:
+            F = auto_jacobian(dyn_res, 1, P, n)(xt, theta, ut, t)
+            grad = grad + jnp.where(has_next, F.T @ jax.grad(pn.nll)(r_dyn), 0.0)
+            if pn.diagonal_curvature:
+                SF = pn.sqrt_curvature_diagonal(r_dyn)[:, None] * F
+            else:
+                SF = pn.sqrt_curvature(r_dyn) @ F
+            rows.append(jnp.where(has_next, SF, 0.0))
+        R = jnp.concatenate(rows) if rows else jnp.zeros((0, P), dtype)
+        keep = wt > 0
+        return (
+            jnp.where(keep, wt * value, 0.0),
+            jnp.where(keep, wt * grad, 0.0),
+            jnp.where(keep, jnp.sqrt(wt) * R, 0.0).astype(dtype),
+        )
+
+    # Every trajectory's steps in one sequence, cut into equal chunks (the last padded by
+    # weight-0 steps).
+    N = B * T
+    budget = ROWS_CHUNK_BYTES if chunk_bytes is None else chunk_bytes
+    most = max(1, budget // max(1, per_step * P * jnp.dtype(dtype).itemsize))
+    chunks = -(-N // min(most, N))
+    size = -(-N // chunks)
+    pad = chunks * size - N
+    x_next = jnp.concatenate([states[:, 1:], states[:, -1:]], axis=1)
+    ts = jnp.broadcast_to(jnp.arange(T, dtype=jnp.int32), (B, T))
+    wts = jnp.broadcast_to(w[:, None], (B, T))
+
+    def chunked(a):
+        a = a.reshape((N,) + a.shape[2:])
+        a = jnp.concatenate([a, jnp.zeros((pad,) + a.shape[1:], a.dtype)]) if pad else a
+        return a.reshape((chunks, size) + a.shape[1:])
+
+    xs = tuple(chunked(a) for a in (states, x_next, y, u, mask, ts, wts))
+
+    def accumulate(carry, chunk):
+        value, grad, hess = carry
+        v, g, R = jax.vmap(step)(*chunk)
+        return (value + jnp.sum(v), grad + jnp.sum(g, axis=0), hess + gram(R.reshape(-1, P))), None
+
+    zero = (jnp.zeros((), dtype), jnp.zeros((P,), dtype), jnp.zeros((P, P), dtype))
+    (value, grad, hess), _ = jax.lax.scan(accumulate, zero, xs)  # each chunk's RᵀR symmetric
+
+    prior = system.initial_prior
+    if prior is not None:  # the value and gradient only, as in :func:`theta_rows`
+
+        def prior_nll(th, x0):
+            pr = build(th).initial_prior
+            assert pr is not None  # θ does not decide whether there is a prior
+            return pr.nll(x0)
+
+        pv, pg = jax.vmap(jax.value_and_grad(prior_nll), in_axes=(None, 0))(theta, states[:, 0])
+        value = value + jnp.sum(jnp.where(ok, w * pv, 0.0))
+        grad = grad + jnp.sum(jnp.where(ok[:, None], w[:, None] * pg, 0.0), axis=0)
+    return value, grad, hess
+
+
+#: :func:`gram` splits θ into blocks of at least this many columns and forms only the blocks on
+#: and above the diagonal (the product is symmetric): with 3 blocks of 114 columns 6 of 9 block
+#: products, the Figure-3 build's product (18 288 rows × 342) 42 → 31 ms (XLA has no SYRK).
+GRAM_BLOCK_MIN = 96
+
+
 def gram(rows: Float[Array, "R theta"]) -> Float[Array, "theta theta"]:
-    """RᵀR, symmetrised (one matrix product; zeros when R has no rows)."""
-    D = rows.T @ rows
-    return 0.5 * (D + D.T)
+    """RᵀR (zeros when R has no rows), by blocks of columns: the upper blocks, mirrored below."""
+    P = rows.shape[-1]
+    k = max(1, min(4, P // GRAM_BLOCK_MIN))
+    if k == 1:
+        D = rows.T @ rows
+        return 0.5 * (D + D.T)
+    edges = [round(i * P / k) for i in range(k + 1)]
+    cols = [rows[:, edges[i] : edges[i + 1]] for i in range(k)]
+    upper = {(i, j): cols[i].T @ cols[j] for i in range(k) for j in range(i, k)}
+    for i in range(k):  # the diagonal blocks exactly symmetric
+        upper[i, i] = 0.5 * (upper[i, i] + upper[i, i].T)
+    return jnp.block([[upper[i, j] if i <= j else upper[j, i].T for j in range(k)] for i in range(k)])

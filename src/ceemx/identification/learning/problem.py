@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ceemx.data.trajectories import Trajectories
-from ceemx.identification.learning.gauss_newton import gram, theta_rows
+from ceemx.identification.learning.gauss_newton import batch_gauss_newton
 from ceemx.identification.problem import FitProblem
 from ceemx.inference.objective import linearize
 from ceemx.infra.options import check_int
@@ -177,24 +177,21 @@ class LearningProblem(AbstractLearningProblem):
     ) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
         """(value, gradient, Gauss–Newton matrix) of the objective at θ.
 
-        The same matrix as :meth:`AbstractLearningProblem.gauss_newton`, formed as one product
-        RᵀR of every taking-part trajectory's whitened θ-Jacobian rows scaled by √w_b
-        (:mod:`~ceemx.identification.learning.gauss_newton`): one P × P product instead of B,
-        and no rows for factors that do not depend on θ.
+        The same matrix as :meth:`AbstractLearningProblem.gauss_newton`, formed from every
+        taking-part trajectory's whitened θ-Jacobian rows scaled by √w_b, a chunk of time steps at
+        a time (:func:`~ceemx.identification.learning.gauss_newton.batch_gauss_newton`): P × P
+        products of a few MB of rows instead of one per trajectory or one of all rows, and no rows
+        for factors that do not depend on θ.
         """
         data = self.data
-        values, grads, rows = jax.vmap(
-            lambda x, y, u, m: theta_rows(self.build, theta, x, y, u, m)
-        )(self.states, data.y, data.u, data.mask)
-        ok = self.weights > 0
-        w = jnp.where(ok, self.weights, 0.0)
+        value, grad, hess = batch_gauss_newton(
+            self.build, theta, self.states, data.y, data.u, data.mask, self.weights
+        )
         d = theta - self.theta_ref
         prior, prior_grad, prior_hess = self.problem.prior_terms(theta)
-        value = jnp.sum(jnp.where(ok, w * values, 0.0)) + self.rho_theta * jnp.sum(d**2) + prior
-        grad = jnp.sum(jnp.where(ok[:, None], w[:, None] * grads, 0.0), axis=0)
+        value = value + self.rho_theta * jnp.sum(d**2) + prior
         grad = grad + 2.0 * self.rho_theta * d + prior_grad
-        rows = jnp.where(ok[:, None, None], jnp.sqrt(w)[:, None, None] * rows, 0.0)
-        hess = gram(rows.reshape(-1, theta.shape[0])) + prior_hess
+        hess = hess + prior_hess
         hess = hess + 2.0 * self.rho_theta * jnp.eye(theta.shape[0], dtype=theta.dtype)
         return value, grad, hess
 

@@ -14,6 +14,7 @@ from ceemx.identification.learning.learners import AbstractLearner, LearnInfo, L
 from ceemx.identification.learning.problem import AbstractLearningProblem, make_problem
 from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra.compilation import jit
+from ceemx.infra.runtime import one_blas_thread
 from ceemx.infra.options import check_key, check_nonnegative
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, Theta
@@ -30,6 +31,7 @@ def run_learner(
     return learner.run(problem, theta, state)
 
 
+@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
 def learn(
     system: AbstractSystem,
     states: Float[ArrayLike, "B T n"],
