@@ -45,8 +45,17 @@ import time
 
 HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
-ROWS = ("figure3", "lorenz_cold", "lorenz_warm", "demo", "k100", "laplace", "multi_process",
-        "parallel", "long")
+ROWS = (
+    "figure3",
+    "lorenz_cold",
+    "lorenz_warm",
+    "demo",
+    "k100",
+    "laplace",
+    "multi_process",
+    "parallel",
+    "long",
+)
 
 
 def uptime() -> str:
@@ -56,8 +65,9 @@ def uptime() -> str:
 def before_tree(rev: str, tmp: pathlib.Path) -> pathlib.Path:
     dest = tmp / "before"
     dest.mkdir()
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True,
-                             check=True).stdout
+    archive = subprocess.run(
+        ["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True
+    ).stdout
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
     return dest / "src"
 
@@ -66,27 +76,98 @@ def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, l
     py = [sys.executable]
     b = ["--before-src", before]
     return {
-        "figure3": [py + [str(HERE / "compare_reference_figure3.py"), "--reps", "3", "--epochs",
-                          "5", "--methods", "alternate", *b, "--out", str(out / "figure3.json")]],
-        "lorenz_cold": [py + [str(HERE / "compare_reference.py"), "--reps", "3", *b, "--out",
-                              str(out / "lorenz_cold.json")]],
-        "lorenz_warm": [
-            py + [str(HERE / "compare_reference.py"), "--reps", "1", "--cache", str(cache), *b,
-                  "--out", str(out / "lorenz_fill.json")],
-            py + [str(HERE / "compare_reference.py"), "--reps", "3", "--cache", str(cache), *b,
-                  "--out", str(out / "lorenz_warm.json")],
+        "figure3": [
+            py
+            + [
+                str(HERE / "compare_reference_figure3.py"),
+                "--reps",
+                "3",
+                "--epochs",
+                "5",
+                "--methods",
+                "alternate",
+                *b,
+                "--out",
+                str(out / "figure3.json"),
+            ]
         ],
-        "demo": [py + [str(HERE / "demo_latency.py"), "--reps", "3", *b, "--out",
-                       str(out / "demo.json")]],
+        "lorenz_cold": [
+            py
+            + [
+                str(HERE / "compare_reference.py"),
+                "--reps",
+                "3",
+                *b,
+                "--out",
+                str(out / "lorenz_cold.json"),
+            ]
+        ],
+        "lorenz_warm": [
+            py
+            + [
+                str(HERE / "compare_reference.py"),
+                "--reps",
+                "1",
+                "--cache",
+                str(cache),
+                *b,
+                "--out",
+                str(out / "lorenz_fill.json"),
+            ],
+            py
+            + [
+                str(HERE / "compare_reference.py"),
+                "--reps",
+                "3",
+                "--cache",
+                str(cache),
+                *b,
+                "--out",
+                str(out / "lorenz_warm.json"),
+            ],
+        ],
+        "demo": [
+            py + [str(HERE / "demo_latency.py"), "--reps", "3", *b, "--out", str(out / "demo.json")]
+        ],
         "k100": [py + [str(HERE / "k100.py"), "--out", str(out / "k100.json")]],
-        "laplace": [py + [str(HERE / "laplace_long_record.py"), "--T", "100000", "--reps", "3",
-                          "--out", str(out / "laplace.json")]],
-        "multi_process": [py + [str(HERE / "multi_process.py"), "--rounds", "2", "--out",
-                                str(out / "multi_process.json")]],
-        "parallel": [py + [str(HERE / "parallel_in_time.py"), "--out",
-                           str(out / "parallel.json")]],
-        "long": [py + [str(HERE / "scaling.py"), "--only", "long", "--quick", "--long-T", "10000",
-                       "31623", "100000", "--out", str(out / "long.json")]],
+        "laplace": [
+            py
+            + [
+                str(HERE / "laplace_long_record.py"),
+                "--T",
+                "100000",
+                "--reps",
+                "3",
+                "--out",
+                str(out / "laplace.json"),
+            ]
+        ],
+        "multi_process": [
+            py
+            + [
+                str(HERE / "multi_process.py"),
+                "--rounds",
+                "2",
+                "--out",
+                str(out / "multi_process.json"),
+            ]
+        ],
+        "parallel": [py + [str(HERE / "parallel_in_time.py"), "--out", str(out / "parallel.json")]],
+        "long": [
+            py
+            + [
+                str(HERE / "scaling.py"),
+                "--only",
+                "long",
+                "--quick",
+                "--long-T",
+                "10000",
+                "31623",
+                "100000",
+                "--out",
+                str(out / "long.json"),
+            ]
+        ],
     }
 
 
@@ -96,8 +177,10 @@ def _load(path: pathlib.Path) -> dict | None:
 
 def table(out: pathlib.Path, log: dict) -> str:
     """The issue's table from the rows' JSON (rows not run are left out)."""
-    lines = ["| measure | authors' code | before | after | target | met |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "| measure | authors' code | before | after | target | met |",
+        "|---|---|---|---|---|---|",
+    ]
 
     def row(*cells):
         lines.append("| " + " | ".join(cells) + " |")
@@ -107,15 +190,24 @@ def table(out: pathlib.Path, log: dict) -> str:
         s = f3["summary"]
         ref, aft, bef = s["reference"], s["alternate"], s.get("alternate_before", {})
         ratio = ref["epoch_s_median"] / aft["epoch_s_median"]
-        row("Figure-3 Algorithm-1 epoch (B = 8, 342 parameters), steady",
+        row(
+            "Figure-3 Algorithm-1 epoch (B = 8, 342 parameters), steady",
             f"{ref['epoch_s_median']:.2f} s",
             f"{bef['epoch_s_median']:.3f} s ({ref['epoch_s_median'] / bef['epoch_s_median']:.1f}×)"
-            if bef else "—",
-            f"{aft['epoch_s_median']:.3f} s ({ratio:.1f}×)", "≥ 20×", "yes" if ratio >= 20 else
-            "no")
-        row("  ε after 5 epochs (same start)", f"{ref['eps_per_epoch'][-1]:.3f}",
-            f"{bef['eps_per_epoch'][-1]:.3f}" if bef else "—", f"{aft['eps_per_epoch'][-1]:.3f}",
-            "—", "—")
+            if bef
+            else "—",
+            f"{aft['epoch_s_median']:.3f} s ({ratio:.1f}×)",
+            "≥ 20×",
+            "yes" if ratio >= 20 else "no",
+        )
+        row(
+            "  ε after 5 epochs (same start)",
+            f"{ref['eps_per_epoch'][-1]:.3f}",
+            f"{bef['eps_per_epoch'][-1]:.3f}" if bef else "—",
+            f"{aft['eps_per_epoch'][-1]:.3f}",
+            "—",
+            "—",
+        )
     for name, label, target in (("lorenz_cold", "cold", 3.0), ("lorenz_warm", "warm cache", 0.5)):
         d = _load(out / f"{name}.json")
         if not d:
@@ -123,75 +215,134 @@ def table(out: pathlib.Path, log: dict) -> str:
         s = d["summary"]
         ref, j = s["reference"]["fit_s_median"], s["joint"]["first_fit_s_median"]
         jb = s.get("joint_before", {}).get("first_fit_s_median")
-        row(f"single-Lorenz JointLM, first fit in a fresh process ({label})",
-            f"{ref:.2f} s per fit", f"{jb:.2f} s" if jb else "—", f"{j:.2f} s",
-            f"≤ {target} s", "yes" if j <= target else "no")
+        row(
+            f"single-Lorenz JointLM, first fit in a fresh process ({label})",
+            f"{ref:.2f} s per fit",
+            f"{jb:.2f} s" if jb else "—",
+            f"{j:.2f} s",
+            f"≤ {target} s",
+            "yes" if j <= target else "no",
+        )
         if name == "lorenz_cold":
             pr, pc = s["reference"]["process_s_median"], s["ceemx_process_s_median"]
             pb = s.get("ceemx_process_s_median_before")
-            row("  whole process, 5 seeds (5 JointLM + 5 Algorithm 1)", f"{pr:.2f} s",
-                f"{pb:.2f} s ({pr / pb:.2f}×)" if pb else "—", f"{pc:.2f} s ({pr / pc:.2f}×)",
-                "≥ 2×", "yes" if pr / pc >= 2 else "no")
-            row("  steady fit JointLM / Algorithm 1", f"{ref:.2f} s", "—",
+            row(
+                "  whole process, 5 seeds (5 JointLM + 5 Algorithm 1)",
+                f"{pr:.2f} s",
+                f"{pb:.2f} s ({pr / pb:.2f}×)" if pb else "—",
+                f"{pc:.2f} s ({pr / pc:.2f}×)",
+                "≥ 2×",
+                "yes" if pr / pc >= 2 else "no",
+            )
+            row(
+                "  steady fit JointLM / Algorithm 1",
+                f"{ref:.2f} s",
+                "—",
                 f"{s['joint']['warm_fit_s_median']:.3f} / {s['alternate']['warm_fit_s_median']:.3f}"
-                " s", "—", "—")
+                " s",
+                "—",
+                "—",
+            )
     d = _load(out / "demo.json")
     if d:
         a, b = d["summary"]["after"], d["summary"].get("before")
-        row("`ceemx demo`, cold / warm cache", "—",
+        row(
+            "`ceemx demo`, cold / warm cache",
+            "—",
             f"{b['cold']:.1f} / {b['warm']:.1f} s" if b else "—",
-            f"{a['cold']:.1f} / {a['warm']:.1f} s", "≤ 8 s cold", "yes" if a["cold"] <= 8 else
-            "no")
+            f"{a['cold']:.1f} / {a['warm']:.1f} s",
+            "≤ 8 s cold",
+            "yes" if a["cold"] <= 8 else "no",
+        )
     d = _load(out / "k100.json")
     if d:
         eps = [f"{e['eps'] / d['eps_initial']:.2%} at {e['wall_s']:.0f} s" for e in d["epochs"]]
-        row("K = 100 coupled Lorenz (n = 300, P ≈ 90 000), ε / ε₀ after each epoch", "—",
-            "5.4 % after one 420-s epoch (issue)", "; ".join(eps) + f" (total "
-            f"{d['total_wall_s']:.0f} s)", "≤ 1 % in 10 min", "yes" if d.get("target_met") else
-            "no")
+        row(
+            "K = 100 coupled Lorenz (n = 300, P ≈ 90 000), ε / ε₀ after each epoch",
+            "—",
+            "5.4 % after one 420-s epoch (issue)",
+            "; ".join(eps) + f" (total {d['total_wall_s']:.0f} s)",
+            "≤ 1 % in 10 min",
+            "yes" if d.get("target_met") else "no",
+        )
     d = _load(out / "laplace.json")
     if d:
         med = d["runs"][0]["summary"]
         jl, qn, sq = (med[k]["median_fit_s"] for k in ("joint_lm", "laplace_em_qn", "laplace_em"))
-        row("Laplace EM (learned noise), one 100 000-sample record: quasi-Newton / SQUAREM "
-            "(the default)", "—", "hangs at 25 000 (issue)",
+        row(
+            "Laplace EM (learned noise), one 100 000-sample record: quasi-Newton / SQUAREM "
+            "(the default)",
+            "—",
+            "hangs at 25 000 (issue)",
             f"{qn:.2f} / {sq:.1f} s against JointLM {jl:.2f} s ({qn / jl:.2f}× / {sq / jl:.1f}×)",
-            "≤ 3× a JointLM fit", "quasi-Newton: " + ("yes" if qn / jl <= 3 else "no")
-            + "; SQUAREM: " + ("yes" if sq / jl <= 3 else "no"))
+            "≤ 3× a JointLM fit",
+            "quasi-Newton: "
+            + ("yes" if qn / jl <= 3 else "no")
+            + "; SQUAREM: "
+            + ("yes" if sq / jl <= 3 else "no"),
+        )
     d = _load(out / "multi_process.json")
     if d:
-        row("two processes (Gloo) against one: θ, J relative difference; steady epoch 1 / 2 "
-            "processes", "joblib", "never run",
+        row(
+            "two processes (Gloo) against one: θ, J relative difference; steady epoch 1 / 2 "
+            "processes",
+            "joblib",
+            "never run",
             f"{d['theta_relative_difference']:.1e}, {d['J_relative_difference']:.1e}; "
             f"{d['median_steady_s']['1']:.3f} / {d['median_steady_s']['2']:.3f} s",
             "same θ as one process (1e-10)",
-            "yes" if d["theta_relative_difference"] <= 1e-10 else "no")
+            "yes" if d["theta_relative_difference"] <= 1e-10 else "no",
+        )
     d = _load(out / "parallel.json")
     if d:
         worst = max(c["rel_diff"] for c in d["cases"])
         big = [c for c in d["cases"] if c["T"] == max(x["T"] for x in d["cases"])]
-        row("parallel-in-time block solve (CPU): largest difference to sequential; T = 10⁵ "
-            "parallel / sequential", "—", "absent", f"{worst:.1e}; " + ", ".join(
+        row(
+            "parallel-in-time block solve (CPU): largest difference to sequential; T = 10⁵ "
+            "parallel / sequential",
+            "—",
+            "absent",
+            f"{worst:.1e}; "
+            + ", ".join(
                 f"n = {c['n']}: {1e3 * c['parallel']['median_s']:.0f} / "
-                f"{1e3 * c['sequential']['median_s']:.0f} ms" for c in big),
-            "equal to sequential (1e-8); < 50 ms on a GPU", "equal: yes; GPU: not lent")
+                f"{1e3 * c['sequential']['median_s']:.0f} ms"
+                for c in big
+            ),
+            "equal to sequential (1e-8); < 50 ms on a GPU",
+            "equal: yes; GPU: not lent",
+        )
     d = _load(out / "long.json")
     if d:
         fits, met = d["long"]["fits"], d["long"]["target"]["met"]
         ms = list(fits)
-        row(f"one record, T = 10⁴…10⁵ ({' / '.join(ms)}): log–log slope of the time per "
-            "iteration, all T (two largest)", "—", "—",
-            " / ".join(f"{fits[m]['time_per_iteration']['slope']:.2f} "
-                       f"({fits[m]['time_per_iteration_top']['slope']:.2f})" for m in ms),
-            "≤ 1.15 (linear; issue: 1 ± 0.15)", " / ".join("yes" if met[m]["time"] else "no" for m in ms))
-        row("  the same, memory: slope of the steady calls' peak increment", "—", "—",
+        row(
+            f"one record, T = 10⁴…10⁵ ({' / '.join(ms)}): log–log slope of the time per "
+            "iteration, all T (two largest)",
+            "—",
+            "—",
+            " / ".join(
+                f"{fits[m]['time_per_iteration']['slope']:.2f} "
+                f"({fits[m]['time_per_iteration_top']['slope']:.2f})"
+                for m in ms
+            ),
+            "≤ 1.15 (linear; issue: 1 ± 0.15)",
+            " / ".join("yes" if met[m]["time"] else "no" for m in ms),
+        )
+        row(
+            "  the same, memory: slope of the steady calls' peak increment",
+            "—",
+            "—",
             " / ".join(f"{fits[m]['steady_peak_increment']['slope']:.2f}" for m in ms),
-            "≤ 1.15", " / ".join("yes" if met[m]["memory"] else "no" for m in ms))
+            "≤ 1.15",
+            " / ".join("yes" if met[m]["memory"] else "no" for m in ms),
+        )
     lines.append("")
     lines.append("Load (1-min) and wall time per row:")
     for name, entry in log.items():
-        lines.append(f"- {name}: {entry['wall_s']:.0f} s; before: {entry['uptime_before']}; "
-                     f"after: {entry['uptime_after']}; rc {entry['rc']}")
+        lines.append(
+            f"- {name}: {entry['wall_s']:.0f} s; before: {entry['uptime_before']}; "
+            f"after: {entry['uptime_after']}; rc {entry['rc']}"
+        )
     return "\n".join(lines)
 
 
@@ -220,9 +371,15 @@ def main() -> None:
                     print(f"== {name}: {' '.join(cmd[1:])}", flush=True)
                     env = dict(os.environ, MPLBACKEND="Agg")
                     proc = subprocess.run(cmd, env=env, cwd=ROOT)
-                    entry["commands"].append(" ".join(["python"] + [
-                        os.path.relpath(c, ROOT) if c.startswith(str(ROOT)) else c
-                        for c in cmd[1:]]))
+                    entry["commands"].append(
+                        " ".join(
+                            ["python"]
+                            + [
+                                os.path.relpath(c, ROOT) if c.startswith(str(ROOT)) else c
+                                for c in cmd[1:]
+                            ]
+                        )
+                    )
                     entry["rc"] = entry["rc"] or proc.returncode
                 entry["wall_s"] = time.perf_counter() - t0
                 entry["uptime_after"] = uptime()

@@ -560,8 +560,10 @@ def long_sweep(Ts: list[int], repeats: int) -> dict:
         "work, allocator slack), reported, not a failure",
         "met": {
             m: {
-                "time": max(f["time_per_iteration"]["slope"],
-                            f.get("time_per_iteration_top", f["time_per_iteration"])["slope"])
+                "time": max(
+                    f["time_per_iteration"]["slope"],
+                    f.get("time_per_iteration_top", f["time_per_iteration"])["slope"],
+                )
                 <= 1.15,
                 "memory": f.get("steady_peak_increment", f["peak_increment"])["slope"] <= 1.15,
             }

@@ -226,10 +226,18 @@ def test_no_retrace_across_epochs_or_new_data(prob, traces):
 # --------------------------------------------------------------------------------------------------
 
 
+def _blas_threads() -> list[int]:
+    import scipy.linalg  # noqa: F401  (the OpenBLAS behind XLA's LAPACK calls, loaded)
+    from threadpoolctl import threadpool_info
+
+    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+
 def test_callbacks_merge_records_and_stop(prob):
-    seen = []
+    seen, blas = [], []
 
     def record(info):
+        blas.append(_blas_threads())  # inside fit: one BLAS thread (ceemx.infra.runtime)
         assert isinstance(info, ceemx.EpochInfo)
         assert info.states.shape == (B, T, 3)
         assert isinstance(info.system, CoupledLorenz)
@@ -243,10 +251,15 @@ def test_callbacks_merge_records_and_stop(prob):
     def stop_at_3(info):
         return False if info.epoch == 3 else True
 
-    res = ceemx.fit(
-        prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=50,
-        callbacks=[record, nothing, stop_at_3],
-    )  # fmt: skip
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=2, user_api="blas"):  # as many as two cores give by default
+        before = _blas_threads()
+        res = ceemx.fit(
+            prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=50,
+            callbacks=[record, nothing, stop_at_3],
+        )  # fmt: skip
+        after = _blas_threads()
     assert res.epochs == 3
     assert not res.converged
     assert [e for e, _ in seen] == [1, 2, 3]
@@ -256,6 +269,8 @@ def test_callbacks_merge_records_and_stop(prob):
     assert res.history[-1]["stop"] and not res.history[0]["stop"]
     np.testing.assert_array_equal(seen[-1][1], theta_of(res.system))
     assert res.history_array("eps").shape == (3,)
+    assert blas and all(b and max(b) == 1 for b in blas)  # SciPy's OpenBLAS, at least
+    assert max(before) == 2 and after == before  # restored after the fit
 
 
 # --------------------------------------------------------------------------------------------------

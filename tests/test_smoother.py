@@ -594,3 +594,22 @@ def test_batch_chunks_give_the_same_answers(lorenz):
     np.testing.assert_allclose(b.log_det, a.log_det, rtol=1e-12)
     with pytest.raises(ValueError, match="batch_chunk"):
         ceemx.LMSmoother(batch_chunk=0)
+
+
+def test_auto_batch_chunk_keeps_a_chunk_below_the_page_fault_bound():
+    """``batch_chunk="auto"`` (the default): chunks whose ≈ 20 (T, n, n) blocks a trajectory fit
+    ``AUTO_CHUNK_BYTES``; all at once when the batch fits, or when not even 2 trajectories would."""
+    from ceemx.inference.smoother import AUTO_CHUNK_BYTES, auto_batch_chunk
+
+    assert ceemx.LMSmoother().batch_chunk == "auto"
+    assert auto_batch_chunk(8, 128, 18, 8) == 2  # Figure 3: 6.6 MB a trajectory
+    assert auto_batch_chunk(4, 128, 3, 8) is None  # single Lorenz: 0.74 MB in all
+    assert auto_batch_chunk(16, 256, 300, 8) is None  # K = 100: 3.7 GB a trajectory
+    for B, T, n in [(64, 128, 6), (100, 1000, 4), (8, 512, 18), (3, 50, 30)]:
+        c = auto_batch_chunk(B, T, n, 8)
+        per = 20 * T * n * n * 8
+        assert (c is None and (B * per <= AUTO_CHUNK_BYTES or 2 * per > AUTO_CHUNK_BYTES)) or (
+            c is not None and 2 <= c < B and c * per <= AUTO_CHUNK_BYTES < (c + 1) * per
+        )
+    with pytest.raises(TypeError, match="'auto'"):
+        ceemx.LMSmoother(batch_chunk="all")

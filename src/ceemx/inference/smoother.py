@@ -89,6 +89,10 @@ class LMSmoother(eqx.Module):
             check_nonnegative(name, getattr(self, name))
         check_int("max_steps", self.max_steps, 0)
         check_bool("throw", self.throw)
+        if isinstance(self.batch_chunk, str) and self.batch_chunk != "auto":
+            raise TypeError(
+                f"`batch_chunk` must be an integer >= 1, None or 'auto'; got {self.batch_chunk!r}."
+            )
         if self.batch_chunk != "auto":
             check_int("batch_chunk", self.batch_chunk, 1, none=True)
         check_choice("time_parallel", self.time_parallel, (False, True, "auto"))

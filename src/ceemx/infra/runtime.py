@@ -41,7 +41,7 @@ _controller: Any = None
 
 
 def _blas_controller() -> Any:
-    """threadpoolctl's view of the loaded BLAS libraries (built once; ``False`` if unavailable).
+    """The loaded BLAS libraries as threadpoolctl sees them (built once; ``False``: unavailable).
 
     SciPy's LAPACK module is imported first: it loads the OpenBLAS that XLA's CPU LAPACK kernels
     call, which JAX would otherwise load only at the first LAPACK program.

@@ -1,4 +1,4 @@
-"""The learning step's Gauss–Newton matrix from the batch's whitened θ-Jacobian rows, chunk by chunk.
+"""The learning step's Gauss–Newton matrix from the batch's whitened θ-Jacobian rows, by chunks.
 
 At fixed states, −J_b(θ) is a sum of per-step factors (observations, transitions, the initial
 prior). The Gauss–Newton matrix of Σ_b w_b (−J_b) is Σ_b w_b Σ_rows (S J_θ)ᵀ (S J_θ) with each
@@ -139,7 +139,7 @@ def batch_gauss_newton(
     per_step = m * with_obs + n * with_dyn
 
     def step(xt, xn, yt, ut, mt, t, wt):
-        """Weighted value, gradient and rows of the factors at step t (its transition if t < T−1)."""
+        """Weighted value, gradient and rows of step t's factors (its transition if t < T−1)."""
         has_next = t < T - 1
         r_obs = yt - system.observe(xt, ut, t)
         r_dyn = xn - system.dynamics(xt, ut, t)
@@ -191,7 +191,8 @@ def batch_gauss_newton(
     def accumulate(carry, chunk):
         value, grad, hess = carry
         v, g, R = jax.vmap(step)(*chunk)
-        return (value + jnp.sum(v), grad + jnp.sum(g, axis=0), hess + gram(R.reshape(-1, P))), None
+        hess = hess + gram(R.reshape(-1, P))
+        return (value + jnp.sum(v), grad + jnp.sum(g, axis=0), hess), None
 
     zero = (jnp.zeros((), dtype), jnp.zeros((P,), dtype), jnp.zeros((P, P), dtype))
     (value, grad, hess), _ = jax.lax.scan(accumulate, zero, xs)  # each chunk's RᵀR symmetric
@@ -228,4 +229,5 @@ def gram(rows: Float[Array, "R theta"]) -> Float[Array, "theta theta"]:
     upper = {(i, j): cols[i].T @ cols[j] for i in range(k) for j in range(i, k)}
     for i in range(k):  # the diagonal blocks exactly symmetric
         upper[i, i] = 0.5 * (upper[i, i] + upper[i, i].T)
-    return jnp.block([[upper[i, j] if i <= j else upper[j, i].T for j in range(k)] for i in range(k)])
+    blocks = [[upper[i, j] if i <= j else upper[j, i].T for j in range(k)] for i in range(k)]
+    return jnp.block(blocks)

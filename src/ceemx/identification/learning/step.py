@@ -14,8 +14,8 @@ from ceemx.identification.learning.learners import AbstractLearner, LearnInfo, L
 from ceemx.identification.learning.problem import AbstractLearningProblem, make_problem
 from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra.compilation import jit
-from ceemx.infra.runtime import one_blas_thread
 from ceemx.infra.options import check_key, check_nonnegative
+from ceemx.infra.runtime import one_blas_thread
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, Theta
 from ceemx.models.system import AbstractSystem
