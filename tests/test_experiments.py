@@ -354,6 +354,8 @@ def test_benchmarks_smoke(tmp_path):
         for entry in d["tests"].values():
             for key in ("graybox", "hybrid", "neural", "linear_ceem", "linear"):
                 assert math.isfinite(entry[f"{key}_rmse"]) and entry[f"{key}_rmse"] > 0, key
+                every = entry[f"{key}_rmse_every_sample"]  # the n_init outputs scored too
+                assert math.isfinite(every) and every > 0, key
         assert set(d["learned"]) == {"hybrid", "neural"}
         assert d["learned"]["hybrid"]["weights"] > 0
     with pytest.raises(SystemExit):
