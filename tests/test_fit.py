@@ -579,3 +579,39 @@ def test_bad_solver_and_max_epochs_types(prob):
         ceemx.fit(prob.start, prob.data, prob.x_init, solver="joint")
     with pytest.raises(TypeError, match="max_epochs"):
         ceemx.fit(prob.start, prob.data, prob.x_init, max_epochs="3")
+
+
+def test_blas_limit_from_several_threads_leaves_nothing_limited():
+    """Blocks in two threads, left in the order they were entered: one BLAS thread inside the
+    first (threadpoolctl lets one Python thread at a time set OpenBLAS's process-wide limit), the
+    libraries' own setting back after both, whatever the order."""
+    import threading
+
+    from ceemx.infra.runtime import blas_threads
+
+    entered, leave_a, left_a, leave_b = (threading.Event() for _ in range(4))
+    seen = {}
+
+    def a():
+        with blas_threads():
+            seen["a"] = max(_blas_threads())
+            entered.set()
+            leave_a.wait(10)
+        left_a.set()
+
+    def b():
+        entered.wait(10)
+        with blas_threads():
+            leave_a.set()
+            left_a.wait(10)
+            leave_b.wait(10)
+
+    before = _blas_threads()
+    threads = [threading.Thread(target=f) for f in (a, b)]
+    for t in threads:
+        t.start()
+    left_a.wait(10)
+    leave_b.set()
+    for t in threads:
+        t.join(10)
+    assert seen["a"] == 1 and _blas_threads() == before

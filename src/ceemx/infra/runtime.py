@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import threading
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
@@ -58,13 +59,33 @@ def _blas_controller() -> Any:
     return _controller
 
 
+_lock = threading.Lock()
+_holders = 0  # blocks inside blas_threads now, in any thread
+_limiter: Any = None  # the limit they share, restored when the last one leaves
+
+
+def _release_openblas() -> None:
+    """Let this thread set OpenBLAS's limit (threadpoolctl ≥ 3.6 lets one thread at a time)."""
+    try:
+        from threadpoolctl import OpenBLASController
+
+        OpenBLASController.clear_controlling_thread(force=True)
+    except (ImportError, AttributeError, TypeError):  # an older threadpoolctl: no such rule
+        pass
+
+
 @contextlib.contextmanager
 def blas_threads(n: int | None = None) -> Iterator[None]:
     """Within the block, the BLAS libraries (OpenBLAS, MKL, BLIS) run at most ``n`` threads.
 
-    ``None``: ``CEEMX_BLAS_THREADS`` if set (``0``: no limit), else 1. The previous limits are
-    restored on exit. Nested blocks are fine.
+    ``None``: ``CEEMX_BLAS_THREADS`` if set (``0``: no limit), else 1. OpenBLAS's limit is the
+    process's, not a thread's: blocks open at once in several threads (fits run from a thread
+    pool) share the first one's limit, and the libraries' own settings come back when the last
+    of them leaves, whatever the order — restoring per block would let the first to leave lift
+    the limit under the others, and the last one's restore set the limit for good. Nested blocks
+    are fine.
     """
+    global _holders, _limiter
     if n is None:
         text = os.environ.get("CEEMX_BLAS_THREADS", "").strip()
         n = int(text) if text.isdigit() else 1
@@ -72,8 +93,22 @@ def blas_threads(n: int | None = None) -> Iterator[None]:
     if not controller:
         yield
         return
-    with controller.limit(limits=n, user_api="blas"):
+    with _lock:
+        if _holders == 0:
+            _release_openblas()
+            _limiter = controller.limit(limits=n, user_api="blas")  # set now; restored below
+            _release_openblas()  # no thread keeps control between our calls
+        _holders += 1
+    try:
         yield
+    finally:
+        with _lock:
+            _holders -= 1
+            if _holders == 0:
+                _release_openblas()
+                _limiter.restore_original_limits()
+                _release_openblas()
+                _limiter = None
 
 
 def one_blas_thread(fun: _F) -> _F:
