@@ -82,3 +82,25 @@ def test_gram_by_column_blocks_equals_the_product():
     D = np.asarray(jax.jit(gn.gram)(jnp.asarray(R)))
     np.testing.assert_allclose(D, R.T @ R, rtol=1e-12, atol=1e-11)
     np.testing.assert_array_equal(D, D.T)
+
+
+def test_gauss_newton_with_an_initial_prior_equals_the_per_trajectory_linearisation(batch):
+    """The chunked build's prior terms (value and gradient; the prior mean learning too) against
+    the per-trajectory joint linearisation (``AbstractLearningProblem.gauss_newton``)."""
+    from ceemx.identification.learning.problem import AbstractLearningProblem
+
+    system, states, data, _ = batch
+    prior = ceemx.GaussianPrior(jnp.asarray([-6.0, -6.0, 24.0]), ceemx.DiagonalGaussian(2.0, 3))
+    system = eqx.tree_at(lambda s: s.initial_prior, system, prior, is_leaf=lambda v: v is None)
+    problem, theta = make_problem(
+        system, states[jnp.asarray([0, 2])], data[jnp.asarray([0, 2])],
+        trainable=lambda s: (s.sigma, s.rho, s.beta, s.initial_prior.mean),
+        weights=jnp.asarray([0.5, 2.0]),
+    )  # fmt: skip
+    both = eqx.filter_jit(
+        lambda p, t: (p.gauss_newton(t), AbstractLearningProblem.gauss_newton(p, t))
+    )
+    chunked, per_trajectory = both(problem, theta)
+    assert theta.shape == (6,)
+    for a, b in zip(chunked, per_trajectory, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(b))))

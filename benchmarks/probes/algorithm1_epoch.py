@@ -9,7 +9,7 @@ N(0, 1) as ``ceemx experiment figure3``. Prints, then writes to
 ``--epochs 0``), with the load before and after:
 
 1. the components of an epoch, each compiled, then called in turn 5 times (medians), at the
-   start point: the learner's Gauss–Newton build as one product of the batch's θ-Jacobian rows (the
+   start point: the learner's Gauss–Newton build from chunks of the batch's θ-Jacobian rows (the
    default, ``LearningProblem.gauss_newton``) and as B per-trajectory products summed (the
    earlier form, ``AbstractLearningProblem.gauss_newton``), the θ-Jacobians alone, the
    learning objective's value, and one smoothing step (default bound, and ``max_steps=2``);
@@ -75,7 +75,7 @@ def main():
     lp, th = make_problem(system, x_init, p.data, trainable=common.LORENZ_PARAMS_H)
     d = p.data
     comp = {
-        "gauss_newton (one product of the batch's rows)": eqx.filter_jit(
+        "gauss_newton (the default: chunks of rows)": eqx.filter_jit(
             lambda lp, th: lp.gauss_newton(th)
         ),
         "gauss_newton (B per-trajectory products, earlier)": eqx.filter_jit(

@@ -89,11 +89,13 @@ class LMSmoother(eqx.Module):
             check_nonnegative(name, getattr(self, name))
         check_int("max_steps", self.max_steps, 0)
         check_bool("throw", self.throw)
-        if isinstance(self.batch_chunk, str) and self.batch_chunk != "auto":
-            raise TypeError(
-                f"`batch_chunk` must be an integer >= 1, None or 'auto'; got {self.batch_chunk!r}."
-            )
-        if self.batch_chunk != "auto":
+        if isinstance(self.batch_chunk, str):
+            if self.batch_chunk != "auto":
+                raise TypeError(
+                    f"`batch_chunk` must be an integer >= 1, None or 'auto'; "
+                    f"got {self.batch_chunk!r}."
+                )
+        else:
             check_int("batch_chunk", self.batch_chunk, 1, none=True)
         check_choice("time_parallel", self.time_parallel, (False, True, "auto"))
 
@@ -101,9 +103,10 @@ class LMSmoother(eqx.Module):
 #: ``LMSmoother(batch_chunk="auto")`` keeps a chunk's estimated working memory below this.
 #: XLA:CPU allocates a program's temporaries afresh at every call, and glibc serves blocks above
 #: 32 MB by ``mmap``: every call of a program with larger temporaries page-faults all of them in
-#: again. The Figure-3 E-step (B = 8, T = 128, n = 18: 38.4 MB of temporaries) took 77–98 ms a
-#: call inside a fit against 48 ms alone, 9 400 page faults a call; in chunks of 2, 60 ms and
-#: none, the same states bitwise (benchmarks/README.md, "Every row in one run").
+#: again. The Figure-3 E-step (B = 8, T = 128, n = 18: 38.4 MB of temporaries) inside a fit:
+#: 42–48 ms and ≈ 9 200 page faults an epoch unchunked, 31–41 ms and none in chunks of 2, the
+#: same states (``python benchmarks/probes/epoch_in_fit.py --variants default
+#: smoother-unchunked``; benchmarks/README.md, "Every row in one run").
 AUTO_CHUNK_BYTES = 16 * 2**20
 
 

@@ -16,10 +16,11 @@ itself; the ``ceemx`` command does with ``--threads N`` or ``CEEMX_THREADS=N``.
 :func:`blas_threads` is the other half, and the library does use it: XLA's CPU LAPACK calls
 (Cholesky, triangular solves) run in SciPy's OpenBLAS, which starts its own thread pool beside
 XLA's and keeps those threads spinning after each call, on the cores XLA's threads need. Inside
-``fit``, ``smooth`` and ``learn`` the BLAS libraries run one thread each (``threadpoolctl``, for
-the duration of the call only; ``CEEMX_BLAS_THREADS=N`` chooses another N, ``0`` leaves them as
-they are). Measured on the Figure-3 Algorithm-1 epoch (B = 8, n = 18, 342 parameters, 2 cores):
-0.155–0.164 s → 0.096 s (smoothing 62–80 → 33 ms, learning 81–90 → 60 ms;
+``fit``, ``smooth``, ``learn`` and ``estimate_noise`` the BLAS libraries run one thread each
+(``threadpoolctl``, for the duration of the call only; ``CEEMX_BLAS_THREADS=N`` chooses another
+N, ``0`` leaves them as they are). Measured on the Figure-3 Algorithm-1 epoch (B = 8, n = 18,
+342 parameters, 2 cores): 0.141–0.144 s → 0.092–0.110 s (smoothing 59–62 → 32–41 ms, learning
+81–82 → 58–65 ms; ``python benchmarks/probes/epoch_in_fit.py --variants default no-blas-limit``;
 ``benchmarks/README.md``, "Every row in one run").
 """
 

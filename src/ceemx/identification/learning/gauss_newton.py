@@ -12,7 +12,7 @@ whose residual does not depend on θ at all (the observation model when only the
 or the reverse) contribute no rows: that is decided at trace time from the residual's program
 (:func:`ceemx.inference.objective.depends_on`), since the θ-Jacobian of such a factor is
 identically zero and its product would be pure cost (on the Figure-3 problem half of the build).
-:func:`theta_rows` gives one trajectory's rows at once (the reference the tests compare with).
+:func:`theta_rows` gives one trajectory's rows at once (the same per-step terms).
 """
 
 from __future__ import annotations
@@ -23,108 +23,34 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ceemx.inference.objective import auto_jacobian, depends_on, residuals
+from ceemx.inference.objective import auto_jacobian, depends_on
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta, Trajectory
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["ROWS_CHUNK_BYTES", "batch_gauss_newton", "gram", "theta_rows"]
 
 #: Bytes of θ-Jacobian rows :func:`batch_gauss_newton` forms at a time. Figure-3 learning step
-#: (B = 8, T = 128, 18 rows of 342 per step; ``python benchmarks/probes/algorithm1_epoch.py
-#: --epochs 0``): all rows at once (50 MB) 110–124 ms a build, 36 700 page faults a call;
-#: by chunks of ≈ 4 MB ≈ 65 ms, none (benchmarks/README.md, "Every row in one run").
+#: inside a fit (B = 8, T = 128, 18 rows of 342 per step): all rows at once (50 MB) 86–88 ms,
+#: ≈ 25 800 page faults an epoch; by chunks of ≈ 4 MB 58–65 ms, none (``python
+#: benchmarks/probes/epoch_in_fit.py --variants default rows-at-once``; benchmarks/README.md,
+#: "Every row in one run").
 ROWS_CHUNK_BYTES = 4 * 2**20
 
 
-def theta_rows(
-    build: Callable[[Theta], AbstractSystem],
-    theta: Theta,
-    x: Trajectory,
-    y: Float[Array, "T m"],
-    u: Float[Array, "T p"],
-    mask: Bool[Array, "T m"],
-) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "R theta"]]:
-    """(−J, its θ-gradient, the whitened θ-Jacobian rows S·J_θ) of one trajectory at fixed x.
+def _step_terms(
+    build: Callable[[Theta], AbstractSystem], theta: Theta, x: Trajectory, y, u
+) -> tuple[Callable[..., tuple[Scalar, Array, Array]], int]:
+    """``(step, rows per step)`` of the factors of one time step, for θ-Jacobian rows.
 
-    The rows are those of the observation factors (T·m) and of the transitions ((T−1)·n), each
-    block present only when its residual depends on θ; RᵀR is the trajectory's Gauss–Newton matrix
-    (that of ``inference.objective.linearize(..., wrt_theta=True)``). A prior whose mean depends
-    on θ enters the value and the gradient, not the rows (as in ``linearize``).
+    ``step(x_t, x_{t+1}, y_t, u_t, mask_t, t)`` → (−J's terms at step t, their θ-gradient, their
+    whitened θ-Jacobian rows S·J_θ): the observation factor at t and the transition t → t+1 (its
+    terms zero at the last step, t = T − 1). A factor whose residual does not depend on θ
+    (decided at trace time on x[0], y[0], u[0]) contributes no rows.
     """
     system = build(theta)
     T, n = x.shape
     m, P = y.shape[-1], theta.shape[0]
-    ts = jnp.arange(T)
     dtype = x.dtype
-
-    def obs_res(xt, th, yt, ut, t):
-        return yt - build(th).observe(xt, ut, t)
-
-    def dyn_res(xt, th, ut, t):
-        return -build(th).dynamics(xt, ut, t)  # + x_{t+1}, which does not depend on θ
-
-    r_obs, r_dyn = residuals(system, x, y, u)
-    on, pn = system.obs_noise, system.process_noise
-    value = jnp.sum(jax.vmap(on.nll)(r_obs, mask)) + jnp.sum(jax.vmap(pn.nll)(r_dyn))
-    grad = jnp.zeros((P,), dtype)
-    rows = []
-    if depends_on(obs_res, 1, x[0], theta, y[0], u[0], ts[0]):
-        Gt = jax.vmap(auto_jacobian(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(
-            x, theta, y, u, ts
-        )
-        grad = grad + jnp.einsum("tmp,tm->p", Gt, jax.vmap(jax.grad(on.nll))(r_obs, mask))
-        if on.diagonal_curvature:
-            SGt = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mask)[..., None] * Gt
-        else:
-            SGt = jax.vmap(on.sqrt_curvature)(r_obs, mask) @ Gt
-        rows.append(SGt.reshape(-1, P))
-    if T > 1 and depends_on(dyn_res, 1, x[0], theta, u[0], ts[0]):
-        Ft = jax.vmap(auto_jacobian(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
-            x[:-1], theta, u[:-1], ts[:-1]
-        )
-        grad = grad + jnp.einsum("tnp,tn->p", Ft, jax.vmap(jax.grad(pn.nll))(r_dyn))
-        if pn.diagonal_curvature:
-            SFt = jax.vmap(pn.sqrt_curvature_diagonal)(r_dyn)[..., None] * Ft
-        else:
-            SFt = jax.vmap(pn.sqrt_curvature)(r_dyn) @ Ft
-        rows.append(SFt.reshape(-1, P))
-    prior = system.initial_prior
-    if prior is not None:
-        value = value + prior.nll(x[0])
-
-        def prior_nll(th):
-            pr = build(th).initial_prior
-            assert pr is not None  # θ does not decide whether there is a prior
-            return pr.nll(x[0])
-
-        grad = grad + jax.grad(prior_nll)(theta)
-    out = jnp.concatenate(rows) if rows else jnp.zeros((0, P), dtype)
-    return value, grad, out.astype(dtype)
-
-
-def batch_gauss_newton(
-    build: Callable[[Theta], AbstractSystem],
-    theta: Theta,
-    states: States,
-    y: Float[Array, "B T m"],
-    u: Float[Array, "B T p"],
-    mask: Bool[Array, "B T m"],
-    weights: PerTrajectory,
-    chunk_bytes: int | None = None,
-) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
-    """(Σ_b w_b (−J_b), its θ-gradient, Σ_b w_b RᵀR_b) at fixed states, rows formed by chunks.
-
-    The same sums as :func:`theta_rows` of every trajectory with weight w_b > 0 (trajectories of
-    weight 0 take no part, whatever their numbers); the B·T time steps are cut into chunks of at
-    most ``chunk_bytes`` (default :data:`ROWS_CHUNK_BYTES`) of rows, each chunk's rows formed,
-    multiplied out and dropped in a ``lax.scan``.
-    """
-    system = build(theta)
-    B, T, n = states.shape
-    m, P = y.shape[-1], theta.shape[0]
-    dtype = states.dtype
-    ok = weights > 0
-    w = jnp.where(ok, weights, 0.0)
     on, pn = system.obs_noise, system.process_noise
 
     def obs_res(xt, th, yt, ut, t):
@@ -134,12 +60,10 @@ def batch_gauss_newton(
         return -build(th).dynamics(xt, ut, t)  # + x_{t+1}, which does not depend on θ
 
     t0 = jnp.zeros((), jnp.int32)
-    with_obs = depends_on(obs_res, 1, states[0, 0], theta, y[0, 0], u[0, 0], t0)
-    with_dyn = T > 1 and depends_on(dyn_res, 1, states[0, 0], theta, u[0, 0], t0)
-    per_step = m * with_obs + n * with_dyn
+    with_obs = depends_on(obs_res, 1, x[0], theta, y[0], u[0], t0)
+    with_dyn = T > 1 and depends_on(dyn_res, 1, x[0], theta, u[0], t0)
 
-    def step(xt, xn, yt, ut, mt, t, wt):
-        """Weighted value, gradient and rows of step t's factors (its transition if t < T−1)."""
+    def step(xt, xn, yt, ut, mt, t):
         has_next = t < T - 1
         r_obs = yt - system.observe(xt, ut, t)
         r_dyn = xn - system.dynamics(xt, ut, t)
@@ -162,6 +86,80 @@ def batch_gauss_newton(
                 SF = pn.sqrt_curvature(r_dyn) @ F
             rows.append(jnp.where(has_next, SF, 0.0))
         R = jnp.concatenate(rows) if rows else jnp.zeros((0, P), dtype)
+        return value, grad, R.astype(dtype)
+
+    return step, m * with_obs + n * with_dyn
+
+
+def _prior_terms(
+    build: Callable[[Theta], AbstractSystem], theta: Theta, x1: Float[Array, " n"]
+) -> tuple[Scalar, Float[Array, " theta"]]:
+    """The initial-state prior's −log p(x₁) and its θ-gradient (zeros without a prior)."""
+    if build(theta).initial_prior is None:
+        return jnp.zeros((), x1.dtype), jnp.zeros_like(theta)
+
+    def prior_nll(th):
+        pr = build(th).initial_prior
+        assert pr is not None  # θ does not decide whether there is a prior
+        return pr.nll(x1)
+
+    return jax.value_and_grad(prior_nll)(theta)
+
+
+def _next_states(x: Array) -> Array:
+    """x_{t+1} beside x_t along the time axis (axis −2; the last step repeats x_T, unused)."""
+    return jnp.concatenate([x[..., 1:, :], x[..., -1:, :]], axis=-2)
+
+
+def theta_rows(
+    build: Callable[[Theta], AbstractSystem],
+    theta: Theta,
+    x: Trajectory,
+    y: Float[Array, "T m"],
+    u: Float[Array, "T p"],
+    mask: Bool[Array, "T m"],
+) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "R theta"]]:
+    """(−J, its θ-gradient, the whitened θ-Jacobian rows S·J_θ) of one trajectory at fixed x.
+
+    The rows of every step's factors at once, step by step (:func:`_step_terms`; the last step's
+    transition rows are zero); RᵀR is the trajectory's Gauss–Newton matrix (that of
+    ``inference.objective.linearize(..., wrt_theta=True)``). A prior whose mean depends on θ
+    enters the value and the gradient, not the rows (as in ``linearize``).
+    :func:`batch_gauss_newton` forms the same sums for a batch without holding the rows.
+    """
+    step, _ = _step_terms(build, theta, x, y, u)
+    ts = jnp.arange(x.shape[0], dtype=jnp.int32)
+    v, g, R = jax.vmap(step)(x, _next_states(x), y, u, mask, ts)
+    pv, pg = _prior_terms(build, theta, x[0])
+    return jnp.sum(v) + pv, jnp.sum(g, axis=0) + pg, R.reshape(-1, theta.shape[0])
+
+
+def batch_gauss_newton(
+    build: Callable[[Theta], AbstractSystem],
+    theta: Theta,
+    states: States,
+    y: Float[Array, "B T m"],
+    u: Float[Array, "B T p"],
+    mask: Bool[Array, "B T m"],
+    weights: PerTrajectory,
+    chunk_bytes: int | None = None,
+) -> tuple[Scalar, Float[Array, " theta"], Float[Array, "theta theta"]]:
+    """(Σ_b w_b (−J_b), its θ-gradient, Σ_b w_b RᵀR_b) at fixed states, rows formed by chunks.
+
+    The same sums as :func:`theta_rows` of every trajectory with weight w_b > 0 (trajectories of
+    weight 0 take no part, whatever their numbers); the B·T time steps are cut into chunks of at
+    most ``chunk_bytes`` (default :data:`ROWS_CHUNK_BYTES`) of rows, each chunk's rows formed,
+    multiplied out and dropped in a ``lax.scan``.
+    """
+    B, T, _ = states.shape
+    P = theta.shape[0]
+    dtype = states.dtype
+    ok = weights > 0
+    w = jnp.where(ok, weights, 0.0)
+    step, per_step = _step_terms(build, theta, states[0], y[0], u[0])
+
+    def weighted(xt, xn, yt, ut, mt, t, wt):
+        value, grad, R = step(xt, xn, yt, ut, mt, t)
         keep = wt > 0
         return (
             jnp.where(keep, wt * value, 0.0),
@@ -177,7 +175,6 @@ def batch_gauss_newton(
     chunks = -(-N // min(most, N))
     size = -(-N // chunks)
     pad = chunks * size - N
-    x_next = jnp.concatenate([states[:, 1:], states[:, -1:]], axis=1)
     ts = jnp.broadcast_to(jnp.arange(T, dtype=jnp.int32), (B, T))
     wts = jnp.broadcast_to(w[:, None], (B, T))
 
@@ -186,34 +183,26 @@ def batch_gauss_newton(
         a = jnp.concatenate([a, jnp.zeros((pad,) + a.shape[1:], a.dtype)]) if pad else a
         return a.reshape((chunks, size) + a.shape[1:])
 
-    xs = tuple(chunked(a) for a in (states, x_next, y, u, mask, ts, wts))
+    xs = tuple(chunked(a) for a in (states, _next_states(states), y, u, mask, ts, wts))
 
     def accumulate(carry, chunk):
         value, grad, hess = carry
-        v, g, R = jax.vmap(step)(*chunk)
+        v, g, R = jax.vmap(weighted)(*chunk)
         hess = hess + gram(R.reshape(-1, P))
         return (value + jnp.sum(v), grad + jnp.sum(g, axis=0), hess), None
 
     zero = (jnp.zeros((), dtype), jnp.zeros((P,), dtype), jnp.zeros((P, P), dtype))
     (value, grad, hess), _ = jax.lax.scan(accumulate, zero, xs)  # each chunk's RᵀR symmetric
-
-    prior = system.initial_prior
-    if prior is not None:  # the value and gradient only, as in :func:`theta_rows`
-
-        def prior_nll(th, x0):
-            pr = build(th).initial_prior
-            assert pr is not None  # θ does not decide whether there is a prior
-            return pr.nll(x0)
-
-        pv, pg = jax.vmap(jax.value_and_grad(prior_nll), in_axes=(None, 0))(theta, states[:, 0])
-        value = value + jnp.sum(jnp.where(ok, w * pv, 0.0))
-        grad = grad + jnp.sum(jnp.where(ok[:, None], w[:, None] * pg, 0.0), axis=0)
+    pv, pg = jax.vmap(lambda x1: _prior_terms(build, theta, x1))(states[:, 0])
+    value = value + jnp.sum(jnp.where(ok, w * pv, 0.0))
+    grad = grad + jnp.sum(jnp.where(ok[:, None], w[:, None] * pg, 0.0), axis=0)
     return value, grad, hess
 
 
 #: :func:`gram` splits θ into blocks of at least this many columns and forms only the blocks on
-#: and above the diagonal (the product is symmetric): with 3 blocks of 114 columns 6 of 9 block
-#: products, the Figure-3 build's product (18 288 rows × 342) 42 → 31 ms (XLA has no SYRK).
+#: and above the diagonal (the product is symmetric; XLA has no SYRK): with 3 blocks of 114
+#: columns 6 of 9 block products, the Figure-3 learning step inside a fit 67–68 → 56–57 ms
+#: (``python benchmarks/probes/epoch_in_fit.py --variants default gram-one-product``).
 GRAM_BLOCK_MIN = 96
 
 

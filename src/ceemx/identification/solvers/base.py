@@ -178,9 +178,10 @@ class AbstractFitSolver(eqx.Module):
         )
 
         own = getattr(self, "smoother", None)
-        # the default chunk otherwise: the same program as the end-of-fit smoothing check's
-        smoother = LMSmoother(batch_chunk=own.batch_chunk) if isinstance(own, LMSmoother) else None
-        smoother = LMSmoother() if smoother is None else smoother
+        # without one, the default smoother: the same program as the end-of-fit smoothing check's
+        smoother = (
+            LMSmoother(batch_chunk=own.batch_chunk) if isinstance(own, LMSmoother) else LMSmoother()
+        )
         return warm_start(system, data, smoother=smoother, one_shot=not self.smooths_each_epoch)
 
     def check_problem(self, problem: FitProblem, theta: Theta) -> None:
