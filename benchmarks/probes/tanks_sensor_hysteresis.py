@@ -1,0 +1,172 @@
+"""The cascaded tanks' level sensor jumps down when the level falls through ≈ 5.5 V (issue 22).
+
+    python benchmarks/probes/tanks_sensor_hysteresis.py            # the jumps, the error share
+    python benchmarks/probes/tanks_sensor_hysteresis.py --fits     # + sensor-state variants
+
+Part 1 (data and the experiment's physics model, no choice made): every one-sample fall of the
+measured level by more than 0.3 V in both records — the physical level cannot fall that fast
+(the largest drain rate the fitted model reaches is ≈ 0.2 V a sample) and no such jump happens
+on the way up — then the physics model of ``ceemx experiment benchmarks`` (fitted on the whole
+training record) scored on the test record with and without the samples around the jumps
+(``BEFORE`` samples before each, ``AFTER`` after): the share of its error they carry.
+
+Part 2 (``--fits``): two models of a sensor with memory, each a third state z added to the
+library's ``CascadedTanks`` (y = softmin(x₂ + c + z, 10)), started from the physics fit with
+z = 0 and fitted by JointLM (process noise 1e-3 V on every state) — on the fit part of the
+training record and scored on its held-out tail (the validation score, the only one that may
+select), then on the whole training record and scored on the test record:
+
+- ``film``: a wetting film that builds while the level falls above a collapse level L and drains
+  quickly below it, ż = k_f·fall·[v + z > L] − z·(k_c·[v + z < L] + k_d), v = x₂ + c;
+- ``relay``: a relay hysteresis between the levels L and H, ż = k_c·([v > H]·(Δ − z) − [v < L]·z)
+  (switched on above H, off below L; the brackets smooth sigmoids).
+
+Backs ``docs/results.md`` ("The tanks' sensor").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+import warnings
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import ceemx  # noqa: E402
+from ceemx import datasets  # noqa: E402
+from ceemx.experiments import benchmarks as bm  # noqa: E402
+from ceemx.identification.problem import trainable_mask  # noqa: E402
+from ceemx.models.constraints import param  # noqa: E402
+from ceemx.systems.benchmarks import CascadedTanks, soft_min  # noqa: E402
+
+JUMP = 0.3  # V in one sample
+BEFORE, AFTER = 30, 10
+NOISE = 1e-3
+
+
+class SensorState(CascadedTanks):
+    """``CascadedTanks`` with a sensor state z read on top of the level (see the module)."""
+
+    kf: jax.Array = param(lower=0.0, upper=1.0, default=0.3)  # film per V of fall / relay Δ
+    L: jax.Array = param(positive=True, default=5.5)  # collapse / switch-off level (sensor V)
+    H: jax.Array = param(positive=True, default=7.0)  # switch-on level of the relay (sensor V)
+    kd: jax.Array = param(positive=True, default=1e-4)  # slow drain of the film (1/s)
+    kc: jax.Array = param(fixed=True, default=0.5)  # collapse / switching rate (1/s)
+    beta_z: jax.Array = param(fixed=True, default=10.0)  # sharpness of the brackets (1/V)
+    relay: bool = eqx.field(static=True, default=False)
+
+    @property
+    def state_dim(self) -> int:
+        return 3
+
+    def vector_field(self, x, u, t):
+        d = CascadedTanks.vector_field(self, x[:2], u, t)
+        v, z = x[1] + self.offset, x[2]
+        if self.relay:
+            on = jax.nn.sigmoid(self.beta_z * (v - self.H))
+            off = jax.nn.sigmoid(self.beta_z * (self.L - v))
+            dz = self.kc * (on * (self.kf - z) - off * z)
+        else:
+            above = jax.nn.sigmoid(self.beta_z * (v + z - self.L))
+            fall = jax.nn.softplus(-20.0 * d[1]) / 20.0
+            dz = self.kf * fall * above - z * (self.kc * (1 - above) + self.kd)
+        return jnp.concatenate([d, dz[None]])
+
+    def observe(self, x, u, t):
+        return soft_min(x[1:2] + self.offset + x[2:3], self.y_max, self.beta_sensor)
+
+    def default_state_mean(self):
+        return jnp.asarray([5.0, 5.0, 0.0], jnp.result_type(self.k1))
+
+
+#: name → (relay?, fields frozen)
+VARIANTS = {
+    "film": (False, ("kd", "H")),
+    "film-drain": (False, ("H",)),
+    "relay": (True, ("kd",)),
+}
+
+
+def jumps(y: np.ndarray) -> np.ndarray:
+    """Indices i with y[i] − y[i+1] > JUMP (one-sample falls)."""
+    return np.flatnonzero(-np.diff(y) > JUMP)
+
+
+def physics_fit(data):
+    guess = bm._model("cascaded_tanks")(dtype=jnp.float64, **bm.MODEL_OPTIONS["cascaded_tanks"])
+    return ceemx.fit(guess, data, solver=ceemx.JointLM(), max_epochs=200)
+
+
+def part1(ds) -> None:
+    for name, y in (("training", ds.train.y[0, :, 0]), ("test", ds.tests["test"].y[0, :, 0])):
+        y = np.asarray(y)
+        print(f"{name} record, one-sample falls > {JUMP} V:")
+        for i in jumps(y):
+            print(f"  sample {i}: {y[i]:.2f} → {y[i + 1]:.2f} V")
+        rises = np.flatnonzero(np.diff(y) > JUMP)
+        print(f"  (one-sample rises > {JUMP} V: {rises.size}, all while u is large)")
+    test = ds.tests["test"]
+    s = ceemx.benchmark_score(physics_fit(ds.train).system, test, ds.n_init)
+    y, yh = np.asarray(test.y[0, :, 0]), np.asarray(s.y_sim[0, :, 0])
+    err = (yh - y)[ds.n_init :]
+    keep = np.ones(y.shape, bool)
+    keep[: ds.n_init] = False
+    for i in jumps(y):
+        keep[max(i - BEFORE, 0) : i + 1 + AFTER] = False
+    print(
+        f"physics model on the test record: {float(s.rmse[0, 0]):.4f} V; without the "
+        f"{(~keep[ds.n_init :]).sum()} samples around the jumps ({BEFORE} before, {AFTER} after): "
+        f"{np.sqrt(np.mean((yh - y)[keep] ** 2)):.4f} V; their share of the squared error "
+        f"{1 - np.sum((yh - y)[keep] ** 2) / np.sum(err**2):.0%}",
+        flush=True,
+    )
+
+
+def fit_variant(name: str, data, record, n_init: int) -> tuple[float, float, dict]:
+    relay, frozen = VARIANTS[name]
+    phys = physics_fit(data)
+    base = phys.system
+    vals = {f.name: getattr(base, f.name) for f in dataclasses.fields(base) if f.init}
+    vals["process_noise"] = jnp.full((3,), NOISE)
+    g = SensorState(**vals, relay=relay)
+    mask = eqx.tree_at(
+        lambda m: [getattr(m, n) for n in frozen], trainable_mask(g), [False] * len(frozen)
+    )
+    x0 = jnp.concatenate([phys.states, jnp.zeros(phys.states.shape[:-1] + (1,))], -1)
+    res = ceemx.fit(g, data, x0, solver=ceemx.JointLM(), max_epochs=200, trainable=mask)
+    s = ceemx.benchmark_score(res.system, record, n_init)
+    params = {k: round(float(getattr(res.system, k)), 4) for k in ("kf", "L", "H", "kd")}
+    return float(s.rmse[0, 0]), float(np.max(np.abs(s.x_sim[..., 2]))), params
+
+
+def part2(ds) -> None:
+    fit_part, validation = bm._split("cascaded_tanks", ds, bm.Settings())
+    runs = (("validation", fit_part, validation), ("test", ds.train, ds.tests["test"]))
+    for part, data, record in runs:
+        t0 = time.perf_counter()
+        s = ceemx.benchmark_score(physics_fit(data).system, record, ds.n_init)
+        print(f"physics {part}: {float(s.rmse[0, 0]):.4f} V ({time.perf_counter() - t0:.0f} s)")
+        for name in VARIANTS:
+            t0 = time.perf_counter()
+            rmse, zmax, params = fit_variant(name, data, record, ds.n_init)
+            print(
+                f"{name} {part}: {rmse:.4f} V, |z| ≤ {zmax:.3f} V over the free run, {params} "
+                f"({time.perf_counter() - t0:.0f} s)",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    warnings.simplefilter("ignore")
+    ceemx.enable_compilation_cache()
+    ds = datasets.cascaded_tanks()
+    part1(ds)
+    if "--fits" in sys.argv[1:]:
+        part2(ds)
