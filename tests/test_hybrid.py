@@ -176,6 +176,20 @@ def test_learned_term_validation(duffing):
         hybrid(physics, data, states=x, lower=1.0, upper=0.0)
     with pytest.raises(TypeError, match="physics"):
         hybrid("not a model", data, states=x)  # type: ignore[arg-type]
+    # Adversarial arguments: each refused by name before any statistics are computed.
+    wrong_m = ceemx.Trajectories(jnp.concatenate([data.y, data.y], -1), data.u)
+    with pytest.raises(ValueError, match="`data.y` has m = 2"):
+        hybrid(physics, wrong_m, states=x)
+    with pytest.raises(ValueError, match="`lower` must not be NaN"):
+        hybrid(physics, data, states=x, lower=float("nan"))
+    with pytest.raises(ValueError, match="scalars or 2-vectors; got shapes \\(3,\\)"):
+        hybrid(physics, data, states=x, lower=jnp.zeros(3))
+    with pytest.raises(TypeError, match="`dynamics` must be a bool or a sequence"):
+        hybrid(physics, data, states=x, dynamics="yes")  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="`key` must be a JAX PRNG key"):
+        hybrid(physics, data, states=x, key=3)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="`activation` must be a callable"):
+        hybrid(physics, data, states=x, activation=3)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="`n_init`"):
         EarlyStopping(data, n_init=0)
 

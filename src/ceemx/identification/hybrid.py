@@ -13,6 +13,7 @@ Training it with early stopping on a validation record cut from the training rec
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -22,6 +23,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
 from ceemx.data.trajectories import Trajectories
+from ceemx.inference.smoother import check_inputs
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem
 from ceemx.systems.hybrid import Hybrid, HybridContinuous, learned_term
 
@@ -86,13 +88,19 @@ def hybrid(
         :class:`~ceemx.systems.hybrid.Hybrid`; at its initial weights it equals ``physics``.
 
     Raises:
-        TypeError / ValueError: a wrong physics or data type, states of the wrong shape or not
-            finite, no learned term asked for.
+        TypeError / ValueError: before any compute, naming the argument: a wrong physics or
+            data type, data whose m or p differ from the model's, states of the wrong shape or
+            not finite, no learned term asked for, indices out of range, NaN or crossed bounds,
+            a non-positive width or prior σ, a key that is not a PRNG key, an activation that
+            is not callable.
     """
     if not isinstance(physics, AbstractSystem):
         raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be ceemx.Trajectories; got {type(data).__name__}.")
+    check_inputs(physics, data)  # m, p, dtype: named errors before any statistics
+    if not callable(activation):
+        raise TypeError(f"`activation` must be a callable (e.g. jnp.tanh); got {activation!r}.")
     if dynamics is False and observation is False and lower is None and upper is None:
         raise ValueError(
             "ask for at least one learned term (`dynamics` and/or `observation`) or for state "
@@ -113,7 +121,10 @@ def hybrid(
         raise ValueError("`states` must be finite.")
     dtype = jnp.asarray(data.y).dtype
     key = jax.random.PRNGKey(0) if key is None else key
-    k_dyn, k_obs = jax.random.split(key)
+    try:
+        k_dyn, k_obs = jax.random.split(key)
+    except (TypeError, ValueError):
+        raise TypeError(f"`key` must be a JAX PRNG key (jax.random.key(0)); got {key!r}.") from None
     x_mean, x_scale = _spread(x.reshape(-1, n), 0)
     continuous = isinstance(physics, AbstractContinuousSystem)
     u = np.asarray(data.u, dtype=float)
@@ -164,7 +175,9 @@ def _targets(spec, size: int, name: str) -> tuple[int, ...] | None:
     if spec is True:
         return None
     try:
-        targets = tuple(int(i) for i in spec)
+        if isinstance(spec, str | bytes):
+            raise TypeError
+        targets = tuple(operator.index(i) for i in spec)
     except TypeError:
         raise TypeError(
             f"`{name}` must be a bool or a sequence of indices; got {spec!r}."

@@ -339,9 +339,16 @@ def _bounds(physics: AbstractSystem, lower, upper, sharpness, *terms):
 
     try:
         lo, hi = vector(lower, -math.inf), vector(upper, math.inf)
-    except ValueError as e:
-        raise ValueError(f"`lower`/`upper` must be scalars or {n}-vectors: {e}") from None
-    if any(math.isnan(a) or math.isnan(b) or a >= b for a, b in zip(lo, hi, strict=True)):
+    except ValueError:
+        shapes = (np.shape(lower), np.shape(upper))
+        raise ValueError(
+            f"`lower`/`upper` must be scalars or {n}-vectors; got shapes {shapes[0]} and "
+            f"{shapes[1]}."
+        ) from None
+    for name, v in (("lower", lo), ("upper", hi)):
+        if any(math.isnan(a) for a in v):
+            raise ValueError(f"`{name}` must not be NaN; got {v}.")
+    if any(a >= b for a, b in zip(lo, hi, strict=True)):
         raise ValueError(f"`lower` must be below `upper` in every entry; got {lo} and {hi}.")
     if not (isinstance(sharpness, int | float) and 0 < sharpness < math.inf):
         raise ValueError(f"`bound_sharpness` must be a positive finite number; got {sharpness!r}.")
