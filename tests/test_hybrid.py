@@ -192,6 +192,10 @@ def test_learned_term_validation(duffing):
         hybrid(physics, data, states=x, activation=3)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="`n_init`"):
         EarlyStopping(data, n_init=0)
+    with pytest.raises(ValueError, match="`score_options` has unknown keys \\['bogus'\\]"):
+        EarlyStopping(data, n_init=5, score_options={"bogus": 1})
+    with pytest.raises(TypeError, match="`start` must be a ceemx.AbstractSystem"):
+        EarlyStopping(data, n_init=5, start="physics")  # type: ignore[arg-type]
 
 
 @pytest.mark.slow  # one JointLM fit of ≈ 350 weights (≈ 25 s)

@@ -24,6 +24,10 @@ from ceemx.models.system import AbstractSystem
 __all__ = ["EarlyStopping"]
 
 
+#: The options of :func:`ceemx.benchmark_score` a validation score may set.
+SCORE_OPTIONS = frozenset({"scale", "x1", "refine", "smoother", "warm_process_noise"})
+
+
 class EarlyStopping:
     """A :func:`ceemx.fit` callback: stop when a validation free-run stops improving; keep the best.
 
@@ -81,6 +85,14 @@ class EarlyStopping:
             raise TypeError(
                 f"`score_options` must be a dict or None; got {type(score_options).__name__}."
             )
+        unknown = sorted(set(score_options or {}) - SCORE_OPTIONS)
+        if unknown:
+            raise ValueError(
+                f"`score_options` has unknown keys {unknown}; allowed: {sorted(SCORE_OPTIONS)} "
+                "(options of ceemx.benchmark_score)."
+            )
+        if start is not None and not isinstance(start, AbstractSystem):
+            raise TypeError(f"`start` must be a ceemx.AbstractSystem; got {type(start).__name__}.")
         self.validation = validation
         self.n_init = n_init
         self.score_options = dict(score_options or {})
