@@ -117,13 +117,16 @@ def physics_fit(data):
 
 
 def part1(ds) -> None:
-    for name, y in (("training", ds.train.y[0, :, 0]), ("test", ds.tests["test"].y[0, :, 0])):
-        y = np.asarray(y)
+    for name, record in (("training", ds.train), ("test", ds.tests["test"])):
+        y, u = np.asarray(record.y[0, :, 0]), np.asarray(record.u[0, :, 0])
         print(f"{name} record, one-sample falls > {JUMP} V:")
         for i in jumps(y):
             print(f"  sample {i}: {y[i]:.2f} → {y[i + 1]:.2f} V")
         rises = np.flatnonzero(np.diff(y) > JUMP)
-        print(f"  (one-sample rises > {JUMP} V: {rises.size}, all while u is large)")
+        print(
+            f"  (one-sample rises > {JUMP} V: {rises.size}, the pump at u ≥ {u[rises].min():.2f} V "
+            f"there against a median {np.median(u):.2f} V: filling, not the sensor)"
+        )
     test = ds.tests["test"]
     s = ceemx.benchmark_score(physics_fit(ds.train).system, test, ds.n_init)
     y, yh = np.asarray(test.y[0, :, 0]), np.asarray(s.y_sim[0, :, 0])
