@@ -94,6 +94,20 @@ def slim_runs(runs: list[dict], info: dict) -> None:
                 r[name]["theta_last"] = thetas[-1] if thetas else None
 
 
+def figure3_problem(B: int = 8, T: int = 128):
+    """(true system, problem, x_init) of the Figure-3 comparison: 6 coupled Lorenz, seed 42,
+    states started at truth + N(0, 1) — one definition for this script and the probes that
+    profile its epoch (``benchmarks/probes/algorithm1_epoch.py``, ``epoch_in_fit.py``)."""
+    import jax
+
+    from ceemx.experiments import common
+
+    true = common.true_lorenz(6)
+    p = common.lorenz_problem(42, true, B=B, T=T, sigma_w=0.0, sigma_v=0.01, coupling=True)
+    k_x = jax.random.fold_in(jax.random.PRNGKey(42), 1)
+    return true, p, p.states + jax.random.normal(k_x, p.states.shape, p.states.dtype)
+
+
 def make_problem(
     path: pathlib.Path,
     B: int,
@@ -105,13 +119,8 @@ def make_problem(
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from ceemx.experiments import common
-
     K = 6
-    true = common.true_lorenz(K)
-    p = common.lorenz_problem(42, true, B=B, T=T, sigma_w=0.0, sigma_v=0.01, coupling=True)
-    k_x = jax.random.fold_in(jax.random.PRNGKey(42), 1)
-    x_init = p.states + jax.random.normal(k_x, p.states.shape, p.states.dtype)
+    true, p, x_init = figure3_problem(B, T)
     perm = authors_order(K)
     g = p.init_system
     H0 = np.asarray(g.effective_coupling())[np.ix_(perm, perm)]

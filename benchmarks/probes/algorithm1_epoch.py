@@ -25,6 +25,7 @@ import argparse
 import json
 import os
 import pathlib
+import sys
 import time
 
 import equinox as eqx
@@ -42,6 +43,9 @@ from ceemx.identification.learning.problem import (  # noqa: E402
 )
 from ceemx.inference import smoother as smoothing  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+from compare_reference_figure3 import figure3_problem  # noqa: E402
 
 OUT = pathlib.Path(__file__).resolve().parents[1] / "results" / "algorithm1_epoch.json"
 
@@ -64,12 +68,9 @@ def main():
     ap.add_argument("--epochs", type=int, default=8)
     ap.add_argument("--only", nargs="*", default=None)
     args = ap.parse_args()
-    true = common.true_lorenz(6)
-    p = common.lorenz_problem(42, true, B=8, T=128, sigma_w=0.0, sigma_v=0.01, coupling=True)
+    true, p, x_init = figure3_problem()
     pn, on, rho_x = figure3.fit_setup("paper")
     system = with_noise(p.init_system, pn, on)
-    k_x = jax.random.fold_in(jax.random.PRNGKey(42), 1)
-    x_init = p.states + jax.random.normal(k_x, p.states.shape, p.states.dtype)
     out = {"load_before": os.getloadavg()[0], "components_s": {}, "variants": {}}
 
     lp, th = make_problem(system, x_init, p.data, trainable=common.LORENZ_PARAMS_H)

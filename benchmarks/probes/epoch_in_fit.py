@@ -62,12 +62,12 @@ def worker(name: str, epochs: int) -> dict:
         gauss_newton.ROWS_CHUNK_BYTES = 2**30
     if not v["gram"]:
         gauss_newton.GRAM_BLOCK_MIN = 2**30
-    true = common.true_lorenz(6)
-    p = common.lorenz_problem(42, true, B=8, T=128, sigma_w=0.0, sigma_v=0.01, coupling=True)
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    from compare_reference_figure3 import figure3_problem
+
+    true, p, x_init = figure3_problem()
     pn, on, rho_x = figure3.fit_setup("paper")
     system = with_noise(p.init_system, pn, on)
-    k_x = jax.random.fold_in(jax.random.PRNGKey(42), 1)
-    x_init = p.states + jax.random.normal(k_x, p.states.shape, p.states.dtype)
     smoother = ceemx.LMSmoother(
         rho_x=rho_x, max_steps=2, batch_chunk="auto" if v["chunk"] else None
     )
