@@ -11,6 +11,7 @@ improvement, and :meth:`EarlyStopping.restore` puts the best model into the fit'
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from typing import Any
 
@@ -18,14 +19,29 @@ import numpy as np
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.metrics import benchmark_score
+from ceemx.evaluation.simulation import estimate_initial_state
 from ceemx.infra.options import check_int, check_nonnegative
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["EarlyStopping"]
 
 
-#: The options of :func:`ceemx.benchmark_score` a validation score may set.
-SCORE_OPTIONS = frozenset({"scale", "x1", "refine", "smoother", "warm_process_noise"})
+def _score_options() -> frozenset[str]:
+    """The keyword options of :func:`ceemx.benchmark_score`, read from the signatures.
+
+    Its own and those it passes on to :func:`~ceemx.evaluation.simulation.estimate_initial_state`.
+    """
+    own = inspect.signature(benchmark_score).parameters
+    passed = inspect.signature(estimate_initial_state).parameters
+    keyword = inspect.Parameter.KEYWORD_ONLY
+    return frozenset(
+        [k for k, v in own.items() if v.kind == keyword]
+        + [k for k, v in passed.items() if v.kind == keyword and k != "return_status"]
+    )
+
+
+#: The options a validation score may set (``score_options``).
+SCORE_OPTIONS = _score_options()
 
 
 class EarlyStopping:

@@ -88,11 +88,12 @@ def hybrid(
         :class:`~ceemx.systems.hybrid.Hybrid`; at its initial weights it equals ``physics``.
 
     Raises:
-        TypeError / ValueError: before any compute, naming the argument: a wrong physics or
-            data type, data whose m or p differ from the model's, states of the wrong shape or
-            not finite, no learned term asked for, indices out of range, NaN or crossed bounds,
-            a non-positive width or prior σ, a key that is not a PRNG key, an activation that
-            is not callable.
+        TypeError / ValueError: naming the argument — before any compute: a wrong physics or
+            data type, data whose m or p differ from the model's, an activation that is not
+            callable, a key that is not a PRNG key, no learned term asked for; then (after the
+            default start's smoothing when ``states`` is None): states of the wrong shape or
+            not finite, indices out of range, a non-positive width or prior σ, NaN or crossed
+            bounds.
     """
     if not isinstance(physics, AbstractSystem):
         raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
@@ -106,6 +107,11 @@ def hybrid(
             "ask for at least one learned term (`dynamics` and/or `observation`) or for state "
             "bounds (`lower`/`upper`: the physics model with bounded states)."
         )
+    key = jax.random.PRNGKey(0) if key is None else key
+    try:
+        k_dyn, k_obs = jax.random.split(key)
+    except (TypeError, ValueError):
+        raise TypeError(f"`key` must be a JAX PRNG key (jax.random.key(0)); got {key!r}.") from None
     n = physics.state_dim
     if states is None:
         from ceemx.identification.initialize import warm_start
@@ -120,11 +126,6 @@ def hybrid(
     if not np.all(np.isfinite(x)):
         raise ValueError("`states` must be finite.")
     dtype = jnp.asarray(data.y).dtype
-    key = jax.random.PRNGKey(0) if key is None else key
-    try:
-        k_dyn, k_obs = jax.random.split(key)
-    except (TypeError, ValueError):
-        raise TypeError(f"`key` must be a JAX PRNG key (jax.random.key(0)); got {key!r}.") from None
     x_mean, x_scale = _spread(x.reshape(-1, n), 0)
     continuous = isinstance(physics, AbstractContinuousSystem)
     u = np.asarray(data.u, dtype=float)
