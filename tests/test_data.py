@@ -213,7 +213,7 @@ def test_smooth_x_init_dtype_mismatch_is_promoted():
     system, data, x = good_inputs()
     assert ceemx.smooth(system, data, x.astype(jnp.float32)).states.dtype == jnp.float64
     with raises("`x_init` has dtype float32"):
-        ceemx.inference.smoother.check_inputs(system, data, x.astype(jnp.float32))
+        ceemx.data.checks.check_inputs(system, data, x.astype(jnp.float32))
 
 
 @pytest.mark.parametrize(

@@ -79,7 +79,7 @@ def test_fit_refuses_before_any_compute(problem, tiny_memory, monkeypatch, solve
     def no_warm_start(*args, **kwargs):
         raise AssertionError("the warm start ran before the memory guard")
 
-    monkeypatch.setattr(initialize, "warm_start", no_warm_start)
+    monkeypatch.setattr(initialize, "warm_start_states", no_warm_start)
     guess, _, data = problem
     solver = ceemx.JointLM() if solver == "joint" else ceemx.Alternating()
     with pytest.raises(ValueError, match="more than this machine.s"):

@@ -20,6 +20,7 @@ import pytest
 from jaxtyping import Array
 
 import ceemx
+from ceemx.data.checks import check_inputs
 from ceemx.evaluation.metrics import benchmark_score
 from ceemx.evaluation.simulation import estimate_initial_state
 from ceemx.identification.learning.learners import (
@@ -29,7 +30,6 @@ from ceemx.identification.learning.learners import (
     OptaxLearner,
 )
 from ceemx.identification.solvers.base import FitState
-from ceemx.inference.smoother import check_inputs
 from ceemx.infra import checkpoint as ckpt
 from ceemx.infra import options
 from ceemx.lib.results import RESULTS, codes, messages, select

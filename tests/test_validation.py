@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx.inference.smoother import check_inputs, promote_inputs
+from ceemx.data.checks import check_inputs, promote_inputs
 from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
 from ceemx.systems import LinearSystem
 from ceemx.systems.lorenz import CoupledLorenz

@@ -24,9 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ceemx.data.checks import prepare, promote_array
 from ceemx.data.trajectories import Trajectories, rollout_one
-from ceemx.evaluation.simulation import estimate_initial_state, free_run_batch, strongly_typed
-from ceemx.inference.smoother import check_inputs, promote_inputs
+from ceemx.evaluation.simulation import free_run_batch, initial_state_prepared, strongly_typed
 from ceemx.infra.compilation import jit
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, select
@@ -300,7 +300,7 @@ def benchmark_score(
             (``refine``, ``smoother``, ``warm_process_noise``).
 
     ``test`` and ``x1`` are cast to the dtype of the system's parameters, as by
-    :func:`ceemx.fit` and :func:`ceemx.smooth` (:func:`ceemx.inference.smoother.promote_inputs`).
+    :func:`ceemx.fit` and :func:`ceemx.smooth` (:func:`ceemx.data.checks.prepare`).
 
     Returns:
         A :class:`BenchmarkScore` (arrays in the system's dtype).
@@ -322,8 +322,9 @@ def benchmark_score(
     """
     if not isinstance(system, AbstractSystem):
         raise TypeError(f"`system` must be a ceemx.AbstractSystem; got {type(system).__name__}.")
-    system, test, x1 = promote_inputs(system, test, x1, name="x1")  # as fit and smooth
-    check_inputs(system, test)
+    inputs = prepare(system, test)  # one dtype, the system's, as fit and smooth
+    system, test = inputs.system, inputs.data
+    x1 = promote_array("x1", x1, system)
     T = test.num_steps
     if isinstance(n_init, bool) or not isinstance(n_init, (int, np.integer)):
         raise TypeError(f"`n_init` must be an integer; got {n_init!r}.")
@@ -345,7 +346,7 @@ def benchmark_score(
     if s.ndim > 1 or s.size not in (1, m) or not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise ValueError(f"`scale` must be a positive scalar or ({m},) vector; got {scale!r}.")
     if x1 is None:
-        start, status = estimate_initial_state(system, test, n_init, return_status=True, **kwargs)
+        start, status = initial_state_prepared(system, test, n_init, return_status=True, **kwargs)
     else:
         if kwargs:
             raise TypeError(f"options {sorted(kwargs)} estimate x1, which was given.")

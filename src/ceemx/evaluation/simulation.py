@@ -27,17 +27,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ceemx.data.checks import check_states, prepare, promote_array, promote_tree
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import from_observations
-from ceemx.inference.ekf import ekf
-from ceemx.inference.smoother import (
-    LMSmoother,
-    check_inputs,
-    one_shot_pays,
-    promote_array,
-    promote_inputs,
-    smooth_batch,
-)
+from ceemx.inference.ekf import ekf_prepared
+from ceemx.inference.smoother import LMSmoother, one_shot_pays, smooth_batch
 from ceemx.infra.compilation import jit, one_shot_when
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import after, cholesky_solve
@@ -95,9 +89,8 @@ def strongly_typed(tree):
     return jax.tree_util.tree_map(fix, tree)
 
 
-def _check_data(system: AbstractSystem, data) -> None:
-    """``data`` (already in the system's dtype: :func:`promote_inputs`) fits the system."""
-    check_inputs(system, data)
+def _check_finite_data(data: Trajectories) -> None:
+    """``data`` has finite observed outputs and inputs (after :func:`ceemx.data.checks.prepare`)."""
     y, u, mask = np.asarray(data.y), np.asarray(data.u), np.asarray(data.mask)
     _finite("data.y", np.where(mask, y, 0.0))  # a Trajectories built under a transformation
     _finite("data.u", u)
@@ -381,7 +374,7 @@ def estimate_initial_state(
         return_status: also return the last solve's (B,) :class:`ceemx.RESULTS`.
 
     Data and ``x_init`` are cast to the dtype of the system's parameters, as by :func:`ceemx.fit`
-    and :func:`ceemx.smooth` (:func:`ceemx.inference.smoother.promote_inputs`).
+    and :func:`ceemx.smooth` (:func:`ceemx.data.checks.prepare`).
 
     Returns:
         (B, n) initial states in the system's dtype; ``(x1, status)`` with ``return_status``.
@@ -396,8 +389,36 @@ def estimate_initial_state(
     numbers are traced, so scoring many models or records of one shape never recompiles.
     """
     _check_system(system)
-    system, data, x_init = promote_inputs(system, data, x_init)
-    _check_data(system, data)
+    inputs = prepare(system, data)
+    _check_finite_data(inputs.data)
+    return initial_state_prepared(
+        inputs.system,
+        inputs.data,
+        n_init,
+        refine=refine,
+        smoother=smoother,
+        x_init=x_init,
+        warm_process_noise=warm_process_noise,
+        return_status=return_status,
+    )
+
+
+def initial_state_prepared(
+    system: AbstractSystem,
+    data: Trajectories,
+    n_init: int | None = None,
+    *,
+    refine: bool = True,
+    smoother: LMSmoother | None = None,
+    x_init: ArrayLike | None = None,
+    warm_process_noise: float | None | Sequence[float | None] = 1.0,
+    return_status: bool = False,
+) -> Any:
+    """:func:`estimate_initial_state` of prepared inputs (:func:`ceemx.data.checks.prepare`).
+
+    ``n_init``, ``x_init`` and the options are checked here; the system and data are not again.
+    """
+    x_init = promote_array("x_init", x_init, system)
     T = data.num_steps
     n_init = T if n_init is None else _check_int("n_init", n_init, 1, T)
     window = _window(data, n_init)
@@ -408,7 +429,7 @@ def estimate_initial_state(
             f"n_init = {n_init} steps: its initial state cannot be estimated."
         )
     if x_init is not None:
-        check_inputs(system, window, x_init)
+        check_states(system, window, x_init)
         x_init = as_jax(x_init)
     dtype = window.y.dtype
     solver = trace_numbers(LMSmoother() if smoother is None else smoother, dtype)
@@ -521,8 +542,11 @@ def predict_k_step(
     """
     _check_system(system)
     k = _check_int("k", k, 1)
-    system, data, _ = promote_inputs(system, data)
-    sol = ekf(system, data, initial=initial)
+    inputs = prepare(system, data)
+    system, data = inputs.system, inputs.data
+    if initial is not None:
+        initial = promote_tree(initial, system)
+    sol = ekf_prepared(system, data, initial)
     k = min(k, data.num_steps)
     means, prior_mean = sol.filtered_means, sol.predicted_means[:, 0]
     return k_step_batch(strongly_typed(system), means, prior_mean, data.u, k)

@@ -58,15 +58,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
+from ceemx.data.checks import prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.noise import (
     NOISE_FIELDS,
-    estimate_noise,
+    estimate_noise_prepared,
+    moments_prepared,
     noise_ratios,
-    residual_moments,
+    start_states,
 )
 from ceemx.identification.noise_check import FACTOR, LOWER, NoiseCheck, chi2_band
-from ceemx.inference.ekf import ekf
+from ceemx.inference.ekf import ekf_prepared
 from ceemx.models.system import AbstractSystem, GaussianPrior
 
 __all__ = [
@@ -221,14 +223,14 @@ def _chi2_sf(x: float, dof: int) -> float:
 
 
 def _innovations(system, data, x1, initial):
-    """(B, T, m) standardised EKF innovations, NaN where missing."""
+    """(B, T, m) standardised EKF innovations, NaN where missing (prepared inputs)."""
     B = data.batch_size
     e, s = [], []
     for b in range(B):
         prior = initial
         if prior is None:
             prior = GaussianPrior(jnp.asarray(x1[b]), system.process_noise)
-        sol = ekf(system, data[b : b + 1], initial=prior)
+        sol = ekf_prepared(system, data[b : b + 1], promote_tree(prior, system))
         e.append(np.asarray(data.y[b]) - np.asarray(sol.predicted_obs[0]))
         L = np.asarray(sol.innovation_chol[0])
         s.append(np.sqrt(np.sum(L**2, axis=-1)))
@@ -406,15 +408,16 @@ def residual_diagnostics(
         raise ValueError(f"`factor` must be finite and > 1; got {factor!r}.")
     M = int(min(lags, data.num_steps - 1))
     system = _strong(system)
+    inputs = prepare(system, data, states, identify=True)
     problems: list[str] = []
-    nm = residual_moments(system, data, states)
+    nm = moments_prepared(inputs.system, inputs.data, start_states(inputs))
     ok = np.asarray(nm.ok)
     assumed = {name: _std(getattr(system, name)) for name in NOISE_FIELDS}
     estimated = None
     if ok.any():
         ratios = noise_ratios(system, nm)
         if estimate:
-            fitted, _, _ = estimate_noise(system, data, nm.states)
+            fitted, _, _ = estimate_noise_prepared(system, inputs.data, nm.states)
             estimated = {name: _std(getattr(fitted, name)) for name in NOISE_FIELDS}
     else:
         ratios = {name: np.full(len(assumed[name]), np.nan) for name in NOISE_FIELDS}
@@ -429,7 +432,7 @@ def residual_diagnostics(
     x1 = np.asarray(nm.states[:, 0])
     if states is not None:  # where the MAP failed, the given start
         x1 = np.where(np.isfinite(x1), x1, np.asarray(states)[:, 0])
-    z = _innovations(system, data, x1, initial)
+    z = _innovations(inputs.system, inputs.data, x1, initial)
     counts, nis, mean, acf, pairs, xcf, xpairs = _correlations(z, np.asarray(data.u), M)
 
     ratio_ok = {}

@@ -21,6 +21,7 @@ import numpy as np
 from jax.sharding import Mesh
 from jaxtyping import ArrayLike, PRNGKeyArray
 
+from ceemx.data.checks import check_inputs, promote_inputs
 from ceemx.data.sharding import resolve_devices, shard_batch
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.health import OUTLIER_OPTIONS, check_start, trajectory_health
@@ -31,7 +32,6 @@ from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver, FitState, total_J
 from ceemx.identification.solvers.laplace import LaplaceEM
 from ceemx.identification.solvers.particle_em import ParticleEM
-from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra import checkpoint as ckpt
 from ceemx.infra.compilation import BackgroundCompile, compile_in_background, has_idle_core
 from ceemx.infra.distributed import is_main_process, to_host

@@ -22,8 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
+from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
-from ceemx.inference.smoother import check_inputs
+from ceemx.identification.initialize import warm_start_states
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem
 from ceemx.systems.hybrid import Hybrid, HybridContinuous, learned_term
 
@@ -99,7 +100,8 @@ def hybrid(
         raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be ceemx.Trajectories; got {type(data).__name__}.")
-    check_inputs(physics, data)  # m, p, dtype: named errors before any statistics
+    inputs = prepare(physics, data)  # m, p, dtype: named errors before any statistics
+    data = inputs.data
     if not callable(activation):
         raise TypeError(f"`activation` must be a callable (e.g. jnp.tanh); got {activation!r}.")
     if dynamics is False and observation is False and lower is None and upper is None:
@@ -114,9 +116,7 @@ def hybrid(
         raise TypeError(f"`key` must be a JAX PRNG key (jax.random.key(0)); got {key!r}.") from None
     n = physics.state_dim
     if states is None:
-        from ceemx.identification.initialize import warm_start
-
-        states = warm_start(physics, data)
+        states = warm_start_states(inputs.system, inputs.data)
     x = np.asarray(states, dtype=float)
     if x.ndim != 3 or x.shape[:2] != (data.batch_size, data.num_steps) or x.shape[2] != n:
         raise ValueError(

@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, TypeVar
+from typing import TypeVar
 
 import equinox as eqx
 import jax
@@ -17,14 +17,15 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from ceemx.data.checks import prepare, promote_tree
 from ceemx.data.trajectories import Trajectories, rollout_one
+from ceemx.inference.smoother import LMSmoother, smooth_prepared
 from ceemx.infra.compilation import jit
+from ceemx.infra.options import check_bool
+from ceemx.infra.runtime import one_blas_thread
 from ceemx.models.system import AbstractSystem, with_noise
 
-if TYPE_CHECKING:
-    from ceemx.inference.smoother import LMSmoother
-
-__all__ = ["from_observations", "perturb", "rollout", "warm_start"]
+__all__ = ["from_observations", "perturb", "rollout", "warm_start", "warm_start_states"]
 
 _T = TypeVar("_T")
 
@@ -71,6 +72,7 @@ def rollout(system: AbstractSystem, data: Trajectories, x1):
     return jax.vmap(lambda x0, u: rollout_one(system, x0, u))(jnp.asarray(x1, data.y.dtype), data.u)
 
 
+@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
 def warm_start(
     system: AbstractSystem,
     data: Trajectories,
@@ -97,12 +99,35 @@ def warm_start(
 
     Returns:
         (B, T, n) states.
-    """
-    from ceemx.inference.smoother import smooth  # imported here to avoid an import cycle
 
+    Raises:
+        TypeError, ValueError: on invalid inputs (as :func:`ceemx.smooth`), before any compute.
+    """
+    if smoother is not None and not isinstance(smoother, LMSmoother):
+        raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {smoother!r}.")
+    check_bool("one_shot", one_shot)
+    inputs = prepare(system, data, identify=True)
+    return warm_start_states(
+        inputs.system,
+        inputs.data,
+        process_noise=process_noise,
+        smoother=smoother,
+        one_shot=one_shot,
+    )
+
+
+def warm_start_states(
+    system: AbstractSystem,
+    data: Trajectories,
+    *,
+    process_noise: float = 1.0,
+    smoother: LMSmoother | None = None,
+    one_shot: bool = False,
+) -> Float[Array, "B T n"]:
+    """:func:`warm_start` of prepared inputs (:func:`ceemx.data.checks.prepare`): no checks."""
     x0 = from_observations(system, data)
-    weak = with_noise(system, process_noise=process_noise)
-    return smooth(weak, data, x0, smoother, one_shot=one_shot).states
+    weak = promote_tree(with_noise(system, process_noise=process_noise), system)
+    return smooth_prepared(weak, data, x0, smoother, one_shot=one_shot).states
 
 
 def _perturb_leaves(key: PRNGKeyArray, leaves: list, frac: float) -> list:

@@ -33,11 +33,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
+from ceemx.data.checks import Prepared, prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
+from ceemx.identification.initialize import warm_start_states
 from ceemx.identification.learning.expected import cubature_points
 from ceemx.identification.solvers.laplace import coarse_shape, noise_second_moments, updated_noise
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
-from ceemx.inference.smoother import LMSmoother, check_inputs, promote_inputs
+from ceemx.inference.smoother import LMSmoother
 from ceemx.infra.compilation import jit
 from ceemx.infra.runtime import one_blas_thread
 from ceemx.lib.results import RESULTS
@@ -115,13 +117,21 @@ def residual_moments(
         A :class:`NoiseMoments`; trajectories whose posterior is not finite are left out
         (``ok``).
     """
-    system, data, states = promote_inputs(system, data, states)
-    check_inputs(system, data)
-    if states is None:
-        from ceemx.identification.initialize import warm_start
+    inputs = prepare(system, data, states, identify=True)
+    return moments_prepared(inputs.system, inputs.data, start_states(inputs), smoother)
 
-        states = warm_start(system, data)
-    check_inputs(system, data, states)
+
+def start_states(inputs: Prepared):
+    """The states given with prepared inputs, else the warm start (as a fit starts)."""
+    if inputs.states is not None:
+        return inputs.states
+    return warm_start_states(inputs.system, inputs.data)
+
+
+def moments_prepared(
+    system: AbstractSystem, data: Trajectories, states, smoother: LMSmoother | None = None
+) -> NoiseMoments:
+    """:func:`residual_moments` of prepared inputs and states (``ceemx.data.checks.prepare``)."""
     x0 = jnp.asarray(states)
     smoother = trace_numbers(E_STEP_SMOOTHER if smoother is None else smoother, x0.dtype)
     moments, x_hat, log_ev, ok = _moments(smoother, system, x0, data)
@@ -257,7 +267,36 @@ def estimate_noise(
         raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
     if max_evaluations < 1:
         raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
-    nm = residual_moments(system, data, states, smoother=smoother)
+    inputs = prepare(system, data, states, identify=True)
+    return estimate_noise_prepared(
+        system,
+        inputs.data,
+        start_states(inputs),
+        fields=fields,
+        per_component=per_component,
+        search=search,
+        max_evaluations=max_evaluations,
+        smoother=smoother,
+    )
+
+
+def estimate_noise_prepared(
+    system: AbstractSystem,
+    data: Trajectories,
+    states,
+    *,
+    fields: Sequence[str] = NOISE_FIELDS,
+    per_component: bool = False,
+    search: bool = True,
+    max_evaluations: int = 60,
+    smoother: LMSmoother | None = None,
+) -> tuple[AbstractSystem, NoiseMoments, int]:
+    """:func:`estimate_noise` of prepared data and states, its options checked: no checks.
+
+    ``system`` as given (the estimate keeps its leaves; promoted for each evaluation).
+    """
+    fields = tuple(dict.fromkeys(fields))
+    nm = moments_prepared(_promoted(system), data, states, smoother)
     if not fields:
         return system, nm, 1
     layout = _ScaleLayout(system, fields, bool(per_component))
@@ -272,7 +311,7 @@ def estimate_noise(
             # same, its scale smaller), then L-BFGS on all of them from there
             b, t = shape
             part_data = data[:b].head(t)
-            first = residual_moments(system, part_data, nm.states[:b, :t], smoother=smoother)
+            first = moments_prepared(_promoted(system), part_data, nm.states[:b, :t], smoother)
             searched = _EvidenceSearch(
                 system, part_data, layout, first, smoother, bounds, max_evaluations
             )
@@ -285,6 +324,11 @@ def estimate_noise(
     full.climb(start)
     best = full.best
     return layout.system(system, best["z"]), best["nm"], len(full.cache) + part_evaluations
+
+
+def _promoted(system: AbstractSystem) -> AbstractSystem:
+    """The system's floating arrays in its working dtype (as :func:`ceemx.data.checks.prepare`)."""
+    return promote_tree(system, system)
 
 
 class _EvidenceSearch:
@@ -315,7 +359,7 @@ class _EvidenceSearch:
         if key not in self.cache:
             trial = self.layout.system(self.system, z)
             states = self.best["nm"].states
-            self.cache[key] = residual_moments(trial, self.data, states, smoother=self.smoother)
+            self.cache[key] = moments_prepared(_promoted(trial), self.data, states, self.smoother)
         m = self.cache[key]
         f = -_evidence(m)
         if not np.isfinite(f):

@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ceemx.data.checks import prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
-from ceemx.inference.smoother import check_inputs, promote_inputs, promote_tree
 from ceemx.infra.compilation import jit
 from ceemx.lib import kalman
 from ceemx.lib.dense import cholesky, symmetrize
@@ -177,7 +177,7 @@ def _resolve_prior(system: AbstractSystem, initial: GaussianPrior | None, dtype)
     return prior
 
 
-@no_type_check  # validates its arguments: check_inputs and the checks below
+@no_type_check  # validates its arguments: prepare and the checks below
 def ekf(
     system: AbstractSystem, data: Trajectories, *, initial: GaussianPrior | None = None
 ) -> FilterSolution:
@@ -198,7 +198,7 @@ def ekf(
             ``initial_prior``, or N(0, I) when it has none (the authors' evaluation).
 
     Data and ``initial`` are cast to the dtype of the system's parameters, as by :func:`ceemx.fit`
-    and :func:`ceemx.smooth` (:func:`ceemx.inference.smoother.promote_inputs`).
+    and :func:`ceemx.smooth` (:func:`ceemx.data.checks.promote_inputs`).
 
     Returns:
         A :class:`FilterSolution` (arrays in the system's dtype). A trajectory whose covariances
@@ -219,10 +219,20 @@ def ekf(
     """
     if not isinstance(system, AbstractSystem):
         raise TypeError(f"`system` must be a ceemx.AbstractSystem; got {type(system).__name__}.")
-    system, data, _ = promote_inputs(system, data)  # one dtype: the system's, as fit and smooth
+    inputs = prepare(system, data)  # one dtype: the system's, as fit and smooth
+    system, data = inputs.system, inputs.data
     if initial is not None:
         initial = promote_tree(initial, system)
-    check_inputs(system, data)
+    return ekf_prepared(system, data, initial)
+
+
+def ekf_prepared(
+    system: AbstractSystem, data: Trajectories, initial: GaussianPrior | None = None
+) -> FilterSolution:
+    """:func:`ekf` of prepared inputs (:func:`ceemx.data.checks.prepare`; ``initial`` promoted).
+
+    The noise models and the prior are checked here; the system and data are not again.
+    """
     _check_gaussian(system.process_noise, "system.process_noise")
     _check_gaussian(system.obs_noise, "system.obs_noise")
     _check_factor(system.process_noise, "system.process_noise", system.state_dim, "n")  # type: ignore[arg-type]

@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
+from ceemx.data.checks import prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
-from ceemx.inference.smoother import check_inputs, promote_inputs, promote_tree
 from ceemx.infra import options
 from ceemx.infra.compilation import jit
 from ceemx.lib import kalman
@@ -280,7 +280,7 @@ def check_threshold(ess_threshold) -> float:
     return float(a)
 
 
-@no_type_check  # validates its arguments: check_inputs and the checks below
+@no_type_check  # validates its arguments: prepare and the checks below
 def particle_filter(
     system: AbstractSystem,
     data: Trajectories,
@@ -306,7 +306,7 @@ def particle_filter(
             is required).
 
     Data and ``initial`` are cast to the dtype of the system's parameters, as by :func:`ceemx.fit`
-    and :func:`ceemx.smooth` (:func:`ceemx.inference.smoother.promote_inputs`).
+    and :func:`ceemx.smooth` (:func:`ceemx.data.checks.promote_inputs`).
 
     Returns:
         A :class:`ParticleFilterSolution` (arrays in the system's dtype); ``log_likelihood`` is
@@ -323,10 +323,10 @@ def particle_filter(
     """
     if not isinstance(system, AbstractSystem):
         raise TypeError(f"`system` must be a ceemx.AbstractSystem; got {type(system).__name__}.")
-    system, data, _ = promote_inputs(system, data)  # one dtype: the system's, as fit and smooth
+    inputs = prepare(system, data)  # one dtype: the system's, as fit and smooth
+    system, data = inputs.system, inputs.data
     if initial is not None:
         initial = promote_tree(initial, system)
-    check_inputs(system, data)
     n_particles = check_int("n_particles", n_particles, 1)
     threshold = check_threshold(ess_threshold)
     prior = initial_prior(system, initial)
@@ -403,8 +403,8 @@ def ffbsi(
     Returns:
         (B, S, T, n) smoothed state trajectories (in the system's dtype; ``data`` is cast to it).
     """
-    system, data, _ = promote_inputs(system, data)
-    check_inputs(system, data)
+    inputs = prepare(system, data)
+    system, data = inputs.system, inputs.data
     n_samples = check_int("n_samples", n_samples, 1)
     if not isinstance(pf, ParticleFilterSolution):
         raise TypeError(f"`pf` must be a ParticleFilterSolution; got {type(pf).__name__}.")

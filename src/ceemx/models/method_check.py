@@ -5,7 +5,7 @@ used to fail deep inside a compiled program ("Cannot stack arrays with different
 dimensions", "add got incompatible shapes (2,), (3,)"). :func:`check_methods` evaluates each
 method abstractly (``jax.eval_shape``: a trace, no compilation and no arithmetic) on a state of
 shape (n,), an input (p,) and a time step, and names the method, the shape and dtype expected and
-those returned. Every entry point runs it through ``ceemx.inference.smoother.check_inputs``; the
+those returned. Every entry point runs it through ``ceemx.data.checks.check_inputs``; the
 answer depends only on the system's structure and its leaves' shapes and dtypes, so it is
 remembered for those and each model is traced once.
 """

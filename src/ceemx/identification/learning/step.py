@@ -9,10 +9,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
+from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.learning.learners import AbstractLearner, LearnInfo, LMLearner
 from ceemx.identification.learning.problem import AbstractLearningProblem, make_problem
-from ceemx.inference.smoother import check_inputs, promote_inputs
 from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_key, check_nonnegative
 from ceemx.infra.runtime import one_blas_thread
@@ -62,7 +62,7 @@ def learn(
     Returns:
         (new system, learner state, :class:`LearnInfo`), in the system's dtype: ``states``, the
         data and the system's noise are first cast to the dtype of its parameters
-        (:func:`ceemx.inference.smoother.promote_inputs`).
+        (:func:`ceemx.data.checks.promote_inputs`).
 
     Raises:
         ValueError, TypeError: naming the argument, as :func:`ceemx.smooth` does for ``states``
@@ -75,9 +75,8 @@ def learn(
     check_nonnegative("rho_theta", rho_theta)
     if key is not None:
         check_key(key)
-    system, data, states = promote_inputs(system, data, states, name="states")
-    check_inputs(system, data, states, name="states")
-    states = jnp.asarray(states)
+    inputs = prepare(system, data, states, name="states", unobserved_warning=False)
+    system, data, states = inputs.system, inputs.data, jnp.asarray(inputs.states)
     learner = trace_numbers(learner, states.dtype)
     problem, theta = make_problem(
         system,

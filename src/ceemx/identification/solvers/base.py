@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray, PyTree
 
+from ceemx.identification import initialize
 from ceemx.identification.identifiability import Identifiability
 from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
@@ -165,7 +166,9 @@ class AbstractFitSolver(eqx.Module):
             check_nonnegative(name, getattr(self, name))
 
     def initial_states(self, system, data) -> States:
-        """The start states of ``fit(..., x_init=None)``: ``initialize.warm_start``.
+        """The start states of ``fit(..., x_init=None)``: ``initialize.warm_start``'s.
+
+        ``system`` and ``data`` come prepared (:func:`ceemx.data.checks.prepare`).
 
         Least squares through the observation map, then one smoothing pass at the initial θ
         with weak dynamics weights, which fills in the unobserved directions from the dynamics
@@ -173,16 +176,14 @@ class AbstractFitSolver(eqx.Module):
         A solver with its own ``smoother`` (Algorithm 1, Laplace EM) warm-starts in that
         smoother's ``batch_chunk`` (memory bound for large n).
         """
-        from ceemx.identification.initialize import (
-            warm_start,  # the initialiser smooths: imported at call time
-        )
-
         own = getattr(self, "smoother", None)
         # without one, the default smoother: the same program as the end-of-fit smoothing check's
         smoother = (
             LMSmoother(batch_chunk=own.batch_chunk) if isinstance(own, LMSmoother) else LMSmoother()
         )
-        return warm_start(system, data, smoother=smoother, one_shot=not self.smooths_each_epoch)
+        return initialize.warm_start_states(
+            system, data, smoother=smoother, one_shot=not self.smooths_each_epoch
+        )
 
     def check_problem(self, problem: FitProblem, theta: Theta) -> None:
         """Refuse a problem this method cannot fit, before any compute (:func:`ceemx.fit`).
