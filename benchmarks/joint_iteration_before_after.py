@@ -48,10 +48,15 @@ calls = [0]
 if count:  # wrap the joint evaluate (objective + linearisation) with a host-side counter
     if new_api:
         try:
-            import ceemx.identification.solvers.joint as jm
-        except ImportError:  # a tree before the package folders (b271a33)
-            import ceemx.solvers.joint as jm
-        name = "_evaluator"
+            import ceemx.identification.schur as jm
+
+            name = "joint_evaluator"
+        except ImportError:  # a tree before the Schur module
+            try:
+                import ceemx.identification.solvers.joint as jm
+            except ImportError:  # a tree before the package folders (b271a33)
+                import ceemx.solvers.joint as jm
+            name = "_evaluator"
     else:
         import ceemx.joint as jm
         name = "_joint_evaluate"

@@ -217,7 +217,7 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
 
     import ceemx
     from ceemx.evaluation import simulation
-    from ceemx.identification import initialize
+    from ceemx.identification import initialize, schur
     from ceemx.identification.solvers import joint
     from ceemx.inference import smoother
     from ceemx.systems import LinearSystem
@@ -252,10 +252,10 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
     P = 10
     per_unit = 1 * n * P**2
     theta = jax.ShapeDtypeStruct((P,), jnp.float64)
-    small = jax.ShapeDtypeStruct((1, joint.SCHUR_ONE_SHOT_MAX_WORK // per_unit, n), jnp.float64)
-    large = jax.ShapeDtypeStruct((1, joint.SCHUR_ONE_SHOT_MAX_WORK // per_unit + 1, n), jnp.float64)
-    assert joint.small_schur(None, theta, small, None)
-    assert not joint.small_schur(None, theta, large, None)
+    small = jax.ShapeDtypeStruct((1, schur.SCHUR_ONE_SHOT_MAX_WORK // per_unit, n), jnp.float64)
+    large = jax.ShapeDtypeStruct((1, schur.SCHUR_ONE_SHOT_MAX_WORK // per_unit + 1, n), jnp.float64)
+    assert schur.small_schur(None, theta, small, None)
+    assert not schur.small_schur(None, theta, large, None)
     per_step = n * (n + P) ** 2
     small = jax.ShapeDtypeStruct((1, joint.ITERATION_TINY_WORK // per_step, n), jnp.float64)
     large = jax.ShapeDtypeStruct((1, joint.ITERATION_TINY_WORK // per_step + 1, n), jnp.float64)

@@ -1,4 +1,7 @@
-"""Hybrid models: a learned term inside a physics model (systems.hybrid, identification.hybrid)."""
+"""Hybrid models: a learned term inside a physics model.
+
+(``systems.hybrid`` and ``identification.hybrid_builder``.)
+"""
 
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ from jaxtyping import Array
 
 import ceemx
 from ceemx.evaluation.early_stopping import EarlyStopping
-from ceemx.identification.hybrid import hybrid
+from ceemx.identification.hybrid_builder import hybrid
 from ceemx.identification.problem import trainable_mask
 from ceemx.inference.objective import log_joint
 from ceemx.systems.hybrid import HybridContinuous, learned_term, weight_decay
@@ -237,7 +240,7 @@ def test_windows_sum_to_the_record(duffing):
     transitions, 133 = 399 / 3; with 57 the last window's overlap adds its shared transitions
     once more), with the initial-state prior counted once; and the gradient likewise. One
     compiled program for all of it."""
-    from ceemx.identification.learning.problem import learning_problem, windowed
+    from ceemx.identification.learning.learning_problem import learning_problem, windowed
     from ceemx.identification.problem import FitProblem
     from ceemx.models import GaussianPrior
 

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import ceemx
+import ceemx.identification.schur
 import ceemx.identification.solvers.joint
 import ceemx.inference.smoother
 from ceemx import lib as linalg
@@ -36,14 +37,15 @@ def instrumented():
     A wrapper's Python body runs only while tracing: a second (successful) trace of a configuration
     (batch shape, θ size, dtype, linear solver) raises, whichever test causes it. The wrappers
     inline the library's own functions, so results are unchanged. Every evaluation of the joint
-    objective and linearisation (``_evaluator``'s ``evaluate``) also increments
+    objective and linearisation (``schur.joint_evaluator``'s ``evaluate``) also increments
     ``log.evaluations`` at run time, through ``jax.debug.callback`` (it works inside
     ``lax.while_loop``).
     """
     joint, smoothing = ceemx.identification.solvers.joint, ceemx.inference.smoother
+    schur = ceemx.identification.schur
     raw_iteration = joint._iteration.__wrapped__
-    raw_linearize = joint.linearize_joint.__wrapped__
-    raw_evaluator = joint._evaluator
+    raw_linearize = schur.linearize_joint.__wrapped__
+    raw_evaluator = schur.joint_evaluator
     raw_smooth = smoothing._smooth_batch  # the compiled program (max_steps an argument)
     log = _TraceLog()
 
@@ -75,9 +77,9 @@ def instrumented():
         return out
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(joint, "_evaluator", counting_evaluator)
+        mp.setattr(schur, "joint_evaluator", counting_evaluator)
         mp.setattr(joint, "_iteration", iteration)
-        mp.setattr(joint, "linearize_joint", linearize_joint)
+        mp.setattr(schur, "linearize_joint", linearize_joint)
         mp.setattr(smoothing, "_smooth_batch", smooth_batch)
         yield log
 

@@ -15,7 +15,7 @@ import pytest
 
 import ceemx
 from ceemx.identification.learning import gauss_newton as gn
-from ceemx.identification.learning.problem import make_problem
+from ceemx.identification.learning.learning_problem import make_problem
 from ceemx.inference.objective import depends_on, whitened_residuals
 from ceemx.systems import CoupledLorenz
 
@@ -87,7 +87,7 @@ def test_gram_by_column_blocks_equals_the_product():
 def test_gauss_newton_with_an_initial_prior_equals_the_per_trajectory_linearisation(batch):
     """The chunked build's prior terms (value and gradient; the prior mean learning too) against
     the per-trajectory joint linearisation (``AbstractLearningProblem.gauss_newton``)."""
-    from ceemx.identification.learning.problem import AbstractLearningProblem
+    from ceemx.identification.learning.learning_problem import AbstractLearningProblem
 
     system, states, data, _ = batch
     prior = ceemx.GaussianPrior(jnp.asarray([-6.0, -6.0, 24.0]), ceemx.DiagonalGaussian(2.0, 3))

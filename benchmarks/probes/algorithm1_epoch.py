@@ -37,7 +37,7 @@ import ceemx  # noqa: E402
 from ceemx.evaluation import metrics as ev  # noqa: E402
 from ceemx.experiments import common, figure3  # noqa: E402
 from ceemx.identification.learning.gauss_newton import theta_rows  # noqa: E402
-from ceemx.identification.learning.problem import (  # noqa: E402
+from ceemx.identification.learning.learning_problem import (  # noqa: E402
     AbstractLearningProblem,
     make_problem,
 )

@@ -34,6 +34,7 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
+from ceemx.identification import schur  # noqa: E402
 from ceemx.identification.initialize import warm_start  # noqa: E402
 from ceemx.identification.problem import FitProblem  # noqa: E402
 from ceemx.identification.solvers import joint  # noqa: E402
@@ -78,12 +79,12 @@ def main() -> None:
         f"compile {t2 - t1:.2f} s (cpu {c2 - c1:.2f})"
     )
     t = time.perf_counter()
-    jax.block_until_ready(joint.schur_complement(problem, theta, x, w))
+    jax.block_until_ready(schur.schur_complement(problem, theta, x, w))
     print(f"schur_complement first call (compile + run) {time.perf_counter() - t:.2f} s")
-    timeit("linearize_joint", lambda: joint.linearize_joint(problem, w, theta, x))
-    timeit("schur_complement", lambda: joint.schur_complement(problem, theta, x, w))
+    timeit("linearize_joint", lambda: schur.linearize_joint(problem, w, theta, x))
+    timeit("schur_complement", lambda: schur.schur_complement(problem, theta, x, w))
     timeit("iteration", lambda: joint._iteration(solver, problem, w, theta, x, lam))
-    _, lin = joint.linearize_joint(problem, w, theta, x)
+    _, lin = schur.linearize_joint(problem, w, theta, x)
     chol = jax.jit(jax.vmap(cholesky))
     timeit("block Cholesky", lambda: chol(lin.A))
     L = chol(lin.A)

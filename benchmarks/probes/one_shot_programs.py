@@ -36,6 +36,7 @@ import jax.numpy as jnp  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
+from ceemx.identification import schur  # noqa: E402
 from ceemx.identification.problem import FitProblem, per_trajectory_nll  # noqa: E402
 from ceemx.identification.solvers import joint  # noqa: E402
 from ceemx.inference import smoother as sm  # noqa: E402
@@ -67,7 +68,7 @@ def problem_case(K, B, T, fn, coupling=False):
     problem, theta = FitProblem.create(system, data)
     weights = jnp.ones((B,), states.dtype)
     if fn == "schur":
-        return joint.schur_complement.__wrapped__, (problem, theta, states, weights)
+        return schur.schur_complement.__wrapped__, (problem, theta, states, weights)
     if fn == "nll":
         return per_trajectory_nll.__wrapped__, (problem, theta, states)
     opts = trace_numbers(ceemx.JointLM(), states.dtype)

@@ -34,7 +34,7 @@ if TYPE_CHECKING:  # the eager imports, for type checkers and IDEs
     from ceemx.identification import initialize
     from ceemx.identification.diagnostics import ResidualDiagnostics, residual_diagnostics
     from ceemx.identification.driver import EpochInfo, FitResult, fit, particle_em
-    from ceemx.identification.hybrid import hybrid
+    from ceemx.identification.hybrid_builder import hybrid
     from ceemx.identification.identifiability import Identifiability
     from ceemx.identification.initialize import perturb, warm_start
     from ceemx.identification.learning import (
@@ -169,7 +169,7 @@ _LAZY = {
     "fit": ".identification.driver",
     "foh_inputs": ".data.trajectories",
     "free_run": ".evaluation.simulation",
-    "hybrid": ".identification.hybrid",
+    "hybrid": ".identification.hybrid_builder",
     "is_monotone": ".evaluation.metrics",
     "learn": ".identification.learning",
     "log_joint": ".inference.objective",

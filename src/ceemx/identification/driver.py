@@ -182,14 +182,12 @@ class FitResult(eqx.Module):
         eigen-analysis (:mod:`ceemx.identification.identifiability`); ``None`` when the data
         determine every parameter.
         """
-        from ceemx.identification.solvers.base import FitState
-        from ceemx.identification.solvers.joint import identifiability_at
+        from ceemx.identification.identifiability import identifiability_at
 
         if self.identifiability is not None:
             return self.identifiability
         problem, theta, states, weights = self._laplace_inputs()
-        state = FitState(theta, states, jnp.zeros_like(weights), weights, RESULTS.successful)
-        return identifiability_at(problem, state)
+        return identifiability_at(problem, theta, states, weights)
 
     def _laplace_inputs(self):
         if self.problem is None or self.theta is None:

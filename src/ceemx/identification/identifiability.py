@@ -1,10 +1,11 @@
 """Identifiability: which parameter combinations the data determine, named as the user wrote them.
 
 The Gauss–Newton curvature of −J in θ with the states eliminated is the Schur complement
-S = D − Σ_b E_bᵀ A_b⁻¹ E_b of the joint (x, θ) system (:func:`ceemx.identification.solvers.joint.
+S = D − Σ_b E_bᵀ A_b⁻¹ E_b of the joint (x, θ) system (:func:`ceemx.identification.schur.
 schur_complement`; its inverse is the Laplace covariance of θ). A direction of θ along which S is
 (near) zero is one the data do not determine: J is flat along it. :func:`analyse` finds those
-directions and names what they leave determined (:mod:`ceemx.lib.nullspace`).
+directions and names what they leave determined (:mod:`ceemx.lib.nullspace`);
+:func:`identifiability_at` forms S and analyses it at (x, θ).
 
 **Coordinates.** θ is learned unconstrained (:mod:`ceemx.models.constraints`). The analysis runs
 in relative coordinates r: for a parameter whose natural value is nonzero, a unit of r is a change
@@ -43,8 +44,10 @@ from typing import Any
 import numpy as np
 
 from ceemx.identification.problem import FitProblem
+from ceemx.identification.schur import schur_complement
+from ceemx.infra.distributed import to_host
 from ceemx.lib.nullspace import describe_null_space, near_null_space, share_in
-from ceemx.lib.typing import Theta
+from ceemx.lib.typing import PerTrajectory, States, Theta
 
 __all__ = [
     "FLOOR",
@@ -55,6 +58,8 @@ __all__ = [
     "STEP_SHARE",
     "Identifiability",
     "analyse",
+    "end_point_identifiability",
+    "identifiability_at",
     "relative_scale",
 ]
 
@@ -183,3 +188,38 @@ def analyse(problem: FitProblem, theta: Theta, S: Any, step: Any = None) -> Iden
         share,
         stopped,
     )
+
+
+def identifiability_at(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    weights: PerTrajectory,
+    step: Theta | np.ndarray | None = None,
+) -> Identifiability | None:
+    """:func:`analyse` of S at (x, θ) (:func:`ceemx.identification.schur.schur_complement`).
+
+    ``None`` when every direction is determined, P > ``MAX_P`` (2000: the dense eigen-analysis
+    is skipped) or S is unreliable. Costs one joint linearisation and Schur complement (about one
+    epoch of the joint method; compiled once per problem shape) and a host P × P eigen-analysis.
+    """
+    if theta.shape[0] > MAX_P:
+        return None
+    S, ok = schur_complement(problem, theta, states, weights)
+    if not bool(ok):
+        return None
+    return analyse(problem, theta, np.asarray(S), step)
+
+
+def end_point_identifiability(
+    problem: FitProblem, state: Any, history: list, converged: bool
+) -> Identifiability | None:
+    """The end-point analysis of a fit that did not converge after at least ``MIN_EPOCHS`` epochs.
+
+    ``state`` is the fit's :class:`~ceemx.identification.solvers.base.FitState`. Shorter or
+    converged fits are not analysed (``FitResult.check_identifiability`` does it on
+    demand): the analysis costs about one epoch, ≤ 5 % of such a fit.
+    """
+    if converged or len(history) < MIN_EPOCHS or not np.any(to_host(state.weights) > 0):
+        return None
+    return identifiability_at(problem, state.theta, state.states, state.weights)

@@ -37,7 +37,12 @@ from ceemx.data.checks import Prepared, prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import warm_start_states
 from ceemx.identification.learning.expected import cubature_points
-from ceemx.identification.solvers.laplace import coarse_shape, noise_second_moments, updated_noise
+from ceemx.identification.noise_moments import (
+    NOISE_FIELDS,
+    coarse_shape,
+    noise_second_moments,
+    updated_noise,
+)
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
 from ceemx.inference.smoother import LMSmoother
 from ceemx.infra.compilation import jit
@@ -56,14 +61,12 @@ __all__ = [
     "with_noise_from_moments",
 ]
 
-NOISE_FIELDS = ("process_noise", "obs_noise")
-
 
 class NoiseMoments(eqx.Module):
     """Expected residual second moments under the Laplace posterior (module docs).
 
     Attributes:
-        moments: the sums of :func:`ceemx.identification.solvers.laplace.noise_second_moments`
+        moments: the sums of :func:`ceemx.identification.noise_moments.noise_second_moments`
             (``dyn``, ``dyn_count``, ``obs_diag``, ``obs_count``, ``obs_full``, ...).
         states: (B, T, n) the MAP trajectories they were computed at.
         log_evidence: (B,) the Laplace log-evidence per trajectory at θ.
@@ -238,7 +241,7 @@ def estimate_noise(
             in the process, the observations fitted exactly (σ_v → 0) — whose basin a start far
             too loose in the process noise falls into; the grid finds the other basin when it
             is higher. Only when every field takes one factor (``per_component=False``). On
-            long data (:func:`ceemx.identification.solvers.laplace.coarse_shape`: from 40 000
+            long data (:func:`ceemx.identification.noise_moments.coarse_shape`: from 40 000
             time steps) the grid and a first L-BFGS run on their first 10 000 steps, then
             L-BFGS on all of them from there.
         max_evaluations: bound on the posterior evaluations of the L-BFGS refinement (≥ 1).

@@ -2,7 +2,7 @@
 
 At an end point (x̂, θ̂) the Gauss–Newton Hessian of −J(x, θ) − log p(θ) (Eq. 9) is an arrowhead
 matrix: per trajectory a block-tridiagonal ``A_b`` (states), a border ``E_b`` (states × θ) and the
-shared θ-block ``D`` (:func:`ceemx.identification.solvers.joint.linearize_joint`). By the Schur
+shared θ-block ``D`` (:func:`ceemx.identification.schur.linearize_joint`). By the Schur
 complement identity the θ-block of its inverse is exactly ``S⁻¹`` with
 
     ``S = D − Σ_b E_bᵀ A_b⁻¹ E_b``,
@@ -47,7 +47,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
 from ceemx.identification.problem import FitProblem
-from ceemx.identification.solvers.joint import schur_complement, small_schur
+from ceemx.identification.schur import schur_complement, small_schur
 from ceemx.infra.compilation import jit, one_shot_when
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import symmetrize

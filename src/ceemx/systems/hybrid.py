@@ -17,7 +17,7 @@ with x̃ the state projected into its physical bounds (below). Each learned term
 its output layer is zero-initialised, so a fresh hybrid *is* the physics model (J, simulation and
 gradients of the physics parameters agree exactly) and a fit starts from the physics fit. The
 statistics are fixed parameters (:func:`ceemx.param` ``fixed=True``), never learned;
-:func:`ceemx.identification.hybrid.hybrid` computes them from a record.
+:func:`ceemx.identification.hybrid_builder.hybrid` computes them from a record.
 
 **Bounded states.** ``lower``/``upper`` (n-vectors, ±inf where free) state that a hidden state is
 physically bounded (a tank level ≥ 0). Every state the model reads is projected smoothly into the
@@ -361,7 +361,7 @@ class Hybrid(_HybridMixin, AbstractSystem):
     """x_{t+1} = f_phys(x̃, u, t) + N_f(x̃, u) (projected), y = g_phys(x̃, u, t) + N_g(x̃, u).
 
     A discrete-time physics model with learned terms (module notes). Build it with
-    :func:`ceemx.identification.hybrid.hybrid` (statistics from a record) or directly.
+    :func:`ceemx.identification.hybrid_builder.hybrid` (statistics from a record) or directly.
 
     Attributes:
         physics: the physics model (its θ is learned with the weights, or alone).

@@ -17,7 +17,7 @@ from ceemx.identification.learning.learners import (
     NelderMeadLearner,
     OptaxLearner,
 )
-from ceemx.identification.learning.problem import (
+from ceemx.identification.learning.learning_problem import (
     AbstractLearningProblem,
     LearningProblem,
     WindowedLearningProblem,

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ceemx.identification.learning.problem import AbstractLearningProblem
+from ceemx.identification.learning.learning_problem import AbstractLearningProblem
 from ceemx.identification.problem import FitProblem
 from ceemx.inference.objective import expected_neg_log_joint_single, linearize_expected
 from ceemx.infra.compilation import jit

@@ -28,7 +28,7 @@ from jaxtyping import Array, Float
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.learning.learners import AbstractLearner, LearnInfo
-from ceemx.identification.learning.problem import AbstractLearningProblem, LearningProblem
+from ceemx.identification.learning.learning_problem import AbstractLearningProblem, LearningProblem
 from ceemx.inference.objective import residuals
 from ceemx.infra.options import check_choice, check_int, check_nonnegative
 from ceemx.lib.arrowhead import pcg

@@ -1,7 +1,8 @@
 """Learners for the θ-step (paper Eq. 11): Levenberg–Marquardt, L-BFGS, Optax, Nelder–Mead.
 
-Every learner maps an :class:`~ceemx.identification.learning.problem.AbstractLearningProblem` (Eq.
-11, or Laplace EM's −Q), the current flat θ and its
+Every learner maps an
+:class:`~ceemx.identification.learning.learning_problem.AbstractLearningProblem` (Eq. 11, or
+Laplace EM's −Q), the current flat θ and its
 own state to a new θ, a new state and a :class:`LearnInfo`. States persist across EM epochs (so an
 Adam learner keeps its moments) and are saved in checkpoints.
 """
@@ -17,7 +18,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, PRNGKeyArray
 
-from ceemx.identification.learning.problem import AbstractLearningProblem
+from ceemx.identification.learning.learning_problem import AbstractLearningProblem
 from ceemx.infra.memory import check_fits
 from ceemx.infra.options import check_int, check_nonnegative
 from ceemx.lib.dense import cholesky_solve

@@ -12,7 +12,7 @@ from jaxtyping import ArrayLike, Float, PRNGKeyArray
 from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.learning.learners import AbstractLearner, LearnInfo, LMLearner
-from ceemx.identification.learning.problem import AbstractLearningProblem, make_problem
+from ceemx.identification.learning.learning_problem import AbstractLearningProblem, make_problem
 from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_key, check_nonnegative
 from ceemx.infra.runtime import one_blas_thread

@@ -3,8 +3,8 @@
 A long single record (B = 1, T = 25 000) gives a first-order learner no minibatches: every
 gradient is a pass over all T steps. :class:`WindowedLearner` cuts the records into windows of
 ``window`` transitions at the current smoothed states
-(:class:`~ceemx.identification.learning.problem.WindowedLearningProblem`, whose sum over windows
-is the record's −J) and runs its inner learner — typically
+(:class:`~ceemx.identification.learning.learning_problem.WindowedLearningProblem`, whose sum over
+windows is the record's −J) and runs its inner learner — typically
 ``OptaxLearner(optax.adam(1e-3), steps=..., batch_size=...)``, whose minibatches are then
 windows of time — so a learning step of thousands of weights costs ``steps`` small gradients.
 """
@@ -16,7 +16,7 @@ from typing import Any
 from jaxtyping import PRNGKeyArray
 
 from ceemx.identification.learning.learners import AbstractLearner, LearnInfo
-from ceemx.identification.learning.problem import (
+from ceemx.identification.learning.learning_problem import (
     AbstractLearningProblem,
     LearningProblem,
     windowed,

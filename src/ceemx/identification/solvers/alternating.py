@@ -9,9 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray
 
+from ceemx.identification.identifiability import end_point_identifiability
 from ceemx.identification.learning import learners as _learners
 from ceemx.identification.learning import step as learning_step
-from ceemx.identification.learning.problem import learning_problem
+from ceemx.identification.learning.learning_problem import learning_problem
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.base import (
     AbstractFitSolver,
@@ -20,7 +21,6 @@ from ceemx.identification.solvers.base import (
     starting_state,
     trajectory_log_likelihood,
 )
-from ceemx.identification.solvers.joint import end_point_identifiability
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.infra.distributed import to_host
 from ceemx.infra.warn import warn
@@ -143,5 +143,5 @@ class Alternating(AbstractFitSolver):
         return new, record
 
     def identifiability(self, problem, state, history, converged):
-        """At the end of a fit that did not converge: :func:`~.joint.end_point_identifiability`."""
+        """At the end of a fit that did not converge: ``end_point_identifiability``."""
         return end_point_identifiability(problem, state, history, converged)

@@ -41,21 +41,22 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, NamedTuple, cast
+from typing import Any, cast
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, PRNGKeyArray
+from jaxtyping import PRNGKeyArray
 
 from ceemx import lib
+from ceemx.identification import schur
 from ceemx.identification.identifiability import (
     MAX_P,
-    MIN_EPOCHS,
     NOT_SHRINKING,
     Identifiability,
-    analyse,
+    end_point_identifiability,
+    identifiability_at,
 )
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers import joint_matrix_free
@@ -67,8 +68,7 @@ from ceemx.identification.solvers.base import (
     trajectory_log_likelihood,
 )
 from ceemx.inference import smoother as smoothing_solver
-from ceemx.inference.objective import linearize
-from ceemx.infra.compilation import jit, one_shot_when
+from ceemx.infra.compilation import one_shot_when
 from ceemx.infra.distributed import to_host
 from ceemx.infra.memory import check_fits
 from ceemx.infra.options import (
@@ -79,22 +79,12 @@ from ceemx.infra.options import (
     check_positive,
 )
 from ceemx.infra.warn import warn
-from ceemx.lib.arrowhead import factor, schur_terms
-from ceemx.lib.blocktri import BlockTridiagonal, is_finite
-from ceemx.lib.dense import symmetrize
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, codes, select
 from ceemx.lib.tree import as_jax, trace_numbers
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 
-__all__ = [
-    "JointLM",
-    "JointLinearization",
-    "end_point_identifiability",
-    "identifiability_at",
-    "schur_complement",
-    "small_schur",
-]
+__all__ = ["JointLM"]
 
 
 class JointLM(AbstractFitSolver):
@@ -253,7 +243,7 @@ class JointLM(AbstractFitSolver):
 
         def check() -> None:
             weights = jnp.ones(states.shape[:1], states.dtype)
-            cast(Any, schur_complement).lower(problem, theta, states, weights).compile()
+            cast(Any, schur.schur_complement).lower(problem, theta, states, weights).compile()
 
         if self.check_identifiability and theta.shape[0] <= MAX_P:
             return (iteration, check)
@@ -334,7 +324,12 @@ class JointLM(AbstractFitSolver):
         after = dataclasses.replace(
             after, cache={"step": size, "checked": last["checked"] or check}
         )
-        return after, check, identifiability_at(problem, after, step) if check else None
+        found = (
+            identifiability_at(problem, after.theta, after.states, after.weights, step)
+            if check
+            else None
+        )
+        return after, check, found
 
     def _smoothing_check(self, problem: FitProblem, state: FitState) -> tuple[FitState, float]:
         """One smoothing pass at the end θ; its states if it raises J materially."""
@@ -388,130 +383,8 @@ class JointLM(AbstractFitSolver):
         return end_point_identifiability(problem, state, history, converged)
 
 
-class JointLinearization(NamedTuple):
-    """The joint Gauss–Newton model at (x, θ), summed over the trajectories taking part."""
-
-    grad_x: Float[Array, "B T n"]
-    grad_theta: Float[Array, " theta"]
-    A: BlockTridiagonal  # x-blocks per trajectory, leaves (B, T, ...)
-    E: Float[Array, "B T n theta"]  # border
-    D: Float[Array, "theta theta"]
-    nll: Float[Array, " B"]  # −J_b (normalising constants included)
-
-
-def _mask_tree(ok, tree):
-    return jax.tree_util.tree_map(
-        lambda a: jnp.where(ok.reshape(ok.shape + (1,) * (a.ndim - 1)), a, jnp.zeros_like(a)), tree
-    )
-
-
-def _evaluator(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
-    """``z = (x, θ) -> (value, JointLinearization)``; value = −J − offset − log p(θ)."""
-    data = problem.data
-    ok_b = weights > 0
-
-    def evaluate(z):
-        x, th = z
-        lin = jax.vmap(
-            lambda xb, y, u, m: linearize(problem.build, th, xb, y, u, m, wrt_theta=True)
-        )(x, data.y, data.u, data.mask)
-        # wrt_theta=True with wrt_x=True: every part of the linearisation is there.
-        assert lin.grad_x is not None and lin.hess_x is not None
-        assert lin.grad_theta is not None and lin.E is not None and lin.D is not None
-        eye_n = jnp.eye(x.shape[-1], dtype=x.dtype)
-        # Excluded trajectories get an identity x-block (their states stay put).
-        A = BlockTridiagonal(
-            jnp.where(ok_b[:, None, None, None], lin.hess_x.diagonal, eye_n),
-            _mask_tree(ok_b, lin.hess_x.lower),
-        )
-        prior, prior_grad, prior_hess = problem.prior_terms(th)
-        nll = jnp.where(ok_b, lin.value, 0.0)
-        value = jnp.sum(nll) - offset + prior
-        out = JointLinearization(
-            grad_x=_mask_tree(ok_b, lin.grad_x),
-            grad_theta=jnp.sum(_mask_tree(ok_b, lin.grad_theta), axis=0) + prior_grad,
-            A=A,
-            E=_mask_tree(ok_b, lin.E),
-            D=jnp.sum(_mask_tree(ok_b, lin.D), axis=0) + prior_hess,
-            nll=lin.value,
-        )
-        return value, out
-
-    return evaluate
-
-
-@jit
-def linearize_joint(
-    problem: FitProblem, weights: PerTrajectory, theta: Theta, states: States
-) -> tuple[Scalar, JointLinearization]:
-    """(value, :class:`JointLinearization`) at (x, θ) (the standard errors' Schur complement)."""
-    offset = problem.offset(theta, weights)
-    return _evaluator(problem, weights, offset)((states, theta))
-
-
-#: :func:`schur_complement` compiles as a one-shot program up to this B·T·n·P² (its
-#: Σ_b E_bᵀ A_b⁻¹ E_b in multiply–adds): there its extra run time (1.4× at the Figure-3 size,
-#: 3 s) stays below the compile time saved (2.2 s; benchmarks/README.md, "One-shot programs").
-SCHUR_ONE_SHOT_MAX_WORK = 2 * 10**9
-
-
-def small_schur(problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory) -> bool:
-    """Whether :func:`schur_complement` at these shapes compiles as a one-shot program."""
-    del problem, weights
-    B, T, n = states.shape
-    return B * T * n * theta.shape[0] ** 2 <= SCHUR_ONE_SHOT_MAX_WORK
-
-
-@one_shot_when(small_schur)  # once or twice per fit: the identifiability check, uncertainty
-def schur_complement(
-    problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory
-) -> tuple[Float[Array, "theta theta"], Bool[Array, ""]]:
-    """``(S, ok)``: the Schur complement of the joint Gauss–Newton matrix at (x, θ).
-
-    S = D − Σ_b E_bᵀ A_b⁻¹ E_b (no damping, no proximal terms; weight-0 trajectories take no
-    part): the Gauss–Newton curvature of −J in θ with the states eliminated. ``ok`` is False when
-    some ``A_b`` factor is not finite (``S`` is then unreliable). The factorisation precedes the
-    solves that read it: no two LAPACK calls are independent in this program.
-    """
-    _, lin = linearize_joint(problem, weights, theta, states)
-    L, inv = factor(lin.A)
-    a_ok = jnp.all(jax.vmap(is_finite)(L))
-    EtZ, _ = schur_terms(L, inv, lin.E)  # Σ_b E_bᵀ A_b⁻¹ E_b by forward passes
-    return symmetrize(lin.D - EtZ), a_ok
-
-
-def identifiability_at(
-    problem: FitProblem, state: FitState, step: Theta | np.ndarray | None = None
-) -> Identifiability | None:
-    """:func:`ceemx.identification.identifiability.analyse` of S at the state's (x, θ).
-
-    ``None`` when every direction is determined, P > ``MAX_P`` (2000: the dense eigen-analysis
-    is skipped) or S is unreliable. Costs one joint linearisation and Schur complement (about one
-    epoch of the joint method; compiled once per problem shape) and a host P × P eigen-analysis.
-    """
-    if state.theta.shape[0] > MAX_P:
-        return None
-    S, ok = schur_complement(problem, state.theta, state.states, state.weights)
-    if not bool(ok):
-        return None
-    return analyse(problem, state.theta, np.asarray(S), step)
-
-
-def end_point_identifiability(
-    problem: FitProblem, state: FitState, history: list, converged: bool
-) -> Identifiability | None:
-    """The end-point analysis of a fit that did not converge after at least ``MIN_EPOCHS`` epochs.
-
-    Shorter or converged fits are not analysed (``FitResult.check_identifiability`` does it on
-    demand): the analysis costs about one epoch, ≤ 5 % of such a fit.
-    """
-    if converged or len(history) < MIN_EPOCHS or not np.any(to_host(state.weights) > 0):
-        return None
-    return identifiability_at(problem, state)
-
-
 def _value(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
-    """``z = (x, θ) -> value`` of :func:`_evaluator` without the linearisation (trial points)."""
+    """``z = (x, θ) -> value`` of ``schur.joint_evaluator`` without the linearisation (trials)."""
     ok_b = weights > 0
 
     def value(z):
@@ -560,7 +433,7 @@ def _iteration(
     rho_t = jnp.asarray(opts.rho_theta, dtype)
     max_step = jnp.asarray(opts.max_theta_step, dtype)
     offset = problem.offset(theta, weights)
-    evaluate = _evaluator(problem, weights, offset)
+    evaluate = schur.joint_evaluator(problem, weights, offset)
 
     def grad_of(lin):
         return (lin.grad_x, lin.grad_theta)

@@ -36,7 +36,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, PyTree
 
 from ceemx.identification.learning import learners as _learners
-from ceemx.identification.learning.problem import LearningProblem
+from ceemx.identification.learning.learning_problem import LearningProblem
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.base import (
     AbstractFitSolver,

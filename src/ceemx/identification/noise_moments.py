@@ -1,0 +1,160 @@
+"""Expected residual second moments of the noise models, and their closed-form M-step.
+
+Under a Gaussian posterior q over the states (the Laplace approximation at the MAP trajectory),
+the expected residual second moments E_q[w_t w_tᵀ] of the dynamics and E_q[v_t v_tᵀ] of the
+observations, summed by cubature over the marginal and pairwise posteriors
+(:func:`noise_second_moments`), are the EM statistics of the noise covariances:
+:func:`updated_noise` sets a Gaussian noise model to them (same class and leaf shapes). Laplace
+EM's M-step learns noise with them; the noise estimate and the residual diagnostics
+(:mod:`ceemx.identification.analysis`) read them. Long records are estimated from a first part of
+them first (:func:`coarse_shape`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ceemx.data.trajectories import Trajectories
+from ceemx.infra.compilation import jit
+from ceemx.lib.cubature import pair_points_first_half
+from ceemx.lib.dense import cho_solve, cholesky
+from ceemx.lib.typing import PerTrajectory
+from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
+from ceemx.models.system import AbstractSystem
+
+__all__ = [
+    "COARSE_FACTOR",
+    "COARSE_STEPS",
+    "NOISE_FIELDS",
+    "coarse_shape",
+    "noise_second_moments",
+    "updated_noise",
+]
+
+#: the system's noise models, by field name
+NOISE_FIELDS = ("process_noise", "obs_noise")
+
+#: the default size (time steps, B·T) of the part of long data a coarse start fits first
+COARSE_STEPS = 10_000
+#: a coarse start runs when the data hold at least this many times ``coarse_start`` time steps
+COARSE_FACTOR = 4
+
+
+def coarse_shape(B: int, T: int, steps: int | None = COARSE_STEPS) -> tuple[int, int] | None:
+    """(b, t) of the part of B records of T steps that a coarse start fits, or ``None``.
+
+    ``None`` when ``steps`` is ``None`` or the data hold fewer than ``COARSE_FACTOR``·``steps``
+    time steps; else the first b = ⌈steps / T⌉ records, each cut to its first ⌈steps / b⌉ steps.
+    """
+    if steps is None or B * T < COARSE_FACTOR * steps:
+        return None
+    b = min(B, -(-steps // T))
+    return b, min(T, max(2, -(-steps // b)))
+
+
+def _masked_fill(S_oo, R, mask):
+    """E[v vᵀ] of a Gaussian residual v ~ N(·, R) whose present part has second moment S_oo.
+
+    The missing part is filled in from its conditional given the present part under R (the
+    complete-data moment of EM for missing observations).
+    """
+    m = R.shape[-1]
+    eye = jnp.eye(m, dtype=R.dtype)
+    Mo = jnp.diag(mask.astype(R.dtype))
+    # (M R M + I − M)⁻¹ by an elementwise Cholesky: this runs batched over time steps, where
+    # batched LAPACK calls can deadlock (ceemx.lib.dense)
+    inv_o = Mo @ cho_solve(cholesky(Mo @ R @ Mo + eye - Mo), eye) @ Mo
+    K = (eye - Mo) @ R @ inv_o
+    IK = eye + K
+    cond = (eye - Mo) @ (R - R @ inv_o @ R) @ (eye - Mo)
+    return IK @ S_oo @ IK.T + cond
+
+
+@jit
+def noise_second_moments(
+    system: AbstractSystem,
+    points: Float[Array, "B T K n"],
+    pairs: Float[Array, "B T-1 K2 n2"],
+    data: Trajectories,
+    weights: PerTrajectory,
+) -> dict[str, Array]:
+    """Weighted sums of the expected residual second moments under q (cubature).
+
+    Returns a dict: ``dyn`` (n, n) Σ_b w_b Σ_t E[r^w_t r^wᵀ_t] and ``dyn_count`` Σ_b w_b (T−1);
+    ``obs_diag`` (m,) Σ_b w_b Σ_t mask·E[(r^v_t)²] and ``obs_count`` (m,) Σ_b w_b Σ_t mask;
+    ``obs_full`` (m, m) the same with missing components filled in from their conditional under
+    the current observation covariance (computed for a CholeskyGaussian observation noise, the
+    only one that uses it; otherwise the unfilled moments) and ``obs_full_count`` Σ_b w_b T.
+    """
+    n = points.shape[-1]
+    obs = system.obs_noise  # only a full covariance uses the filled moment
+    R = obs.covariance() if isinstance(obs, CholeskyGaussian) else None
+    T = points.shape[1]
+    ts = jnp.arange(T)
+
+    def one(xp, zp, y, u, mask):
+        def obs_step(xs, yt, ut, mk, t):
+            v = jax.vmap(lambda x: jnp.where(mk, yt - system.observe(x, ut, t), 0.0))(xs)
+            S = jnp.einsum("ki,kj->ij", v, v) / xs.shape[0]
+            return S, (_masked_fill(S, R, mk) if R is not None else S)
+
+        S_obs, S_full = jax.vmap(obs_step)(xp, y, u, mask, ts)
+
+        # the dynamics once per distinct x_t of the pair points (2n + 1 of 4n)
+        first, spread = pair_points_first_half(zp, n)
+        fx = jax.vmap(lambda xs, ut, t: jax.vmap(lambda x: system.dynamics(x, ut, t))(xs))(
+            first, u[:-1], ts[:-1]
+        )
+        r = zp[..., n:] - spread(fx)
+        S_dyn = jnp.einsum("tki,tkj->tij", r, r) / zp.shape[1]
+        diag = jnp.diagonal(S_obs, axis1=-2, axis2=-1)
+        return S_dyn.sum(0), diag.sum(0), mask.sum(0).astype(xp.dtype), S_full.sum(0)
+
+    dyn, diag, count, full = jax.vmap(one)(points, pairs, data.y, data.u, data.mask)
+    w = jnp.where(weights > 0, weights, 0.0)
+    ok = weights > 0
+
+    def wsum(a):
+        shape = (-1,) + (1,) * (a.ndim - 1)
+        return jnp.sum(jnp.where(ok.reshape(shape), w.reshape(shape) * a, 0.0), axis=0)
+
+    total = jnp.sum(w)
+    return {
+        "dyn": wsum(dyn),
+        "dyn_count": total * (T - 1),
+        "obs_diag": wsum(diag),
+        "obs_count": wsum(count),
+        "obs_full": wsum(full),
+        "obs_full_count": total * T,
+    }
+
+
+def updated_noise(noise, field: str, moments: dict[str, Array]):
+    """The noise model of ``field`` set to its closed-form M-step (same class and leaf shapes)."""
+    if field == "process_noise":
+        cov = moments["dyn"] / moments["dyn_count"]
+        var_diag, count = jnp.diagonal(cov), None
+    else:
+        count = moments["obs_count"]
+        var_diag = moments["obs_diag"] / jnp.where(count > 0, count, 1.0)
+        cov = moments["obs_full"] / moments["obs_full_count"]
+    if isinstance(noise, DiagonalGaussian):
+        old = jnp.asarray(noise.scale)
+        if old.ndim == 0:
+            if count is None:
+                scale = jnp.sqrt(jnp.mean(var_diag))
+            else:
+                scale = jnp.sqrt(jnp.sum(moments["obs_diag"]) / jnp.sum(count))
+        else:
+            scale = jnp.sqrt(var_diag)
+            if count is not None:  # a component never observed keeps its scale
+                scale = jnp.where(count > 0, scale, jnp.broadcast_to(old, scale.shape))
+        return DiagonalGaussian(scale.astype(old.dtype).reshape(old.shape), noise.dim)
+    if isinstance(noise, CholeskyGaussian):
+        return CholeskyGaussian(jnp.linalg.cholesky(0.5 * (cov + cov.T)).astype(noise.chol.dtype))
+    raise TypeError(  # checked in LaplaceEM.init; kept for direct callers
+        f"`system.{field}` is {type(noise).__name__}: learned noise needs DiagonalGaussian or "
+        "CholeskyGaussian."
+    )
