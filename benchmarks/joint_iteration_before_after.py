@@ -101,7 +101,10 @@ res = ceemx.fit(system, problem.data, x_init, trainable=common.LORENZ_PARAMS_H, 
                 callbacks=[cb], progress=False, **kw)
 times = [b - a for a, b in zip(stamps[:-1], stamps[1:])]
 cpu_times = [b - a for a, b in zip(cpu[:-1], cpu[1:])]
-from ceemx import evaluate as ev  # the module before b271a33, an alias since
+try:
+    from ceemx.evaluation import metrics as ev
+except ImportError:  # the module before b271a33
+    from ceemx import evaluate as ev
 print(json.dumps({
     "file": ceemx.__file__,
     "times": times,

@@ -8,7 +8,7 @@ import pytest
 
 import ceemx
 from ceemx.experiments import common
-from ceemx.identification.health import trajectory_health
+from ceemx.identification.fitting.health import trajectory_health
 from ceemx.identification.problem import FitProblem
 
 jax.config.update("jax_enable_x64", True)

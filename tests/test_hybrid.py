@@ -279,7 +279,7 @@ def test_early_stopping_keeps_the_best_and_stops_after_patience(duffing):
     The free runs start from the true x₁, passed through `score_options` to
     :func:`ceemx.benchmark_score` (which `EarlyStopping` calls): estimating it is benchmark_score's
     property (test_reliability, test_evaluate_real) and would compile its LM smoother (≈ 4 s)."""
-    from ceemx.identification.driver import EpochInfo
+    from ceemx.identification.fitting.result import EpochInfo
 
     true, physics, x, data = duffing
     worse = eqx.tree_at(lambda s: s.k, physics, jnp.asarray(3.0))

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx.identification.identifiability import Identifiability
+from ceemx.identification.analysis.identifiability import Identifiability
 from ceemx.lib.nullspace import describe_null_space, integer_complement, monomial
 
 DT = 0.1

@@ -17,8 +17,8 @@ import pytest
 
 import ceemx
 from ceemx.evaluation import report
-from ceemx.identification.diagnostics import residual_diagnostics
-from ceemx.identification.noise_check import LOWER, chi2_band, noise_check
+from ceemx.identification.analysis.diagnostics import residual_diagnostics
+from ceemx.identification.analysis.noise_check import LOWER, chi2_band, noise_check
 
 jax.config.update("jax_enable_x64", True)
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx.identification.noise import (
+from ceemx.identification.analysis.noise_estimate import (
     estimate_noise,
     noise_ratios,
     residual_moments,

@@ -1,4 +1,4 @@
-"""Laplace parameter uncertainty (ceemx.identification.uncertainty, FitResult.covariance /
+"""Laplace parameter uncertainty (ceemx.identification.analysis.uncertainty, FitResult.covariance /
 standard_errors)."""
 
 import equinox as eqx
@@ -10,8 +10,8 @@ from jaxtyping import Array
 
 import ceemx
 from ceemx.evaluation.report import estimate_table
+from ceemx.identification.analysis.uncertainty import natural_jacobian, parameter_covariance
 from ceemx.identification.problem import FitProblem
-from ceemx.identification.uncertainty import natural_jacobian, parameter_covariance
 from ceemx.systems import CoupledLorenz, LinearSystem, initial_states
 
 simulate = eqx.filter_jit(ceemx.simulate)
@@ -182,14 +182,14 @@ def test_unidentifiable_parameter_gives_nan_and_a_warning():
 
 
 # --------------------------------------------------------------------------------------------
-# FitResult.summary / repr (ceemx.identification.summary), on the same fit
+# FitResult.summary / repr (ceemx.identification.analysis.summary), on the same fit
 # --------------------------------------------------------------------------------------------
 
 
 @pytest.mark.slow
 def test_summary_names_estimates_intervals_and_constraints(decay):
     """One row per parameter as written; SE as parameter_estimates; forward(ẑ ± 1.96 σ_z)."""
-    from ceemx.identification.summary import parameter_rows
+    from ceemx.identification.analysis.summary import parameter_rows
 
     res = decay
     text = res.summary()

@@ -43,10 +43,10 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
-from ceemx.identification import driver  # noqa: E402
+from ceemx.identification.fitting import start  # noqa: E402
 
 if os.environ.get("BACKGROUND") in ("0", "1"):
-    driver.has_idle_core = lambda: os.environ["BACKGROUND"] == "1"
+    start.has_idle_core = lambda: os.environ["BACKGROUND"] == "1"
 
 if len(sys.argv) > 1 and sys.argv[1] != "-":
     ceemx.enable_compilation_cache(sys.argv[1])

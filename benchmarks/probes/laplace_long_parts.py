@@ -95,7 +95,7 @@ def coarse(T, sizes):
 def escape():
     import stiff_model as sm
 
-    import ceemx.identification.noise as noise
+    import ceemx.identification.analysis.noise_estimate as noise
 
     _, data, _ = sm.simulate(jax.random.PRNGKey(0), B=2, T=1000)
     guess = sm.make(sm.perturbed(jax.random.PRNGKey(1)), process_std=sm.PROCESS_STD * 0.01)

@@ -480,7 +480,7 @@ def _noise_warnings_counted() -> Iterator[None]:
     An experiment's fits run at the paper's fixed noise settings, which the end-of-fit noise
     check often finds inconsistent (by design of the setting, not a fault of the run).
     """
-    from ceemx.identification.noise_check import NoiseCheckWarning
+    from ceemx.identification.analysis.noise_check import NoiseCheckWarning
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", NoiseCheckWarning)
@@ -493,7 +493,8 @@ def _noise_warnings_counted() -> Iterator[None]:
         print(
             f"ceemx: the end-of-fit noise check flagged {len(flagged)} fit"
             f"{'s' if len(flagged) > 1 else ''} at the experiment's fixed noise settings "
-            "(ceemx.identification.noise_check; fit(..., noise='learn') learns the scales).",
+            "(ceemx.identification.analysis.noise_check; fit(..., noise='learn') learns the "
+            "scales).",
             file=sys.stderr,
         )
 

@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
-    from ceemx.identification.driver import FitResult
+    from ceemx.identification.fitting.result import FitResult
 
 _TINY = float(np.finfo(np.float64).tiny)
 
@@ -388,7 +388,7 @@ def refine_linear(
     Returns:
         The :class:`ceemx.FitResult` (``result.system`` the refined model).
     """
-    from ceemx.identification.driver import fit
+    from ceemx.identification.fitting.driver import fit
     from ceemx.identification.solvers.joint import JointLM
 
     if not isinstance(model, LinearSystem):

@@ -6,7 +6,7 @@
   state leaves them).
 - :func:`plot_resid` — the autocorrelation of residuals and their cross-correlation with each
   input, with the pointwise 99 % band ±2.58/√N, as MATLAB's ``resid`` draws them (the numbers:
-  :func:`ceemx.identification.diagnostics.residual_correlations`).
+  :func:`ceemx.identification.analysis.diagnostics.residual_correlations`).
 - :func:`plot_residual_diagnostics` — the figure of :meth:`ceemx.FitResult.diagnostics`.
 
 Each returns a Matplotlib ``Figure`` (Agg backend; :func:`ceemx.evaluation.report.save_figure`
@@ -34,7 +34,7 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from ceemx.evaluation.report import plt, save_figure
-from ceemx.identification.diagnostics import BAND_Z, residual_correlations
+from ceemx.identification.analysis.diagnostics import BAND_Z, residual_correlations
 
 __all__ = ["FONTS", "plot_benchmark", "plot_resid", "plot_residual_diagnostics"]
 
@@ -514,7 +514,7 @@ def plot_resid(
 
 
 def plot_residual_diagnostics(diag, path: str | os.PathLike | None = None):
-    """The figure of a :class:`~ceemx.identification.diagnostics.ResidualDiagnostics`.
+    """The figure of a :class:`~ceemx.identification.analysis.diagnostics.ResidualDiagnostics`.
 
     One row per output: the autocorrelation of the standardised one-step prediction errors at
     lags 1…M and their cross-correlation with every input at lags −M…M, each with the pointwise

@@ -19,12 +19,13 @@ from typing import Any
 import jax
 import numpy as np
 
-from ceemx import fit, report
+from ceemx import fit
 from ceemx.evaluation import metrics as ev
+from ceemx.evaluation import report
 from ceemx.experiments import common
-from ceemx.identification.driver import precompile_fit
+from ceemx.identification.analysis.noise_check import NoiseCheckWarning
+from ceemx.identification.fitting.start import precompile_fit
 from ceemx.identification.initialize import warm_start
-from ceemx.identification.noise_check import NoiseCheckWarning
 from ceemx.models import with_noise
 from ceemx.systems import CoupledLorenz
 from ceemx.systems.lorenz import coupling_mask

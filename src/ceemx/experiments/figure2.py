@@ -32,8 +32,9 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from ceemx import Alternating, JointLM, LMLearner, LMSmoother, ParticleEM, fit, report
+from ceemx import Alternating, JointLM, LMLearner, LMSmoother, ParticleEM, fit
 from ceemx.evaluation import metrics as ev
+from ceemx.evaluation import report
 from ceemx.experiments import common
 from ceemx.identification.initialize import warm_start
 from ceemx.models import with_noise

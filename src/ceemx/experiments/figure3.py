@@ -35,8 +35,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ceemx import LBFGSLearner, LMLearner, fit, report
+from ceemx import LBFGSLearner, LMLearner, fit
 from ceemx.evaluation import metrics as ev
+from ceemx.evaluation import report
 from ceemx.experiments import common
 from ceemx.models import with_noise
 from ceemx.systems import CoupledLorenz

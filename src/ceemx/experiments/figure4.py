@@ -42,9 +42,10 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from ceemx import Alternating, JointLM, LMSmoother, OptaxLearner, fit, report
+from ceemx import Alternating, JointLM, LMSmoother, OptaxLearner, fit
 from ceemx.baselines import fit_lag, fit_lstm, fit_naive, fit_sid
 from ceemx.data.trajectories import Trajectories
+from ceemx.evaluation import report
 from ceemx.evaluation.prediction import (
     BestValidation,
     ResidualPredictor,

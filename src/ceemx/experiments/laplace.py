@@ -8,10 +8,10 @@ Per seed, two fits:
 
 - **Laplace EM** (:class:`ceemx.LaplaceEM`) learning (σ, ρ, β) *and* both noise scales, started
   from wrong noise scales (σ_w = 0.3, σ_v = 1.0); standard errors from the observed information of
-  the Laplace log-evidence (:func:`ceemx.identification.uncertainty.evidence_covariance`).
+  the Laplace log-evidence (:func:`ceemx.identification.analysis.uncertainty.evidence_covariance`).
 - **CE-EM, joint** (:class:`ceemx.JointLM`) with the true noise scales given (CE-EM cannot learn
   them); standard errors from the Schur complement of the joint Gauss–Newton matrix
-  (:func:`ceemx.identification.uncertainty.parameter_covariance`).
+  (:func:`ceemx.identification.analysis.uncertainty.parameter_covariance`).
 
 Reported: the noise recovery of the first ``noise_seeds`` seeds (σ_w, σ_v within 10 % of the
 truth; σ, ρ, β within 2 SE), and over all seeds the coverage of the nominal 95 % intervals
@@ -26,8 +26,9 @@ import warnings
 import jax
 import numpy as np
 
-from ceemx import JointLM, LaplaceEM, fit, report
+from ceemx import JointLM, LaplaceEM, fit
 from ceemx.evaluation import metrics as ev
+from ceemx.evaluation import report
 from ceemx.experiments import common
 from ceemx.models import with_noise
 

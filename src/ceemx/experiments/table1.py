@@ -43,8 +43,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ceemx import Alternating, LMSmoother, NelderMeadLearner, fit, report
+from ceemx import Alternating, LMSmoother, NelderMeadLearner, fit
 from ceemx.evaluation import metrics as ev
+from ceemx.evaluation import report
 from ceemx.experiments import common
 from ceemx.identification.initialize import warm_start
 from ceemx.models import with_noise

@@ -338,6 +338,18 @@ class FitProblem(eqx.Module):
         check_log_prior(log_prior, system)
         return cls(template, static, data, log_prior, constraints), theta
 
+    def with_data(self, data: Trajectories) -> FitProblem:
+        """This problem over other data of the same shape of model (θ's layout, prior kept).
+
+        The data are all a problem holds of them: nothing else is rebuilt (the devices' copy of
+        the data, or this process's copy of a multi-process fit's).
+        """
+        return eqx.tree_at(lambda p: p.data, self, data)
+
+    def subset(self, keep) -> FitProblem:
+        """This problem over the trajectories ``keep`` (indices into the batch) of its data."""
+        return self.with_data(self.data[keep])
+
     def build(self, theta: Theta) -> AbstractSystem:
         """The system with trainable leaves set from the flat unconstrained vector θ.
 

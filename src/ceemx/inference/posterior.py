@@ -5,7 +5,7 @@ matrix of −J at x̂: its marginal blocks Σ̂_t and lag-one blocks Cov(x_{t+1}
 inverse of the same block-tridiagonal factorisation (O(T n³)), and the Laplace log-evidence
 log p(y | θ) ≈ J(x̂, θ) + (Tn/2) log 2π − ½ log det H. Laplace EM's E-step
 (:mod:`ceemx.identification.solvers.laplace`) and the evidence covariance
-(:mod:`ceemx.identification.uncertainty`) read it.
+(:mod:`ceemx.identification.analysis.uncertainty`) read it.
 """
 
 from __future__ import annotations

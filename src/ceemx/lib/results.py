@@ -29,7 +29,7 @@ class RESULTS(eqx.Enumeration):
     )
     outlier = (
         "excluded from the fit: its residuals at the start are far outside the noise model, "
-        "compared with the other trajectories (ceemx.identification.health)"
+        "compared with the other trajectories (ceemx.identification.fitting.health)"
     )
     diverged = (
         "the free-run simulation is not finite: the model diverges (or overflows) from its "

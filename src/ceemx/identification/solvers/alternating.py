@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray
 
-from ceemx.identification.identifiability import end_point_identifiability
+from ceemx.identification.analysis.identifiability import end_point_identifiability
 from ceemx.identification.learning import learners as _learners
 from ceemx.identification.learning import step as learning_step
 from ceemx.identification.learning.learning_problem import learning_problem
@@ -72,6 +72,8 @@ class Alternating(AbstractFitSolver):
     atol: float = 0.0
 
     smooths_each_epoch = True  # the E-step is the warm start's program: compiled optimised once
+    multi_process = True
+    noise_rounds = True
     history_keys = {
         "smooth_time": "seconds in the smoothing step",
         "learn_time": "seconds in the learning step",

@@ -1,8 +1,9 @@
 """The fit-solver interface: ``init / step / terminate / postprocess`` over a :class:`FitState`.
 
-A fit solver is an ``eqx.Module`` holding its options. The one host-side driver
-(:func:`ceemx.fit`) owns everything around it — validation, history, callbacks, progress,
-checkpoints, timing — and calls:
+A fit solver is an ``eqx.Module`` holding its options and declaring what it can do in class-level
+flags (``learns_noise``, ``multi_process``, ``noise_rounds``, ``uncertainty``, ...), which the fit
+machinery asks instead of testing the solver's type. The machinery (:func:`ceemx.fit`) owns
+everything around it — validation, history, callbacks, progress, checkpoints, timing — and calls:
 
 - ``init(problem, theta, states, key) -> FitState`` once (skipped on resume);
 - ``step(problem, state) -> (state, record)`` once per epoch; ``record`` holds the solver's own
@@ -24,7 +25,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -32,7 +33,7 @@ import numpy as np
 from jaxtyping import PRNGKeyArray, PyTree
 
 from ceemx.identification import initialize
-from ceemx.identification.identifiability import Identifiability
+from ceemx.identification.analysis.identifiability import Identifiability
 from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
 from ceemx.inference.smoother import LMSmoother
@@ -155,6 +156,17 @@ class AbstractFitSolver(eqx.Module):
     #: Whether the method can learn noise covariances (only :class:`ceemx.LaplaceEM`: the CE-EM
     #: objective J grows without bound as a noise scale → 0, so CE methods refuse them).
     learns_noise: ClassVar[bool] = False
+    #: Whether the method runs on data spread over several processes (``fit(devices=...)``): every
+    #: value it reads on the host is gathered across them (or needs no gathering).
+    multi_process: ClassVar[bool] = False
+    #: Whether ``fit(..., noise="learn")`` may wrap it: a certainty-equivalent method, maximising
+    #: J(x, θ) at the noise it is given (the rounds re-estimate that noise between fits).
+    noise_rounds: ClassVar[bool] = False
+    #: The parameter covariance of its result (:meth:`ceemx.FitResult.covariance`):
+    #: ``"certainty-equivalent"`` — the Laplace approximation of p(x, θ | y) at the end point, the
+    #: Schur complement of J's Gauss–Newton matrix — or ``"evidence"`` — the inverse observed
+    #: information of the Laplace log-evidence with the method's own ``smoother``.
+    uncertainty: ClassVar[Literal["certainty-equivalent", "evidence"]] = "certainty-equivalent"
     #: Whether the epochs smooth with the warm start's program (:func:`ceemx.smooth`'s; Algorithm
     #: 1): the warm start then compiles it optimised, once for both; otherwise (the joint method,
     #: Laplace EM) as a one-shot program (``smooth(..., one_shot=True)``).

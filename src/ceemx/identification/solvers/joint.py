@@ -33,8 +33,8 @@ propose a step that moves a log-parameter by hundreds):
 A third guard stops it from wandering where the data say nothing: when J has stopped improving
 materially but θ still moves, the Schur complement S at the new point tells whether the step lies
 in directions the data do not determine (``check_identifiability``,
-:mod:`ceemx.identification.identifiability`); if so the fit stops, converged in what the data
-determine, and the result names it ("only a·b and a·c are determined by the data").
+:mod:`ceemx.identification.analysis.identifiability`); if so the fit stops, converged in what the
+data determine, and the result names it ("only a·b and a·c are determined by the data").
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ from jaxtyping import PRNGKeyArray
 
 from ceemx import lib
 from ceemx.identification import schur
-from ceemx.identification.identifiability import (
+from ceemx.identification.analysis.identifiability import (
     MAX_P,
     NOT_SHRINKING,
     Identifiability,
@@ -126,8 +126,9 @@ class JointLM(AbstractFitSolver):
             and below which the identifiability check looks at the step.
         check_identifiability: when J improved by at most ``check_rtol·|J + c|`` in an epoch but
             θ still moved, form S at the new point and stop if the step lies in directions the
-            data do not determine (:mod:`ceemx.identification.identifiability`: thresholds and
-            why; skipped above P = 2000). The result's ``identifiability`` names them.
+            data do not determine (:mod:`ceemx.identification.analysis.identifiability`:
+            thresholds and why; skipped above P = 2000). The result's ``identifiability`` names
+            them.
     """
 
     rho_x: float = 0.0
@@ -147,6 +148,8 @@ class JointLM(AbstractFitSolver):
     border: str = eqx.field(default="dense", static=True)
     border_scaling: str = eqx.field(default="diagonal", static=True)
 
+    multi_process = True
+    noise_rounds = True
     history_keys = {
         "trials": "LM trials in this iteration (accepted and rejected)",
         "accepted": "whether a step was accepted",

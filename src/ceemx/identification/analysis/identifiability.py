@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from ceemx.identification.analysis.end_point import end_point
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.schur import schur_complement
 from ceemx.infra.distributed import to_host
@@ -59,6 +60,7 @@ __all__ = [
     "Identifiability",
     "analyse",
     "end_point_identifiability",
+    "fit_identifiability",
     "identifiability_at",
     "relative_scale",
 ]
@@ -223,3 +225,11 @@ def end_point_identifiability(
     if converged or len(history) < MIN_EPOCHS or not np.any(to_host(state.weights) > 0):
         return None
     return identifiability_at(problem, state.theta, state.states, state.weights)
+
+
+def fit_identifiability(result: Any) -> Identifiability | None:
+    """:meth:`ceemx.FitResult.check_identifiability`: the fit's finding, else the end point's."""
+    if result.identifiability is not None:
+        return result.identifiability
+    problem, theta, states, weights = end_point(result)
+    return identifiability_at(problem, theta, states, weights)

@@ -24,8 +24,6 @@ record, and it is the factor to multiply the assumed variance by when it is not.
 
 from __future__ import annotations
 
-import dataclasses
-import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -82,6 +80,12 @@ class NoiseMoments(eqx.Module):
     def process_covariance(self) -> np.ndarray:
         """(n, n) S_w: the mean expected process residual outer product."""
         return np.asarray(self.moments["dyn"]) / float(self.moments["dyn_count"])
+
+    @property
+    def evidence(self) -> float:
+        """Σ_b of the Laplace log-evidence over the finite posteriors (−inf when none is)."""
+        ok = np.asarray(self.ok)
+        return float(np.sum(np.asarray(self.log_evidence)[ok])) if ok.any() else -np.inf
 
     @property
     def obs_variance(self) -> np.ndarray:
@@ -349,7 +353,7 @@ class _EvidenceSearch:
         self.steps = float(np.prod(nm.states.shape[:2]))
         self.gtol = 1e-2 * max(1.0, np.sqrt(self.steps / 2500.0))
         self.cache: dict[bytes, NoiseMoments] = {layout.z0.tobytes(): nm}
-        self.best = {"f": -_evidence(nm), "z": layout.z0.copy(), "nm": nm}
+        self.best = {"f": -nm.evidence, "z": layout.z0.copy(), "nm": nm}
 
     @property
     def best_z(self) -> np.ndarray:
@@ -364,7 +368,7 @@ class _EvidenceSearch:
             states = self.best["nm"].states
             self.cache[key] = moments_prepared(_promoted(trial), self.data, states, self.smoother)
         m = self.cache[key]
-        f = -_evidence(m)
+        f = -m.evidence
         if not np.isfinite(f):
             return 1e300, np.zeros_like(z)
         if f < self.best["f"]:
@@ -501,110 +505,3 @@ class _ScaleLayout:
             else:
                 out.append(np.atleast_1d(g.sum()))
         return np.concatenate(out)
-
-
-def _evidence(nm: NoiseMoments) -> float:
-    ok = np.asarray(nm.ok)
-    return float(np.sum(np.asarray(nm.log_evidence)[ok])) if ok.any() else -np.inf
-
-
-def _stds(system: AbstractSystem, fields: Sequence[str]) -> np.ndarray:
-    out = []
-    for field in fields:
-        noise = getattr(system, field)
-        out.append(np.sqrt(np.diagonal(np.asarray(noise.covariance(), float))))
-    return np.concatenate(out) if out else np.zeros(0)
-
-
-#: the largest change of a learned noise factor (relative) under which the rounds stop
-NOISE_ROUND_RTOL = 0.05
-
-
-def fit_learning_noise(
-    system: AbstractSystem,
-    data: Trajectories,
-    x_init: ArrayLike | None,
-    *,
-    max_rounds: int = 6,
-    **fit_options,
-):
-    """``fit(..., noise="learn")``: CE fits alternated with the noise the data show.
-
-    The user's noise models give the shape (which components are noisier, correlations); one
-    factor on each — process and observation — is learned, because those two factors are what a
-    guess gets wrong by orders of magnitude and what moves a CE fit (J weighs dynamics against
-    observations by them). Round 0 estimates the factors at the starting θ
-    (:func:`estimate_noise`: the Laplace log-evidence maximised, a grid of decades around the
-    guess first); a θ still far off then puts its model error into the process noise — a loose
-    process noise, the safe side for the CE fit that follows. Each round fits θ and the states
-    at the current noise (``fit`` with the given solver, warm-started), then re-estimates the
-    factors at the fitted θ, again from the user's guess (so a degenerate maximum found once is
-    not inherited); it stops when no factor changes by more than 5 % and the fit converged, or
-    after ``max_rounds`` rounds. The result is the last round's fit, at noise consistent with
-    its own residuals; ``FitResult.noise_rounds`` records each round.
-
-    Args:
-        system: the model at its initial θ, with the user's noise guess.
-        data: B observed trajectories.
-        x_init: start states (``None``: as ``fit`` starts).
-        max_rounds: bound on the CE fits.
-        **fit_options: the other ``fit`` options (solver, trainable, max_epochs per round, ...).
-
-    Returns:
-        The last round's :class:`ceemx.FitResult`, with ``noise_rounds`` filled in.
-    """
-    from ceemx.identification.driver import fit
-
-    if fit_options.get("checkpoint") is not None:
-        raise ValueError(
-            "fit(..., noise='learn') runs several fits (one per noise round) and does not "
-            "checkpoint; pass checkpoint=None, or learn the noise with "
-            "ceemx.estimate_noise(...) first and fit with noise='fixed' and a checkpoint."
-        )
-    if isinstance(max_rounds, bool) or not isinstance(max_rounds, int) or max_rounds < 1:
-        raise ValueError(f"`max_rounds` must be an integer ≥ 1; got {max_rounds!r}.")
-    guess = system
-    system, nm, _ = estimate_noise(guess, data, x_init)
-    states = nm.states
-    rounds: list[dict] = [_round_record(0, system, nm, None)]
-    result = None
-    last: list = []
-    for k in range(1, max_rounds + 1):
-        with warnings.catch_warnings(record=True) as caught:  # the last round's are re-issued
-            warnings.simplefilter("always")
-            result = fit(system, data, states, noise="fixed", **fit_options)
-        last = list(caught)
-        fitted = _with_noise_of(result.system, guess)
-        new, nm, _ = estimate_noise(fitted, data, result.states)
-        change = float(np.max(np.abs(_stds(new, NOISE_FIELDS) / _stds(system, NOISE_FIELDS) - 1)))
-        rounds.append(_round_record(k, new, nm, result, change))
-        if not np.isfinite(change):
-            break
-        settled = change <= NOISE_ROUND_RTOL
-        system, states = (result.system, result.states) if settled else (new, nm.states)
-        if settled and result.converged:
-            break
-    assert result is not None
-    for w in last:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return dataclasses.replace(result, noise_rounds=tuple(rounds))
-
-
-def _with_noise_of(system: AbstractSystem, other: AbstractSystem) -> AbstractSystem:
-    for field in NOISE_FIELDS:
-        system = eqx.tree_at(
-            lambda s, f=field: getattr(s, f), system, replace=getattr(other, field)
-        )
-    return system
-
-
-def _round_record(k: int, system: AbstractSystem, nm: NoiseMoments, result, change=None) -> dict:
-    return {
-        "round": k,
-        "process_noise_std": _stds(system, ("process_noise",)).round(12).tolist(),
-        "obs_noise_std": _stds(system, ("obs_noise",)).round(12).tolist(),
-        "log_evidence": _evidence(nm),
-        "epochs": None if result is None else result.epochs,
-        "converged": None if result is None else bool(result.converged),
-        "change": change,
-    }

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ceemx.identification.problem import FitProblem
+from ceemx.identification.problem import FitProblem, per_trajectory_nll, per_trajectory_offset
 from ceemx.infra.distributed import to_host
 from ceemx.lib.typing import States, Theta
 
@@ -68,8 +68,6 @@ def trajectory_health(
     problem: FitProblem, theta: Theta, states: States, *, k: float = 5.0, ratio: float = 100.0
 ) -> Health:
     """The robust outlier test of the module notes, at (θ, x)."""
-    from ceemx.identification.problem import per_trajectory_nll, per_trajectory_offset
-
     data = problem.data
     nll = to_host(per_trajectory_nll(problem, theta, states)).astype(np.float64)
     system = problem.build(theta)

@@ -46,6 +46,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
+from ceemx.identification.analysis.end_point import end_point
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.schur import schur_complement, small_schur
 from ceemx.infra.compilation import jit, one_shot_when
@@ -56,6 +57,9 @@ from ceemx.lib.typing import PerTrajectory, States, Theta
 __all__ = [
     "NamedEstimates",
     "evidence_covariance",
+    "fit_covariance",
+    "fit_parameter_estimates",
+    "fit_standard_errors",
     "natural_covariance",
     "natural_jacobian",
     "parameter_covariance",
@@ -349,3 +353,33 @@ def standard_errors_by_name(
         (n, (float(v), float(s)))
         for n, v, s in zip(_names(problem), np.asarray(values), se, strict=True)
     )
+
+
+def fit_covariance(
+    result: Any, natural: bool = False, *, hold_weak: bool = False
+) -> Float[Array, "theta theta"]:
+    """:meth:`ceemx.FitResult.covariance`: the covariance the fit's solver declares.
+
+    ``"evidence"`` (``AbstractFitSolver.uncertainty``; :class:`ceemx.LaplaceEM`):
+    :func:`evidence_covariance` with the solver's E-step smoother; ``"certainty-equivalent"``:
+    :func:`parameter_covariance`.
+    """
+    problem, theta, states, weights = end_point(result)
+    if result.solver.uncertainty == "evidence":
+        smoother = getattr(result.solver, "smoother", None)
+        cov = evidence_covariance(problem, theta, states, weights, smoother)
+    else:
+        cov = parameter_covariance(problem, theta, states, weights, hold_weak=hold_weak)
+    return natural_covariance(problem, theta, cov) if natural else cov
+
+
+def fit_standard_errors(result: Any) -> Any:
+    """:meth:`ceemx.FitResult.standard_errors`: :func:`standard_errors` of its covariance."""
+    problem, theta, _, _ = end_point(result)
+    return standard_errors(problem, theta, result.covariance())
+
+
+def fit_parameter_estimates(result: Any) -> dict[str, tuple[float, float]]:
+    """:meth:`ceemx.FitResult.parameter_estimates`: :func:`standard_errors_by_name`."""
+    problem, theta, _, _ = end_point(result)
+    return standard_errors_by_name(problem, theta, result.covariance())

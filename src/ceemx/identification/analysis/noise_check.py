@@ -5,7 +5,7 @@ it converges whatever they are: with process noise 100× too tight the states ca
 data and the model is bent to compensate, silently. After every fit, :func:`ceemx.fit` therefore
 compares the realised whitened CE residuals at the end point with what the noise model allows
 (``fit(..., diagnose=False)`` turns it off; :meth:`ceemx.FitResult.diagnostics` is the full
-report, :mod:`ceemx.identification.diagnostics`).
+report, :mod:`ceemx.identification.analysis.diagnostics`).
 
 **The statistic.** With r̂ the whitened residuals at the fit's (x̂, θ̂) — process residuals
 L_Q⁻¹(x̂_{t+1} − f(x̂_t)), observation residuals L_R⁻¹(y_t − g(x̂_t)) (present samples only), and
@@ -339,7 +339,7 @@ def _message(check: NoiseCheck) -> str:
             text = (
                 f"trajectory {worst} alone carries {100 * part:.0f} % of the fit's squared "
                 "whitened residuals: an outlier? (fit(..., outliers='exclude'), "
-                "ceemx.identification.health). Otherwise " + text
+                "ceemx.identification.fitting.health). Otherwise " + text
             )
     if not check.converged:
         text += " The fit stopped before convergence: part of this may be model error."
@@ -348,5 +348,5 @@ def _message(check: NoiseCheck) -> str:
     return text + (
         " Learn the noise: fit(..., noise='learn'), ceemx.estimate_noise(system, data) (scales "
         "from the data at this θ) or solver=ceemx.LaplaceEM() with trainable noise; "
-        "FitResult.diagnostics() gives the full report (ceemx.identification.noise_check)."
+        "FitResult.diagnostics() gives the full report (ceemx.identification.analysis.noise_check)."
     )

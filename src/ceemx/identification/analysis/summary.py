@@ -16,7 +16,7 @@
 5. the messages (per-trajectory statuses grouped, then the fit's own).
 
 **The interval.** The Laplace covariance lives in the unconstrained coordinates z of θ
-(:mod:`ceemx.identification.uncertainty`); the interval is ``forward(ẑ ± q·σ_z)``, the Wald
+(:mod:`ceemx.identification.analysis.uncertainty`); the interval is ``forward(ẑ ± q·σ_z)``, the Wald
 interval of z mapped to natural units, so it always lies inside the constraint (a positive
 parameter's interval never reaches 0) and is ``estimate ± q·SE`` for unconstrained parameters
 (q = 1.96 for 95 %). The standard error is the delta-method one, ``forward'(ẑ)·σ_z``. When the

@@ -3,18 +3,19 @@
 :func:`residual_diagnostics` (and :meth:`ceemx.FitResult.diagnostics`) reads a fitted model on its
 data three ways and flags what fails, each flag with a message that says what it means:
 
-1. **Noise ratios** (:mod:`ceemx.identification.noise`): the realised / assumed variance of every
-   noise component under the Laplace posterior N(x̂, Σ̂) — the expected residual second moments
-   E_q[w wᵀ], E_q[v vᵀ], which include the part of the noise the smoothed states absorb, so the
-   ratio is ≈ 1 when the assumed noise is consistent (exactly the EM statistic for a
+1. **Noise ratios** (:mod:`ceemx.identification.analysis.noise_estimate`): the realised / assumed
+   variance of every noise component under the Laplace posterior N(x̂, Σ̂) — the expected residual
+   second moments E_q[w wᵀ], E_q[v vᵀ], which include the part of the noise the smoothed states
+   absorb, so the ratio is ≈ 1 when the assumed noise is consistent (exactly the EM statistic for a
    linear-Gaussian model). One E-step's ratio is biased, though: towards 1 when the assumed noise
    is too *loose* (the posterior spread Σ̂ it adds back is that of the assumed noise), and a too
    tight process noise shows up in the *observation* ratio too (the states cannot follow the
    data). So the noise estimate at the fitted θ is given beside it
-   (:func:`~ceemx.identification.noise.estimate_noise`: the maximiser of the Laplace log-evidence,
-   one factor per noise model) — "assumed 1e-3, the data say 0.095" — and it decides the flag:
-   (estimated / assumed std)² outside [1/F, F] (F = :data:`~ceemx.identification.noise_check.
-   FACTOR` = 4; the E-step ratio when ``estimate=False``).
+   (:func:`~ceemx.identification.analysis.noise_estimate.estimate_noise`: the maximiser of the
+   Laplace log-evidence, one factor per noise model) — "assumed 1e-3, the data say 0.095" — and it
+   decides the flag: (estimated / assumed std)² outside [1/F, F] (F =
+   :data:`~ceemx.identification.analysis.noise_check.FACTOR` = 4; the E-step ratio when
+   ``estimate=False``).
 2. **One-step prediction errors** of the extended Kalman filter (:func:`ceemx.inference.ekf.ekf`,
    started on each trajectory at the fitted x̂₁ with covariance Q, or the system's
    ``initial_prior``): the innovations e_t = y_t − ŷ_{t|t−1}, standardised per output by their
@@ -38,8 +39,8 @@ data three ways and flags what fails, each flag with a message that says what it
 
    Correlated prediction errors mean the model misses dynamics — or the noise ratio is off: a too
    tight process noise makes the filter sluggish, and its errors correlated at short lags.
-3. **The end-of-fit noise check** (:mod:`ceemx.identification.noise_check`), carried over from
-   the fit.
+3. **The end-of-fit noise check** (:mod:`ceemx.identification.analysis.noise_check`), carried
+   over from the fit.
 
 The plot is :func:`ceemx.evaluation.report.plot_residual_diagnostics` (evaluation reads
 identification; never the other way round).
@@ -50,7 +51,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from statistics import NormalDist
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -60,21 +61,24 @@ from jaxtyping import ArrayLike
 
 from ceemx.data.checks import prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
-from ceemx.identification.noise import (
+from ceemx.identification.analysis.end_point import end_point
+from ceemx.identification.analysis.noise_check import FACTOR, LOWER, NoiseCheck, chi2_band
+from ceemx.identification.analysis.noise_estimate import (
     NOISE_FIELDS,
     estimate_noise_prepared,
     moments_prepared,
     noise_ratios,
     start_states,
 )
-from ceemx.identification.noise_check import FACTOR, LOWER, NoiseCheck, chi2_band
 from ceemx.inference.ekf import ekf_prepared
+from ceemx.lib.tree import as_jax
 from ceemx.models.system import AbstractSystem, GaussianPrior
 
 __all__ = [
     "BAND_Z",
     "Correlations",
     "ResidualDiagnostics",
+    "fit_diagnostics",
     "residual_correlations",
     "residual_diagnostics",
 ]
@@ -382,7 +386,8 @@ def residual_diagnostics(
             squares through the observation map and a smoothing pass).
         lags: M, the largest correlation lag (capped at T − 1).
         estimate: also estimate the noise at this θ
-            (:func:`~ceemx.identification.noise.estimate_noise`; a few more smoothings).
+            (:func:`~ceemx.identification.analysis.noise_estimate.estimate_noise`; a few more
+            smoothings).
         factor: F of the per-component noise-ratio bands [1/F, F].
         initial: the EKF's prior on x₁ for every trajectory (``None``: the system's
             ``initial_prior``, else N(x̂₁, Q) at each trajectory's MAP x̂₁).
@@ -547,3 +552,14 @@ def residual_diagnostics(
 
 def _std(noise) -> np.ndarray:
     return np.sqrt(np.diagonal(np.asarray(noise.covariance(), np.float64)))
+
+
+def fit_diagnostics(result: Any, **options) -> ResidualDiagnostics:
+    """:meth:`ceemx.FitResult.diagnostics`: :func:`residual_diagnostics` at the fit's end point."""
+    problem, _, states, weights = end_point(result)
+    keep = np.flatnonzero(np.asarray(weights) > 0)
+    data = problem.data[keep] if keep.size < states.shape[0] else problem.data
+    states = states[as_jax(keep)] if keep.size < states.shape[0] else states
+    return residual_diagnostics(
+        result.system, data, states, noise_check=result.noise_check, **options
+    )

@@ -1,0 +1,29 @@
+"""One fit at the system's noise: start, run the epochs, finish."""
+
+from __future__ import annotations
+
+import contextlib
+
+from ceemx.data.checks import Prepared
+from ceemx.identification.fitting.epochs import run_epochs
+from ceemx.identification.fitting.finish import finish_fit
+from ceemx.identification.fitting.fit_options import FitOptions
+from ceemx.identification.fitting.result import FitResult
+from ceemx.identification.fitting.start import start_fit
+from ceemx.models.system import AbstractSystem
+
+__all__ = ["run_fit"]
+
+
+def run_fit(system: AbstractSystem, inputs: Prepared, options: FitOptions) -> FitResult:
+    """:func:`ceemx.fit` with ``noise="fixed"`` of prepared inputs and checked options.
+
+    ``system`` is the model as given (its problem is built from it); ``inputs`` hold it, the data
+    and the start states prepared (:func:`ceemx.data.checks.prepare`).
+    """
+    with contextlib.ExitStack() as hold:  # the checkpoint folder's lock, for the whole fit
+        start = start_fit(system, inputs, options, hold)
+        if start.compiling is not None:  # the epoch programs compiled beside the start states
+            start.compiling.join()
+        state, converged = run_epochs(start, options)
+        return finish_fit(start, state, converged, options)
