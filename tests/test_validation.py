@@ -278,3 +278,52 @@ def test_rank_deficient_observation_warns():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         ceemx.smooth(system(), data, np.zeros((B, T, N)))
+
+
+# --- the input boundary: one validation pass and one fit problem per entry-point call ----------
+
+
+@pytest.fixture
+def counted(monkeypatch):
+    """Count the validation passes (``ceemx.data.checks._validate``, which every entry point
+    reaches through ``prepare``) and the ``FitProblem.create`` calls."""
+    from ceemx.data import checks
+    from ceemx.identification.problem import FitProblem
+
+    calls = {"validate": 0, "create": 0}
+    validate, create = checks._validate, FitProblem.create.__func__
+
+    def counting_validate(*args, **kwargs):
+        calls["validate"] += 1
+        return validate(*args, **kwargs)
+
+    def counting_create(cls, *args, **kwargs):
+        calls["create"] += 1
+        return create(cls, *args, **kwargs)
+
+    monkeypatch.setattr(checks, "_validate", counting_validate)
+    monkeypatch.setattr(FitProblem, "create", classmethod(counting_create))
+    return calls
+
+
+@pytest.mark.parametrize("solver", [ceemx.Alternating, ceemx.JointLM])
+def test_fit_validates_once_and_builds_its_problem_once(counted, solver):
+    """The warm start, the solver's refusals, the compile thread and the exclusion of an outlier
+    trajectory reuse the inputs and the problem of the one ``prepare`` and ``FitProblem.create``."""
+    y = np.random.default_rng(1).standard_normal((4, T, M))
+    y[3] *= 1e3  # an outlier record: the health test excludes it (a sub-problem, not a new one)
+    with pytest.warns(UserWarning, match="excluded from the fit"):
+        result = ceemx.fit(
+            system(), ceemx.Trajectories(y), solver=solver(), max_epochs=2, diagnose=False
+        )
+    assert result.excluded == (3,)
+    assert counted == {"validate": 1, "create": 1}
+
+
+def test_entry_points_validate_once(counted):
+    data = ceemx.Trajectories(observations())
+    x = np.zeros((B, T, N))
+    ceemx.smooth(system(), data, x)
+    ceemx.learn(system(), x, data)
+    ceemx.warm_start(system(), data)
+    assert counted["validate"] == 3
