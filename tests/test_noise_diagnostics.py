@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import ceemx
-from ceemx.evaluation import report
+from ceemx.evaluation import plots
 from ceemx.identification.analysis.diagnostics import residual_diagnostics
 from ceemx.identification.analysis.noise_check import LOWER, chi2_band, noise_check
 
@@ -130,7 +130,7 @@ def test_diagnostics_pass_at_the_truth_with_laplace_ratios_near_one(problem, tmp
     assert diag.white.all() and diag.independent.all()
     assert diag.autocorrelation.shape == (1, 26) and diag.cross_correlation.shape == (1, 1, 51)
     assert "no problem found" in diag.summary() and "rho = " in diag.summary()
-    path = report.plot_residual_diagnostics(diag, tmp_path / "diag.png")
+    path = plots.plot_residual_diagnostics(diag, tmp_path / "diag.png")
     assert path.stat().st_size > 0
 
 

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ceemx.evaluation import plots, report
-from ceemx.evaluation.metrics import Estimate, mean_se
+from ceemx.evaluation.estimates import Estimate, mean_se
 
 
 def test_format_estimate():

@@ -6,7 +6,8 @@
 - :func:`benchmark_score` — the official ``nonlinear-benchmarks`` protocol on measured test
   records: initial state from the first ``n_init`` outputs, free run, RMSE / NRMSE / fit %
   (a :class:`BenchmarkScore`).
-- :func:`mean_se` — mean and standard error over seeds (an :class:`Estimate`).
+- :func:`mean_se` — mean and standard error over seeds (an :class:`Estimate`; defined in
+  :mod:`ceemx.evaluation.estimates`, which the reports read too).
 - Fit callbacks and checks: :class:`DynamicsErrorCallback` (ε(θ) every epoch),
   :class:`FitTimer` (wall time every epoch), :func:`is_monotone` (J never decreased).
 
@@ -26,6 +27,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ceemx.data.checks import prepare, promote_array
 from ceemx.data.trajectories import Trajectories, rollout_one
+from ceemx.evaluation.estimates import Estimate, mean_se  # the seeds' summaries, here too
 from ceemx.evaluation.simulation import free_run_batch, initial_state_prepared, strongly_typed
 from ceemx.infra.compilation import jit
 from ceemx.infra.warn import warn
@@ -384,32 +386,6 @@ def _flag_diverged(start, rmse_overall, status: RESULTS) -> RESULTS:
         "RESULTS.diverged (BenchmarkScore.status)."
     )
     return select(as_jax(~bad), status, RESULTS.diverged)
-
-
-# --------------------------------------------------------------------------------------------
-# Summaries over seeds
-# --------------------------------------------------------------------------------------------
-
-
-class Estimate(NamedTuple):
-    """Mean and standard error (sample std, ddof=1, over √n, as the authors' tables) of n values."""
-
-    mean: float
-    se: float
-    n: int
-
-    def within(self, truth: float, k: float = 2.0) -> bool:
-        """Whether |mean − truth| ≤ k·SE (the paper's Table 1 flags means outside 2 SE)."""
-        return bool(abs(self.mean - truth) <= k * self.se)
-
-
-def mean_se(values) -> Estimate:
-    """:class:`Estimate` of a 1-D sample (SE = 0 for a single value)."""
-    v = np.asarray(values, dtype=np.float64).reshape(-1)
-    if v.size == 0:
-        raise ValueError("mean_se of an empty sample")
-    se = float(np.std(v, ddof=1) / np.sqrt(v.size)) if v.size > 1 else 0.0
-    return Estimate(float(np.mean(v)), se, int(v.size))
 
 
 # --------------------------------------------------------------------------------------------

@@ -14,11 +14,12 @@
   (the ``ceemx`` command commits after the run, ``results.json`` last, so an interrupted run
   leaves no result file at all).
 - :func:`plt`, :func:`save_figure` — Matplotlib with a non-interactive backend; the figures
-  themselves (benchmark traces, residual correlations, :func:`plot_residual_diagnostics`) are in
+  themselves (benchmark traces, residual correlations, the residual diagnostics) are in
   :mod:`ceemx.evaluation.plots`.
 
-The numbers themselves (ε(θ), simulation RMSE, :class:`~ceemx.evaluation.metrics.Estimate`) come
-from :mod:`ceemx.evaluation.metrics`.
+The numbers themselves (ε(θ), simulation RMSE) come from :mod:`ceemx.evaluation.metrics`, their
+summaries over seeds (:class:`~ceemx.evaluation.estimates.Estimate`) from
+:mod:`ceemx.evaluation.estimates`.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from ceemx.evaluation.metrics import Estimate, mean_se
+from ceemx.evaluation.estimates import Estimate, mean_se
 from ceemx.infra.paths import output_dir
 
 __all__ = [
@@ -48,7 +49,6 @@ __all__ = [
     "estimate_table",
     "format_pm",
     "parameter_table",
-    "plot_residual_diagnostics",
     "plt",
     "save_figure",
     "save_json",
@@ -375,18 +375,3 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> Path:
     finally:
         plt().close(fig)
     return _save(path, buf.getvalue())
-
-
-def plot_residual_diagnostics(diag, path: str | os.PathLike | None = None):
-    """The figure of :meth:`ceemx.FitResult.diagnostics`; see :mod:`ceemx.evaluation.plots`.
-
-    Args:
-        diag: the diagnostics.
-        path: the figure file, written atomically (``None``: return the figure).
-
-    Returns:
-        The path written, or the figure when ``path`` is ``None``.
-    """
-    from ceemx.evaluation.plots import plot_residual_diagnostics as plot
-
-    return plot(diag, path)

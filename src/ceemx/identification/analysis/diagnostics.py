@@ -42,7 +42,7 @@ data three ways and flags what fails, each flag with a message that says what it
 3. **The end-of-fit noise check** (:mod:`ceemx.identification.analysis.noise_check`), carried
    over from the fit.
 
-The plot is :func:`ceemx.evaluation.report.plot_residual_diagnostics` (evaluation reads
+The plot is :func:`ceemx.evaluation.plots.plot_residual_diagnostics` (evaluation reads
 identification; never the other way round).
 """
 
