@@ -6,7 +6,11 @@
 - :class:`ParticleEM` — particle filter + FFBSi E-step, SAEM M-step (the paper's baseline).
 
 To add one, subclass :class:`AbstractFitSolver` (see :mod:`ceemx.identification.solvers.base` and
-``docs/design.md``); :func:`ceemx.fit` runs it with history, callbacks and checkpoints.
+``docs/design.md``) and declare what it can do in its class-level flags (``learns_noise``,
+``multi_process``, ``noise_rounds``, ``uncertainty``): :func:`ceemx.fit` asks those, never the
+solver's type, and runs it with history, callbacks and checkpoints. Each file holds one solver;
+the mathematics solvers share lives below them (:mod:`ceemx.identification.schur`,
+:mod:`ceemx.identification.noise_moments`, :mod:`ceemx.identification.problem`).
 """
 
 from ceemx.identification.solvers.alternating import Alternating
