@@ -110,8 +110,8 @@ def test_table1_methods_and_protocols(capsys):
 @pytest.mark.slow  # an experiment's wiring end to end (table1's smoke stays in the default suite)
 def test_laplace_experiment_smoke(tmp_path):
     """``ceemx experiment laplace --smoke``: learned noise and interval coverage."""
-    assert cli.main(["experiment", "laplace", "--smoke", "--out", str(tmp_path)]) == 0
-    saved = check_files(tmp_path, "laplace.png")
+    assert cli.main(["experiment", "calibration", "--smoke", "--out", str(tmp_path)]) == 0
+    saved = check_files(tmp_path, "calibration.png")
     assert len(saved["runs"]) == 2
     for run in saved["runs"]:
         lap = run["laplace"]
@@ -333,18 +333,18 @@ def test_figure4_group_learning_rates():
 
 
 @pytest.mark.slow
-def test_benchmarks_smoke(tmp_path):
-    """`ceemx experiment benchmarks --smoke`: three gray-box fits, official-protocol scores."""
-    from ceemx.datasets.benchmarks import data_root
+def test_real_data_smoke(tmp_path):
+    """`ceemx experiment real_data --smoke`: three gray-box fits, official-protocol scores."""
+    from ceemx.datasets import data_root
 
     try:
         data_root()
     except FileNotFoundError as e:
-        pytest.skip(f"benchmark data absent: {e}")
-    args = ["experiment", "benchmarks", "--smoke", "--out", str(tmp_path)]
+        pytest.skip(f"real data absent: {e}")
+    args = ["experiment", "real_data", "--smoke", "--out", str(tmp_path)]
     assert cli.main(args) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
-    assert (tmp_path / "benchmarks.png").exists()
+    assert (tmp_path / "real_data.png").exists()
     assert {d["dataset"] for d in saved["datasets"]} == {
         "cascaded_tanks",
         "silverbox",
@@ -359,7 +359,7 @@ def test_benchmarks_smoke(tmp_path):
         assert set(d["learned"]) == {"hybrid", "neural"}
         assert d["learned"]["hybrid"]["weights"] > 0
     with pytest.raises(SystemExit):
-        cli.main(["experiment", "benchmarks", "--method", "particle"])
+        cli.main(["experiment", "real_data", "--method", "particle"])
 
 
 def test_table1_uses_a_known_two_row_C(monkeypatch, tmp_path):

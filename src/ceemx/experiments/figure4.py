@@ -19,8 +19,8 @@ evaluation file (RMS over steps 25–499 and the 6 outputs, in physical units):
 Data: by default the documented helicopter-like generator (:mod:`ceemx.datasets.heli_sim`,
 docs/helicopter_benchmark.md), since the Stanford dataset cannot be downloaded here; ``data=DIR``
 reads the paper's published dataset (:func:`ceemx.datasets.load_helicopter`); ``dataset=NAME``
-runs the same five models on windows of a real benchmark record (cascaded tanks, Silverbox,
-coupled electric drives; :mod:`ceemx.datasets.benchmarks`).
+runs the same five models on windows of a real dataset's records (cascaded tanks, Silverbox,
+coupled electric drives; :func:`ceemx.datasets.window_splits`).
 
 The authors' smoothing trust region is a residual r·(x − x_k) in their ½-sum of squares, so
 ρ_x = r²/2 = 0.005 in ours (ρ_x‖x − x_k‖²); their learning trust region is added as
@@ -45,6 +45,7 @@ from jax.flatten_util import ravel_pytree
 from ceemx import Alternating, JointLM, LMSmoother, OptaxLearner, fit, report
 from ceemx.baselines import fit_lag, fit_lstm, fit_naive, fit_sid
 from ceemx.data.trajectories import Trajectories
+from ceemx.datasets import REGISTRY
 from ceemx.evaluation.prediction import (
     BestValidation,
     ResidualPredictor,
@@ -62,7 +63,7 @@ MODELS = ("naive", "LSTM", "H25", "SID", "NL")
 #: 87 of 100 trajectories), from the authors' published evaluation file.
 PAPER = {"naive": "2.67", "LSTM": "1.30", "H25": "0.92", "SID": "0.75–0.80", "NL": "0.615"}
 PAPER_NOTE = "paper: NL median 0.49, NL beats H25 on 87/100 test trajectories"
-DATASETS = ("cascaded_tanks", "silverbox", "coupled_electric_drives")
+DATASETS = tuple(REGISTRY)
 START = 25  # first scored step (the H25 model needs 25 inputs)
 #: The authors' trust regions: the smoother's is a residual r·(x − x_k) in a ½-sum of squares
 #: (r = 0.1 → ρ_x = r²/2 in ours); the learner's is added as r·‖θ − θ_k‖² (r = 0.5 → ρ_θ = 0.5).
@@ -119,17 +120,17 @@ class Splits:
 
 
 def load_splits(*, data: str | None, dataset: str | None, smoke: bool, seed: int) -> Splits:
-    """The data of one run: the generator, the paper's dataset, or a real benchmark's windows."""
+    """The data of one run: the generator, the paper's dataset, or a real dataset's windows."""
     from ceemx import datasets
 
     if data is not None and dataset is not None:
         raise ValueError(
-            "give `data` (the helicopter dataset) or `dataset` (a benchmark), not both."
+            "give `data` (the helicopter dataset) or `dataset` (a real dataset), not both."
         )
     if dataset is not None:
         if dataset not in DATASETS:
             raise ValueError(f"unknown dataset {dataset!r}; choose from {', '.join(DATASETS)}.")
-        w = datasets.benchmark_splits(dataset, smoke=smoke)
+        w = datasets.window_splits(dataset, smoke=smoke)
         return Splits(
             w.train,
             w.valid,
@@ -554,7 +555,7 @@ def run(
             ``"joint"`` (the joint LM on a subset of trajectories: its Schur system is dense in θ).
         max_epochs: CE-EM epochs of the NL model (default: ``settings.nl_epochs``).
         data: folder of the paper's helicopter dataset (default: the generator).
-        dataset: a real benchmark (``cascaded_tanks``, ``silverbox``, ``coupled_electric_drives``).
+        dataset: a real dataset (``cascaded_tanks``, ``silverbox``, ``coupled_electric_drives``).
         settings: sizes and budgets (default :class:`Settings` or :data:`SMOKE`).
         verbose: print progress and the table.
 
