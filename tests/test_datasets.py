@@ -1,6 +1,7 @@
 """Datasets: the helicopter-like generator, the Zenodo helicopter loader, the real datasets."""
 
 import hashlib
+import re
 import sys
 from pathlib import Path
 
@@ -176,6 +177,45 @@ def test_windows_arithmetic():
         datasets.windows(u, y, 4, stride=0)
     with pytest.raises(ValueError, match="shape|\\(N, p\\)"):
         datasets.windows(u[:9], y, 4)
+
+
+@pytest.mark.parametrize("name", list(datasets.REGISTRY))
+def test_registry_entry_is_consistent(name):
+    """An entry's names agree with each other, its source and its gray-box model."""
+    from ceemx.datasets import download
+
+    e = datasets.REGISTRY[name]
+    assert e.name == name and e.source == download.SOURCES[name]
+    assert e.file.startswith(f"{name}/") and len(e.sha256) == 64
+    assert set(e.default_tests) <= set(e.tests) and set(e.test_names) <= set(e.tests)
+    renamed = {e.test_names.get(t, t) for t in e.tests}
+    assert all(set(p.rmse) <= renamed and p.unit == e.score_unit for p in e.published)
+    columns = {s.u for s in (*e.train.values(), *e.tests.values())}
+    columns |= {s.y for s in (*e.train.values(), *e.tests.values())}
+    assert max(columns) < len(e.columns)
+    model = e.model.factory(**e.model.options, process_noise=e.chosen.process_noise)
+    assert model.obs_dim == len(e.output_names) and model.control_dim == 1
+    assert 0 <= e.model.hidden[1] < model.state_dim
+    assert float(np.asarray(model.dt)) == pytest.approx(e.dt)
+    assert float(np.asarray(model.process_noise.scale).max()) == e.chosen.process_noise
+    if e.windowing is not None:
+        assert e.windowing.window <= e.windowing.samples
+
+
+def test_cli_datasets_are_the_registry(capsys):
+    """``--dataset`` choices (listed without importing JAX) are the registry's names."""
+    from ceemx import cli
+
+    parser = cli.build_parser()
+    for name in datasets.REGISTRY:
+        assert parser.parse_args(["experiment", "real_data", "--dataset", name]).dataset == name
+    with pytest.raises(SystemExit):
+        parser.parse_args(["experiment", "real_data", "--dataset", "nope"])
+    listed = re.search(r"choose from ([^)]*)\)", capsys.readouterr().err)
+    assert listed is not None
+    assert listed.group(1).replace("'", "").split(", ") == list(datasets.REGISTRY)
+    with pytest.raises(ValueError, match="unknown dataset"):
+        datasets.real_dataset("nope")
 
 
 def _have(name: str) -> bool:
