@@ -34,7 +34,8 @@ LAYERS: list[tuple[str, ...]] = [
     ("infra",),
     ("models",),
     ("data",),
-    ("systems", "datasets"),
+    ("systems",),
+    ("datasets",),  # a dataset's registry entry names its gray-box model (systems)
     ("inference",),
     ("identification",),
     ("evaluation",),

@@ -1,6 +1,6 @@
-"""The example figures of docs/figures/: ceemx's plots on real benchmark records.
+"""The example figures of docs/figures/: ceemx's plots on real dataset records.
 
-Fits the cascaded tanks' and the Silverbox's gray-box models (as ``ceemx experiment benchmarks``
+Fits the cascaded tanks' and the Silverbox's gray-box models (as ``ceemx experiment real_data``
 does, with its budgets) and N4SID beside them, scores both on the official test records, and draws
 
 - ``benchmark_tanks.png`` — :func:`ceemx.plot_benchmark`: the test output, both simulations, the
@@ -33,7 +33,7 @@ import ceemx  # noqa: E402
 from ceemx.baselines import fit_sid  # noqa: E402
 from ceemx.evaluation.plots import plot_residual_diagnostics  # noqa: E402
 from ceemx.evaluation.report import save_figure  # noqa: E402
-from ceemx.systems.benchmarks import CascadedTanks, Silverbox  # noqa: E402
+from ceemx.systems.gray_box import CascadedTanks, Silverbox  # noqa: E402
 
 DPI = 100  # the figures are 11 in wide: 1100 pixels
 

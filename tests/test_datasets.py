@@ -1,6 +1,7 @@
-"""Datasets: the helicopter-like generator, the Zenodo helicopter loader, the real benchmarks."""
+"""Datasets: the helicopter-like generator, the Zenodo helicopter loader, the real datasets."""
 
 import hashlib
+import re
 import sys
 from pathlib import Path
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 from ceemx import Trajectories, datasets
-from ceemx.datasets import benchmarks, heli_sim
+from ceemx.datasets import heli_sim
 
 # ---------------------------------------------------------------- helicopter-like generator
 
@@ -156,7 +157,7 @@ def test_load_helicopter_missing_split(tmp_path):
         datasets.load_helicopter(tmp_path)
 
 
-# ---------------------------------------------------------------- real benchmarks
+# ---------------------------------------------------------------- real datasets
 
 
 def test_windows_arithmetic():
@@ -178,9 +179,48 @@ def test_windows_arithmetic():
         datasets.windows(u[:9], y, 4)
 
 
+@pytest.mark.parametrize("name", list(datasets.REGISTRY))
+def test_registry_entry_is_consistent(name):
+    """An entry's names agree with each other, its source and its gray-box model."""
+    from ceemx.datasets import download
+
+    e = datasets.REGISTRY[name]
+    assert e.name == name and e.source == download.SOURCES[name]
+    assert e.file.startswith(f"{name}/") and len(e.sha256) == 64
+    assert set(e.default_tests) <= set(e.tests) and set(e.test_names) <= set(e.tests)
+    renamed = {e.test_names.get(t, t) for t in e.tests}
+    assert all(set(p.rmse) <= renamed and p.unit == e.score_unit for p in e.published)
+    columns = {s.u for s in (*e.train.values(), *e.tests.values())}
+    columns |= {s.y for s in (*e.train.values(), *e.tests.values())}
+    assert max(columns) < len(e.columns)
+    model = e.model.factory(**e.model.options, process_noise=e.chosen.process_noise)
+    assert model.obs_dim == len(e.output_names) and model.control_dim == 1
+    assert 0 <= e.model.hidden[1] < model.state_dim
+    assert float(np.asarray(model.dt)) == pytest.approx(e.dt)
+    assert float(np.asarray(model.process_noise.scale).max()) == e.chosen.process_noise
+    if e.windowing is not None:
+        assert e.windowing.window <= e.windowing.samples
+
+
+def test_cli_datasets_are_the_registry(capsys):
+    """``--dataset`` choices (listed without importing JAX) are the registry's names."""
+    from ceemx import cli
+
+    parser = cli.build_parser()
+    for name in datasets.REGISTRY:
+        assert parser.parse_args(["experiment", "real_data", "--dataset", name]).dataset == name
+    with pytest.raises(SystemExit):
+        parser.parse_args(["experiment", "real_data", "--dataset", "nope"])
+    listed = re.search(r"choose from ([^)]*)\)", capsys.readouterr().err)
+    assert listed is not None
+    assert listed.group(1).replace("'", "").split(", ") == list(datasets.REGISTRY)
+    with pytest.raises(ValueError, match="unknown dataset"):
+        datasets.real_dataset("nope")
+
+
 def _have(name: str) -> bool:
     try:
-        return (datasets.data_root() / datasets.BENCHMARKS[name].file).is_file()
+        return (datasets.data_root() / datasets.REGISTRY[name].file).is_file()
     except FileNotFoundError:
         return False
 
@@ -191,12 +231,12 @@ def _need(name):
 
 @_need("cascaded_tanks")
 def test_cascaded_tanks_record_and_splits():
-    rec = datasets.load_benchmark("cascaded_tanks")
+    rec = datasets.load_records("cascaded_tanks")
     u, y = rec.train["estimation"]
     assert u.shape == y.shape == (1024, 1) and u.dtype == np.float64
     assert set(rec.tests) == {"validation"} and rec.tests["validation"][1].shape == (1024, 1)
     assert rec.n_init == 50 and rec.dt == 4.0 and "Schoukens" in rec.citation
-    w = datasets.benchmark_splits("cascaded_tanks")
+    w = datasets.window_splits("cascaded_tanks")
     # 768 training samples, windows of 128 every 32: 21; last 256 → 2; test 1024 → 8.
     assert w.train.y.shape == (21, 128, 1) and w.valid.y.shape == (2, 128, 1)
     assert w.test.y.shape == (8, 128, 1) and w.train.u.shape == (21, 128, 1)
@@ -212,16 +252,16 @@ def test_cascaded_tanks_record_and_splits():
         np.asarray(w.valid.y)[0, :, 0] * w.y_std[0] + w.y_mean[0], y[768:896, 0]
     )
     assert w.output_names == ("lower tank level",) and "cascaded_tanks" in w.source
-    s = datasets.benchmark_splits("cascaded_tanks", smoke=True)
+    s = datasets.window_splits("cascaded_tanks", smoke=True)
     assert s.train.y.shape[0] <= 4 and s.valid.y.shape[0] <= 2 and s.test.y.shape[0] <= 2
     assert 26 <= s.train.y.shape[1] <= 64
     with pytest.raises(ValueError, match="26"):
-        datasets.benchmark_splits("cascaded_tanks", length=20)
+        datasets.window_splits("cascaded_tanks", length=20)
 
 
 @_need("cascaded_tanks")
 def test_no_test_leakage_and_sha256(tmp_path):
-    src = datasets.data_root() / datasets.BENCHMARKS["cascaded_tanks"].file
+    src = datasets.data_root() / datasets.REGISTRY["cascaded_tanks"].file
     lines = src.read_text().splitlines()
     changed = [lines[0]]
     for line in lines[1:]:  # scale the test output column yVal
@@ -234,21 +274,21 @@ def test_no_test_leakage_and_sha256(tmp_path):
     (tmp_path / "cascaded_tanks").mkdir()
     (tmp_path / "cascaded_tanks" / "dataBenchmark.csv").write_text("\n".join(changed) + "\n")
     with pytest.raises(ValueError, match="sha256"):
-        datasets.load_benchmark("cascaded_tanks", root=tmp_path)
-    a = datasets.benchmark_splits("cascaded_tanks")
-    b = datasets.benchmark_splits("cascaded_tanks", root=tmp_path, verify=False)
+        datasets.load_records("cascaded_tanks", root=tmp_path)
+    a = datasets.window_splits("cascaded_tanks")
+    b = datasets.window_splits("cascaded_tanks", root=tmp_path, verify=False)
     np.testing.assert_array_equal(a.y_mean, b.y_mean)
     np.testing.assert_array_equal(a.y_std, b.y_std)
     np.testing.assert_array_equal(np.asarray(a.train.y), np.asarray(b.train.y))
     np.testing.assert_array_equal(np.asarray(a.valid.y), np.asarray(b.valid.y))
     assert not np.allclose(np.asarray(a.test.y), np.asarray(b.test.y))
-    expected = benchmarks.BENCHMARKS["cascaded_tanks"].sha256
+    expected = datasets.REGISTRY["cascaded_tanks"].sha256
     assert hashlib.sha256(src.read_bytes()).hexdigest() == expected
 
 
 @_need("silverbox")
 def test_silverbox_record_and_splits():
-    rec = datasets.load_benchmark("silverbox")
+    rec = datasets.load_records("silverbox")
     assert rec.train["estimation"][0].shape == (105712 - 40650, 1)
     sizes = {k: v[0].shape[0] for k, v in rec.tests.items()}
     assert sizes == {
@@ -256,21 +296,21 @@ def test_silverbox_record_and_splits():
         "arrow_full": 40575 - 100,
         "arrow_no_extrapolation": 32100 - 100,
     }
-    w = datasets.benchmark_splits("silverbox", smoke=True)
+    w = datasets.window_splits("silverbox", smoke=True)
     assert w.train.y.shape == (4, 32, 1) and w.test.y.shape == (2, 32, 1)
     assert w.output_names == ("V2",)
 
 
 @_need("coupled_electric_drives")
 def test_coupled_drives_two_sets():
-    rec = datasets.load_benchmark("coupled_electric_drives")
+    rec = datasets.load_records("coupled_electric_drives")
     assert set(rec.train) == set(rec.tests) == {"set1_low", "set2_high"}
     assert rec.train["set1_low"][0].shape == (400, 1) and rec.tests["set2_high"][1].shape == (
         100,
         1,
     )
     assert rec.n_init == 10 and rec.dt == 0.02
-    w = datasets.benchmark_splits("coupled_electric_drives")
+    w = datasets.window_splits("coupled_electric_drives")
     # per set: 300 samples, windows of 100 every 20 → 11; valid 1; test 1
     assert w.train.y.shape == (22, 100, 1) and w.valid.y.shape == (2, 100, 1)
     assert w.test.y.shape == (2, 100, 1)
@@ -284,10 +324,10 @@ def test_data_root_resolution(tmp_path, monkeypatch):
     monkeypatch.setenv("CEEMX_DATA", str(tmp_path / "missing"))
     with pytest.raises(FileNotFoundError, match="CEEMX_DATA"):
         datasets.data_root()
-    with pytest.raises(FileNotFoundError, match="missing benchmark file"):
-        datasets.load_benchmark("silverbox", root=tmp_path)
-    with pytest.raises(ValueError, match="unknown benchmark"):
-        datasets.load_benchmark("nope", root=tmp_path)
+    with pytest.raises(FileNotFoundError, match="missing data file"):
+        datasets.load_records("silverbox", root=tmp_path)
+    with pytest.raises(ValueError, match="unknown dataset"):
+        datasets.load_records("nope", root=tmp_path)
 
 
 # ---------------------------------------------------------------- the official records as datasets
@@ -300,8 +340,8 @@ def _col(rec, split, name, k):
 @_need("cascaded_tanks")
 def test_cascaded_tanks_dataset():
     ds = datasets.cascaded_tanks()
-    rec = datasets.load_benchmark("cascaded_tanks")
-    assert isinstance(ds, datasets.BenchmarkDataset) and ds.name == "cascaded_tanks"
+    rec = datasets.load_records("cascaded_tanks")
+    assert isinstance(ds, datasets.RealDataset) and ds.name == "cascaded_tanks"
     assert ds.train.y.shape == ds.train.u.shape == (1, 1024, 1) and ds.train_names == (
         "estimation",
     )
@@ -318,7 +358,7 @@ def test_cascaded_tanks_dataset():
     )
     assert ds.n_init == 50 and ds.dt == 4.0 and ds.score_unit == "V" and ds.score_scale == 1.0
     assert "Schoukens" in ds.citation and "V" in ds.units and ds.verified
-    assert ds.sha256 == benchmarks.BENCHMARKS["cascaded_tanks"].sha256
+    assert ds.sha256 == datasets.REGISTRY["cascaded_tanks"].sha256
     rmse = [p.rmse["test"] for p in ds.published]
     assert rmse == sorted(rmse) and rmse[0] == 0.18 and rmse[-1] == 0.75 and len(rmse) == 6
     assert all(p.unit == "V" and "1024" in p.note for p in ds.published)
@@ -334,7 +374,7 @@ def test_silverbox_dataset():
         "arrow_full": (1, 40575 - 100, 1),
         "arrow_no_extrapolation": (1, 32100 - 100, 1),
     }
-    rec = datasets.load_benchmark("silverbox")
+    rec = datasets.load_records("silverbox")
     np.testing.assert_array_equal(
         np.asarray(ds.tests["arrow_full"].u)[0, :, 0], _col(rec, "tests", "arrow_full", 0)
     )
@@ -356,7 +396,7 @@ def test_silverbox_dataset():
 @_need("coupled_electric_drives")
 def test_coupled_drives_dataset():
     ds = datasets.coupled_electric_drives()
-    rec = datasets.load_benchmark("coupled_electric_drives")
+    rec = datasets.load_records("coupled_electric_drives")
     assert ds.train.y.shape == (2, 400, 1) and ds.train_names == ("set1_low", "set2_high")
     assert set(ds.tests) == {"set1_low", "set2_high"}
     assert all(t.y.shape == (1, 100, 1) for t in ds.tests.values())
@@ -372,7 +412,7 @@ def test_coupled_drives_dataset():
 
 @_need("cascaded_tanks")
 def test_dataset_sha256_and_missing_file(tmp_path, monkeypatch):
-    src = datasets.data_root() / datasets.BENCHMARKS["cascaded_tanks"].file
+    src = datasets.data_root() / datasets.REGISTRY["cascaded_tanks"].file
     folder = tmp_path / "cascaded_tanks"
     folder.mkdir()
     lines = [line for line in src.read_text().splitlines() if line.strip()]
@@ -389,7 +429,7 @@ def test_dataset_sha256_and_missing_file(tmp_path, monkeypatch):
         with pytest.raises(FileNotFoundError) as err:
             call()
         msg = str(err.value)
-        assert "missing benchmark file" in msg and "root=" in msg and "CEEMX_DATA" in msg
+        assert "missing data file" in msg and "root=" in msg and "CEEMX_DATA" in msg
     with pytest.raises(FileNotFoundError, match=r"silverbox/SNLS80mV\.csv"):
         datasets.silverbox(tmp_path)
     monkeypatch.setenv("CEEMX_DATA", str(tmp_path / "nowhere"))

@@ -1,5 +1,5 @@
-"""Benchmark files downloaded into a user cache (ceemx.datasets.download), and records of the
-``nonlinear-benchmarks`` package as Trajectories (ceemx.data.from_nonlinear_benchmarks).
+"""The real datasets' files downloaded into a user cache (ceemx.datasets.download), and records
+of the ``nonlinear-benchmarks`` package as Trajectories (ceemx.data.from_nonlinear_benchmarks).
 
 No network: the download path runs against ``file://`` URLs of archives made here from the
 official files in ``../shared/data``, and an offline host is simulated by a downloader that
@@ -15,14 +15,14 @@ import pytest
 
 from ceemx import datasets
 from ceemx.data import RecordInfo, Trajectories, from_nonlinear_benchmarks
-from ceemx.datasets import benchmarks, download
+from ceemx.datasets import download
 
 CED = "coupled_electric_drives"
 
 
 def _find(name: str) -> Path | None:
     try:
-        path = datasets.data_root() / datasets.BENCHMARKS[name].file
+        path = datasets.data_root() / datasets.REGISTRY[name].file
     except FileNotFoundError:
         return None
     return path if path.is_file() else None
@@ -30,7 +30,7 @@ def _find(name: str) -> Path | None:
 
 #: the official files of this checkout (../shared/data or CEEMX_DATA), found before any test
 #: hides them
-OFFICIAL = {name: _find(name) for name in datasets.BENCHMARKS}
+OFFICIAL = {name: _find(name) for name in datasets.REGISTRY}
 
 
 def _official(name: str) -> Path:
@@ -61,7 +61,7 @@ def fresh(tmp_path, monkeypatch):
     """A fresh machine: no CEEMX_DATA, no ../shared/data, an empty cache under tmp_path."""
     monkeypatch.delenv("CEEMX_DATA", raising=False)
     monkeypatch.setenv("CEEMX_DATA_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(benchmarks, "_checkout_folders", lambda: [])
+    monkeypatch.setattr(download, "_checkout_folders", lambda: [])
     return tmp_path / "cache"
 
 
@@ -78,17 +78,17 @@ def test_fresh_clone_downloads_checks_and_caches(fresh, tmp_path, monkeypatch):
     ds = datasets.coupled_electric_drives()  # first use: downloaded
     target = fresh / "coupled_electric_drives" / "DATAUNIF.csv"
     assert ds.path == target and target.read_bytes() == _official(CED).read_bytes()
-    assert download.sha256(target) == datasets.BENCHMARKS[CED].sha256
+    assert download.sha256(target) == datasets.REGISTRY[CED].sha256
     here = datasets.coupled_electric_drives(root=_official(CED).parents[1])
     np.testing.assert_array_equal(ds.train.y, here.train.y)
     # Later uses read the cache: the host may be gone.
     Path(url.removeprefix("file://")).unlink()
-    assert datasets.load_benchmark(CED).path == target
-    assert datasets.benchmark_file(CED, download=False) == target
+    assert datasets.load_records(CED).path == target
+    assert datasets.data_file(CED, download=False) == target
     # CEEMX_DATA still wins (and must hold the file).
     monkeypatch.setenv("CEEMX_DATA", str(tmp_path / "elsewhere"))
     with pytest.raises(FileNotFoundError, match="CEEMX_DATA"):
-        datasets.benchmark_file(CED)
+        datasets.data_file(CED)
 
 
 @_need(CED)
@@ -119,7 +119,7 @@ def test_offline_fails_with_one_sentence(fresh, monkeypatch):
         datasets.silverbox()
     message = str(info.value)
     target = fresh / "silverbox" / "SNLS80mV.csv"
-    assert message.startswith("Could not download the silverbox benchmark (SilverboxFiles.zip)")
+    assert message.startswith("Could not download the silverbox dataset (SilverboxFiles.zip)")
     assert download.SOURCES["silverbox"].url in message and str(target) in message
     assert "CEEMX_DATA" in message and message.count(". ") == 0  # one sentence
     assert isinstance(info.value, FileNotFoundError)
@@ -182,11 +182,11 @@ def _package_splits(name: str):
     return (low[:400], high[:400]), tests
 
 
-@pytest.mark.parametrize("name", list(datasets.BENCHMARKS))
+@pytest.mark.parametrize("name", list(datasets.REGISTRY))
 def test_nonlinear_benchmarks_records_agree_with_ours(name):
     if OFFICIAL[name] is None:
         pytest.skip(f"{name} data not available")
-    ours = datasets.benchmark_dataset(name)
+    ours = datasets.real_dataset(name)
     train, tests = _package_splits(name)
     t = from_nonlinear_benchmarks(train)
     assert isinstance(t, Trajectories)

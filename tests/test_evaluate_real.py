@@ -380,7 +380,7 @@ def _have_tanks():
     from ceemx import datasets
 
     try:
-        return (datasets.data_root() / datasets.BENCHMARKS["cascaded_tanks"].file).is_file()
+        return (datasets.data_root() / datasets.REGISTRY["cascaded_tanks"].file).is_file()
     except FileNotFoundError:
         return False
 
@@ -426,7 +426,7 @@ def _have_drives():
     from ceemx import datasets
 
     try:
-        spec = datasets.BENCHMARKS["coupled_electric_drives"]
+        spec = datasets.REGISTRY["coupled_electric_drives"]
         return (datasets.data_root() / spec.file).is_file()
     except FileNotFoundError:
         return False

@@ -16,7 +16,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 def _silverbox_csv() -> Path | None:
     try:
-        path = datasets.data_root() / datasets.BENCHMARKS["silverbox"].file
+        path = datasets.data_root() / datasets.REGISTRY["silverbox"].file
     except FileNotFoundError:
         return None
     return path if path.is_file() else None

@@ -108,10 +108,10 @@ def test_table1_methods_and_protocols(capsys):
 
 
 @pytest.mark.slow  # an experiment's wiring end to end (table1's smoke stays in the default suite)
-def test_laplace_experiment_smoke(tmp_path):
-    """``ceemx experiment laplace --smoke``: learned noise and interval coverage."""
-    assert cli.main(["experiment", "laplace", "--smoke", "--out", str(tmp_path)]) == 0
-    saved = check_files(tmp_path, "laplace.png")
+def test_calibration_experiment_smoke(tmp_path):
+    """``ceemx experiment calibration --smoke``: learned noise and interval coverage."""
+    assert cli.main(["experiment", "calibration", "--smoke", "--out", str(tmp_path)]) == 0
+    saved = check_files(tmp_path, "calibration.png")
     assert len(saved["runs"]) == 2
     for run in saved["runs"]:
         lap = run["laplace"]
@@ -294,13 +294,13 @@ def test_figure4_smoke(tmp_path):
 
 
 def test_figure4_helpers():
-    from ceemx.experiments import figure4
+    from ceemx.experiments import figure4, figure4_report
 
     means = {"NL": 0.6, "SID": 0.8, "H25": 0.9, "LSTM": 1.3, "naive": 2.7}
-    assert figure4.paper_ordering(means)
-    assert not figure4.paper_ordering({**means, "NL": 0.85})
+    assert figure4_report.paper_ordering(means)
+    assert not figure4_report.paper_ordering({**means, "NL": 0.85})
     rmse = {"NL": np.array([1.0, 2.0, 3.0]), "H25": np.array([2.0, 1.0, 4.0])}
-    assert figure4.win_counts(rmse) == {"H25": 2}
+    assert figure4_report.win_counts(rmse) == {"H25": 2}
     with pytest.raises(ValueError, match="dataset"):
         figure4.load_splits(data=None, dataset="nope", smoke=True, seed=0)
     with pytest.raises(SystemExit):
@@ -311,7 +311,7 @@ def test_figure4_group_learning_rates():
     """Per-parameter rates: dynamics (A, B) at one rate, the observation model at the other."""
     from jax.flatten_util import ravel_pytree
 
-    from ceemx.experiments import figure4
+    from ceemx.experiments import figure4_models
     from ceemx.identification.problem import split_system
     from ceemx.systems import NeuralObservationSystem
 
@@ -319,7 +319,7 @@ def test_figure4_group_learning_rates():
     A, B = jnp.eye(n) * 0.9, jnp.ones((n, p))
     C, D = jnp.ones((m, n)), jnp.zeros((m, p))
     system = NeuralObservationSystem(A, B, C, D, key=jax.random.PRNGKey(0), width=4, depth=1)
-    rates = np.asarray(figure4.group_learning_rates(system, 1e-3, 5e-4))
+    rates = np.asarray(figure4_models.group_learning_rates(system, 1e-3, 5e-4))
     theta, params, _ = split_system(system)
     assert rates.shape == theta.shape
     # Mark A and B in a copy of θ's template: those positions must carry the dynamics rate.
@@ -333,18 +333,18 @@ def test_figure4_group_learning_rates():
 
 
 @pytest.mark.slow
-def test_benchmarks_smoke(tmp_path):
-    """`ceemx experiment benchmarks --smoke`: three gray-box fits, official-protocol scores."""
-    from ceemx.datasets.benchmarks import data_root
+def test_real_data_smoke(tmp_path):
+    """`ceemx experiment real_data --smoke`: three gray-box fits, official-protocol scores."""
+    from ceemx.datasets import data_root
 
     try:
         data_root()
     except FileNotFoundError as e:
-        pytest.skip(f"benchmark data absent: {e}")
-    args = ["experiment", "benchmarks", "--smoke", "--out", str(tmp_path)]
+        pytest.skip(f"real data absent: {e}")
+    args = ["experiment", "real_data", "--smoke", "--out", str(tmp_path)]
     assert cli.main(args) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
-    assert (tmp_path / "benchmarks.png").exists()
+    assert (tmp_path / "real_data.png").exists()
     assert {d["dataset"] for d in saved["datasets"]} == {
         "cascaded_tanks",
         "silverbox",
@@ -359,7 +359,7 @@ def test_benchmarks_smoke(tmp_path):
         assert set(d["learned"]) == {"hybrid", "neural"}
         assert d["learned"]["hybrid"]["weights"] > 0
     with pytest.raises(SystemExit):
-        cli.main(["experiment", "benchmarks", "--method", "particle"])
+        cli.main(["experiment", "real_data", "--method", "particle"])
 
 
 def test_table1_uses_a_known_two_row_C(monkeypatch, tmp_path):

@@ -41,7 +41,7 @@ import ceemx  # noqa: E402
 from ceemx import datasets  # noqa: E402
 from ceemx.experiments import benchmarks as bm  # noqa: E402
 from ceemx.models.constraints import param  # noqa: E402
-from ceemx.systems.benchmarks import _AbstractSISO, smooth_power, soft_min  # noqa: E402
+from ceemx.systems.gray_box import _AbstractSISO, smooth_power, soft_min  # noqa: E402
 
 
 def _scores(system, ds, guess) -> dict[str, float]:

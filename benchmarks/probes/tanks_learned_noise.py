@@ -24,7 +24,7 @@ import ceemx  # noqa: E402
 from ceemx import datasets  # noqa: E402
 from ceemx.identification.problem import trainable_mask  # noqa: E402
 from ceemx.models import with_noise  # noqa: E402
-from ceemx.systems.benchmarks import CascadedTanks  # noqa: E402
+from ceemx.systems.gray_box import CascadedTanks  # noqa: E402
 
 PARAMS = ("k1", "k2", "k3", "k4", "a1", "a2", "u0")
 ds = datasets.cascaded_tanks()

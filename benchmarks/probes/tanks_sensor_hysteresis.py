@@ -62,7 +62,7 @@ from ceemx import datasets  # noqa: E402
 from ceemx.experiments import benchmarks as bm  # noqa: E402
 from ceemx.identification.problem import trainable_mask  # noqa: E402
 from ceemx.models.constraints import param  # noqa: E402
-from ceemx.systems.benchmarks import CascadedTanks, soft_min  # noqa: E402
+from ceemx.systems.gray_box import CascadedTanks, soft_min  # noqa: E402
 
 JUMP = 0.3  # V in one sample
 BEFORE, AFTER = 30, 10

@@ -37,7 +37,7 @@ from ceemx import datasets  # noqa: E402
 from ceemx.experiments import benchmarks as bm  # noqa: E402
 from ceemx.identification.problem import trainable_mask  # noqa: E402
 from ceemx.models.constraints import param  # noqa: E402
-from ceemx.systems.benchmarks import _AbstractSISO, smooth_power, soft_min  # noqa: E402
+from ceemx.systems.gray_box import _AbstractSISO, smooth_power, soft_min  # noqa: E402
 
 A_HI = 2.0  # exponent upper bound of the wide class
 

@@ -9,10 +9,11 @@ Examples::
     ceemx experiment table1 --seeds 3,7        # exactly seeds 3 and 7
     ceemx experiment table1 --smoke            # seconds; what the tests run
     ceemx experiment figure2                   # CE-EM vs Particle EM, 10 seeds
-    ceemx experiment laplace                   # learned noise + 95 % coverage, 100 seeds
+    ceemx experiment calibration               # learned noise + 95 % coverage, 100 seeds
     ceemx experiment figure3 --method particle # Particle EM on six coupled Lorenz
     ceemx experiment figure4                   # helicopter-like study: naive, LSTM, H25, SID, NL
     ceemx experiment figure4 --dataset silverbox  # the same five models on a real record
+    ceemx experiment real_data --dataset silverbox  # gray-box, hybrid, linear on a real dataset
 
 ``--threads N`` (or ``CEEMX_THREADS=N``) runs JAX's CPU runtime on N CPUs: on a machine whose
 cores are busy with other work, ``--threads 1`` can be several times faster than the default of
@@ -231,7 +232,7 @@ def _add_experiment(sub, experiments: Sequence[str], methods: Sequence[str]):
     """The ``experiment`` command with the options every experiment takes; returns its parser."""
     exp = sub.add_parser(
         "experiment",
-        help="run an experiment (table1, figure2, figure3, figure4, benchmarks, laplace)",
+        help="run an experiment (table1, figure2, figure3, figure4, real_data, calibration)",
     )
     exp.add_argument("name", choices=experiments, help="which experiment")
     exp.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
@@ -288,8 +289,8 @@ def _add_experiment_options(exp) -> None:
         "--dataset",
         default=None,
         choices=("cascaded_tanks", "silverbox", "coupled_electric_drives"),
-        help="figure4: run the five models on windows of a real benchmark record; "
-        "benchmarks: only this dataset (default: all three)",
+        help="figure4: run the five models on windows of a real dataset's records; "
+        "real_data: only this dataset (default: all three)",
     )
 
 
@@ -424,14 +425,14 @@ def _experiment_kwargs(parser: argparse.ArgumentParser, args: argparse.Namespace
     if args.name == "figure4":
         kwargs["data"] = args.data
         kwargs["dataset"] = args.dataset
-    elif args.name == "benchmarks":
+    elif args.name == "real_data":
         if args.data is not None:
-            parser.error("--data applies to figure4 only (benchmarks read CEEMX_DATA)")
+            parser.error("--data applies to figure4 only (real_data reads CEEMX_DATA)")
         if args.method not in (None, "joint", "alternate"):
-            parser.error("benchmarks: --method must be joint or alternate")
+            parser.error("real_data: --method must be joint or alternate")
         kwargs["dataset"] = args.dataset
     elif args.data is not None or args.dataset is not None:
-        parser.error("--data applies to figure4 only, --dataset to figure4 and benchmarks")
+        parser.error("--data applies to figure4 only, --dataset to figure4 and real_data")
     return kwargs
 
 

@@ -1,9 +1,9 @@
-"""The benchmark files, downloaded once into a user cache, and checked.
+"""The real datasets' files: where they are looked for, downloaded once into a user cache, checked.
 
 On first use a loader (:func:`ceemx.datasets.cascaded_tanks`, ``silverbox``,
 ``coupled_electric_drives``) fetches the official archive with `pooch`_ (HTTP, retries, atomic
 writes), takes the data file out of it and checks the file's sha256 against the published one
-(the same digests that :data:`ceemx.datasets.BENCHMARKS` holds); later calls read the cached file.
+(:attr:`Source.sha256`, which the registry's entries hold); later calls read the cached file.
 
 =========================== ================================================ ===========
 name                        archive (host)                                   data file
@@ -43,16 +43,24 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
-__all__ = ["SOURCES", "DatasetUnavailable", "Source", "cache_dir", "fetch"]
+__all__ = [
+    "SOURCES",
+    "DatasetUnavailable",
+    "Source",
+    "cache_dir",
+    "data_file",
+    "data_root",
+    "fetch",
+]
 
 
 class DatasetUnavailable(FileNotFoundError):
-    """A benchmark file is neither on disk nor downloadable (offline, host moved)."""
+    """A dataset's file is neither on disk nor downloadable (offline, host moved)."""
 
 
 @dataclass(frozen=True)
 class Source:
-    """Where a benchmark's official file comes from.
+    """Where a dataset's official file comes from.
 
     Attributes:
         url: the archive's address.
@@ -158,7 +166,7 @@ def fetch(
     url: str | None = None,
     progress: bool = False,
 ) -> Path:
-    """The benchmark's data file in the cache, downloaded and checked on first use.
+    """The dataset's data file in the cache, downloaded and checked on first use.
 
     Args:
         name: a key of :data:`SOURCES`.
@@ -175,7 +183,7 @@ def fetch(
         DatasetUnavailable: the archive could not be downloaded (offline, the host moved).
     """
     if name not in SOURCES:
-        raise ValueError(f"unknown benchmark {name!r}; choose from {', '.join(SOURCES)}.")
+        raise ValueError(f"unknown dataset {name!r}; choose from {', '.join(SOURCES)}.")
     src = SOURCES[name]
     folder = cache_dir(cache)
     target = folder / src.file
@@ -200,7 +208,7 @@ def fetch(
         )
     except Exception as e:  # offline, refused, moved: one sentence says what to do
         raise DatasetUnavailable(
-            f"Could not download the {name} benchmark ({src.archive}) from {url} "
+            f"Could not download the {name} dataset ({src.archive}) from {url} "
             f"({type(e).__name__}: {e}); download it by hand and put its {src.member} at "
             f"{target} (or under a folder named by the CEEMX_DATA environment variable, as "
             f"{src.file})."
@@ -224,3 +232,94 @@ def fetch(
             "another version."
         )
     return target
+
+
+def _checkout_folders() -> list[Path]:
+    """``../shared/data`` of a development checkout: from the working directory and the repo."""
+    repo = Path(__file__).resolve().parents[3]
+    return [Path.cwd() / ".." / "shared" / "data", repo / ".." / "shared" / "data"]
+
+
+def data_root(root: str | os.PathLike | None = None) -> Path:
+    """The folder holding the datasets' files.
+
+    Args:
+        root: a folder to use; ``None`` tries ``$CEEMX_DATA``, then ``../shared/data`` relative to
+            the working directory and to the repository.
+
+    Returns:
+        The first candidate folder that exists, resolved.
+
+    Raises:
+        FileNotFoundError: naming every folder tried.
+    """
+    env = os.environ.get("CEEMX_DATA")
+    tried = [Path(root)] if root is not None else [Path(env)] if env else _checkout_folders()
+    for p in tried:
+        if p.is_dir():
+            return p.resolve()
+    raise FileNotFoundError(
+        "data folder not found; tried "
+        + ", ".join(str(p) for p in tried)
+        + ". Pass `root=` or set CEEMX_DATA to a folder holding cascaded_tanks/, silverbox/ and "
+        "coupled_electric_drives/ with the official files."
+    )
+
+
+def data_file(
+    name: str,
+    root: str | os.PathLike | None = None,
+    *,
+    cache: str | os.PathLike | None = None,
+    download: bool = True,
+) -> Path:
+    """Where a dataset's official file is, downloading it into the cache on first use.
+
+    Looked for in ``root``, else ``$CEEMX_DATA`` (either one given: the file must be there),
+    else the cache (:func:`cache_dir`), else ``../shared/data`` of a development checkout; else
+    downloaded into the cache and checked (:func:`fetch`).
+
+    Args:
+        name: ``"cascaded_tanks"``, ``"silverbox"`` or ``"coupled_electric_drives"``.
+        root: the data folder (see :func:`data_root`).
+        cache: the download cache (``None``: ``$CEEMX_DATA_CACHE`` or the platform's cache).
+        download: allow the download (``False``: only files already on disk).
+
+    Returns:
+        The file's path (its sha256 is checked by the loaders, and after a download).
+
+    Raises:
+        ValueError: for an unknown name.
+        FileNotFoundError: the file is not under ``root`` / ``$CEEMX_DATA``; or
+            :class:`DatasetUnavailable` (a ``FileNotFoundError``) when it is nowhere on disk and
+            cannot be downloaded — one sentence saying where to put it.
+    """
+    if name not in SOURCES:
+        raise ValueError(f"unknown dataset {name!r}; choose from {', '.join(SOURCES)}.")
+    file = SOURCES[name].file
+    if root is not None or os.environ.get("CEEMX_DATA"):
+        try:
+            path = data_root(root) / file
+        except FileNotFoundError as e:
+            raise FileNotFoundError(f"{name}: cannot look for {file}: {e}") from None
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"missing data file {path}: the {name} dataset needs the official {file} under "
+                f"the data folder. Pass `root=` (the folder holding {file.split('/')[0]}/) or "
+                "set the CEEMX_DATA environment variable to it; with neither, the loaders "
+                "download it into a user cache."
+            )
+        return path
+    cached = cache_dir(cache) / file
+    if cached.is_file():
+        return cached
+    for folder in _checkout_folders():
+        if (folder / file).is_file():
+            return (folder / file).resolve()
+    if not download:
+        raise DatasetUnavailable(
+            f"the {name} data file is not on disk (looked for {cached}) and download=False: "
+            "allow the download, or put the official file there or under a folder named by "
+            f"CEEMX_DATA (as {file})."
+        )
+    return fetch(name, cache=cache)

@@ -1,4 +1,4 @@
-"""A documented helicopter-like benchmark: a rigid body whose forces depend on hidden wake states.
+"""A documented helicopter-like dataset: a rigid body whose forces depend on hidden wake states.
 
 The Stanford helicopter dataset used in §4.2 of the paper cannot be downloaded here, so this module
 generates a stand-in with the same interface and the same difficulty in kind: the measured state
@@ -297,7 +297,7 @@ def helicopter_like(
     steps: int = 500,
     dt: float = 0.02,
 ) -> HelicopterData:
-    """The helicopter-like benchmark: 10 s trajectories split as in the paper (466/101/100).
+    """The helicopter-like dataset: 10 s trajectories split as in the paper (466/101/100).
 
     Flights of ``4 * steps`` samples are simulated (:func:`simulate_flights`), cut into
     trajectories of ``steps`` samples, shuffled and split; ``u`` and ``y`` are normalised with the

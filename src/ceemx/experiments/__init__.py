@@ -4,10 +4,10 @@
 - :mod:`~ceemx.experiments.figure2` — Figure 2: CE-EM against Particle EM (§4.1.2).
 - :mod:`~ceemx.experiments.figure3` — Figure 3: convergence on six coupled Lorenz (§4.1.3).
 - :mod:`~ceemx.experiments.figure4` — Figure 4: one-step prediction with hidden states, five
-  models (§4.2), on the helicopter-like generator, the paper's dataset or real benchmarks.
-- :mod:`~ceemx.experiments.benchmarks` — beyond the paper: gray-box CE-EM on three real
-  benchmarks (cascaded tanks, Silverbox, coupled drives), scored by the official protocol.
-- :mod:`~ceemx.experiments.laplace` — beyond the paper: Laplace EM learning the noise on the
+  models (§4.2), on the helicopter-like generator, the paper's dataset or a real dataset.
+- :mod:`~ceemx.experiments.real_data` — beyond the paper: gray-box CE-EM on the three real
+  datasets (cascaded tanks, Silverbox, coupled drives), scored by the official protocol.
+- :mod:`~ceemx.experiments.calibration` — beyond the paper: Laplace EM learning the noise on the
   Figure-2 setting, and the coverage of its (and CE-EM's) 95 % intervals over 100 seeds.
 - :mod:`~ceemx.experiments.demo` — the README demo.
 
@@ -18,7 +18,7 @@ command line with ``ceemx experiment NAME [--smoke]`` or ``ceemx demo``.
 
 from importlib import import_module
 
-EXPERIMENTS = ("table1", "figure2", "figure3", "figure4", "benchmarks", "laplace")
+EXPERIMENTS = ("table1", "figure2", "figure3", "figure4", "real_data", "calibration")
 #: The identification methods of ``--method`` (:func:`ceemx.experiments.common.make_solver`).
 METHODS = ("joint", "alternate", "particle", "laplace")
 

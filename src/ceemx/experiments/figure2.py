@@ -287,28 +287,12 @@ def run(
         memory=memory,
     )
     outdir = report.output_dir(out, "results/figure2")
-    true = common.true_lorenz(
-        1, key=jax.random.PRNGKey(4), m=2, process_noise=SIGMA_W, obs_noise=SIGMA_V
-    )
+    budget = dict(B=B, T=T, ce_epochs=ce_epochs, pem_epochs=pem_epochs, pem_options=pem_options)
     t0 = time.perf_counter()
-    runs = [
-        run_one(
-            true,
-            seed,
-            B=B,
-            T=T,
-            ce_epochs=ce_epochs,
-            pem_epochs=pem_epochs,
-            pem_options=pem_options,
-            verbose=verbose,
-        )
-        for seed in seeds
-    ]
+    runs = _run_seeds(seeds, budget, verbose=verbose)
     total = time.perf_counter() - t0
-    ce_check = min(5, ce_epochs)
-    pem_check = pem_epochs
     note = _note(B=B, T=T, n_seeds=len(seeds), pem_options=pem_options, total=total)
-    table = make_table(runs, note, ce_check, pem_check)
+    table = make_table(runs, note, min(5, ce_epochs), pem_epochs)
     summary = {
         "experiment": NAME,
         "seeds": seeds,
@@ -324,9 +308,23 @@ def run(
         "paper": PAPER,
         "table": table,
     }
-    report.save_json(outdir / "results.json", summary)
-    report.save_text(outdir / "table.md", table)
-    plot(runs, outdir / "figure2.png", "Single Lorenz: CE-EM vs Particle EM (σ, ρ, β per epoch)")
-    if verbose:
-        print(table)
+    _save(outdir, summary, verbose=verbose)
     return summary
+
+
+def _run_seeds(seeds, budget: dict, *, verbose: bool) -> list[dict]:
+    """Both methods on every seed (:func:`run_one`), on the Figure-2 Lorenz system."""
+    true = common.true_lorenz(
+        1, key=jax.random.PRNGKey(4), m=2, process_noise=SIGMA_W, obs_noise=SIGMA_V
+    )
+    return [run_one(true, seed, **budget, verbose=verbose) for seed in seeds]
+
+
+def _save(outdir, summary: dict, *, verbose: bool) -> None:
+    """``results.json``, ``table.md`` and ``figure2.png``; the table printed when verbose."""
+    report.save_json(outdir / "results.json", summary)
+    report.save_text(outdir / "table.md", summary["table"])
+    title = "Single Lorenz: CE-EM vs Particle EM (σ, ρ, β per epoch)"
+    plot(summary["runs"], outdir / "figure2.png", title)
+    if verbose:
+        print(summary["table"])

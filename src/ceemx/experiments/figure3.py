@@ -30,6 +30,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -384,25 +385,10 @@ def run(
 
     """
     common.enable_x64()
-    if weighting == "both":
-        return _run_weightings(
-            out,
-            smoke=smoke,
-            seeds=seeds,
-            method=method,
-            learner=learner,
-            max_epochs=max_epochs,
-            batch_sizes=batch_sizes,
-            K=K,
-            T=T,
-            rtol=rtol,
-            verbose=verbose,
-        )
-    c = configure(
+    options: dict[str, Any] = dict(
         smoke=smoke,
         seeds=seeds,
         method=method,
-        weighting=weighting,
         learner=learner,
         max_epochs=max_epochs,
         batch_sizes=batch_sizes,
@@ -410,6 +396,9 @@ def run(
         T=T,
         rtol=rtol,
     )
+    if weighting == "both":
+        return _run_weightings(out, **options, verbose=verbose)
+    c = configure(**options, weighting=weighting)
     outdir = report.output_dir(out, "results/figure3")
     true = common.true_lorenz(c.K, key=jax.random.PRNGKey(4), obs_noise=SIGMA_V)
     t_start = time.perf_counter()
@@ -417,10 +406,15 @@ def run(
     total = time.perf_counter() - t_start
     table = make_table(runs, _note(c, total))
     summary = _summary(c, runs, total=total, table=table)
-    report.save_json(outdir / "results.json", summary)
-    report.save_text(outdir / "table.md", table)
-    title = f"{c.K} coupled Lorenz: ε(θ) per epoch ({c.method}, {c.weighting})"
-    plot(runs, outdir / "figure3.png", title)
-    if verbose:
-        print(table)
+    _save(outdir, c, summary, verbose=verbose)
     return summary
+
+
+def _save(outdir, c: Config, summary: dict, *, verbose: bool) -> None:
+    """``results.json``, ``table.md`` and ``figure3.png``; the table printed when verbose."""
+    report.save_json(outdir / "results.json", summary)
+    report.save_text(outdir / "table.md", summary["table"])
+    title = f"{c.K} coupled Lorenz: ε(θ) per epoch ({c.method}, {c.weighting})"
+    plot(summary["runs"], outdir / "figure3.png", title)
+    if verbose:
+        print(summary["table"])

@@ -1,6 +1,10 @@
-"""Built-in systems."""
+"""Built-in systems.
 
-from ceemx.systems.benchmarks import CascadedTanks, CoupledDrives, Silverbox
+The paper's coupled Lorenz attractors, a linear system, a neural observation model, and the
+gray-box models of the three real datasets (:mod:`ceemx.systems.gray_box`).
+"""
+
+from ceemx.systems.gray_box import CascadedTanks, CoupledDrives, Silverbox
 from ceemx.systems.linear import LinearSystem
 from ceemx.systems.lorenz import (
     CoupledLorenz,

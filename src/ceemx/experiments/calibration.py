@@ -1,4 +1,4 @@
-"""Beyond certainty equivalence (issue 9): learned noise and calibrated uncertainty by Laplace EM.
+"""Beyond certainty equivalence: learned noise and calibrated uncertainty by Laplace EM.
 
 Setting: the paper's Figure 2 (§4.1.2) — one Lorenz attractor observed through a known
 C ∈ R^{2×3}, σ_w = 0.1, σ_v = 0.5, B = 4 trajectories of T = 128 steps, the initial guess
@@ -32,7 +32,7 @@ from ceemx.evaluation import report
 from ceemx.experiments import common
 from ceemx.models import with_noise
 
-NAME = "laplace"
+NAME = "calibration"
 SIGMA_W, SIGMA_V = 0.1, 0.5
 START_W, START_V = 0.3, 1.0
 FIRST_SEED = 43
@@ -201,12 +201,12 @@ def run(
     noise_seeds: int = 10,
     verbose: bool = True,
 ) -> dict:
-    """Run the study and write ``results.json``, ``table.md`` and ``laplace.png``.
+    """Run the study and write ``results.json``, ``table.md`` and ``calibration.png``.
 
     Args:
         smoke: a tiny run (2 seeds, T = 32, 5 epochs) for the tests.
         seeds: N (the first N of 43, 44, …; default 100) or a list / ``--seeds`` string.
-        out: output folder (default ``./results/laplace``).
+        out: output folder (default ``./results/calibration``).
         method: unused (both methods run); accepted for the command line's uniformity.
         max_epochs: epoch bound per fit (default 300; smoke 5).
         noise_seeds: how many of the first seeds the noise-recovery table lists (default 10).
@@ -217,7 +217,7 @@ def run(
     seeds = common.seed_list(seeds, first=FIRST_SEED, default=2 if smoke else 100)
     B, T = (2, 32) if smoke else (4, 128)
     max_epochs = (5 if smoke else 300) if max_epochs is None else max_epochs
-    outdir = report.output_dir(out, "results/laplace")
+    outdir = report.output_dir(out, f"results/{NAME}")
     true = common.true_lorenz(
         1, key=jax.random.PRNGKey(4), m=2, process_noise=SIGMA_W, obs_noise=SIGMA_V
     )
@@ -267,7 +267,7 @@ def run(
     }
     report.save_json(outdir / "results.json", summary)
     report.save_text(outdir / "table.md", table)
-    plot(runs, outdir / "laplace.png")
+    plot(runs, outdir / f"{NAME}.png")
     if verbose:
         print(table)
     return summary

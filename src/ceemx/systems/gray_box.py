@@ -1,7 +1,7 @@
-"""Gray-box continuous-time models of the three real benchmarks (:mod:`ceemx.datasets`).
+"""Gray-box continuous-time models of the three real datasets (:mod:`ceemx.datasets`).
 
 Each model is a :class:`~ceemx.AbstractContinuousSystem` integrated by RK4 over one sampling
-period ``dt`` of its benchmark (zero-order hold: the benchmarks' inputs come from DACs), with its
+period ``dt`` of its dataset (zero-order hold: the datasets' inputs come from DACs), with its
 physical parameters declared with :func:`ceemx.param` constraints so that :func:`ceemx.fit`
 learns them in unconstrained coordinates. Non-smooth physics (square roots at an empty tank,
 overflow, sensor saturation, a rectifying sensor) is replaced by smooth surrogates, so that
@@ -11,7 +11,8 @@ Gauss–Newton/Levenberg–Marquardt and ``jax.grad`` see finite derivatives eve
 - :func:`smooth_abs`: √(x² + ε);
 - :func:`soft_min`: b − softplus_β(b − x) (a saturation at b, exact far below it).
 
-Each class has a ``default(...)`` classmethod with a physical initial guess for its benchmark.
+Each class has a ``default(...)`` classmethod with a physical initial guess for its dataset; the
+dataset registry (:data:`ceemx.datasets.REGISTRY`) names each dataset's model.
 """
 
 from __future__ import annotations
@@ -83,7 +84,7 @@ def _as_param(value, dtype: DTypeLike):
 
 
 class _AbstractSISO(AbstractContinuousSystem):
-    """A benchmark model with one input and one measured output (p = m = 1)."""
+    """A gray-box model with one input and one measured output (p = m = 1)."""
 
     @property
     def obs_dim(self) -> int:
@@ -117,15 +118,15 @@ class CascadedTanks(_AbstractSISO):
     overflows); the fraction φ ∈ (0, 1) of it falls into the lower tank, the rest is lost. When
     the lower level reaches its rim (h₂, in sensor volts: where the sensor would read h₂) its
     inflow is lost too, so the level itself saturates and drains as soon as the inflow drops —
-    the benchmark's hard nonlinearity is the lower tank overflowing, not only the sensor
+    the dataset's hard nonlinearity is the lower tank overflowing, not only the sensor
     saturating: without σ₂ a fitted x₂ climbs above the rim while y is clipped at 10 V and must
     drain back before y leaves 10 V (the fit compensated with a hidden upper level of −3.4 V and a
     +3.1 V sensor offset; test RMSE 0.325 V, docs/results.md). The sensor saturates smoothly at
     ``y_max`` = 10 V (:func:`soft_min`); c is a learned sensor offset (the level read at an empty
     tank). The sharpnesses β₁, β₂ (1/V) of the overflow gates and β_y of the saturation are fixed.
 
-    Fitted by ``ceemx experiment benchmarks`` (process noise 0.001 V, chosen on the held-out tail
-    of the training record) it scores 0.243 V on the benchmark's test record, the hidden upper
+    Fitted by ``ceemx experiment real_data`` (process noise 0.001 V, chosen on the held-out tail
+    of the training record) it scores 0.243 V on the dataset's test record, the hidden upper
     level in [5.4, 13.5] V over the free run; without σ₂ and the dead zone (σ_w = 0.05 V) 0.325 V,
     the level at −3.4 V. The published gray-box (Rogers et al. 2017) reaches 0.18 V
     (docs/results.md).
@@ -192,7 +193,7 @@ class CascadedTanks(_AbstractSISO):
 
     @classmethod
     def default(cls, dt: float = 4.0, *, dtype: DTypeLike = float, **kwargs: Any) -> CascadedTanks:
-        """A physical initial guess for the benchmark (levels 0–10 V, pump 0–10 V, Ts = 4 s).
+        """A physical initial guess for the dataset (levels 0–10 V, pump 0–10 V, Ts = 4 s).
 
         Steady state x₁ = (k₄u/k₁)², x₂ = (k₂/k₁)²·x₁ ≈ 6 V at u = 5 V; linearised time
         constants ≈ 2√x/k ≈ 100 s. RK4 with 2 substeps of 2 s. ``kwargs`` override any field
@@ -286,7 +287,7 @@ class CoupledDrives(_AbstractSISO):
     r"""Coupled electric drives: a belt-driven pulley seen by a rectifying speed sensor.
 
     Two motors drive a pulley through a belt; the pulse counter measuring its speed is
-    sign-insensitive (Wigren & Schoukens). The two benchmark sets share one input signal, the
+    sign-insensitive (Wigren & Schoukens). The two data sets share one input signal, the
     second offset by +0.5.
 
     A Wiener model: third-order linear dynamics — a first-order motor/pulley lag (rate a) of the
@@ -300,7 +301,7 @@ class CoupledDrives(_AbstractSISO):
         \dot m = a\,(g\,(u - u_0) - m), \quad \dot v = ω w, \quad
         \dot w = ω\,(m - v - 2ζ w), \quad y = y_0 + (v^2 + ε)^{p/2}.
 
-    Fitted to both sets' training records (CE-EM, ``ceemx experiment benchmarks``), the data
+    Fitted to both sets' training records (CE-EM, ``ceemx experiment real_data``), the data
     choose f₀ ≈ 3.7 Hz, ζ ≈ 0.14, u₀ ≈ 0.15, y₀ < 0 and p > 1 (see ``docs/results.md``); from
     the old guess f₀ = 1 Hz the fit stopped in an overdamped minimum (ζ ≈ 1.1).
 
@@ -352,7 +353,7 @@ class CoupledDrives(_AbstractSISO):
     def default(cls, dt: float = 0.02, *, dtype: DTypeLike = float, **kwargs: Any) -> CoupledDrives:
         """A physical initial guess: a = 2 /s, f₀ = 3.5 Hz, ζ = 0.15, g = 1, p = 1, no offsets.
 
-        A lightly damped belt (the benchmark's description); RK4 with 2 substeps.
+        A lightly damped belt (the dataset's description); RK4 with 2 substeps.
 
         ``kwargs`` override any field (e.g. ``process_noise``, ``obs_noise``, ``substeps``).
         """

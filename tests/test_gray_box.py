@@ -1,4 +1,4 @@
-"""The gray-box benchmark systems: construction, shapes, constraints, smoothness, identification."""
+"""The gray-box models of the real datasets: construction, shapes, constraints, smoothness, fits."""
 
 from typing import Any
 
@@ -9,7 +9,7 @@ import pytest
 
 import ceemx
 from ceemx.systems import CascadedTanks, CoupledDrives, Silverbox
-from ceemx.systems.benchmarks import smooth_abs, smooth_sqrt, soft_min
+from ceemx.systems.gray_box import smooth_abs, smooth_sqrt, soft_min
 
 jax.config.update("jax_enable_x64", True)
 
