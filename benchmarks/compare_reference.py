@@ -1,4 +1,4 @@
-"""ceemx against the authors' code (`ceem` 0.0.4) on identical problems, side by side (issue 12).
+"""ceemx against the authors' code (`ceem` 0.0.4) on identical problems, side by side.
 
 Single-Lorenz identification end to end on the paper's Figure-2 setting (σ_w = 0.1, σ_v = 0.5,
 B = 4, T = 128, dt = 0.04, explicit-midpoint integration as the authors' Lorenz class, x₁ ~
@@ -21,11 +21,10 @@ machine is shared. Results: ``benchmarks/results/compare_reference.json``.
     python benchmarks/compare_reference.py             # 5 seeds × 3 repetitions
     python benchmarks/compare_reference.py --smoke     # seconds; skips the reference if absent
 
-Backs: ``README.md`` (results table, "2.02 s per fit (23–30 epochs)" against "joint 0.043 s once
-compiled (47×); first fit in a fresh process 7.2 s (compile), 2.5 s with the persistent cache
-warm") and ``benchmarks/README.md`` ("ceemx vs the authors' code"). The warm-cache figures:
-``--cache DIR --out benchmarks/results/compare_reference_warm_cache.json``, run twice (the
-first run fills the cache).
+``--cache DIR``: ceemx's persistent compilation cache in DIR; run twice (the first run fills it)
+for the warm-cache first fit, written to ``benchmarks/results/compare_reference_warm_cache.json``.
+
+Backs: ``benchmarks/README.md`` (the single-Lorenz rows against the authors' code), ``README.md``.
 """
 
 from __future__ import annotations
@@ -45,6 +44,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 REF_PYTHON = HERE / "reference" / ".venv" / "bin" / "python"
 REF_DRIVER = HERE / "reference" / "run_reference.py"
 RESULTS = HERE / "results" / "compare_reference.json"
+RESULTS_WARM = HERE / "results" / "compare_reference_warm_cache.json"
 SIGMA_W, SIGMA_V = 0.1, 0.5
 X1_STD = 5.0**0.5  # the authors' Px0 = 5 I
 
@@ -237,7 +237,7 @@ def main() -> None:
     ap.add_argument("--smoke", action="store_true")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--out", default=None, help="JSON (default by --cache: see above)")
     ap.add_argument(
         "--cache",
         default=None,
@@ -312,7 +312,7 @@ def main() -> None:
         "summary": summary,
         "runs": runs,
     }
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(args.out or (RESULTS_WARM if args.cache else RESULTS))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
     print(json.dumps(summary, indent=1))

@@ -7,9 +7,8 @@ started at the truth + N(0, 1) (as the authors' script), the same start for both
 
 - the reference (``benchmarks/reference/run_reference_figure3.py``): smoothing by SciPy
   least squares in 4 joblib workers, PyTorch L-BFGS learning of (σ, ρ, β, H);
-- ceemx ``Alternating`` (Algorithm 1 with its default learner: ``LMLearner(max_accepted=1)``, a
-  GEM M-step, since issue 23; the exact ``LMLearner()`` before) and ``JointLM``, the paper's
-  weighting.
+- ceemx ``Alternating`` (Algorithm 1 with its defaults: the GEM M-step
+  ``LMLearner(max_accepted=1)`` and the partial E-step) and ``JointLM``, the paper's weighting.
 
 ε(θ) is computed here for both the same way (the authors' formula): the mean over 1024 states
 ~ N((−6, −6, 24), 5²) per attractor and the n components of the squared difference of the
@@ -29,13 +28,11 @@ there: a reference run takes up to the budget).
 
 ``--before-src``: ceemx from that source tree runs too, right after the current one in each
 repetition (``alternate_before``, ``joint_before``): before/after in the same run. Each repetition
-is written as it ends to ``compare_reference_figure3.partial.json`` (time and ε per epoch).
+is written as it ends to ``*.partial.json`` beside ``--out`` (time and ε per epoch), removed
+once the run finishes.
     python benchmarks/compare_reference_figure3.py --time-to-eps [--budget 600] [--reps 1]
 
-Backs: ``README.md`` (results table, time to ε ≤ 0.01: "451 s (110 epochs of 4.06 s)" against
-"joint 6.3 s including compile (72×); Algorithm 1 31 s (14.6×)", ``--time-to-eps``) and
-``benchmarks/README.md`` ("Figure-3 problem vs the authors' code": "1.03 s (**4.5×**)" per
-epoch).
+Backs: ``benchmarks/README.md`` (the Figure-3 rows against the authors' code), ``README.md``.
 """
 
 from __future__ import annotations
@@ -400,6 +397,7 @@ def main() -> None:
     out = pathlib.Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
+    out.with_suffix(".partial.json").unlink(missing_ok=True)  # the whole run is in ``out`` now
     print(json.dumps(summary, indent=1))
 
 
