@@ -8,9 +8,7 @@ preconditioner and tolerance. Reports the relative error against a dense solve a
 steady-state time of 5 calls each (compile apart), alternating the two. Then an indefinite S
 (an SPD A with a D too small): ours must flag non-positive curvature; lineax has no such flag.
 
-Backs: ``docs/design.md`` ("Matrix-free CG on the Schur complement stays our own 30-line PCG
-rather than ``lineax.CG``": "same accuracy; lineax returns a finite wrong answer on an
-indefinite S").
+Backs: ``docs/decisions.md`` (our own PCG rather than ``lineax.CG``).
 """
 
 from __future__ import annotations

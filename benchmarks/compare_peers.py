@@ -1,6 +1,6 @@
 """State estimation at known θ: ceemx's MAP smoother against two extended Kalman smoothers.
 
-Problem (issue 12): the single-Lorenz Figure-2 system (σ_w = 0.1, σ_v = 0.5, known C ∈ R^{2×3},
+Problem: the single-Lorenz Figure-2 system (σ_w = 0.1, σ_v = 0.5, known C ∈ R^{2×3},
 RK4, dt = 0.04), B = 16 trajectories of T = 128 steps drawn by ceemx, θ at the truth. All run
 in one process on one JAX (the peers' environment, ``benchmarks/peers/setup.sh``), all
 ``jit``-compiled and ``vmap``-ped over the trajectories:
@@ -24,9 +24,7 @@ Parameter estimation against the peers is ``compare_peers_sysid.py``.
     bash benchmarks/peers/setup.sh
     benchmarks/peers/.venv/bin/python benchmarks/compare_peers.py [--smoke] [--out FILE]
 
-Backs: ``README.md`` (results table, "EKS 3.4 ms (dynamax), 6.1 ms (cuthbert)" against "23 ms (9
-LM iterations of ≈ 0.7 EKS each), equal RMSE") and ``benchmarks/README.md`` ("State estimation
-at known θ vs dynamax and cuthbert").
+Backs: ``benchmarks/README.md`` (the smoother against dynamax and cuthbert), ``README.md``.
 """
 
 from __future__ import annotations
@@ -45,11 +43,7 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx.experiments import common  # noqa: E402
-
-try:
-    from ceemx.identification.initialize import from_observations
-except ImportError:  # a tree before the package folders (b271a33), for probes/ab_first_call.py
-    from ceemx.identification.initialize import from_observations
+from ceemx.identification.initialize import from_observations  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results" / "compare_peers.json"
 

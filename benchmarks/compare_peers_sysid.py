@@ -35,9 +35,8 @@ recorded under ``"absent"``. Results: ``benchmarks/results/compare_peers_sysid.j
 
 (``--smoke``: one setting, one seed, one repetition.)
 
-Backs: ``README.md`` (results table, "EKF ML 117 ms per fit (14/15 within 1 %); jax-sysid 3.6 s
-(10/15)" against "joint 67 ms per fit (13/15 within 1 %; ...)") and ``benchmarks/README.md``
-("Parameter estimation vs EKF-likelihood L-BFGS and jax-sysid").
+Backs: ``benchmarks/README.md`` (parameter estimation against EKF-likelihood L-BFGS and
+jax-sysid), ``README.md``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""ceemx against the authors' code (`ceem` 0.0.4) on identical problems, side by side (issue 12).
+"""ceemx against the authors' code (`ceem` 0.0.4) on identical problems, side by side.
 
 Single-Lorenz identification end to end on the paper's Figure-2 setting (σ_w = 0.1, σ_v = 0.5,
 B = 4, T = 128, dt = 0.04, explicit-midpoint integration as the authors' Lorenz class, x₁ ~
@@ -21,11 +21,18 @@ machine is shared. Results: ``benchmarks/results/compare_reference.json``.
     python benchmarks/compare_reference.py             # 5 seeds × 3 repetitions
     python benchmarks/compare_reference.py --smoke     # seconds; skips the reference if absent
 
-Backs: ``README.md`` (results table, "2.02 s per fit (23–30 epochs)" against "joint 0.043 s once
-compiled (47×); first fit in a fresh process 7.2 s (compile), 2.5 s with the persistent cache
-warm") and ``benchmarks/README.md`` ("ceemx vs the authors' code"). The warm-cache figures:
-``--cache DIR --out benchmarks/results/compare_reference_warm_cache.json``, run twice (the
-first run fills the cache).
+``--cache DIR``: ceemx's persistent compilation cache in DIR; run twice (the first run fills it)
+for the warm-cache first fit, written to ``benchmarks/results/compare_reference_warm_cache.json``.
+
+``authors-protocol``: Table 1's seed 0 (σ_w = 0.001, σ_v = 0.01, the paper's weighting) fitted by
+ceemx's Algorithm 1 with the authors' protocol one ingredient at a time — integrator, x₁ spread,
+learner (LM, Nelder–Mead, Nelder–Mead at 1e-12), ρ_θ, ρ_x — from warm-started states; each line
+prints epochs, σ, ρ, β and the final J (no reference needed)::
+
+    python benchmarks/compare_reference.py authors-protocol
+
+Backs: ``benchmarks/README.md`` (the single-Lorenz rows against the authors' code), ``README.md``,
+``docs/results.md`` (Table 1 under the authors' protocol).
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 REF_PYTHON = HERE / "reference" / ".venv" / "bin" / "python"
 REF_DRIVER = HERE / "reference" / "run_reference.py"
 RESULTS = HERE / "results" / "compare_reference.json"
+RESULTS_WARM = HERE / "results" / "compare_reference_warm_cache.json"
 SIGMA_W, SIGMA_V = 0.1, 0.5
 X1_STD = 5.0**0.5  # the authors' Px0 = 5 I
 
@@ -232,12 +240,67 @@ def summarise(runs: list[dict], seeds) -> dict:
     return out
 
 
+def authors_protocol() -> None:
+    """``authors-protocol``: Table 1, seed 0, one ingredient of the authors' protocol at a time."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import ceemx
+    from ceemx.experiments import common, table1
+    from ceemx.identification.initialize import warm_start
+    from ceemx.models import with_noise
+
+    def run(integrator, x1_std, learner, rho_theta, rho_x, seed=0):
+        true = common.true_lorenz(
+            1, key=jax.random.PRNGKey(4), m=2, coupling=False, integrator=integrator
+        )
+        p = common.lorenz_problem(
+            seed, true, B=1, T=128, sigma_w=0.001, sigma_v=0.01, coupling=False, x1_std=x1_std
+        )
+        s = with_noise(p.init_system, *table1.fit_noise("paper", 0.001, 0.01))
+        solver = ceemx.Alternating(
+            smoother=ceemx.LMSmoother(rho_x=rho_x),
+            learner=learner,
+            rho_theta=rho_theta,
+            rtol=1e-10,
+        )
+        res = ceemx.fit(
+            s,
+            p.data,
+            warm_start(s, p.data),
+            solver=solver,
+            trainable=common.LORENZ_PARAMS,
+            max_epochs=200,
+            progress=False,
+        )
+        t = res.system
+        return (
+            res.epochs,
+            round(float(t.sigma[0]), 4),
+            round(float(t.rho[0]), 4),
+            round(float(t.beta[0]), 4),
+            round(res.history[-1]["J"], 3),
+        )
+
+    LM, NM = ceemx.LMLearner(), ceemx.NelderMeadLearner()
+    NM_TIGHT = ceemx.NelderMeadLearner(rtol=1e-12, atol=1e-12)
+    print("rk4, 2.5, LM, 0, 0        ", run("rk4", 2.5, LM, 0.0, 0.0))
+    print("midpoint, 2.5, LM, 0, 0   ", run("midpoint", 2.5, LM, 0.0, 0.0))
+    print("rk4, 5, LM, 0, 0          ", run("rk4", 5.0, LM, 0.0, 0.0))
+    print("rk4, 2.5, NM, 0, 0        ", run("rk4", 2.5, NM, 0.0, 0.0))
+    print("rk4, 2.5, LM, 0.01, 0.001 ", run("rk4", 2.5, LM, 0.01, 0.001))
+    print("rk4, 2.5, NM 1e-12, 0.01  ", run("rk4", 2.5, NM_TIGHT, 0.01, 0.001))
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["authors-protocol"]:
+        authors_protocol()
+        return
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--smoke", action="store_true")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--out", default=None, help="JSON (default by --cache: see above)")
     ap.add_argument(
         "--cache",
         default=None,
@@ -312,7 +375,7 @@ def main() -> None:
         "summary": summary,
         "runs": runs,
     }
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(args.out or (RESULTS_WARM if args.cache else RESULTS))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
     print(json.dumps(summary, indent=1))

@@ -7,9 +7,8 @@ started at the truth + N(0, 1) (as the authors' script), the same start for both
 
 - the reference (``benchmarks/reference/run_reference_figure3.py``): smoothing by SciPy
   least squares in 4 joblib workers, PyTorch L-BFGS learning of (σ, ρ, β, H);
-- ceemx ``Alternating`` (Algorithm 1 with its default learner: ``LMLearner(max_accepted=1)``, a
-  GEM M-step, since issue 23; the exact ``LMLearner()`` before) and ``JointLM``, the paper's
-  weighting.
+- ceemx ``Alternating`` (Algorithm 1 with its defaults: the GEM M-step
+  ``LMLearner(max_accepted=1)`` and the partial E-step) and ``JointLM``, the paper's weighting.
 
 ε(θ) is computed here for both the same way (the authors' formula): the mean over 1024 states
 ~ N((−6, −6, 24), 5²) per attractor and the n components of the squared difference of the
@@ -29,13 +28,28 @@ there: a reference run takes up to the budget).
 
 ``--before-src``: ceemx from that source tree runs too, right after the current one in each
 repetition (``alternate_before``, ``joint_before``): before/after in the same run. Each repetition
-is written as it ends to ``compare_reference_figure3.partial.json`` (time and ε per epoch).
+is written as it ends to ``*.partial.json`` beside ``--out`` (time and ε per epoch), removed
+once the run finishes.
     python benchmarks/compare_reference_figure3.py --time-to-eps [--budget 600] [--reps 1]
 
-Backs: ``README.md`` (results table, time to ε ≤ 0.01: "451 s (110 epochs of 4.06 s)" against
-"joint 6.3 s including compile (72×); Algorithm 1 31 s (14.6×)", ``--time-to-eps``) and
-``benchmarks/README.md`` ("Figure-3 problem vs the authors' code": "1.03 s (**4.5×**)" per
-epoch).
+Two profiles of ceemx's Algorithm-1 epoch on the same problem (no reference needed):
+
+    python benchmarks/compare_reference_figure3.py epoch-parts [--epochs 8] [--only NAME ...]
+    python benchmarks/compare_reference_figure3.py epoch-in-fit [--variants NAME ...] [--epochs 12]
+
+``epoch-parts``: the epoch's components, each compiled and then called in turn 5 times (the
+learner's Gauss–Newton build from chunks of the batch's θ-Jacobian rows and as B per-trajectory
+products summed, the θ-Jacobian rows alone, the learning objective's value, one smoothing step
+with the default and with two LM steps), then one fit per solver variant (exact and GEM M-steps,
+the partial E-step, L-BFGS): seconds per epoch, its split and ε(θ) after each epoch; written to
+``benchmarks/results/compare_reference_figure3_epoch_parts.json`` (``--epochs 0``: the
+components only, printed). ``epoch-in-fit``: the epoch inside ``ceemx.fit(Alternating)`` with
+one of its CPU choices undone at a time (one BLAS thread, the θ-Jacobian rows in chunks, the
+smoother in chunks, RᵀR by column blocks; each variant in a fresh process): median epoch, its
+split, minor page faults per epoch and ε after the last epoch, printed.
+
+Backs: ``benchmarks/README.md`` (the Figure-3 rows against the authors' code), ``README.md``,
+``docs/decisions.md`` (the Algorithm-1 defaults, one BLAS thread, chunked temporaries).
 """
 
 from __future__ import annotations
@@ -56,6 +70,7 @@ REF_PYTHON = HERE / "reference" / ".venv" / "bin" / "python"
 REF_DRIVER = HERE / "reference" / "run_reference_figure3.py"
 RESULTS = HERE / "results" / "compare_reference_figure3.json"
 RESULTS_TTE = HERE / "results" / "compare_reference_figure3_time_to_eps.json"
+RESULTS_PARTS = HERE / "results" / "compare_reference_figure3_epoch_parts.json"
 THRESHOLDS = (10.0, 1.0, 0.01)
 
 
@@ -96,8 +111,7 @@ def slim_runs(runs: list[dict], info: dict) -> None:
 
 def figure3_problem(B: int = 8, T: int = 128):
     """(true system, problem, x_init) of the Figure-3 comparison: 6 coupled Lorenz, seed 42,
-    states started at truth + N(0, 1) — one definition for this script and the probes that
-    profile its epoch (``benchmarks/probes/algorithm1_epoch.py``, ``epoch_in_fit.py``)."""
+    states started at truth + N(0, 1) — one definition for the comparison and the profiles."""
     import jax
 
     from ceemx.experiments import common
@@ -241,7 +255,244 @@ def _commit(src: str | None) -> str | None:
     return proc.stdout.strip() or None
 
 
+# Profiles of ceemx's Algorithm-1 epoch: the subcommands ``epoch-parts`` and ``epoch-in-fit``.
+
+
+def _timed(fs: dict, reps: int = 5) -> dict:
+    """Median seconds of each thunk, compiled first, then called in turn ``reps`` times (A/B)."""
+    import jax
+
+    for f in fs.values():
+        jax.block_until_ready(f())
+    ts = {k: [] for k in fs}
+    for _ in range(reps):
+        for k, f in fs.items():
+            t = time.perf_counter()
+            jax.block_until_ready(f())
+            ts[k].append(time.perf_counter() - t)
+    return {k: float(np.median(v)) for k, v in ts.items()}
+
+
+def epoch_parts(argv: list[str]) -> None:
+    """``epoch-parts``: the epoch's components, then one fit per solver variant."""
+    ap = argparse.ArgumentParser(prog="compare_reference_figure3.py epoch-parts")
+    ap.add_argument("--epochs", type=int, default=8)
+    ap.add_argument("--only", nargs="*", default=None)
+    ap.add_argument("--out", default=None, help=f"JSON (default {RESULTS_PARTS.name})")
+    args = ap.parse_args(argv)
+    import equinox as eqx
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import ceemx
+    from ceemx.evaluation import metrics as ev
+    from ceemx.experiments import common, figure3
+    from ceemx.identification.learning.gauss_newton import theta_rows
+    from ceemx.identification.learning.learning_problem import AbstractLearningProblem
+    from ceemx.identification.learning.learning_problem import make_problem as make_learning_problem
+    from ceemx.inference import smoother as smoothing
+    from ceemx.models import with_noise
+
+    true, p, x_init = figure3_problem()
+    pn, on, rho_x = figure3.fit_setup("paper")
+    system = with_noise(p.init_system, pn, on)
+    out = {"load_before": os.getloadavg()[0], "components_s": {}, "variants": {}}
+
+    lp, th = make_learning_problem(system, x_init, p.data, trainable=common.LORENZ_PARAMS_H)
+    d = p.data
+    comp = {
+        "gauss_newton (the default: chunks of rows)": eqx.filter_jit(
+            lambda lp, th: lp.gauss_newton(th)
+        ),
+        "gauss_newton (B per-trajectory products, earlier)": eqx.filter_jit(
+            lambda lp, th: AbstractLearningProblem.gauss_newton(lp, th)
+        ),
+        "θ-Jacobian rows alone": eqx.filter_jit(
+            lambda lp, th: jax.vmap(lambda x, y, u, m: theta_rows(lp.build, th, x, y, u, m)[2])(
+                lp.states, d.y, d.u, d.mask
+            )
+        ),
+        "learning objective's value": eqx.filter_jit(lambda lp, th: lp.value(th)),
+    }
+    thunks = {name: (lambda f=f: f(lp, th)) for name, f in comp.items()}
+    for steps in (50, 2):
+        sm = ceemx.LMSmoother(rho_x=rho_x, max_steps=steps)
+        thunks[f"smoothing step (LMSmoother(max_steps={steps}), from the start states)"] = (
+            lambda sm=sm: smoothing.smooth_batch(sm, system, x_init, d, False).states
+        )
+    out["components_s"] = _timed(thunks)
+    rows = comp["θ-Jacobian rows alone"](lp, th)
+    out["rows_per_trajectory"] = int(rows.shape[1])
+    out["rows_nonzero_fraction"] = float(np.mean(np.abs(np.asarray(rows)) > 0))
+    print(
+        f"  θ-Jacobian rows per trajectory {rows.shape[1]} × {rows.shape[2]}, "
+        f"{out['rows_nonzero_fraction']:.1%} of the entries nonzero"
+    )
+    for k, v in out["components_s"].items():
+        print(f"  {k:60s} {v * 1e3:8.1f} ms", flush=True)
+
+    variants = {
+        "exact M-step: LMLearner() (the default before)": (
+            ceemx.LMSmoother(rho_x=rho_x),
+            ceemx.LMLearner(),
+        ),
+        "GEM: LMLearner(max_accepted=1)": (
+            ceemx.LMSmoother(rho_x=rho_x),
+            ceemx.LMLearner(max_accepted=1),
+        ),
+        "LMLearner(max_steps=1)": (ceemx.LMSmoother(rho_x=rho_x), ceemx.LMLearner(max_steps=1)),
+        "GEM + smoother max_steps=2": (
+            ceemx.LMSmoother(rho_x=rho_x, max_steps=2),
+            ceemx.LMLearner(max_accepted=1),
+        ),
+        "lbfgs (100 steps)": (ceemx.LMSmoother(rho_x=rho_x), figure3.make_learner("lbfgs")),
+    }
+    for name, (smoother, learner) in variants.items() if args.epochs > 0 else ():
+        if args.only and not any(o in name for o in args.only):
+            continue
+        eps = ev.DynamicsErrorCallback(true)
+        solver = ceemx.Alternating(smoother=smoother, learner=learner, rtol=0.0)
+        res = ceemx.fit(
+            system,
+            p.data,
+            x_init,
+            solver=solver,
+            trainable=common.LORENZ_PARAMS_H,
+            max_epochs=args.epochs,
+            progress=False,
+            callbacks=[eps],
+        )
+        h = res.history[1:]
+        keys = ("time", "smooth_time", "learn_time")
+        med = {k: float(np.median([x[k] for x in h])) for k in keys}
+        rec = {
+            **{f"{k}_median_s": v for k, v in med.items()},
+            "first_epoch_s": res.history[0]["time"],
+            "learner_steps": [x["learner_steps"] for x in res.history],
+            "smoother_steps": [x["smoother_steps"] for x in res.history],
+            "eps": [x["eps"] for x in res.history],
+        }
+        out["variants"][name] = rec
+        print(
+            f"{name:48s} epoch {med['time']:.3f} s (smoothing {med['smooth_time']:.3f}, "
+            f"learning {med['learn_time']:.3f}); steps (learner, smoother) "
+            f"{rec['learner_steps']}, {rec['smoother_steps']}; "
+            f"ε per epoch {[round(x, 4) for x in rec['eps']]}",
+            flush=True,
+        )
+    out["load_after"] = os.getloadavg()[0]
+    out["date"] = time.strftime("%Y-%m-%d %H:%M")
+    print(f"load {out['load_before']:.2f} → {out['load_after']:.2f}")
+    path = args.out or (RESULTS_PARTS if args.epochs > 0 else None)
+    if path:
+        pathlib.Path(path).write_text(json.dumps(out, indent=1))
+
+
+#: ``epoch-in-fit`` variants: the shipped code with one CPU choice undone.
+EPOCH_IN_FIT_VARIANTS = {
+    "default": {},
+    "no-blas-limit": {"blas": False},  # CEEMX_BLAS_THREADS=0: SciPy's OpenBLAS keeps its threads
+    "rows-at-once": {"rows": False},  # the θ-Jacobian rows in one chunk (50 MB arrays)
+    "smoother-unchunked": {"chunk": False},  # LMSmoother(batch_chunk=None): 38 MB temporaries
+    "gram-one-product": {"gram": False},  # each chunk's RᵀR as one product
+    "before": {"blas": False, "rows": False, "chunk": False},  # the first three undone
+}
+
+
+def _epoch_in_fit_worker(name: str, epochs: int) -> dict:
+    """(Fresh process.) A compiling 2-epoch fit, another, then one of ``epochs`` epochs."""
+    v = {"blas": True, "rows": True, "chunk": True, "gram": True, **EPOCH_IN_FIT_VARIANTS[name]}
+    if not v["blas"]:
+        os.environ["CEEMX_BLAS_THREADS"] = "0"
+    import resource
+    import statistics
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import ceemx
+    from ceemx.evaluation import metrics as ev
+    from ceemx.experiments import common, figure3
+    from ceemx.identification.learning import gauss_newton
+    from ceemx.models import with_noise
+
+    if not v["rows"]:
+        gauss_newton.ROWS_CHUNK_BYTES = 2**30
+    if not v["gram"]:
+        gauss_newton.GRAM_BLOCK_MIN = 2**30
+    true, p, x_init = figure3_problem()
+    pn, on, rho_x = figure3.fit_setup("paper")
+    system = with_noise(p.init_system, pn, on)
+    smoother = ceemx.LMSmoother(
+        rho_x=rho_x, max_steps=2, batch_chunk="auto" if v["chunk"] else None
+    )
+    solver = ceemx.Alternating(smoother=smoother, rtol=0.0)
+
+    def run(n, callbacks=()):
+        return ceemx.fit(
+            system, p.data, x_init, solver=solver, trainable=common.LORENZ_PARAMS_H,
+            max_epochs=n, progress=False, callbacks=list(callbacks),
+        )  # fmt: skip
+
+    def faults():
+        return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+    run(2)
+    f0 = faults()
+    run(2)
+    f1 = faults()
+    eps = ev.DynamicsErrorCallback(true)
+    res = run(epochs, [eps])
+    f2 = faults()
+    h = res.history[2:]
+    return {
+        "variant": name,
+        "epoch_s": statistics.median(e["time"] for e in h),
+        "smooth_s": statistics.median(e["smooth_time"] for e in h),
+        "learn_s": statistics.median(e["learn_time"] for e in h),
+        "faults_per_epoch": ((f2 - f1) - (f1 - f0)) / (epochs - 2),
+        "eps_last": res.history[-1]["eps"],
+        "load": os.getloadavg()[0],
+    }
+
+
+def epoch_in_fit(argv: list[str]) -> None:
+    """``epoch-in-fit``: the epoch inside a fit, each variant in a fresh process."""
+    ap = argparse.ArgumentParser(prog="compare_reference_figure3.py epoch-in-fit")
+    ap.add_argument(
+        "--variants",
+        nargs="+",
+        choices=list(EPOCH_IN_FIT_VARIANTS),
+        default=list(EPOCH_IN_FIT_VARIANTS),
+    )
+    ap.add_argument("--epochs", type=int, default=12)
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        print(json.dumps(_epoch_in_fit_worker(args.worker, args.epochs)))
+        return
+    for name in args.variants:
+        out = subprocess.run(
+            [sys.executable, __file__, "epoch-in-fit", "--worker", name, "--epochs",
+             str(args.epochs)],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        print(
+            f"{name:20s} epoch {r['epoch_s']:.3f} s (smoothing {r['smooth_s']:.3f}, learning "
+            f"{r['learn_s']:.3f}), {r['faults_per_epoch']:.0f} page faults/epoch, "
+            f"ε {r['eps_last']:.4g}, load {r['load']:.2f}",
+            flush=True,
+        )
+
+
+SUBCOMMANDS = {"epoch-parts": epoch_parts, "epoch-in-fit": epoch_in_fit}
+
+
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] in SUBCOMMANDS:
+        SUBCOMMANDS[sys.argv[1]](sys.argv[2:])
+        return
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--smoke", action="store_true")
     ap.add_argument("--epochs", type=int, default=5)
@@ -400,6 +651,7 @@ def main() -> None:
     out = pathlib.Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
+    out.with_suffix(".partial.json").unlink(missing_ok=True)  # the whole run is in ``out`` now
     print(json.dumps(summary, indent=1))
 
 

@@ -1,14 +1,22 @@
-"""`ceemx demo` wall time, cold and with a warm compilation cache, this tree against an earlier one.
+"""`ceemx demo` wall time, cold and with a warm compilation cache; its joint iterations alone.
 
     python benchmarks/demo_latency.py [--reps 3] [--before-src /tmp/before/src] [--out FILE]
+    python benchmarks/demo_latency.py iterations     # the demo's joint iterations, wall/CPU
 
 Each repetition runs, for this tree and then (with ``--before-src``) the earlier tree on
 ``PYTHONPATH``: an empty persistent compilation cache folder, ``python -m ceemx demo`` twice —
 the first run compiles everything and fills the cache (cold), the second reads it (warm). The
 wall time of each whole process (imports, compilation, identification, plot) and the 1-min load
-before it are recorded; medians over the repetitions. ``MPLBACKEND=Agg``.
+before it are recorded; medians over the repetitions. ``MPLBACKEND=Agg``. Writes
+``benchmarks/results/demo_latency.json``.
 
-Backs: ``benchmarks/README.md`` ("Issue 23 on a quiet machine": the demo row).
+``iterations``: the demo problem (6 coupled Lorenz, B = 4, T = 128, warm start), 7 JointLM
+iterations called directly (the first compiles), wall and process CPU seconds of each. Run it on
+an idle machine and beside CPU hogs (``yes > /dev/null &`` once per core), with all CPUs and
+pinned (``taskset -c 0``, as ``ceemx --threads 1``): XLA's thread hand-offs stall when the cores
+are oversubscribed.
+
+Backs: ``benchmarks/README.md`` (the demo rows, busy machines).
 """
 
 from __future__ import annotations
@@ -46,7 +54,44 @@ def run_demo(cache: pathlib.Path, out: pathlib.Path, src: str | None) -> dict:
     return {"s": time.perf_counter() - t0, "load": load}
 
 
+def iterations() -> None:
+    """``iterations``: the demo's joint iterations, wall/CPU seconds each."""
+    import resource
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import ceemx
+    from ceemx.experiments import common
+    from ceemx.identification.initialize import warm_start
+    from ceemx.identification.problem import FitProblem
+    from ceemx.lib.tree import trace_numbers
+    from ceemx.models import with_noise
+
+    def cpu() -> float:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    true = common.true_lorenz(6, key=jax.random.PRNGKey(4), obs_noise=0.01)
+    pr = common.lorenz_problem(0, true, B=4, T=128, sigma_w=0.0, sigma_v=0.01, coupling=True)
+    system = with_noise(pr.init_system, 0.01, 0.01)
+    x0 = warm_start(system, pr.data)
+    solver = trace_numbers(ceemx.JointLM(), x0.dtype)
+    problem, theta = FitProblem.create(system, pr.data, trainable=common.LORENZ_PARAMS_H)
+    state = solver.init(problem, theta, x0, jax.random.PRNGKey(0))
+    out = []
+    for _ in range(7):
+        t0, c0 = time.perf_counter(), cpu()
+        state, _ = solver.step(problem, state)
+        jax.block_until_ready(state.states)
+        out.append(f"{time.perf_counter() - t0:.2f}/{cpu() - c0:.2f}")
+    print("wall/cpu per iteration (s):", " ".join(out))
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["iterations"]:
+        iterations()
+        return
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--before-src", default=None)

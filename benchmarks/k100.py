@@ -41,15 +41,23 @@ Usage::
     python benchmarks/k100.py --smoke --out x.json  # K = 4, T = 32, B = 2, 2 epochs (seconds)
     python benchmarks/k100.py --method joint-mf --K 10 --budget 150   # the matrix-free joint LM
 
-Backs: ``benchmarks/README.md`` ("K = 100 in 10 minutes": ``ceemx.fit`` two epochs, ε 0.81 % of
-ε₀ in 511 s, ``results/k100_session7_fit.json``; ``--chunk 2``: 563 s,
-``results/k100_session7.json``; ``--chunk 2 --lbfgs-steps 100``: 1.46 % in 447 s), earlier
-("K = 100 coupled Lorenz", with 100 L-BFGS steps and the manual driver: "after epoch 1 **3.568
-(5.4 % of ε₀)**",
-"**target ε ≤ 1 % of ε₀ in 10 min** | **not met**", and the scaled-down probes table with
-``--K 10|20|40``; ``benchmarks/results/k100.json``) and, with ``--method joint-mf``, "K = 100 with
-matrix-free Gauss–Newton" (one iteration: 0.31 % at K = 10, 1.40 % at K = 40, two: 0.18 % at K = 40;
-``benchmarks/results/k100_joint_mf_k*.json``).
+The smoother at large state dimension, where one step goes and the two forms of its LM loop
+(``python benchmarks/k100.py smoother MODE [ARGS]``; each piece compiled first, then timed, the
+load printed):
+
+* ``parts [K]`` (default 100): for one trajectory (T = 256), the linearisation of −J, the
+  dynamics' Jacobians alone, the damped block Cholesky, the solve through the block inverses and
+  the default solve;
+* ``ratio [K ...]``: ``linearize`` against the value ``neg_log_joint_single`` (B = 4, T = 128);
+* ``lazy K B T [S ...]``: the smoother's compiled kernel traced eagerly and with trial points
+  judged by value (``LAZY_MIN_STATES`` set around the trace), its trace/lower/compile times, then
+  both called in turn with S allowed steps (default 1, 2, 5, 50);
+* ``solve [n ...]``: a vector right-hand side solved through the inverted diagonal blocks
+  against per-step triangular solves (T = 256, B = 2).
+
+Writes ``benchmarks/results/k100.json`` by default (``k100_joint_mf.json`` with
+``--method joint-mf``; ``--out`` otherwise). Backs: ``benchmarks/README.md`` (the K = 100 rows)
+and ``docs/decisions.md`` (the smoother's lazy form from 48 states, vector solves step by step).
 """
 
 from __future__ import annotations
@@ -75,6 +83,7 @@ from ceemx.models import with_noise  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "k100.json")
+DEFAULT_OUT_JOINT_MF = os.path.join(HERE, "results", "k100_joint_mf.json")
 SIGMA_V = 0.01
 
 
@@ -91,7 +100,171 @@ def setup(K: int, T: int, B: int, seed: int):
     return true, prob, system, x0
 
 
+# ``smoother MODE``: the smoother at large n, piece by piece.
+
+
+def _load() -> str:
+    return f"load {os.getloadavg()[0]:.2f}"
+
+
+def _timed(f, *args, reps: int = 3) -> tuple[float, float]:
+    """(first call, fastest of ``reps`` later calls) in seconds."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(f(*args))
+    first = time.perf_counter() - t0
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        ts.append(time.perf_counter() - t0)
+    return first, min(ts)
+
+
+def _smoother_parts(K: int) -> None:
+    from ceemx import lib
+    from ceemx.inference.objective import linearize
+    from ceemx.lib import blocktri
+
+    _, prob, system, x0 = setup(K, 256, 1, 42)
+    x, y, u, mask = x0[0], prob.data.y[0], prob.data.u[0], prob.data.mask[0]
+    lin = jax.jit(lambda s, x: linearize(lambda s: s, s, x, y, u, mask))(system, x)
+    damped = lib.add_to_diagonal(lin.hess_x, 1.0)
+    L = jax.jit(lib.cholesky)(damped)
+    pieces = {
+        "linearisation": (
+            jax.jit(lambda s, x: linearize(lambda s: s, s, x, y, u, mask)),
+            system,
+            x,
+        ),
+        "dynamics Jacobians": (
+            jax.jit(lambda x: jax.vmap(jax.jacfwd(lambda z: system.dynamics(z, u[0], 0)))(x[:-1])),
+            x,
+        ),
+        "block Cholesky": (
+            jax.jit(lambda h: lib.cholesky(lib.add_to_diagonal(h, 1.0))),
+            lin.hess_x,
+        ),
+        "solve (block inverses)": (
+            jax.jit(lambda L, g: blocktri.solve(L, g, blocktri.diagonal_inverses(L))),
+            L,
+            lin.grad_x,
+        ),
+        "solve (default)": (jax.jit(blocktri.solve), L, lin.grad_x),
+    }
+    for name, (f, *args) in pieces.items():
+        first, steady = _timed(f, *args)
+        print(
+            f"n = {3 * K}, {name}: first {first:.2f} s, steady {steady:.3f} s, {_load()}",
+            flush=True,
+        )
+
+
+def _smoother_ratio(Ks: list[int]) -> None:
+    from ceemx.inference.objective import linearize, neg_log_joint_single
+
+    for K in Ks:
+        _, prob, system, x0 = setup(K, 128, 4, 42)
+        d = prob.data
+        args = (x0, d.y, d.u, d.mask)
+        E = jax.jit(
+            jax.vmap(
+                lambda s, x, y, u, m: linearize(lambda s: s, s, x, y, u, m), (None, 0, 0, 0, 0)
+            )
+        )
+        V = jax.jit(jax.vmap(neg_log_joint_single, (None, 0, 0, 0, 0)))
+        args = (system, *args)
+        jax.block_until_ready((E(*args), V(*args)))
+        te, tv = [], []
+        for _ in range(7):
+            te.append(_timed(E, *args, reps=1)[1])
+            tv.append(_timed(V, *args, reps=1)[1])
+        e, v = np.median(te), np.median(tv)
+        print(f"n = {3 * K}: linearisation {1e3 * e:.2f} ms, value {1e3 * v:.3f} ms, "
+              f"ratio {e / v:.1f}, {_load()}", flush=True)  # fmt: skip
+
+
+def _smoother_lazy(K: int, B: int, T: int, *bounds: int) -> None:
+    import copy
+
+    from ceemx.inference import smoother as sm
+    from ceemx.lib.tree import trace_numbers
+
+    _, prob, system, x0 = setup(K, T, B, 42)
+    canon = copy.copy(trace_numbers(ceemx.LMSmoother(), x0.dtype))
+    object.__setattr__(canon, "max_steps", 0)
+    programs = {}
+    for form, threshold in (("eager", 10**9), ("by value", 1)):
+        saved, sm.LAZY_MIN_STATES = sm.LAZY_MIN_STATES, threshold  # read while tracing
+        try:
+            f = jax.jit(lambda k, s, x, d: sm._smooth_batch_impl(canon, k, s, x, d, False))
+            t0 = time.perf_counter()
+            traced = f.trace(jnp.asarray(2, jnp.int32), system, x0, prob.data)
+            t1 = time.perf_counter()
+            lowered = traced.lower()
+            t2 = time.perf_counter()
+            programs[form] = lowered.compile()
+            t3 = time.perf_counter()
+        finally:
+            sm.LAZY_MIN_STATES = saved
+        print(f"n = {3 * K}, {form}: trace {t1 - t0:.2f} s, lower {t2 - t1:.2f} s, "
+              f"compile {t3 - t2:.2f} s, {_load()}", flush=True)  # fmt: skip
+    for steps in bounds or (1, 2, 5, 50):
+        k = jnp.asarray(steps, jnp.int32)
+        ts: dict[str, list[float]] = {form: [] for form in programs}
+        out = None
+        for _ in range(5):
+            for form, f in programs.items():
+                t0 = time.perf_counter()
+                out = jax.block_until_ready(f(k, system, x0, prob.data))
+                ts[form].append(time.perf_counter() - t0)
+        print(f"n = {3 * K}, at most {steps} steps (took {int(np.max(out.iterations))}): "
+              + ", ".join(f"{form} {1e3 * np.median(v):.1f} ms" for form, v in ts.items())
+              + f", {_load()}", flush=True)  # fmt: skip
+
+
+def _smoother_solve(ns: list[int]) -> None:
+    from ceemx.lib import blocktri
+
+    T, B = 256, 2
+    key = jax.random.PRNGKey(0)
+    for n in ns:
+        M = jax.random.normal(key, (B, T, n, n)) / n**0.5
+        low = 0.3 * jax.random.normal(key, (B, T - 1, n, n)) / n**0.5
+        A = blocktri.BlockTridiagonal(M @ jnp.swapaxes(M, -1, -2) + 3 * jnp.eye(n), low)
+        L = jax.jit(jax.vmap(blocktri.cholesky))(A)
+        b = jax.random.normal(key, (B, T, n))
+        by_inv = jax.jit(jax.vmap(lambda L, b: blocktri.solve(L, b, blocktri.diagonal_inverses(L))))
+        per_step = jax.jit(jax.vmap(blocktri.solve))
+        r1, r2 = by_inv(L, b), per_step(L, b)
+        t1 = [_timed(by_inv, L, b, reps=1)[1] for _ in range(3)]
+        t2 = [_timed(per_step, L, b, reps=1)[1] for _ in range(3)]
+        diff = float(jnp.max(jnp.abs(r1 - r2)))
+        print(f"n = {n}: block inverses {min(t1):.4f} s, step by step {min(t2):.4f} s, "
+              f"max difference {diff:.1e}, {_load()}", flush=True)  # fmt: skip
+
+
+def smoother_profile(argv: list[str]) -> None:
+    """``smoother parts|ratio|lazy|solve [INT ...]`` (see the module notes)."""
+    if not argv:
+        raise SystemExit("smoother MODE: parts, ratio, lazy or solve")
+    mode, rest = argv[0], [int(a) for a in argv[1:]]
+    if mode == "parts":
+        _smoother_parts(*(rest or [100]))
+    elif mode == "ratio":
+        _smoother_ratio(rest or [3, 6, 12, 20, 40])
+    elif mode == "lazy":
+        _smoother_lazy(*(rest or [6, 8, 128]))
+    elif mode == "solve":
+        _smoother_solve(rest or [9, 16, 32, 64, 128, 300])
+    else:
+        raise SystemExit(f"unknown mode {mode!r}: parts, ratio, lazy or solve")
+
+
 def main(argv=None) -> dict:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "smoother":
+        smoother_profile(argv[1:])
+        return {}
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--K", type=int, default=100)
     p.add_argument("--T", type=int, default=256)
@@ -126,7 +299,8 @@ def main(argv=None) -> dict:
     chunk = args.chunk if args.chunk is not None else 0
     if args.method == "joint-mf":
         chunk = 0
-    out_path = args.out if args.out else (None if args.smoke else DEFAULT_OUT)
+    default_out = DEFAULT_OUT_JOINT_MF if args.method == "joint-mf" else DEFAULT_OUT
+    out_path = args.out if args.out else (None if args.smoke else default_out)
 
     t_setup = time.perf_counter()
     true, prob, system, x0 = setup(args.K, args.T, args.B, args.seed)

@@ -1,4 +1,4 @@
-"""Laplace EM on one long record beside a JointLM fit of the same model (issue 21).
+"""Laplace EM on one long record beside a JointLM fit of the same model.
 
 Model: the mass–spring–damper of ``docs/custom_systems.md`` (x = (q, q̇), y = q, dt 0.1,
 first-order hold, 2 RK4 substeps), one record of T samples simulated with k = 4, c = 0.5,
@@ -28,7 +28,28 @@ Usage: ``python benchmarks/laplace_long_record.py [--T 25000 100000] [--reps 3] 
 T = 2000, 1 repetition, no output file unless ``--out`` is given); the JSON is written after
 each T.
 
-Backs: ``docs/known_issues.md`` ("LAPACK deadlock") and ``benchmarks/README.md``.
+Subcommands, the pieces behind Laplace EM's defaults (record ``uptime`` beside each)::
+
+    python benchmarks/laplace_long_record.py gradient [T]          # default T = 100 000
+    python benchmarks/laplace_long_record.py coarse [T] [SIZE ...]  # 10 000 5 000 2 500
+    python benchmarks/laplace_long_record.py escape
+    python benchmarks/laplace_long_record.py acceleration [SEED ...] [--acc plain squarem ...]
+
+``gradient``: on the record (θ after 3 quasi-Newton epochs), the Laplace posterior (E-step from
+converged states) and the θ-gradient of Q by cubature, each compiled, then timed (median of 5).
+``coarse``: quasi-Newton Laplace EM with ``coarse_start`` = each SIZE (median of 3 steady fits:
+time, epochs on the record, the coarse fit's epochs), and the coarse θ alone — the first SIZE
+samples fitted, then the record from their θ with ``coarse_start=None``, so with EM's metric as
+the curvature's start: its epochs. ``escape``: ``fit(noise="learn")`` with JointLM on the stiff
+model of ``tests/stiff_model.py`` (process noise guessed 100× too small) with and without
+``estimate_noise``'s decade escape: wall time, posterior evaluations, evidence.
+``acceleration``: Laplace EM with learned noise on the Figure-2 Lorenz setting of ``ceemx
+experiment calibration`` (seeds 43–52 by default), per seed and acceleration (``plain``, ``squarem``,
+``quasi_newton``; default the first two): epochs (≤ 600), time (the first fit of each
+acceleration compiles), the final log-evidence and the estimates.
+
+Backs: ``benchmarks/README.md`` (the Laplace EM rows), ``docs/known_issues.md`` and
+``docs/decisions.md`` (SQUAREM by default, the coarse start, the noise estimate's escape).
 """
 
 from __future__ import annotations
@@ -39,6 +60,7 @@ import os
 import pathlib
 import statistics
 import subprocess
+import sys
 import time
 
 import jax
@@ -252,8 +274,151 @@ def run(T: int, reps: int) -> dict:
     return out
 
 
+# Subcommands: the pieces behind Laplace EM's defaults.
+
+TRAINABLE = lambda s: (s.k, s.c, s.process_noise, s.obs_noise)  # noqa: E731
+
+
+def _qn(start, data, coarse):
+    """A quasi-Newton Laplace EM fit with the given ``coarse_start``."""
+    solver = ceemx.LaplaceEM(acceleration="quasi_newton", coarse_start=coarse)
+    return ceemx.fit(start, data, solver=solver, trainable=TRAINABLE)
+
+
+def _median_time(f, reps=5):
+    """Median wall time of ``f()`` (results blocked on) after one untimed call."""
+    jax.block_until_ready(f())
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def gradient(T: int) -> None:
+    """``gradient [T]``: the Laplace posterior and the θ-gradient of Q, timed."""
+    from ceemx.identification.problem import FitProblem
+    from ceemx.identification.solvers.laplace_qn import q_derivatives
+    from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
+
+    start, data = problem(T)
+    r = laplace_qn_fit(start, data, max_epochs=3)
+    fp, theta = FitProblem.create(r.system, data, trainable=TRAINABLE)
+    e = gaussian_posterior(E_STEP_SMOOTHER, fp.build(theta), r.states, data)
+    post = _median_time(
+        lambda: gaussian_posterior(E_STEP_SMOOTHER, fp.build(theta), r.states, data).states
+    )
+    grad = _median_time(lambda: q_derivatives(fp, theta, e, hessian=False)[1])
+    print(f"T {T}: posterior {1e3 * post:.1f} ms, gradient of Q {1e3 * grad:.1f} ms")
+
+
+def coarse(T: int, sizes: list[int]) -> None:
+    """``coarse [T] [SIZE ...]``: the quasi-Newton fit by coarse size, and the coarse θ alone."""
+    start, data = problem(T)
+    for size in sizes:
+        _qn(start, data, size)
+        times, r = [], None
+        for _ in range(3):
+            t0 = time.perf_counter()
+            r = _qn(start, data, size)
+            times.append(time.perf_counter() - t0)
+        first = {k: v for k, v in r.history[0].items() if k.startswith("coarse")}
+        window = _qn(start, data.head(size), None)
+        theta_only = _qn(window.system, data, None)
+        print(
+            f"coarse_start {size}: {statistics.median(times):.2f} s, {r.epochs} epochs "
+            f"({first}); the coarse θ with EM's metric: {theta_only.epochs} epochs",
+            flush=True,
+        )
+
+
+def escape() -> None:
+    """``escape``: ``noise="learn"`` on the stiff model with and without the decade escape."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    import stiff_model as sm
+
+    import ceemx.identification.analysis.noise_estimate as noise
+
+    _, data, _ = sm.simulate(jax.random.PRNGKey(0), B=2, T=1000)
+    guess = sm.make(sm.perturbed(jax.random.PRNGKey(1)), process_std=sm.PROCESS_STD * 0.01)
+    counting = noise.residual_moments
+    calls = [0]
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return counting(*a, **k)
+
+    for escapes in (3, 0, 3, 0):
+        calls[0] = 0
+        noise._ESCAPES, noise.residual_moments = escapes, counted
+        t0 = time.perf_counter()
+        r = ceemx.fit(guess, data, solver=ceemx.JointLM(), noise="learn", max_epochs=300)
+        noise.residual_moments = counting
+        print(
+            f"escapes {escapes}: {time.perf_counter() - t0:.1f} s, {calls[0]} evaluations, "
+            f"log-evidence {r.noise_rounds[-1]['log_evidence']:.6f}",
+            flush=True,
+        )
+
+
+def acceleration(argv: list[str]) -> None:
+    """``acceleration``: plain EM, SQUAREM and quasi-Newton per seed on the Lorenz setting."""
+    from ceemx.experiments import calibration as laplace
+    from ceemx.experiments import common
+    from ceemx.models import with_noise
+
+    ap = argparse.ArgumentParser(prog="laplace_long_record.py acceleration")
+    ap.add_argument("seeds", type=int, nargs="*", default=list(range(43, 53)))
+    ap.add_argument("--acc", nargs="+", default=["plain", "squarem"])
+    args = ap.parse_args(argv)
+    true = common.true_lorenz(1, key=jax.random.PRNGKey(4), m=2, process_noise=0.1, obs_noise=0.5)
+    for seed in args.seeds:
+        p = common.lorenz_problem(seed, true, B=4, T=128, sigma_w=0.1, sigma_v=0.5, coupling=False)
+        start = with_noise(p.init_system, laplace.START_W, laplace.START_V)
+        for name in args.acc:
+            t0 = time.perf_counter()
+            res = ceemx.fit(
+                start,
+                p.data,
+                solver=ceemx.LaplaceEM(acceleration=None if name == "plain" else name),
+                trainable=lambda s: (s.sigma, s.rho, s.beta, s.process_noise, s.obs_noise),
+                max_epochs=600,
+                progress=False,
+            )
+            s = res.system
+            print(
+                f"seed {seed} {name}: {res.epochs} epochs, "
+                f"{time.perf_counter() - t0:.2f} s, converged {res.converged}; log-evidence "
+                f"{res.history[-1]['log_evidence']:.6f}; σ_w "
+                f"{float(s.process_noise.scale):.4f}, σ_v {float(s.obs_noise.scale):.4f}, σ "
+                f"{float(s.sigma[0]):.3f}, ρ {float(s.rho[0]):.3f}, β {float(s.beta[0]):.4f}",
+                flush=True,
+            )
+
+
+def subcommand(argv: list[str]) -> bool:
+    """Run the subcommand ``argv[0]`` if it is one; whether it was."""
+    if not argv or argv[0] not in ("gradient", "coarse", "escape", "acceleration"):
+        return False
+    mode = argv[0]
+    if mode == "acceleration":
+        acceleration(argv[1:])
+        return True
+    rest = [int(a) for a in argv[1:]]
+    if mode == "gradient":
+        gradient(rest[0] if rest else 100_000)
+    elif mode == "coarse":
+        coarse(rest[0] if rest else 100_000, rest[1:] or [10_000, 5_000, 2_500])
+    else:
+        escape()
+    return True
+
+
 def main() -> None:
     """Run the benchmark and write the JSON."""
+    if subcommand(sys.argv[1:]):
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--T", type=int, nargs="+", default=[25_000, 100_000])
     ap.add_argument("--reps", type=int, default=3)

@@ -20,8 +20,8 @@ share the machine's CPU cores, so on a small machine expect no speed-up: this me
 partitioning overhead and checks that the sharded program runs and agrees; on several GPUs or
 hosts the same code spreads the trajectories over real devices.
 
-Backs: ``benchmarks/README.md`` ("Multi-device": "JointLM iteration 0.073 / 0.057 / 0.053 s ...
-J after 5 epochs identical to 2e-16 relative"; ``benchmarks/results/multi_device.json``).
+Writes ``benchmarks/results/multi_device.json``. Backs: ``benchmarks/README.md`` (several
+devices).
 """
 
 from __future__ import annotations

@@ -19,7 +19,8 @@ other users' jobs), and every epoch adds the cross-process all-reduces and host 
 expect no speed-up there; the point is that it runs and agrees. On several hosts each process has
 its own cores.
 
-Backs: ``benchmarks/README.md`` ("Multi-process"; ``benchmarks/results/multi_process.json``).
+Writes ``benchmarks/results/multi_process.json``. Backs: ``benchmarks/README.md`` (several
+processes).
 """
 
 from __future__ import annotations

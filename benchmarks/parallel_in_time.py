@@ -1,7 +1,8 @@
-"""Sequential vs parallel-in-time block-tridiagonal solves (issue 23, item 6).
+"""Sequential vs parallel-in-time block-tridiagonal solves.
 
-Backs ``benchmarks/README.md`` ("Parallel in time") and the ``LMSmoother(time_parallel="auto")``
-rule in ``ceemx.inference.smoother``: on CPU the associative-scan solve never measured faster.
+Backs ``benchmarks/README.md`` (parallel in time) and ``docs/decisions.md``: on CPU the
+associative-scan solve never measured faster, so ``LMSmoother(time_parallel="auto")`` stays
+sequential there. Writes ``benchmarks/results/parallel_in_time.json``.
 
 What is measured (float64, one SPD block-tridiagonal matrix, one right-hand side, on the default
 JAX backend): per (T, n), the time of one solve of ``A x = b`` by

@@ -23,9 +23,7 @@ Usage: ``python benchmarks/particle_em.py [--reps 3] [--epochs 12] [--smoke] [--
 (default ``--out benchmarks/results/particle_em.json``; ``--smoke``: B = 2, T = 32, N_p = 20,
 N_s = 2, 2 epochs, 1 repetition).
 
-Backs: ``README.md`` (results table, Figure 2: "0.114 s per epoch (16.6× the authors' code, side
-by side") and ``benchmarks/README.md`` ("Particle EM per epoch, side by
-side with the authors' code"; ``benchmarks/results/particle_em.json``).
+Backs: ``benchmarks/README.md`` (Particle EM against the authors' code), ``README.md``.
 """
 
 from __future__ import annotations

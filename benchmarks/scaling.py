@@ -1,14 +1,10 @@
 """Scaling of ceemx on coupled Lorenz problems: smoothing iterations, FLOP bound, fit iterations.
 
-Backs (quoted in ``benchmarks/README.md``, "Scaling, FLOP bound and K = 100"): "Log–log slopes
-of the median time per iteration: **T 1.00, B 1.19, n 2.25**", the FLOP-bound table ("Target
-(within 5× of the FLOP bound at n ≥ 18): not met") and the fit-iteration table
-(``benchmarks/results/scaling.json``, default grid plus the pinned K sweep); with ``--grid b8``
-the first smoother sweep quoted in ``README.md`` ("linear in T and B (log–log slopes 1.20,
-1.14), ≈ n² for n ≤ 60"), ``docs/results.md`` ("Smoother scaling") and ``benchmarks/README.md``
-("Smoother scaling: the first sweep").
+Backs: ``benchmarks/README.md`` (smoother scaling, the FLOP bound, long records; the default
+grid plus the pinned K sweep in ``benchmarks/results/scaling.json``, the long records in
+``scaling_long.json``), ``README.md`` and ``docs/results.md`` (smoother scaling).
 
-What is measured (float64, JAX on CPU; issue 12, item 7):
+What is measured (float64, JAX on CPU):
 
 1. **Smoothing** (``ceemx.smooth`` with ``LMSmoother(max_steps=s, rtol=0, atol=0)``, exactly ``s``
    LM iterations, checked from ``sol.iterations``): time per LM iteration swept over T, B and
@@ -19,12 +15,12 @@ What is measured (float64, JAX on CPU; issue 12, item 7):
    (``ceemx.inference.objective.linearize``, ``ceemx.lib.blocktri``; see :func:`smoother_flops`),
    against a
    peak measured on this machine (a large float64 matmul in JAX): achieved GFLOP/s and the ratio
-   ``time / (bound / peak)``. Target of the issue: ratio ≤ 5 at n ≥ 18.
+   ``time / (bound / peak)``. Target: ratio ≤ 5 at n ≥ 18.
 3. **Fit iterations**: one ``JointLM`` iteration and one Algorithm-1 epoch (``Alternating``) with
    the LM learner and with the L-BFGS learner, vs T and K (K ≤ 10), compile apart (first epoch −
    median of the later ones, from the history's ``time``), a fresh process per (T, K).
 
-4. **Long records** (``--only long``; issue 23 item 5): one record of the mass–spring–damper of
+4. **Long records** (``--only long``): one record of the mass–spring–damper of
    ``benchmarks/laplace_long_record.py`` (n = 2, m = 1, dt 0.1, foh, 2 RK4 substeps) for T from
    10³ to 10⁵ (log spaced), each (T, method) in a fresh process: smoothing
    (``ceemx.smooth``, 5 LM iterations per call at the start θ), a ``JointLM`` fit and a
@@ -58,7 +54,7 @@ Writes ``--out`` (default ``benchmarks/results/scaling.json`` for the default an
 grids, ``benchmarks/results/scaling_long.json`` for ``--only long``; no default with ``--smoke``
 or ``--grid b8``).
 
-The ``b8`` grid is the first smoother sweep (2026-11-21; formerly ``smoother_scaling.py``): T ∈
+The ``b8`` grid is the first smoother sweep: T ∈
 {128, …, 4096} and B ∈ {1, …, 64} around T = 128, B = 8, K = 6, and K ∈ {1, 2, 5, 10, 20} at
 T = 128, B = 8; 5 LM iterations per call at every n (``steps_for`` is not used), smoothing only.
 
@@ -219,9 +215,8 @@ def smoother_flops(n: int, m: int) -> dict[str, float]:
     * the Jacobians themselves: F by ``jacfwd`` through 4 RK4 stages, each multiplying the n×n
       coupling by n tangents: 8n³; G by ``jacrev`` of ``C x``: 2m²n.
 
-    The count is the code as it was when ``benchmarks/results/scaling.json`` was measured
-    (2026-11-24). Since 2fc3d60 diagonal noise scales rows instead of multiplying by the dense
-    S, so ``forming`` overstates today's code for these (diagonal-noise) problems.
+    The count multiplies by the dense S; the library scales rows for diagonal noise instead, so
+    ``forming`` overstates its work on these (diagonal-noise) problems.
 
     Returns a dict of per-trajectory-step counts: ``iteration`` (Cholesky + solves + quad +
     forming: the dense linear algebra of one iteration as the code does it — the bound the
@@ -554,7 +549,7 @@ def long_sweep(Ts: list[int], repeats: int) -> dict:
             f"{f.get('steady_peak_increment', {}).get('slope', float('nan')):.2f}"
         )
     target = {
-        "criterion": "linear in T: log–log slope against T at most 1.15 (issue 23: 1 ± 0.15) "
+        "criterion": "linear in T: log–log slope against T at most 1.15 "
         "of the time per iteration (all T and the two largest) and of the steady calls' memory "
         "increment (T ≥ 10⁴); a slope below 0.85 is a T-independent part (dispatch, θ-sized "
         "work, allocator slack), reported, not a failure",

@@ -1,4 +1,4 @@
-"""The benchmark scripts' ``--smoke`` modes run, so they cannot rot (issue 12).
+"""The benchmark scripts' ``--smoke`` modes run, so they cannot rot.
 
 A peer or the reference implementation whose environment is absent is skipped by the script
 itself with a message (the reference: ``benchmarks/reference/setup.sh``).
@@ -137,16 +137,16 @@ def test_particle_em_smoke(tmp_path):
         assert "reference environment absent" in proc.stdout
 
 
-def test_issue23_table_renders_every_row_from_the_committed_results():
-    """``benchmarks/issue23_table.py --table-only`` reads each row script's JSON as committed: a
+def test_speed_table_renders_every_row_from_the_committed_results():
+    """``benchmarks/speed_table.py --table-only`` reads each row script's JSON as committed: a
     script whose output format drifts from what the table reads fails here (no JAX, < 1 s)."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     try:
-        import issue23_table
+        import speed_table
     finally:
         sys.path.pop(0)
-    out = ROOT / "benchmarks" / "results" / "issue23_table"
-    text = issue23_table.table(out, json.loads((out / "summary.json").read_text())["rows"])
+    out = ROOT / "benchmarks" / "results"
+    text = speed_table.table(out, json.loads((out / "speed_table.json").read_text())["rows"])
     rows = [line for line in text.splitlines() if line.startswith("| ") and "---" not in line]
     assert len(rows) == 1 + 13  # the header and every measure (sub-rows included)
     for needle in ("Figure-3", "warm cache", "ceemx demo", "K = 100", "Laplace EM",

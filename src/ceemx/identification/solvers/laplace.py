@@ -131,7 +131,7 @@ class LaplaceEM(AbstractFitSolver):
             information EM creeps along; the learner and ``rho_theta`` are not used. For small
             θ (≤ ``QN_MAX_PARAMETERS`` entries: the curvature is a dense P × P Hessian) and
             models linear in the state, where its gradient is the evidence's: on a nonlinear
-            model (the Lorenz setting of ``ceemx experiment laplace``, 20 seeds) it took 13–220
+            model (the Lorenz setting of ``ceemx experiment calibration``, 20 seeds) it took 13–220
             epochs against SQUAREM's 15–22, and one fit stopped 0.55 nat below SQUAREM's
             evidence (``benchmarks/probes/laplace_acceleration.py``).
             ``None``: one plain EM update per epoch (exact EM).

@@ -1,6 +1,6 @@
-"""Checkpoints under contention and on full disks: nothing lost (issue 24, item 4).
+"""Checkpoints under contention and on full disks: nothing lost.
 
-    python benchmarks/probes/checkpoint_contention.py [--runs 20] [--disk-runs 10] [--no-lock]
+    python benchmarks/checkpoint_contention.py [--runs 20] [--disk-runs 10] [--no-lock]
 
 **Concurrent writers.** Each run starts two processes that fit the same small problem (a
 2-state linear system, B = 2, T = 40, ``Alternating``, 150 epochs, one save per epoch) into the

@@ -1,35 +1,35 @@
-"""Every row of issue 23's table, re-measured in one run: this tree, the tree before issue 23 and
-the authors' code side by side where a row has them.
+"""The speed table: every speed claim of ``benchmarks/README.md`` re-measured in one run, beside
+the authors' code where a row has it.
 
     bash benchmarks/reference/setup.sh                      # once: the authors' code
-    python benchmarks/issue23_table.py [--out-dir DIR] [--only ROW ...] [--skip ROW ...]
+    python benchmarks/speed_table.py [--only ROW ...] [--skip ROW ...] [--before REV]
+    python benchmarks/speed_table.py --table-only            # the table from the committed JSON
 
-Each row is one of the committed scripts, run as a subprocess in turn (they alternate the trees
-and the reference inside, median of ≥ 3; the 1-minute load is recorded before and after each):
+Each row is one of the committed scripts, run as a subprocess in turn (they alternate ceemx and
+the reference inside, median of ≥ 3; the 1-minute load is recorded before and after each), and
+writes its own canonical JSON in ``benchmarks/results``:
 
 - ``figure3``: ``compare_reference_figure3.py --reps 3 --epochs 5 --methods alternate`` — the
-  Figure-3 Algorithm-1 epoch (B = 8, 342 parameters), authors' / after / before;
+  Figure-3 Algorithm-1 epoch (B = 8, 342 parameters) against the authors' code;
 - ``lorenz_cold``: ``compare_reference.py --reps 3`` — the single-Lorenz first fit in a fresh
   process (no persistent cache), the steady fits and the whole 5-seed process;
 - ``lorenz_warm``: the same with ``--cache DIR``, twice (the first run fills the cache; the second
   is the row): the first fit with the persistent compilation cache warm;
 - ``demo``: ``demo_latency.py --reps 3`` — ``ceemx demo`` cold and warm;
 - ``k100``: ``k100.py`` — K = 100 coupled Lorenz (n = 300, P = 90 300), ε after each epoch
-  within 600 s (this tree only: the earlier tree's one epoch took 420 s to 5.4 %, the issue's row);
+  within 600 s;
 - ``laplace``: ``laplace_long_record.py --T 100000 --reps 3`` — Laplace EM on one 10⁵-sample
-  record beside a JointLM fit in the same run (the earlier tree hung at 25 000);
+  record beside a JointLM fit in the same run;
 - ``multi_process``: ``multi_process.py --rounds 2`` — two processes against one, θ and J;
 - ``parallel``: ``parallel_in_time.py`` — the parallel-in-time block solve against the
   sequential scans (CPU);
 - ``long``: ``scaling.py --only long --quick --long-T 10000 31623 100000`` — time and memory
   against T for one record.
 
-"Before" is ``git archive BEFORE`` (default ``45f50a5^``, the tree before issue 23's first
-commit) unpacked in a temporary folder and put on ``PYTHONPATH`` by the scripts that take
-``--before-src``. Each script's JSON lands in ``--out-dir`` (default
-``benchmarks/results/issue23_table``); ``summary.json`` and ``table.md`` there collect the rows.
-
-Backs: ``benchmarks/README.md`` ("Issue 23, every row in one run").
+``--before REV``: ``git archive REV`` unpacked in a temporary folder and passed as
+``--before-src`` to the scripts that take it (an earlier tree beside this one, same run).
+``speed_table.json`` in ``--out-dir`` (default ``benchmarks/results``) records the commands, the
+load and the wall time per row; the table is printed.
 """
 
 from __future__ import annotations
@@ -45,6 +45,18 @@ import time
 
 HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
+#: each row's JSON, as its script writes it by default.
+OUTPUTS = {
+    "figure3": "compare_reference_figure3.json",
+    "lorenz_cold": "compare_reference.json",
+    "lorenz_warm": "compare_reference_warm_cache.json",
+    "demo": "demo_latency.json",
+    "k100": "k100.json",
+    "laplace": "laplace_long_record.json",
+    "multi_process": "multi_process.json",
+    "parallel": "parallel_in_time.json",
+    "long": "scaling_long.json",
+}
 ROWS = (
     "figure3",
     "lorenz_cold",
@@ -72,9 +84,11 @@ def before_tree(rev: str, tmp: pathlib.Path) -> pathlib.Path:
     return dest / "src"
 
 
-def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, list[list[str]]]:
+def commands(
+    out: pathlib.Path, before: str | None, cache: pathlib.Path
+) -> dict[str, list[list[str]]]:
     py = [sys.executable]
-    b = ["--before-src", before]
+    b = ["--before-src", before] if before else []
     return {
         "figure3": [
             py
@@ -88,7 +102,7 @@ def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, l
                 "alternate",
                 *b,
                 "--out",
-                str(out / "figure3.json"),
+                str(out / OUTPUTS["figure3"]),
             ]
         ],
         "lorenz_cold": [
@@ -99,7 +113,7 @@ def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, l
                 "3",
                 *b,
                 "--out",
-                str(out / "lorenz_cold.json"),
+                str(out / OUTPUTS["lorenz_cold"]),
             ]
         ],
         "lorenz_warm": [
@@ -112,7 +126,7 @@ def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, l
                 str(cache),
                 *b,
                 "--out",
-                str(out / "lorenz_fill.json"),
+                str(cache.parent / "fill.json"),
             ],
             py
             + [
@@ -123,13 +137,21 @@ def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, l
                 str(cache),
                 *b,
                 "--out",
-                str(out / "lorenz_warm.json"),
+                str(out / OUTPUTS["lorenz_warm"]),
             ],
         ],
         "demo": [
-            py + [str(HERE / "demo_latency.py"), "--reps", "3", *b, "--out", str(out / "demo.json")]
+            py
+            + [
+                str(HERE / "demo_latency.py"),
+                "--reps",
+                "3",
+                *b,
+                "--out",
+                str(out / OUTPUTS["demo"]),
+            ]
         ],
-        "k100": [py + [str(HERE / "k100.py"), "--out", str(out / "k100.json")]],
+        "k100": [py + [str(HERE / "k100.py"), "--out", str(out / OUTPUTS["k100"])]],
         "laplace": [
             py
             + [
@@ -139,7 +161,7 @@ def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, l
                 "--reps",
                 "3",
                 "--out",
-                str(out / "laplace.json"),
+                str(out / OUTPUTS["laplace"]),
             ]
         ],
         "multi_process": [
@@ -149,10 +171,12 @@ def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, l
                 "--rounds",
                 "2",
                 "--out",
-                str(out / "multi_process.json"),
+                str(out / OUTPUTS["multi_process"]),
             ]
         ],
-        "parallel": [py + [str(HERE / "parallel_in_time.py"), "--out", str(out / "parallel.json")]],
+        "parallel": [
+            py + [str(HERE / "parallel_in_time.py"), "--out", str(out / OUTPUTS["parallel"])]
+        ],
         "long": [
             py
             + [
@@ -165,7 +189,7 @@ def commands(out: pathlib.Path, before: str, cache: pathlib.Path) -> dict[str, l
                 "31623",
                 "100000",
                 "--out",
-                str(out / "long.json"),
+                str(out / OUTPUTS["long"]),
             ]
         ],
     }
@@ -176,16 +200,16 @@ def _load(path: pathlib.Path) -> dict | None:
 
 
 def table(out: pathlib.Path, log: dict) -> str:
-    """The issue's table from the rows' JSON (rows not run are left out)."""
+    """The speed table from the rows' JSON (rows not run are left out)."""
     lines = [
-        "| measure | authors' code | before | after | target | met |",
+        "| measure | authors' code | before | ceemx | target | met |",
         "|---|---|---|---|---|---|",
     ]
 
     def row(*cells):
         lines.append("| " + " | ".join(cells) + " |")
 
-    f3 = _load(out / "figure3.json")
+    f3 = _load(out / OUTPUTS["figure3"])
     if f3:
         s = f3["summary"]
         ref, aft, bef = s["reference"], s["alternate"], s.get("alternate_before", {})
@@ -209,7 +233,7 @@ def table(out: pathlib.Path, log: dict) -> str:
             "—",
         )
     for name, label, target in (("lorenz_cold", "cold", 3.0), ("lorenz_warm", "warm cache", 0.5)):
-        d = _load(out / f"{name}.json")
+        d = _load(out / OUTPUTS[name])
         if not d:
             continue
         s = d["summary"]
@@ -243,7 +267,7 @@ def table(out: pathlib.Path, log: dict) -> str:
                 "—",
                 "—",
             )
-    d = _load(out / "demo.json")
+    d = _load(out / OUTPUTS["demo"])
     if d:
         a, b = d["summary"]["after"], d["summary"].get("before")
         row(
@@ -254,18 +278,18 @@ def table(out: pathlib.Path, log: dict) -> str:
             "≤ 8 s cold",
             "yes" if a["cold"] <= 8 else "no",
         )
-    d = _load(out / "k100.json")
+    d = _load(out / OUTPUTS["k100"])
     if d:
         eps = [f"{e['eps'] / d['eps_initial']:.2%} at {e['wall_s']:.0f} s" for e in d["epochs"]]
         row(
             "K = 100 coupled Lorenz (n = 300, P ≈ 90 000), ε / ε₀ after each epoch",
             "—",
-            "5.4 % after one 420-s epoch (issue)",
+            "—",
             "; ".join(eps) + f" (total {d['total_wall_s']:.0f} s)",
             "≤ 1 % in 10 min",
             "yes" if d.get("target_met") else "no",
         )
-    d = _load(out / "laplace.json")
+    d = _load(out / OUTPUTS["laplace"])
     if d:
         med = d["runs"][0]["summary"]
         jl, qn, sq = (med[k]["median_fit_s"] for k in ("joint_lm", "laplace_em_qn", "laplace_em"))
@@ -273,7 +297,7 @@ def table(out: pathlib.Path, log: dict) -> str:
             "Laplace EM (learned noise), one 100 000-sample record: quasi-Newton / SQUAREM "
             "(the default)",
             "—",
-            "hangs at 25 000 (issue)",
+            "—",
             f"{qn:.2f} / {sq:.1f} s against JointLM {jl:.2f} s ({qn / jl:.2f}× / {sq / jl:.1f}×)",
             "≤ 3× a JointLM fit",
             "quasi-Newton: "
@@ -281,19 +305,19 @@ def table(out: pathlib.Path, log: dict) -> str:
             + "; SQUAREM: "
             + ("yes" if sq / jl <= 3 else "no"),
         )
-    d = _load(out / "multi_process.json")
+    d = _load(out / OUTPUTS["multi_process"])
     if d:
         row(
             "two processes (Gloo) against one: θ, J relative difference; steady epoch 1 / 2 "
             "processes",
             "joblib",
-            "never run",
+            "—",
             f"{d['theta_relative_difference']:.1e}, {d['J_relative_difference']:.1e}; "
             f"{d['median_steady_s']['1']:.3f} / {d['median_steady_s']['2']:.3f} s",
             "same θ as one process (1e-10)",
             "yes" if d["theta_relative_difference"] <= 1e-10 else "no",
         )
-    d = _load(out / "parallel.json")
+    d = _load(out / OUTPUTS["parallel"])
     if d:
         worst = max(c["rel_diff"] for c in d["cases"])
         big = [c for c in d["cases"] if c["T"] == max(x["T"] for x in d["cases"])]
@@ -301,7 +325,7 @@ def table(out: pathlib.Path, log: dict) -> str:
             "parallel-in-time block solve (CPU): largest difference to sequential; T = 10⁵ "
             "parallel / sequential",
             "—",
-            "absent",
+            "—",
             f"{worst:.1e}; "
             + ", ".join(
                 f"n = {c['n']}: {1e3 * c['parallel']['median_s']:.0f} / "
@@ -311,7 +335,7 @@ def table(out: pathlib.Path, log: dict) -> str:
             "equal to sequential (1e-8); < 50 ms on a GPU",
             "equal: yes; GPU: not lent",
         )
-    d = _load(out / "long.json")
+    d = _load(out / OUTPUTS["long"])
     if d:
         fits, met = d["long"]["fits"], d["long"]["target"]["met"]
         ms = list(fits)
@@ -325,7 +349,7 @@ def table(out: pathlib.Path, log: dict) -> str:
                 f"({fits[m]['time_per_iteration_top']['slope']:.2f})"
                 for m in ms
             ),
-            "≤ 1.15 (linear; issue: 1 ± 0.15)",
+            "≤ 1.15 (linear)",
             " / ".join("yes" if met[m]["time"] else "no" for m in ms),
         )
         row(
@@ -348,22 +372,22 @@ def table(out: pathlib.Path, log: dict) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out-dir", default=str(HERE / "results" / "issue23_table"))
-    ap.add_argument("--before", default="45f50a5^", help="git revision of the 'before' tree")
+    ap.add_argument("--out-dir", default=str(HERE / "results"))
+    ap.add_argument("--before", default=None, help="git revision of an earlier tree to run beside")
     ap.add_argument("--only", nargs="+", choices=ROWS, default=None)
     ap.add_argument("--skip", nargs="+", choices=ROWS, default=())
-    ap.add_argument("--table-only", action="store_true", help="rebuild table.md from the JSON")
+    ap.add_argument("--table-only", action="store_true", help="the table from the committed JSON")
     args = ap.parse_args()
     out = pathlib.Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    log_path = out / "summary.json"
+    log_path = out / "speed_table.json"
     log = (_load(log_path) or {}).get("rows", {})
     if not args.table_only:
         rows = [r for r in (args.only or ROWS) if r not in args.skip]
         with tempfile.TemporaryDirectory() as tmp_name:
             tmp = pathlib.Path(tmp_name)
-            before = before_tree(args.before, tmp)
-            cmds = commands(out, str(before), tmp / "cache")
+            before = str(before_tree(args.before, tmp)) if args.before else None
+            cmds = commands(out, before, tmp / "cache")
             for name in rows:
                 entry = {"uptime_before": uptime(), "commands": [], "rc": 0}
                 t0 = time.perf_counter()
@@ -385,9 +409,7 @@ def main() -> None:
                 entry["uptime_after"] = uptime()
                 log[name] = entry
                 log_path.write_text(json.dumps({"before": args.before, "rows": log}, indent=1))
-    text = table(out, log)
-    (out / "table.md").write_text(text + "\n")
-    print(text)
+    print(table(out, log))
 
 
 if __name__ == "__main__":
