@@ -44,8 +44,8 @@ the curvature's start: its epochs. ``escape``: ``fit(noise="learn")`` with Joint
 model of ``tests/stiff_model.py`` (process noise guessed 100× too small) with and without
 ``estimate_noise``'s decade escape: wall time, posterior evaluations, evidence.
 ``acceleration``: Laplace EM with learned noise on the Figure-2 Lorenz setting of ``ceemx
-experiment calibration`` (seeds 43–52 by default), per seed and acceleration (``plain``, ``squarem``,
-``quasi_newton``; default the first two): epochs (≤ 600), time (the first fit of each
+experiment calibration`` (seeds 43–52 by default), per seed and acceleration (``plain``,
+``squarem``, ``quasi_newton``; default the first two): epochs (≤ 600), time (the first fit of each
 acceleration compiles), the final log-evidence and the estimates.
 
 Backs: ``benchmarks/README.md`` (the Laplace EM rows), ``docs/known_issues.md`` and

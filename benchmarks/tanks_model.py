@@ -57,7 +57,7 @@ from ceemx import datasets  # noqa: E402
 from ceemx.experiments import benchmarks as bm  # noqa: E402
 from ceemx.identification.problem import trainable_mask  # noqa: E402
 from ceemx.models.constraints import param  # noqa: E402
-from ceemx.systems.benchmarks import (  # noqa: E402
+from ceemx.systems.gray_box import (  # noqa: E402
     CascadedTanks,
     _AbstractSISO,
     smooth_power,
