@@ -12,7 +12,7 @@ first fit. With ``CACHE_DIR`` the persistent compilation cache is on (run twice:
 warm). Process CPU seconds of the first fit are printed beside the wall time; record ``uptime``.
 ``SOLVER=alternating`` fits with ``ceemx.Alternating()`` (Algorithm 1, the default solver) instead.
 ``BACKGROUND=1`` / ``BACKGROUND=0`` forces the background compilation of the epoch programs on /
-off (``fit`` decides by ``has_idle_core()`` otherwise).
+off (``fit`` decides by ``ceemx.infra.policy.compiles_ahead()`` otherwise).
 ``XLA_FLAGS`` is read as usual (e.g. ``--xla_cpu_use_fusion_emitters=false``).
 
 Backs: ``benchmarks/README.md`` ("First-fit latency": the programs of a fit and their compile
@@ -46,7 +46,7 @@ from ceemx.experiments import common  # noqa: E402
 from ceemx.identification.fitting import start  # noqa: E402
 
 if os.environ.get("BACKGROUND") in ("0", "1"):
-    start.has_idle_core = lambda: os.environ["BACKGROUND"] == "1"
+    start.compiles_ahead = lambda: os.environ["BACKGROUND"] == "1"
 
 if len(sys.argv) > 1 and sys.argv[1] != "-":
     ceemx.enable_compilation_cache(sys.argv[1])

@@ -3,7 +3,7 @@
     python benchmarks/probes/one_shot_programs.py [--calls 5] [--only NAME ...]
 
 Each case is compiled twice in one process — as every ceemx entry point (``jit``:
-``FAST_COMPILE_FLAGS``) and as a one-shot program (``jit(one_shot=True)``: also
+``FAST_COMPILE_FLAGS``) and as a one-shot program (``one_shot_jit``: also
 ``ONE_SHOT_COMPILE_FLAGS``, LLVM -O0 and one code-generation module) — then called alternately
 ``--calls`` times each (median). Compile time is lowering + XLA (``lower(...).compile()``), apart
 from the steady calls; the break-even number of calls is compile saved / run time added. Cases:
@@ -17,7 +17,7 @@ Figure-3 problems; the joint iteration (a hot program, for comparison). Record `
 ``XLA_FLAGS`` must not name the flags.
 
 Backs: ``benchmarks/README.md`` ("One-shot programs": the ratios, and ``ONE_SHOT_MAX_WORK`` in
-``ceemx.inference.smoother``).
+``ceemx.infra.policy``).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from ceemx.identification import schur  # noqa: E402
 from ceemx.identification.problem import FitProblem, per_trajectory_nll  # noqa: E402
 from ceemx.identification.solvers import joint  # noqa: E402
 from ceemx.inference import smoother as sm  # noqa: E402
-from ceemx.infra.compilation import jit  # noqa: E402
+from ceemx.infra.compilation import jit, one_shot_jit  # noqa: E402
 from ceemx.lib.tree import trace_numbers  # noqa: E402
 
 
@@ -124,7 +124,7 @@ def main() -> None:
         fn, fargs = make()
         compiled, compile_s = {}, {}
         for variant in ("optimised", "one_shot"):
-            f = jit(fn, one_shot=variant == "one_shot")
+            f = (one_shot_jit if variant == "one_shot" else jit)(fn)
             t = time.perf_counter()
             compiled[variant] = f.lower(*fargs).compile()
             compile_s[variant] = time.perf_counter() - t

@@ -13,9 +13,8 @@ from ceemx import lib
 from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import linearize, neg_log_joint_single, nll_offset_single
-from ceemx.infra.compilation import jit_variants
 from ceemx.infra.options import check_bool, check_choice, check_int, check_nonnegative
-from ceemx.infra.runtime import one_blas_thread
+from ceemx.infra.policy import Runs, entry_point, program, smoothing_work
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.parallel_blocktri import parallel_solve
 from ceemx.lib.results import RESULTS, messages
@@ -112,18 +111,6 @@ def auto_batch_chunk(B: int, T: int, n: int, itemsize: int) -> int | None:
     """
     chunk = AUTO_CHUNK_BYTES // max(1, 20 * T * n * n * itemsize)
     return int(chunk) if 2 <= chunk < B else None
-
-
-#: ``smooth(..., one_shot=True)`` compiles a one-shot program up to this B·T·n² (the run time of an
-#: LM iteration is ≈ 0.5–2 µs per unit here): the unoptimised code's extra run time for one call
-#: (≈ 0.3 s at the bound) stays below the compile time it saves (1.4–2.5 s; benchmarks/README.md,
-#: "One-shot programs").
-ONE_SHOT_MAX_WORK = 5 * 10**5
-
-
-def one_shot_pays(B: int, T: int, n: int) -> bool:
-    """Whether smoothing B trajectories of T steps and n states once pays as a one-shot program."""
-    return B * T * n**2 <= ONE_SHOT_MAX_WORK
 
 
 #: From this many states per step the smoother judges trial points by −J alone and linearises
@@ -270,19 +257,16 @@ def smooth_batch(
     x_init: States,
     data: Trajectories,
     covariance: bool,
-    one_shot: bool = False,
+    runs: Runs = Runs.EVERY_EPOCH,
 ) -> SmootherSolution:
     """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced).
 
     ``solver.max_steps`` is passed to the program as a number, not compiled into it: smoothers
     that differ only in their step bound (a fit's warm start and :class:`ceemx.Alternating`'s
-    partial E-step) run one program, traced and compiled once. ``one_shot``: the caller runs this
-    program once or a few times (a fit's warm start when its epochs do not smooth with it): it
-    compiles as a one-shot program (:data:`ceemx.infra.compilation.ONE_SHOT_COMPILE_FLAGS`) when
-    the problem is small enough that its run time stays below the compile time saved
-    (:data:`ONE_SHOT_MAX_WORK`). Where it runs every epoch (Algorithm 1's E-step) it stays
-    optimised even on the smallest problems: unoptimised, the single-Lorenz E-step costs ≈ 7 ms
-    more an epoch, 0.38 s a 57-epoch fit, against 0.74 s of compile saved once.
+    partial E-step) run one program, traced and compiled once. ``runs``: how often the caller
+    smooths at these shapes (a fit's warm start when its epochs do not smooth with this program,
+    its end-of-fit check: :attr:`~ceemx.infra.policy.Runs.ONCE`); the policy compiles the
+    program for that (:func:`ceemx.infra.policy.compiles_one_shot`).
     """
     steps = jnp.asarray(solver.max_steps, jnp.int32)
     # One static configuration for every bound. A copy with the field set, not
@@ -290,7 +274,7 @@ def smooth_batch(
     # traced numbers do not meet (and ``eqx.tree_at`` cannot reach a static field).
     canonical = copy.copy(solver)
     object.__setattr__(canonical, "max_steps", 0)
-    program = _smooth_batch_one_shot if one_shot and one_shot_pays(*x_init.shape) else _smooth_batch
+    program = _smooth_batch_once if runs is Runs.ONCE else _smooth_batch
     return program(canonical, steps, system, x_init, data, covariance)
 
 
@@ -334,10 +318,18 @@ def _smooth_batch_impl(
     return SmootherSolution(x, value, steps, status, cov, cross, log_det)
 
 
-_smooth_batch, _smooth_batch_one_shot = jit_variants(_smooth_batch_impl)
+def _smoothing_work(solver, max_steps, system, x_init: States, data, covariance):
+    """The work of smoothing ``x_init``'s batch (:func:`ceemx.infra.policy.smoothing_work`)."""
+    del solver, max_steps, system, data, covariance
+    B, T, n = x_init.shape
+    return smoothing_work(B, T, n)
 
 
-@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
+_smooth_batch = program(_smooth_batch_impl, work=_smoothing_work)  # the E-step's, every epoch
+_smooth_batch_once = _smooth_batch.with_runs(Runs.ONCE)  # a start or a check: the same program
+
+
+@entry_point  # BLAS threads and results as the policy says (ceemx.infra.policy)
 @no_type_check  # validates its arguments: ceemx.data.checks.prepare
 def smooth(
     system: AbstractSystem,
@@ -346,7 +338,6 @@ def smooth(
     solver: LMSmoother | None = None,
     *,
     covariance: bool = False,
-    one_shot: bool = False,
 ) -> SmootherSolution:
     """MAP state trajectories for every trajectory of ``data`` (the CE-EM smoothing step, Eq. 10).
 
@@ -357,10 +348,6 @@ def smooth(
         solver: the smoother configuration (default :class:`LMSmoother`).
         covariance: also return the marginal covariances of each x_t (Laplace approximation), from
             the selected inverse of the Gauss–Newton matrix at the solution.
-        one_shot: this shape is smoothed once or a few times (a start, a check): compile its
-            program for that — LLVM -O0, a third to a half of the compile time, 2–3× the run
-            time — on problems small enough that this pays (``B·T·n² ≤`` :data:`ONE_SHOT_MAX_WORK`;
-            optimised above). Results agree to rounding.
 
     Returns:
         A :class:`SmootherSolution`; inspect ``status`` for per-trajectory failures (a failed
@@ -382,10 +369,7 @@ def smooth(
     if solver is not None and not isinstance(solver, LMSmoother):
         raise TypeError(f"`solver` must be a ceemx.LMSmoother; got {solver!r}.")
     inputs = prepare(system, data, x_init)
-    check_bool("one_shot", one_shot)
-    return smooth_prepared(
-        inputs.system, inputs.data, inputs.states, solver, covariance=covariance, one_shot=one_shot
-    )
+    return smooth_prepared(inputs.system, inputs.data, inputs.states, solver, covariance=covariance)
 
 
 def smooth_prepared(
@@ -395,15 +379,13 @@ def smooth_prepared(
     solver: LMSmoother | None = None,
     *,
     covariance: bool = False,
-    one_shot: bool = False,
+    runs: Runs = Runs.EVERY_EPOCH,
 ) -> SmootherSolution:
     """:func:`smooth` of inputs already prepared (:func:`ceemx.data.checks.prepare`): no checks.
 
     For the library's own smoothing passes (a fit's warm start) on values validated at their
-    entry point.
+    entry point; ``runs`` as :func:`smooth_batch`'s.
     """
     solver = LMSmoother() if solver is None else solver
     x_init = jnp.asarray(x_init)
-    return smooth_batch(
-        trace_numbers(solver, x_init.dtype), system, x_init, data, covariance, one_shot
-    )
+    return smooth_batch(trace_numbers(solver, x_init.dtype), system, x_init, data, covariance, runs)

@@ -1,8 +1,10 @@
 """Infrastructure: what a fit needs around the mathematics, not in it.
 
-Atomic checkpoints (:mod:`~ceemx.infra.checkpoint`) and their one-writer lock
-(:mod:`~ceemx.infra.folder_lock`), the persistent compilation cache
-(:mod:`~ceemx.infra.compilation`), one fit over several processes
+How programs are compiled and run on this machine — one-shot or optimised, compiled ahead or
+not, BLAS threads — decided in one place (:mod:`~ceemx.infra.policy`) over the compile
+mechanisms and the persistent cache (:mod:`~ceemx.infra.compilation`). Atomic checkpoints
+(:mod:`~ceemx.infra.checkpoint`) and their one-writer lock (:mod:`~ceemx.infra.folder_lock`), one
+fit over several processes
 (:mod:`~ceemx.infra.distributed`: ``jax.distributed`` set-up, host reads, a launcher), CPU
 thread limits for busy machines (:mod:`~ceemx.infra.runtime`), the memory guard
 (:mod:`~ceemx.infra.memory`), the validation of solver and learner options
