@@ -40,19 +40,14 @@ from ceemx.experiments import common
 NAME = "benchmarks"
 DATASETS = ("cascaded_tanks", "silverbox", "coupled_electric_drives")
 #: Model options per dataset: a first-order hold where the input is band-limited and sampled
-#: at a few samples per period of the dynamics (Silverbox: ≈ 9 samples per period). Silverbox's
-#: process noise 1e-4 V (the example script's; the model default is 1e-3): a stiffer dynamics
-#: weight makes the CE fit closer to a simulation-error fit — multisine test 1.785 → 0.933 mV
-#: (physics) and 1.609 → 0.890 mV (hybrid); the noise the Laplace evidence learns
-#: (`noise="learn"`: observation std → 1e-6, the states absorb the data) gave 2.43 mV.
+#: at a few samples per period of the dynamics (Silverbox: ≈ 9 samples per period). Process
+#: noises below the models' defaults: a stiffer dynamics weight makes the CE fit closer to a
+#: simulation-error fit, which is what the benchmarks score (the noise the Laplace evidence
+#: learns lets the states absorb the data instead).
 MODEL_OPTIONS: dict[str, dict[str, Any]] = {
-    # process noise 0.001 V (default 0.05), selected on the held-out tail of the training record
-    # (benchmarks/probes/benchmark_ingredients.py tanks): validation 0.262 (0.005) → 0.219 V
+    # selected on the held-out tail of the training record
     "cascaded_tanks": {"process_noise": 0.001},
     "silverbox": {"hold": "foh", "process_noise": 1e-4},
-    # Former model (no offsets, p = 1, f0 guess 1 Hz): FOH measured no better (0.319 / 0.764 vs
-    # 0.297 / 0.739); process noise 0.002 (default 0.02): test 0.297 / 0.739 → 0.229 / 0.388.
-    # The present CoupledDrives: 0.1146 / 0.1447 (docs/results.md, drives_structure.py)
     "coupled_electric_drives": {"process_noise": 0.002},
 }
 #: Options of :func:`ceemx.benchmark_score` per dataset (every model's test and validation

@@ -1,4 +1,4 @@
-"""Beyond certainty equivalence (issue 9): learned noise and calibrated uncertainty by Laplace EM.
+"""Beyond certainty equivalence: learned noise and calibrated uncertainty by Laplace EM.
 
 Setting: the paper's Figure 2 (§4.1.2) — one Lorenz attractor observed through a known
 C ∈ R^{2×3}, σ_w = 0.1, σ_v = 0.5, B = 4 trajectories of T = 128 steps, the initial guess

@@ -61,9 +61,8 @@ class LMSmoother(eqx.Module):
             (default): block Cholesky and two sequential scans over time (depth O(T)).
             ``True``: ``lib.parallel_blocktri.parallel_solve``, two associative scans (depth
             O(log T), several times the arithmetic; the same steps to rounding). ``"auto"``:
-            parallel where it measures faster — never on CPU (benchmarks/README.md "Parallel in
-            time": 1.6–16× slower at every T and n measured); on an accelerator from
-            ``AUTO_PARALLEL_MIN_T`` time steps (a provisional threshold, not yet measured).
+            parallel where it is faster — never on CPU, where it is slower at every size; on an
+            accelerator from ``AUTO_PARALLEL_MIN_T`` time steps (a provisional threshold).
     """
 
     rho_x: float = 0.0
@@ -94,10 +93,7 @@ class LMSmoother(eqx.Module):
 #: ``LMSmoother(batch_chunk="auto")`` keeps a chunk's estimated working memory below this.
 #: XLA:CPU allocates a program's temporaries afresh at every call, and glibc serves blocks above
 #: 32 MB by ``mmap``: every call of a program with larger temporaries page-faults all of them in
-#: again. The Figure-3 E-step (B = 8, T = 128, n = 18: 38.4 MB of temporaries) inside a fit:
-#: 42–48 ms and ≈ 9 200 page faults an epoch unchunked, 31–41 ms and none in chunks of 2, the
-#: same states (``python benchmarks/probes/epoch_in_fit.py --variants default
-#: smoother-unchunked``; benchmarks/README.md, "Every row in one run").
+#: again (chunking changes no answer: each trajectory is solved on its own).
 AUTO_CHUNK_BYTES = 16 * 2**20
 
 
@@ -114,18 +110,9 @@ def auto_batch_chunk(B: int, T: int, n: int, itemsize: int) -> int | None:
 
 
 #: From this many states per step the smoother judges trial points by −J alone and linearises
-#: only at accepted ones (``levenberg_marquardt``'s ``value``): under ``vmap`` an iteration then
-#: costs a linearisation and a value, against a linearisation per iteration plus one at the start.
-#: The linearisation (Jacobians and Gauss–Newton blocks, O(n³) a step) costs 6× the value at
-#: n = 9, 15× at 18, 37–42× at 36–60, 117× at 120 (coupled Lorenz, B = 4, T = 128, load 1.3;
-#: ``benchmarks/probes/smoother_large_n.py ratio``). Run time: K = 100 coupled Lorenz (n = 300,
-#: T = 256), one step for 2 trajectories 28.2 → 18.1 s (``smoother_large_n.py lazy 100 2 256
-#: 1``); n = 18 (B = 8, T = 128) 156 → 121 ms for two steps, 326 → 289 ms for five. But the
-#: program holds the value's code too: XLA compile 9.6 → 11.5 s at n = 18 (load 3.5;
-#: ``smoother_large_n.py lazy 6 8 128``), which a short fit does not win back. At
-#: n = 48 (two steps, B = 2, T = 128, one core) the first call took 4.5 → 4.9 s and each later
-#: one 312 → 219 ms; at n = 120 6.96 → 6.63 s and 2.57 → 1.75 s (``benchmarks/probes/
-#: ab_first_call.py smoothK 16|40``; benchmarks/README.md, "K = 100 coupled Lorenz").
+#: only at accepted ones (``levenberg_marquardt``'s ``value``). The linearisation costs O(n³) a
+#: step against the value's O(n²): from here the run time saved outweighs the value's extra code,
+#: which costs compile time that a short fit at smaller n does not win back.
 LAZY_MIN_STATES = 48
 
 

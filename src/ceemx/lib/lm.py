@@ -50,10 +50,9 @@ def _traced_once(fun: Callable[[Any], Any], z0: Any) -> tuple[Callable[[Any], An
 
     The driver needs ``evaluate``'s output structure before it traces the loop body, which calls
     ``evaluate`` again; replaying the recorded equations costs a fraction of running the Python
-    model code a second time (0.035 s against 0.15–0.46 s for the single-Lorenz linearisation).
-    The replay is one jitted call: under ``vmap`` JAX batches a ``while_loop`` body two or three
-    times (to find its batched carries), and a jitted call's batched form is cached after the
-    first (tracing the vmapped single-Lorenz smoother 1.0–1.2 → 0.74 s).
+    model code a second time. The replay is one jitted call: under ``vmap`` JAX batches a
+    ``while_loop`` body two or three times (to find its batched carries), and a jitted call's
+    batched form is cached after the first.
     """
     closed, shapes = jax.make_jaxpr(fun, return_shape=True)(z0)
     run_jaxpr = jax.jit(jax_core.jaxpr_as_fun(closed))
