@@ -74,8 +74,7 @@ def layer_problem(importer: str, target: str) -> str | None:
         return None
     kind = "a sibling layer" if target_layer == layer else "a higher layer"
     return (
-        f"{importer} (layer {folder or 'top'}) imports {target} "
-        f"({kind}: {target_folder or 'top'})"
+        f"{importer} (layer {folder or 'top'}) imports {target} ({kind}: {target_folder or 'top'})"
     )
 
 

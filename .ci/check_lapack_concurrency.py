@@ -3,7 +3,7 @@
 Runs ``.ci/lapack_programs.py`` (a representative set of the library's programs; ``--quick``: the
 Laplace EM programs only) in a subprocess with ``XLA_FLAGS=--xla_dump_to=DIR
 --xla_dump_hlo_as_text`` and audits every optimised module XLA compiled with
-:func:`ceemx.infra.hlo_audit.lapack_concurrency`: two LAPACK-bearing instructions of one
+``lapack_concurrency`` of ``.ci/hlo_audit.py``: two LAPACK-bearing instructions of one
 computation of which neither reaches the other may run at the same time on XLA:CPU's thread pool,
 and jaxlib 0.10.2's batched LAPACK kernels deadlock there (docs/known_issues.md).
 
@@ -20,9 +20,9 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "src"))
+sys.path.insert(0, str(ROOT / ".ci"))
 
-from ceemx.infra.hlo_audit import audit_dump, lapack_concurrency  # noqa: E402
+from hlo_audit import audit_dump, lapack_concurrency  # noqa: E402
 
 
 def run_programs(dump: Path, quick: bool) -> None:

@@ -157,9 +157,11 @@ def other_programs() -> None:
 
 
 def large_block_programs() -> None:
-    """Blocks above ``lib.dense.UNROLL_MAX``: LAPACK factorisations and triangular solves per
-    step — n = 9 (the smoother's eager form, a joint fit with the inverted blocks) and n = 48
-    (the smoother judging trial points by value, its covariances linearised after the loop)."""
+    """Blocks above ``lib.dense.UNROLL_MAX``: LAPACK factorisations and triangular solves per step.
+
+    n = 9 (the smoother's eager form, a joint fit with the inverted blocks) and n = 48 (the
+    smoother judging trial points by value, its covariances linearised after the loop).
+    """
     for K in (3, 16):
         keys = jax.random.split(jax.random.PRNGKey(K), 4)
         true = CoupledLorenz(

@@ -1,4 +1,6 @@
-"""The persistent compilation cache: opt-in, written where asked, off by the environment."""
+"""Compilation: the persistent cache (opt-in, written where asked, off by the environment), the
+per-program XLA options, the compile thread, and the policy that picks one-shot or optimised
+programs and compiles ahead only on an idle core (``ceemx.infra.policy``)."""
 
 import os
 import subprocess
@@ -9,8 +11,9 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from ceemx.infra import compilation
+from ceemx.infra import compilation, policy
 from ceemx.infra.compilation import default_cache_dir, enable_compilation_cache
+from ceemx.infra.policy import Runs, Work
 
 _SCRIPT = """
 import sys
@@ -69,7 +72,7 @@ def test_fast_compilation_flags(monkeypatch):
 
 def test_suite_compiles_with_the_library_options():
     """The suite's process-wide XLA flags (tests/conftest.py) are the library's per-program ones,
-    so that the library's optimised and one-shot variants coincide here (``jit_variants``)."""
+    so that the library's optimised and one-shot variants coincide here (``policy.program``)."""
     from conftest import TEST_XLA_FLAGS
 
     assert TEST_XLA_FLAGS == {
@@ -90,30 +93,26 @@ def test_fast_compilation_after_jax_started_changes_nothing(monkeypatch):
     assert os.environ["XLA_FLAGS"] == ""
 
 
-def test_has_idle_core_follows_cpus_and_load(monkeypatch):
+def test_compiles_ahead_follows_cpus_and_load(monkeypatch):
     """fit compiles in the background only where a CPU is idle: runnable tasks now, else load."""
-    from ceemx.infra import compilation
-
-    monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
-    monkeypatch.setattr(compilation, "_runnable_tasks", lambda: 1)
-    assert compilation.has_idle_core()  # this process alone
-    monkeypatch.setattr(compilation, "_runnable_tasks", lambda: 2)
-    assert not compilation.has_idle_core()  # 2 CPUs, one busy beside this process
-    monkeypatch.setattr(compilation, "_runnable_tasks", lambda: None)  # not Linux: the load
-    monkeypatch.setattr(compilation.os, "getloadavg", lambda: (0.4, 0.0, 0.0))
-    assert compilation.has_idle_core()
-    monkeypatch.setattr(compilation.os, "getloadavg", lambda: (1.0, 0.0, 0.0))
-    assert not compilation.has_idle_core()
-    monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {0}, raising=False)
-    monkeypatch.setattr(compilation, "_runnable_tasks", lambda: 1)
-    assert not compilation.has_idle_core()  # one CPU: nothing to compile beside
+    monkeypatch.setattr(policy.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr(policy, "_runnable_tasks", lambda: 1)
+    assert policy.compiles_ahead()  # this process alone
+    monkeypatch.setattr(policy, "_runnable_tasks", lambda: 2)
+    assert not policy.compiles_ahead()  # 2 CPUs, one busy beside this process
+    monkeypatch.setattr(policy, "_runnable_tasks", lambda: None)  # not Linux: the load
+    monkeypatch.setattr(policy.os, "getloadavg", lambda: (0.4, 0.0, 0.0))
+    assert policy.compiles_ahead()
+    monkeypatch.setattr(policy.os, "getloadavg", lambda: (1.0, 0.0, 0.0))
+    assert not policy.compiles_ahead()
+    monkeypatch.setattr(policy.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    monkeypatch.setattr(policy, "_runnable_tasks", lambda: 1)
+    assert not policy.compiles_ahead()  # one CPU: nothing to compile beside
 
 
 def test_runnable_tasks_counts_this_process():
     """On Linux at least this process is runnable while it reads the count."""
-    from ceemx.infra import compilation
-
-    n = compilation._runnable_tasks()
+    n = policy._runnable_tasks()
     assert n is None or n >= 1
 
 
@@ -168,59 +167,117 @@ def test_one_shot_options_follow_the_environment(monkeypatch):
 
 
 def test_one_shot_program_reaches_xla_and_variants_alias_when_alike(monkeypatch):
-    """A one-shot program compiles with its options (an unknown one fails) and computes the same
-    numbers; the two variants are one object when they would compile alike."""
+    """A one-shot program compiles with its options (an unknown one fails, through the policy's
+    programs too) and computes the same numbers; a program's two variants are one object when
+    they would compile alike."""
     monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     f = lambda x: jnp.tanh(x) @ jnp.exp(x).T - 0.5  # noqa: E731
     x = jnp.linspace(-1.0, 1.0, 12).reshape(3, 4)
-    optimised, one_shot = compilation.jit_variants(f)
-    assert optimised is not one_shot
+    optimised, one_shot = compilation.jit(f), compilation.one_shot_jit(f)
     assert float(jnp.max(jnp.abs(one_shot(x) - optimised(x)))) < 1e-13
+    assert policy.program(f)._optimised is not policy.program(f)._one_shot
     monkeypatch.setenv("XLA_FLAGS", " ".join(f"--{k}={v}" for k, v in _all_flags().items()))
-    a, b = compilation.jit_variants(f)
-    assert a is b
+    alike = policy.program(f)
+    assert alike._optimised is alike._one_shot
     monkeypatch.delenv("XLA_FLAGS")
     monkeypatch.setattr(compilation, "ONE_SHOT_COMPILE_FLAGS", {"xla_not_a_one_shot": "0"})
     with pytest.raises(Exception, match="xla_not_a_one_shot"):
-        compilation.jit(lambda x: jnp.cos(x) * 3.0, one_shot=True)(x)
+        policy.program(lambda x: jnp.cos(x) * 3.0, runs=Runs.ONCE)(x)
 
 
 def _all_flags():
     return {**compilation.FAST_COMPILE_FLAGS, **compilation.ONE_SHOT_COMPILE_FLAGS}
 
 
-def test_one_shot_choice_follows_the_size(monkeypatch):
-    """``one_shot_when`` picks by its predicate; the smoother compiles one-shot only when asked and
-    B·T·n² ≤ ONE_SHOT_MAX_WORK; the schur complement by B·T·n·P²; a joint fit's warm start asks,
-    Algorithm 1's (whose E-step is that program) does not."""
-    monkeypatch.delenv("CEEMX_XLA_DEFAULTS", raising=False)
-    monkeypatch.delenv("XLA_FLAGS", raising=False)
+def test_policy_rule_by_runs_and_work():
+    """One-shot: a program run once whose run time is negligible, or whose work is at most its
+    bound for how often it runs; optimised otherwise (the E-step's smoothing always)."""
+    assert policy.compiles_one_shot(Runs.ONCE)
+    assert not policy.compiles_one_shot(Runs.EVERY_EPOCH)
+    n, P = 3, 10
+    cases = [  # (work at B = 1 and T steps, how often it runs)
+        (lambda T: policy.smoothing_work(1, T, n), Runs.ONCE, 5 * 10**5, n**2),
+        (lambda T: policy.schur_work(1, T, n, P), Runs.ONCE, 2 * 10**9, n * P**2),
+        (
+            lambda T: policy.joint_iteration_work(1, T, n, P),
+            Runs.EVERY_EPOCH,
+            10**5,
+            n * (n + P) ** 2,
+        ),
+    ]
+    for work, runs, bound, per_step in cases:
+        T_max = bound // per_step
+        assert policy.ONE_SHOT_MAX_WORK[(work(1).kind, runs)] == bound
+        assert policy.compiles_one_shot(runs, work(T_max)), work(T_max)
+        assert not policy.compiles_one_shot(runs, work(T_max + 1)), work(T_max + 1)
+    assert not policy.compiles_one_shot(Runs.EVERY_EPOCH, policy.smoothing_work(1, 2, 1))
+    assert not policy.compiles_one_shot(Runs.ONCE, Work("no bound listed", 1))
 
-    class Variant:
-        def __init__(self, name):
-            self.name = name
 
-        def __call__(self, *args):
-            return self.name
+class _Variant:
+    def __init__(self, name):
+        self.name = name
 
-        def lower(self, *args):
-            return f"{self.name} lowered"
+    def __call__(self, *args):
+        return self.name
 
-    with monkeypatch.context() as m:
-        variants = (Variant("optimised"), Variant("one_shot"))
-        m.setattr(compilation, "jit_variants", lambda fun, **kw: variants)
-        picked = compilation.one_shot_when(lambda x: x.shape[0] < 3)(lambda x: x)
-    assert picked(jnp.ones(2)) == "one_shot" and picked(jnp.ones(4)) == "optimised"
-    assert picked.lower(jnp.ones(2)) == "one_shot lowered"
-    assert picked.lower(jnp.ones(4)) == "optimised lowered"
+    def lower(self, *args):
+        return f"{self.name} lowered"
 
+
+def test_program_picks_its_variant_per_call():
+    """A program runs the variant the rule picks for the call's shapes; ``with_runs`` shares the
+    variants; ``.lower`` follows the same choice."""
+    variants = (_Variant("optimised"), _Variant("one_shot"))
+    work = lambda x: policy.smoothing_work(1, x.shape[0], 1)  # noqa: E731
+    once = policy.Program(lambda x: x, Runs.ONCE, work, variants)
+    small, large = jnp.ones(2), jax.ShapeDtypeStruct((5 * 10**5 + 1,), jnp.float64)
+    assert once(small) == "one_shot" and once(large) == "optimised"
+    assert once.lower(small) == "one_shot lowered" and once.lower(large) == "optimised lowered"
+    assert once.with_runs(Runs.EVERY_EPOCH)(small) == "optimised"
+    assert policy.Program(lambda x: x, Runs.ONCE, None, variants)(large) == "one_shot"
+
+
+def test_library_programs_ask_the_policy(monkeypatch):
+    """The smoother compiles one-shot only when called once and small; the Schur complement, the
+    parameter covariance, the joint iteration and a score's initial-state estimate by their work;
+    a joint fit's warm start smooths once, Algorithm 1's (whose E-step is that program) does not,
+    and neither does ``ceemx.smooth``."""
     import ceemx
     from ceemx.evaluation import simulation
     from ceemx.identification import initialize, schur
+    from ceemx.identification.analysis import uncertainty
     from ceemx.identification.solvers import joint
     from ceemx.inference import smoother
     from ceemx.systems import LinearSystem
+
+    n, P = 3, 10
+
+    def states(T):
+        return jax.ShapeDtypeStruct((1, T, n), jnp.float64)
+
+    theta = jax.ShapeDtypeStruct((P,), jnp.float64)
+    T_max = 5 * 10**5 // n**2
+    for program in (smoother._smooth_batch_once, smoother._smooth_batch):
+        once = program.runs is Runs.ONCE
+        assert program.compiles_one_shot(None, None, None, states(8), None, False) == once
+        assert not program.compiles_one_shot(None, None, None, states(T_max + 1), None, False)
+    system = LinearSystem(jnp.eye(n), jnp.eye(n)[:2], process_noise=0.1, obs_noise=0.1)
+    window = types.SimpleNamespace(y=jax.ShapeDtypeStruct((1, T_max + 1, 2), jnp.float64))
+    assert not simulation.initial_state_batch.compiles_one_shot(
+        None, system, None, window, None, True
+    )
+    window = types.SimpleNamespace(y=jax.ShapeDtypeStruct((1, T_max, 2), jnp.float64))
+    assert simulation.initial_state_batch.compiles_one_shot(None, system, None, window, None, True)
+    T_schur = 2 * 10**9 // (n * P**2)
+    for program in (schur.schur_complement, uncertainty._laplace):
+        assert program.compiles_one_shot(None, theta, states(T_schur), None, None)
+        assert not program.compiles_one_shot(None, theta, states(T_schur + 1), None, None)
+    T_joint = 10**5 // (n * (n + P) ** 2)
+    assert joint._iteration.compiles_one_shot(None, None, None, theta, states(T_joint), None)
+    large = states(T_joint + 1)
+    assert not joint._iteration.compiles_one_shot(None, None, None, theta, large, None)
 
     calls = []
 
@@ -234,45 +291,18 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
 
         return program
 
-    monkeypatch.setattr(smoother, "_smooth_batch", record("optimised"))
-    monkeypatch.setattr(smoother, "_smooth_batch_one_shot", record("one_shot"))
-    solver = ceemx.LMSmoother()
-    n = 3
-    T_max = smoother.ONE_SHOT_MAX_WORK // n**2
-    for T, one_shot, want in [
-        (8, True, "one_shot"),
-        (8, False, "optimised"),
-        (T_max + 1, True, "optimised"),
-    ]:
-        x = jax.ShapeDtypeStruct((1, T, n), jnp.float64)
-        with pytest.raises(Stop):
-            smoother.smooth_batch(solver, None, x, None, False, one_shot)
-        assert calls.pop() == want, (T, one_shot)
-
-    P = 10
-    per_unit = 1 * n * P**2
-    theta = jax.ShapeDtypeStruct((P,), jnp.float64)
-    small = jax.ShapeDtypeStruct((1, schur.SCHUR_ONE_SHOT_MAX_WORK // per_unit, n), jnp.float64)
-    large = jax.ShapeDtypeStruct((1, schur.SCHUR_ONE_SHOT_MAX_WORK // per_unit + 1, n), jnp.float64)
-    assert schur.small_schur(None, theta, small, None)
-    assert not schur.small_schur(None, theta, large, None)
-    per_step = n * (n + P) ** 2
-    small = jax.ShapeDtypeStruct((1, joint.ITERATION_TINY_WORK // per_step, n), jnp.float64)
-    large = jax.ShapeDtypeStruct((1, joint.ITERATION_TINY_WORK // per_step + 1, n), jnp.float64)
-    assert joint._tiny_iteration(None, None, None, theta, small, None)
-    assert not joint._tiny_iteration(None, None, None, theta, large, None)
-
-    system = LinearSystem(jnp.eye(n), jnp.eye(n)[:2], process_noise=0.1, obs_noise=0.1)
+    monkeypatch.setattr(smoother, "_smooth_batch", record("every epoch"))
+    monkeypatch.setattr(smoother, "_smooth_batch_once", record("once"))
     data = ceemx.Trajectories(y=jnp.zeros((1, 8, 2)))
     # The warm start's least-squares states are not what is tested (and would compile).
     monkeypatch.setattr(initialize, "from_observations", lambda s, d: jnp.zeros((1, 8, n)))
-    window = types.SimpleNamespace(y=jax.ShapeDtypeStruct((1, T_max + 1, 2), jnp.float64))
-    assert simulation._small_window(None, system, None, data, None, True)
-    assert not simulation._small_window(None, system, None, window, None, True)
-    for solver, want in [(ceemx.JointLM(), "one_shot"), (ceemx.Alternating(), "optimised")]:
+    for solver, want in [(ceemx.JointLM(), "once"), (ceemx.Alternating(), "every epoch")]:
         with pytest.raises(Stop):
             solver.initial_states(system, data)
         assert calls.pop() == want, type(solver).__name__
+    with pytest.raises(Stop):
+        ceemx.smooth(system, data, jnp.zeros((1, 8, n)))
+    assert calls.pop() == "every epoch"
 
 
 def test_join_runs_the_jobs_the_worker_has_not_started():

@@ -369,8 +369,8 @@ def refine_linear(
     prior: a small process noise weights the dynamics stiffly, so the CE fit comes close to an
     output-error (simulation-error) fit where N4SID fits one-step prediction. On the cascaded
     tanks (order 2, affine) the free-run test RMSE goes from 1.88 V (:func:`fit_affine_sid`) to
-    0.699 V, below the published best linear approximation (0.75 V; docs/results.md,
-    ``benchmarks/probes/linear_neural_start.py``). The result's states are a start for a learned
+    0.699 V, below the published best linear approximation (0.75 V; docs/results.md). The
+    result's states are a start for a learned
     model on top: ``ceemx.hybrid(result.system, data, states=result.states)`` is a neural
     state-space model x⁺ = A x + B u + N(x, u) that starts at the linear model.
 

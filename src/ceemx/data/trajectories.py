@@ -9,7 +9,7 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from ceemx.infra.compilation import jit
+from ceemx.infra.policy import Runs, program
 from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import (
     Inputs,
@@ -420,7 +420,7 @@ def simulate(
     return xs, Trajectories(y, u if u.shape[-1] else None)
 
 
-@jit(one_shot=True)  # data generation: once per data set, cheap to run beside its compile
+@program(runs=Runs.ONCE)  # data generation: once per data set, cheap to run beside its compile
 def _simulate(
     system: AbstractSystem,
     key: PRNGKeyArray,

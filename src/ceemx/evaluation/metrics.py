@@ -30,6 +30,7 @@ from ceemx.data.trajectories import Trajectories, rollout_one
 from ceemx.evaluation.estimates import Estimate, mean_se  # the seeds' summaries, here too
 from ceemx.evaluation.simulation import free_run_batch, initial_state_prepared, strongly_typed
 from ceemx.infra.compilation import jit
+from ceemx.infra.policy import Runs, program
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.tree import as_jax
@@ -173,7 +174,7 @@ def simulation_rmse(
     return SimulationRMSE(per, overall, pred)
 
 
-@jit(one_shot=True)  # on the host: one program, where op by op it compiled a dozen small ones
+@program(runs=Runs.ONCE)  # on the host: one program, where op by op it compiled a dozen small ones
 def _rmse(pred, y, mask):
     """(per-trajectory, overall) RMSE of ``pred`` against ``y`` over the entries of ``mask``."""
     sq = jnp.where(mask, (pred - y) ** 2, 0.0)

@@ -31,8 +31,9 @@ from ceemx.data.checks import check_states, prepare, promote_array, promote_tree
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import from_observations
 from ceemx.inference.ekf import ekf_prepared
-from ceemx.inference.smoother import LMSmoother, one_shot_pays, smooth_batch
-from ceemx.infra.compilation import jit, one_shot_when
+from ceemx.inference.smoother import LMSmoother, smooth_batch
+from ceemx.infra.compilation import jit
+from ceemx.infra.policy import Runs, program, smoothing_work
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import after, cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
@@ -267,16 +268,15 @@ def _window_error_one(system: AbstractSystem, x1, y, u, mask) -> Float[Array, ""
     return value
 
 
-def _small_window(
-    solver, system: AbstractSystem, weak, window: Trajectories, x_init, refine
-) -> bool:
-    """Whether :func:`initial_state_batch` compiles as a one-shot program (the smoother's bound)."""
+def _window_work(solver, system: AbstractSystem, weak, window: Trajectories, x_init, refine):
+    """:func:`initial_state_batch`'s work: smoothing the window (its LM on x₁ is smaller)."""
     del solver, weak, x_init, refine
     B, T, _ = window.y.shape
-    return one_shot_pays(B, T, system.state_dim)
+    return smoothing_work(B, T, system.state_dim)
 
 
-@one_shot_when(_small_window)  # once per score or prediction: a short window's smoothing and LM
+# once per score or prediction: a short window's smoothing and LM
+@program(runs=Runs.ONCE, work=_window_work)
 def initial_state_batch(
     solver: LMSmoother,
     system: AbstractSystem,

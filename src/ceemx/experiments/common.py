@@ -28,7 +28,7 @@ from ceemx import (
 from ceemx.data.trajectories import Trajectories, simulate
 from ceemx.experiments import METHODS, parse_seeds
 from ceemx.identification.initialize import perturb
-from ceemx.infra.compilation import jit
+from ceemx.infra.policy import Runs, program
 from ceemx.models.noise import DiagonalGaussian
 from ceemx.systems.lorenz import (
     INITIAL_MEAN,
@@ -182,7 +182,7 @@ def true_lorenz(
     )
 
 
-@jit(one_shot=True)
+@program(runs=Runs.ONCE)
 def split_key(key, n: int) -> tuple:
     """``jax.random.split(key, n)`` as a tuple, by one one-shot program (the same keys)."""
     return tuple(jax.random.split(key, n))

@@ -20,12 +20,12 @@ import jax
 import numpy as np
 
 from ceemx import fit
+from ceemx.data.checks import prepare
 from ceemx.evaluation import metrics as ev
 from ceemx.evaluation import report
 from ceemx.experiments import common
 from ceemx.identification.analysis.noise_check import NoiseCheckWarning
 from ceemx.identification.fitting.start import precompile_fit
-from ceemx.identification.initialize import warm_start
 from ceemx.models import with_noise
 from ceemx.systems import CoupledLorenz
 from ceemx.systems.lorenz import coupling_mask
@@ -64,8 +64,9 @@ def identify(true, problem, *, method: str, max_epochs: int, say) -> Identified:
     compiling = precompile_fit(
         system, problem.data, solver=solver, trainable=common.LORENZ_PARAMS_H
     )
-    # A joint fit never smooths at these shapes again: the warm start is a one-shot program.
-    x_init = warm_start(system, problem.data, one_shot=not solver.smooths_each_epoch)
+    # The start states the fit would compute itself (compiled for how often the solver smooths).
+    inputs = prepare(system, problem.data, identify=True)
+    x_init = solver.initial_states(inputs.system, inputs.data)
 
     def show(info, eps):
         say(

@@ -21,8 +21,7 @@ from ceemx.data.checks import prepare, promote_tree
 from ceemx.data.trajectories import Trajectories, rollout_one
 from ceemx.inference.smoother import LMSmoother, smooth_prepared
 from ceemx.infra.compilation import jit
-from ceemx.infra.options import check_bool
-from ceemx.infra.runtime import one_blas_thread
+from ceemx.infra.policy import Runs, entry_point, program
 from ceemx.models.system import AbstractSystem, with_noise
 
 __all__ = ["from_observations", "perturb", "rollout", "warm_start", "warm_start_states"]
@@ -30,7 +29,7 @@ __all__ = ["from_observations", "perturb", "rollout", "warm_start", "warm_start_
 _T = TypeVar("_T")
 
 
-@jit(one_shot=True)
+@program(runs=Runs.ONCE)
 def from_observations(
     system: AbstractSystem, data: Trajectories, x_guess=None, ridge: float = 1e-6
 ):
@@ -72,14 +71,13 @@ def rollout(system: AbstractSystem, data: Trajectories, x1):
     return jax.vmap(lambda x0, u: rollout_one(system, x0, u))(jnp.asarray(x1, data.y.dtype), data.u)
 
 
-@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
+@entry_point  # BLAS threads and results as the policy says (ceemx.infra.policy)
 def warm_start(
     system: AbstractSystem,
     data: Trajectories,
     *,
     process_noise: float = 1.0,
     smoother: LMSmoother | None = None,
-    one_shot: bool = False,
 ) -> Float[Array, "B T n"]:
     """Start states without knowing the true ones.
 
@@ -94,8 +92,6 @@ def warm_start(
         data: B observed trajectories.
         process_noise: scale of the process noise during the smoothing pass.
         smoother: the smoothing solver (default :class:`ceemx.LMSmoother`).
-        one_shot: smooth with a one-shot program (``ceemx.smooth(..., one_shot=True)``): when
-            nothing else smooths at these shapes (a fit whose epochs do not).
 
     Returns:
         (B, T, n) states.
@@ -105,14 +101,9 @@ def warm_start(
     """
     if smoother is not None and not isinstance(smoother, LMSmoother):
         raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {smoother!r}.")
-    check_bool("one_shot", one_shot)
     inputs = prepare(system, data, identify=True)
     return warm_start_states(
-        inputs.system,
-        inputs.data,
-        process_noise=process_noise,
-        smoother=smoother,
-        one_shot=one_shot,
+        inputs.system, inputs.data, process_noise=process_noise, smoother=smoother
     )
 
 
@@ -122,12 +113,16 @@ def warm_start_states(
     *,
     process_noise: float = 1.0,
     smoother: LMSmoother | None = None,
-    one_shot: bool = False,
+    runs: Runs = Runs.EVERY_EPOCH,
 ) -> Float[Array, "B T n"]:
-    """:func:`warm_start` of prepared inputs (:func:`ceemx.data.checks.prepare`): no checks."""
+    """:func:`warm_start` of prepared inputs (:func:`ceemx.data.checks.prepare`): no checks.
+
+    ``runs``: how often the caller smooths at these shapes — :attr:`~ceemx.infra.policy.Runs.ONCE`
+    for a fit whose epochs do not smooth with this program.
+    """
     x0 = from_observations(system, data)
     weak = promote_tree(with_noise(system, process_noise=process_noise), system)
-    return smooth_prepared(weak, data, x0, smoother, one_shot=one_shot).states
+    return smooth_prepared(weak, data, x0, smoother, runs=runs).states
 
 
 def _perturb_leaves(key: PRNGKeyArray, leaves: list, frac: float) -> list:
@@ -140,7 +135,7 @@ def _perturb_leaves(key: PRNGKeyArray, leaves: list, frac: float) -> list:
     return out
 
 
-@jit(one_shot=True)  # on the host one program per structure (op by op: several per leaf shape)
+@program(runs=Runs.ONCE)  # on the host one program per structure (op by op: several per leaf shape)
 def _perturbed(key: PRNGKeyArray, arrays: list, where: tuple, count: int, frac: float) -> list:
     keys = jax.random.split(key, max(count, 1))
     return [

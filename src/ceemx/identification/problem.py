@@ -32,6 +32,7 @@ from jaxtyping import Array, Float, PyTree
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import neg_log_joint_single, nll_offset
 from ceemx.infra.compilation import jit
+from ceemx.infra.policy import Runs, program
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.tree import as_jax, is_weak
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
@@ -234,7 +235,7 @@ def _natural(template, constraints, theta: Theta) -> tuple[Array, Array]:
 
 # On the host one one-shot program per problem structure (the identifiability analysis and the
 # parameter covariance ask once per fit): op by op, a dozen small programs at each new shape.
-_natural_compiled = jit(_natural, one_shot=True)
+_natural_compiled = program(_natural, runs=Runs.ONCE)
 
 
 def _sign_definite(c: AbstractConstraint) -> bool:
@@ -257,7 +258,7 @@ def _unconstrain(constraints, leaves) -> tuple[list, list, Theta]:
 
 # On the host one program per problem structure: op by op, every constraint's inverse and the
 # flattening compiled a handful of small programs at each new shape (≈ 20 ms each).
-_unconstrain_compiled = jit(_unconstrain, one_shot=True)
+_unconstrain_compiled = program(_unconstrain, runs=Runs.ONCE)
 
 
 def _unconstrained_leaves(constraints, leaves) -> tuple[list, list | None, Theta]:
@@ -456,7 +457,7 @@ class FitProblem(eqx.Module):
         return value, grad, symmetrize(jax.hessian(self.neg_log_prior)(theta))
 
 
-@jit(one_shot=True)  # at a fit's start and end, once per epoch in Algorithm 1: cheap to run
+@program(runs=Runs.ONCE)  # at a fit's start and end, once per epoch in Algorithm 1: cheap to run
 def per_trajectory_nll(problem: FitProblem, theta: Theta, states: States) -> PerTrajectory:
     """(B,) −J_b(x_b, θ), compiled once per problem shape.
 
@@ -465,7 +466,7 @@ def per_trajectory_nll(problem: FitProblem, theta: Theta, states: States) -> Per
     return problem.per_trajectory(theta, states)
 
 
-@jit(one_shot=True)
+@program(runs=Runs.ONCE)
 def per_trajectory_offset(problem: FitProblem, theta: Theta) -> PerTrajectory:
     """(B,) the x-independent constants of −J_b (see :meth:`FitProblem.offset`), compiled."""
     return nll_offset(problem.build(theta), problem.data)

@@ -21,19 +21,19 @@ from jaxtyping import Array, Bool, Float
 
 from ceemx.identification.problem import FitProblem
 from ceemx.inference.objective import linearize
-from ceemx.infra.compilation import jit, one_shot_when
+from ceemx.infra.compilation import jit
+from ceemx.infra.policy import Runs, program, schur_work
 from ceemx.lib.arrowhead import factor, schur_terms
 from ceemx.lib.blocktri import BlockTridiagonal, is_finite
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 
 __all__ = [
-    "SCHUR_ONE_SHOT_MAX_WORK",
     "JointLinearization",
     "joint_evaluator",
     "linearize_joint",
     "schur_complement",
-    "small_schur",
+    "schur_complement_work",
 ]
 
 
@@ -98,20 +98,15 @@ def linearize_joint(
     return joint_evaluator(problem, weights, offset)((states, theta))
 
 
-#: :func:`schur_complement` compiles as a one-shot program up to this B·T·n·P² (its
-#: Σ_b E_bᵀ A_b⁻¹ E_b in multiply–adds): there its extra run time (1.4× at the Figure-3 size,
-#: 3 s) stays below the compile time saved (2.2 s; benchmarks/README.md, "One-shot programs").
-SCHUR_ONE_SHOT_MAX_WORK = 2 * 10**9
-
-
-def small_schur(problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory) -> bool:
-    """Whether :func:`schur_complement` at these shapes compiles as a one-shot program."""
-    del problem, weights
+def schur_complement_work(problem: FitProblem, theta: Theta, states: States, *rest):
+    """:func:`schur_complement`'s work at these shapes (:func:`ceemx.infra.policy.schur_work`)."""
+    del problem, rest
     B, T, n = states.shape
-    return B * T * n * theta.shape[0] ** 2 <= SCHUR_ONE_SHOT_MAX_WORK
+    return schur_work(B, T, n, theta.shape[0])
 
 
-@one_shot_when(small_schur)  # once or twice per fit: the identifiability check, uncertainty
+# once or twice per fit (the identifiability check, uncertainty): one-shot while that pays
+@program(runs=Runs.ONCE, work=schur_complement_work)
 def schur_complement(
     problem: FitProblem, theta: Theta, states: States, weights: PerTrajectory
 ) -> tuple[Float[Array, "theta theta"], Bool[Array, ""]]:

@@ -13,9 +13,8 @@ from ceemx import lib
 from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import linearize, neg_log_joint_single, nll_offset_single
-from ceemx.infra.compilation import jit_variants
 from ceemx.infra.options import check_bool, check_choice, check_int, check_nonnegative
-from ceemx.infra.runtime import one_blas_thread
+from ceemx.infra.policy import Runs, entry_point, program, smoothing_work
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.parallel_blocktri import parallel_solve
 from ceemx.lib.results import RESULTS, messages
@@ -62,9 +61,8 @@ class LMSmoother(eqx.Module):
             (default): block Cholesky and two sequential scans over time (depth O(T)).
             ``True``: ``lib.parallel_blocktri.parallel_solve``, two associative scans (depth
             O(log T), several times the arithmetic; the same steps to rounding). ``"auto"``:
-            parallel where it measures faster — never on CPU (benchmarks/README.md "Parallel in
-            time": 1.6–16× slower at every T and n measured); on an accelerator from
-            ``AUTO_PARALLEL_MIN_T`` time steps (a provisional threshold, not yet measured).
+            parallel where it is faster — never on CPU, where it is slower at every size; on an
+            accelerator from ``AUTO_PARALLEL_MIN_T`` time steps (a provisional threshold).
     """
 
     rho_x: float = 0.0
@@ -95,10 +93,7 @@ class LMSmoother(eqx.Module):
 #: ``LMSmoother(batch_chunk="auto")`` keeps a chunk's estimated working memory below this.
 #: XLA:CPU allocates a program's temporaries afresh at every call, and glibc serves blocks above
 #: 32 MB by ``mmap``: every call of a program with larger temporaries page-faults all of them in
-#: again. The Figure-3 E-step (B = 8, T = 128, n = 18: 38.4 MB of temporaries) inside a fit:
-#: 42–48 ms and ≈ 9 200 page faults an epoch unchunked, 31–41 ms and none in chunks of 2, the
-#: same states (``python benchmarks/probes/epoch_in_fit.py --variants default
-#: smoother-unchunked``; benchmarks/README.md, "Every row in one run").
+#: again (chunking changes no answer: each trajectory is solved on its own).
 AUTO_CHUNK_BYTES = 16 * 2**20
 
 
@@ -114,31 +109,10 @@ def auto_batch_chunk(B: int, T: int, n: int, itemsize: int) -> int | None:
     return int(chunk) if 2 <= chunk < B else None
 
 
-#: ``smooth(..., one_shot=True)`` compiles a one-shot program up to this B·T·n² (the run time of an
-#: LM iteration is ≈ 0.5–2 µs per unit here): the unoptimised code's extra run time for one call
-#: (≈ 0.3 s at the bound) stays below the compile time it saves (1.4–2.5 s; benchmarks/README.md,
-#: "One-shot programs").
-ONE_SHOT_MAX_WORK = 5 * 10**5
-
-
-def one_shot_pays(B: int, T: int, n: int) -> bool:
-    """Whether smoothing B trajectories of T steps and n states once pays as a one-shot program."""
-    return B * T * n**2 <= ONE_SHOT_MAX_WORK
-
-
 #: From this many states per step the smoother judges trial points by −J alone and linearises
-#: only at accepted ones (``levenberg_marquardt``'s ``value``): under ``vmap`` an iteration then
-#: costs a linearisation and a value, against a linearisation per iteration plus one at the start.
-#: The linearisation (Jacobians and Gauss–Newton blocks, O(n³) a step) costs 6× the value at
-#: n = 9, 15× at 18, 37–42× at 36–60, 117× at 120 (coupled Lorenz, B = 4, T = 128, load 1.3;
-#: ``benchmarks/probes/smoother_large_n.py ratio``). Run time: K = 100 coupled Lorenz (n = 300,
-#: T = 256), one step for 2 trajectories 28.2 → 18.1 s (``smoother_large_n.py lazy 100 2 256
-#: 1``); n = 18 (B = 8, T = 128) 156 → 121 ms for two steps, 326 → 289 ms for five. But the
-#: program holds the value's code too: XLA compile 9.6 → 11.5 s at n = 18 (load 3.5;
-#: ``smoother_large_n.py lazy 6 8 128``), which a short fit does not win back. At
-#: n = 48 (two steps, B = 2, T = 128, one core) the first call took 4.5 → 4.9 s and each later
-#: one 312 → 219 ms; at n = 120 6.96 → 6.63 s and 2.57 → 1.75 s (``benchmarks/probes/
-#: ab_first_call.py smoothK 16|40``; benchmarks/README.md, "K = 100 coupled Lorenz").
+#: only at accepted ones (``levenberg_marquardt``'s ``value``). The linearisation costs O(n³) a
+#: step against the value's O(n²): from here the run time saved outweighs the value's extra code,
+#: which costs compile time that a short fit at smaller n does not win back.
 LAZY_MIN_STATES = 48
 
 
@@ -270,19 +244,16 @@ def smooth_batch(
     x_init: States,
     data: Trajectories,
     covariance: bool,
-    one_shot: bool = False,
+    runs: Runs = Runs.EVERY_EPOCH,
 ) -> SmootherSolution:
     """The compiled batch smoother behind :func:`smooth` (no validation; numbers traced).
 
     ``solver.max_steps`` is passed to the program as a number, not compiled into it: smoothers
     that differ only in their step bound (a fit's warm start and :class:`ceemx.Alternating`'s
-    partial E-step) run one program, traced and compiled once. ``one_shot``: the caller runs this
-    program once or a few times (a fit's warm start when its epochs do not smooth with it): it
-    compiles as a one-shot program (:data:`ceemx.infra.compilation.ONE_SHOT_COMPILE_FLAGS`) when
-    the problem is small enough that its run time stays below the compile time saved
-    (:data:`ONE_SHOT_MAX_WORK`). Where it runs every epoch (Algorithm 1's E-step) it stays
-    optimised even on the smallest problems: unoptimised, the single-Lorenz E-step costs ≈ 7 ms
-    more an epoch, 0.38 s a 57-epoch fit, against 0.74 s of compile saved once.
+    partial E-step) run one program, traced and compiled once. ``runs``: how often the caller
+    smooths at these shapes (a fit's warm start when its epochs do not smooth with this program,
+    its end-of-fit check: :attr:`~ceemx.infra.policy.Runs.ONCE`); the policy compiles the
+    program for that (:func:`ceemx.infra.policy.compiles_one_shot`).
     """
     steps = jnp.asarray(solver.max_steps, jnp.int32)
     # One static configuration for every bound. A copy with the field set, not
@@ -290,7 +261,7 @@ def smooth_batch(
     # traced numbers do not meet (and ``eqx.tree_at`` cannot reach a static field).
     canonical = copy.copy(solver)
     object.__setattr__(canonical, "max_steps", 0)
-    program = _smooth_batch_one_shot if one_shot and one_shot_pays(*x_init.shape) else _smooth_batch
+    program = _smooth_batch_once if runs is Runs.ONCE else _smooth_batch
     return program(canonical, steps, system, x_init, data, covariance)
 
 
@@ -334,10 +305,18 @@ def _smooth_batch_impl(
     return SmootherSolution(x, value, steps, status, cov, cross, log_det)
 
 
-_smooth_batch, _smooth_batch_one_shot = jit_variants(_smooth_batch_impl)
+def _smoothing_work(solver, max_steps, system, x_init: States, data, covariance):
+    """The work of smoothing ``x_init``'s batch (:func:`ceemx.infra.policy.smoothing_work`)."""
+    del solver, max_steps, system, data, covariance
+    B, T, n = x_init.shape
+    return smoothing_work(B, T, n)
 
 
-@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
+_smooth_batch = program(_smooth_batch_impl, work=_smoothing_work)  # the E-step's, every epoch
+_smooth_batch_once = _smooth_batch.with_runs(Runs.ONCE)  # a start or a check: the same program
+
+
+@entry_point  # BLAS threads and results as the policy says (ceemx.infra.policy)
 @no_type_check  # validates its arguments: ceemx.data.checks.prepare
 def smooth(
     system: AbstractSystem,
@@ -346,7 +325,6 @@ def smooth(
     solver: LMSmoother | None = None,
     *,
     covariance: bool = False,
-    one_shot: bool = False,
 ) -> SmootherSolution:
     """MAP state trajectories for every trajectory of ``data`` (the CE-EM smoothing step, Eq. 10).
 
@@ -357,10 +335,6 @@ def smooth(
         solver: the smoother configuration (default :class:`LMSmoother`).
         covariance: also return the marginal covariances of each x_t (Laplace approximation), from
             the selected inverse of the Gauss–Newton matrix at the solution.
-        one_shot: this shape is smoothed once or a few times (a start, a check): compile its
-            program for that — LLVM -O0, a third to a half of the compile time, 2–3× the run
-            time — on problems small enough that this pays (``B·T·n² ≤`` :data:`ONE_SHOT_MAX_WORK`;
-            optimised above). Results agree to rounding.
 
     Returns:
         A :class:`SmootherSolution`; inspect ``status`` for per-trajectory failures (a failed
@@ -382,10 +356,7 @@ def smooth(
     if solver is not None and not isinstance(solver, LMSmoother):
         raise TypeError(f"`solver` must be a ceemx.LMSmoother; got {solver!r}.")
     inputs = prepare(system, data, x_init)
-    check_bool("one_shot", one_shot)
-    return smooth_prepared(
-        inputs.system, inputs.data, inputs.states, solver, covariance=covariance, one_shot=one_shot
-    )
+    return smooth_prepared(inputs.system, inputs.data, inputs.states, solver, covariance=covariance)
 
 
 def smooth_prepared(
@@ -395,15 +366,13 @@ def smooth_prepared(
     solver: LMSmoother | None = None,
     *,
     covariance: bool = False,
-    one_shot: bool = False,
+    runs: Runs = Runs.EVERY_EPOCH,
 ) -> SmootherSolution:
     """:func:`smooth` of inputs already prepared (:func:`ceemx.data.checks.prepare`): no checks.
 
     For the library's own smoothing passes (a fit's warm start) on values validated at their
-    entry point.
+    entry point; ``runs`` as :func:`smooth_batch`'s.
     """
     solver = LMSmoother() if solver is None else solver
     x_init = jnp.asarray(x_init)
-    return smooth_batch(
-        trace_numbers(solver, x_init.dtype), system, x_init, data, covariance, one_shot
-    )
+    return smooth_batch(trace_numbers(solver, x_init.dtype), system, x_init, data, covariance, runs)

@@ -1,44 +1,37 @@
-"""How many CPU threads JAX's CPU runtime uses (opt-in; the ``ceemx`` command's ``--threads``).
+"""How many CPU threads JAX's CPU runtime and the BLAS libraries use.
 
 XLA's CPU runtime sizes its thread pool from the CPUs this process may run on (its affinity mask)
 when the backend starts, and splits the work of each compiled program over those threads. On a
 machine whose cores are busy with other work (a laptop running other jobs, several fits side by
 side) that split backfires: threads wait for a sibling that the operating system has descheduled,
-spinning meanwhile. Measured on the 2-core development machine with two other busy processes: a
-joint iteration of the demo problem took 1.7–6.5 s with the default two threads against 0.6 s
-pinned to one CPU, and 0.35 s on the idle machine (``benchmarks/README.md``, "Busy machines").
+spinning meanwhile, and a program can take several times as long as pinned to one CPU.
 
 :func:`limit_cpu_threads` restricts the process to its first ``n`` allowed CPUs before JAX
 starts, which is the one control XLA honours (``XLA_FLAGS`` has no thread-count flag for the
 runtime; ``taskset -c 0 python ...`` does the same from the shell). The library never calls it by
 itself; the ``ceemx`` command does with ``--threads N`` or ``CEEMX_THREADS=N``.
 
-:func:`blas_threads` is the other half, and the library does use it: XLA's CPU LAPACK calls
-(Cholesky, triangular solves) run in SciPy's OpenBLAS, which starts its own thread pool beside
-XLA's and keeps those threads spinning after each call, on the cores XLA's threads need. Inside
-``fit``, ``smooth``, ``learn`` and ``estimate_noise`` the BLAS libraries run one thread each
-(``threadpoolctl``, for the duration of the call only; ``CEEMX_BLAS_THREADS=N`` chooses another
-N, ``0`` leaves them as they are). Measured on the Figure-3 Algorithm-1 epoch (B = 8, n = 18,
-342 parameters, 2 cores): 0.141–0.144 s → 0.092–0.110 s (smoothing 59–62 → 32–41 ms, learning
-81–82 → 58–65 ms; ``python benchmarks/probes/epoch_in_fit.py --variants default no-blas-limit``;
-``benchmarks/README.md``, "Every row in one run").
+:func:`blas_threads` is the other half: XLA's CPU LAPACK calls (Cholesky, triangular solves) run
+in SciPy's OpenBLAS, which starts its own thread pool beside XLA's and keeps those threads
+spinning after each call, on the cores XLA's threads need. ``fit``, ``smooth``, ``learn`` and
+``estimate_noise`` run inside it (:func:`ceemx.infra.policy.entry_point`: the BLAS libraries at
+one thread each for the duration of the call; ``CEEMX_BLAS_THREADS=N`` chooses another N, ``0``
+leaves them as they are).
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
 import threading
-from collections.abc import Callable, Iterator
-from typing import Any, TypeVar
+from collections.abc import Iterator
+from typing import Any
 
 from ceemx.infra.warn import warn
 from ceemx.lib.typing import no_type_check
 
-__all__ = ["blas_threads", "limit_cpu_threads", "one_blas_thread"]
+__all__ = ["blas_threads", "limit_cpu_threads"]
 
-_F = TypeVar("_F", bound=Callable[..., Any])
 _controller: Any = None
 
 
@@ -110,19 +103,6 @@ def blas_threads(n: int | None = None) -> Iterator[None]:
                 _limiter.restore_original_limits()
                 _release_openblas()
                 _limiter = None
-
-
-def one_blas_thread(fun: _F) -> _F:
-    """``fun`` run inside :func:`blas_threads` (its array results waited for before the exit)."""
-
-    @functools.wraps(fun)
-    def wrapped(*args: Any, **kwargs: Any) -> Any:
-        import jax
-
-        with blas_threads():
-            return jax.block_until_ready(fun(*args, **kwargs))
-
-    return wrapped  # type: ignore[return-value]
 
 
 @no_type_check  # validates its argument

@@ -142,8 +142,8 @@ def _mm(a: Array, b: Array) -> Array:
 def _cholesky(a: Float[Array, "n n"]) -> Float[Array, "n n"]:
     """Cholesky factor of one block: elementwise for small blocks, LAPACK for large ones.
 
-    Inside the scans one LAPACK call per step costs more than the arithmetic of a small block
-    (blocktri.cholesky at T = 25 000, n = 2: 35 ms with LAPACK), and elementwise code has no
+    Inside the scans one LAPACK call per step costs more than the arithmetic of a small block,
+    and elementwise code has no
     batched LAPACK call that could deadlock (ceemx.lib.dense). NaN where not positive definite,
     either way.
     """
@@ -272,9 +272,8 @@ def solve(
     A forward scan solves ``L y = b`` and a backward scan solves ``L^T x = y``. Blocks above
     ``UNROLL_MAX`` with several right-hand sides use the inverted diagonal blocks (``inv``,
     :func:`diagonal_inverses`, computed here when not given): every step is then two matrix
-    products instead of a product and a LAPACK triangular solve, whose dispatch cost more than its
-    arithmetic (n = 18, 343 right-hand sides, B = 4, T = 128: 184 → 98 ms; benchmarks/README.md,
-    "First result sooner"). A vector right-hand side is solved step by step (``_by_inverses``).
+    products instead of a product and a LAPACK triangular solve, whose dispatch costs more than
+    its arithmetic. A vector right-hand side is solved step by step (``_by_inverses``).
 
     Args:
         L: Factor returned by :func:`cholesky`.
@@ -295,9 +294,7 @@ def _by_inverses(L: BlockTridiagonalCholesky, vector: bool, inv: Array | None) -
     Blocks above ``UNROLL_MAX`` with several right-hand sides, or with the inverses at hand:
     inverting costs n³ a step once, against a LAPACK dispatch per step and right-hand side.
     A vector right-hand side is solved step by step (a LAPACK triangular solve of n² a step):
-    inverting first cost 1.8–2.1× as much at every n from 32 to 300 (T = 256, B = 2; n = 300:
-    1.38 against 0.69 s), about even at n = 9–16 (``benchmarks/probes/smoother_large_n.py
-    solve``).
+    inverting first costs about twice as much from n = 32 up, about the same below.
     """
     if L.diagonal.shape[-1] <= dense.UNROLL_MAX:
         return False

@@ -11,9 +11,9 @@ so it exists for the singular and rounding-level indefinite pairwise covariances
 deterministic transition (plain Cholesky fails there), and L Lᵀ = Σ to rounding. Any square root
 gives the same rule's moments — every polynomial of degree ≤ 3 is integrated exactly whichever
 square root is used; the factor orients the points (the classic cubature Kalman filter's choice).
-It is elementwise JAX, not LAPACK: for the (T, 2n, 2n) pair blocks of a long record it is ~100×
-faster than LAPACK's batched eigh (1.3 ms against 100 ms for 25 000 4×4 blocks), and batched LAPACK
-calls that may run concurrently deadlock jaxlib 0.10.2 on small machines (docs/known_issues.md).
+It is elementwise JAX, not LAPACK: for the (T, 2n, 2n) pair blocks of a long record it is about
+100× faster than LAPACK's batched eigh, and batched LAPACK calls that may run concurrently
+deadlock jaxlib 0.10.2 on small machines (docs/known_issues.md).
 :func:`sqrtm_psd`, the symmetric root, is kept for callers who want that orientation.
 
 Pure JAX, jit/vmap-safe; knows nothing of EM.

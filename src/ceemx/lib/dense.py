@@ -7,8 +7,8 @@ over XLA's intra-op thread pool and block until it is done; two such calls runni
 cubature square roots) are therefore factorised here by elementwise JAX code, batched over any
 leading axes: :func:`cholesky` (with a positive-semidefinite mode that truncates rounding-level
 pivots, a square root for singular covariances), :func:`solve_triangular`, :func:`cho_solve`
-and a Jacobi :func:`eigh` — unrolled up to :data:`UNROLL_MAX` rows (25 000 4×4 square roots:
-1.3 ms, against 100 ms for LAPACK's batched eigh), a ``fori_loop`` over columns beyond. Large
+and a Jacobi :func:`eigh` — unrolled up to :data:`UNROLL_MAX` rows (on many small blocks about
+100× faster than LAPACK's batched eigh), a ``fori_loop`` over columns beyond. Large
 single matrices (one call, which jaxlib never fans out) keep LAPACK: :func:`cholesky_solve`.
 Where batched LAPACK calls remain (block-tridiagonal factorisations), :func:`after` orders one
 after another.

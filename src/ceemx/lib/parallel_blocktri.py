@@ -22,9 +22,8 @@ its interior nodes minimised out; joining two runs that share a node m minimises
     ``h_r = h2_r − P2_lrᵀ M⁻¹ h_m`` with ``h_m = h1_r + h2_l``,
 
 computed as the Schur complement of M's n pivots in one bordered symmetric matrix (symmetric
-Gaussian elimination, a rank-one update per pivot: a small program; with ``lib.dense``'s unrolled
-Cholesky and triangular solves in every join instead, T = 64 took 5.2 s (n = 2) and 18.6 s
-(n = 6) to compile under XLA's default CPU flags, against 3.8 s and 10.1 s now).
+Gaussian elimination, a rank-one update per pivot: a smaller program to compile than
+``lib.dense``'s unrolled Cholesky and triangular solves in every join).
 
 Minimisation in any grouping gives the same result, so the join is associative. ``M`` is the
 Schur complement of A's principal submatrix over the run's interior nodes onto x_m, hence
@@ -121,7 +120,7 @@ def parallel_solve(A: BlockTridiagonal, b: Float[Array, "T n *k"]) -> Float[Arra
     The same solution as ``blocktri.solve(blocktri.cholesky(A), b)`` up to rounding (tests: 1e-8
     relative in float64), computed by two ``jax.lax.associative_scan`` passes instead of two
     sequential scans; see the module notes. Work O(T n³), several times the sequential solve's:
-    faster only where the device has idle parallel lanes (not on CPU: benchmarks/README.md).
+    faster only where the device has idle parallel lanes (not on CPU).
 
     Args:
         A: One symmetric positive-definite block-tridiagonal matrix (``vmap`` for a batch).

@@ -44,8 +44,8 @@ def as_jax(a: Any) -> jax.Array:
     """``jnp.asarray(a)``, without compiling a program for a NumPy array.
 
     JAX 0.10's ``jnp.asarray`` of a NumPy array without a ``dtype`` goes through a compiled
-    identity (``lax.stage``): one XLA program per new shape and dtype, ≈ 20 ms each on a 2 GHz
-    core against 0.3 ms for a transfer. NumPy arrays and scalars are transferred
+    identity (``lax.stage``): one XLA program per new shape and dtype, far slower than a
+    transfer. NumPy arrays and scalars are transferred
     (``jax.device_put``, which canonicalises the dtype as ``asarray`` does); anything else goes
     to ``jnp.asarray``.
     """

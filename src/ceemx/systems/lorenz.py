@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real
 
-from ceemx.infra.compilation import jit
+from ceemx.infra.policy import Runs, program
 from ceemx.lib.typing import State
 from ceemx.models.noise import AbstractNoise, as_noise
 from ceemx.models.system import AbstractContinuousSystem, GaussianPrior
@@ -173,7 +173,7 @@ def random_coupling(
     return _random_coupling(key, K, jnp.asarray(frobenius, dtype), dtype)
 
 
-@jit(one_shot=True)
+@program(runs=Runs.ONCE)
 def _random_coupling(key, K: int, frobenius, dtype):
     # One program per (K, dtype), run once: op by op, each new K compiled a handful of programs.
     H = jax.random.normal(key, (3 * K, 3 * K), dtype) * coupling_mask(K, dtype)
@@ -200,12 +200,12 @@ def initial_states(
     return _initial_states(key, B, K, dtype, jnp.asarray(std, dtype))
 
 
-@jit(one_shot=True)
+@program(runs=Runs.ONCE)
 def _standard_normal(key, shape: tuple[int, ...], dtype):
     return jax.random.normal(key, shape, dtype)
 
 
-@jit(one_shot=True)
+@program(runs=Runs.ONCE)
 def _initial_states(key, B: int, K: int, dtype, std):
     mean = jnp.tile(jnp.asarray(INITIAL_MEAN, dtype), K)
     return mean[None, :] + std * jax.random.normal(key, (B, 3 * K), dtype)

@@ -71,7 +71,7 @@ from jaxtyping import Array, Float
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import residuals
-from ceemx.infra.compilation import jit
+from ceemx.infra.policy import Runs, program
 from ceemx.lib.typing import States
 from ceemx.models.system import AbstractSystem
 
@@ -127,7 +127,7 @@ def _sums_single(system: AbstractSystem, x, y, u, mask):
     return obs, dyn, prior
 
 
-@jit(one_shot=True)
+@program(runs=Runs.ONCE)
 def square_sums(
     system: AbstractSystem, states: States, data: Trajectories
 ) -> tuple[Float[Array, "B m"], Float[Array, "B n"], Float[Array, "B n"]]:

@@ -44,7 +44,7 @@ from ceemx.identification.noise_moments import (
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
 from ceemx.inference.smoother import LMSmoother
 from ceemx.infra.compilation import jit
-from ceemx.infra.runtime import one_blas_thread
+from ceemx.infra.policy import entry_point
 from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import trace_numbers
 from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
@@ -196,7 +196,7 @@ def with_noise_from_moments(
     return system
 
 
-@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
+@entry_point  # BLAS threads and results as the policy says (ceemx.infra.policy)
 def estimate_noise(
     system: AbstractSystem,
     data: Trajectories,

@@ -48,8 +48,8 @@ from jaxtyping import Array, Bool, Float
 
 from ceemx.identification.analysis.end_point import end_point
 from ceemx.identification.problem import FitProblem
-from ceemx.identification.schur import schur_complement, small_schur
-from ceemx.infra.compilation import jit, one_shot_when
+from ceemx.identification.schur import schur_complement, schur_complement_work
+from ceemx.infra.policy import Runs, program
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, States, Theta
@@ -83,9 +83,7 @@ _HELD = (
 )
 
 
-@one_shot_when(
-    lambda problem, theta, states, weights, keep: small_schur(problem, theta, states, weights)
-)
+@program(runs=Runs.ONCE, work=schur_complement_work)
 def _laplace(
     problem: FitProblem,
     theta: Theta,
@@ -195,7 +193,7 @@ def parameter_covariance(
     return _assemble(cov, noise, held, noise_var)
 
 
-@jit(one_shot=True)  # on the host: one program, where op by op it compiled four small ones
+@program(runs=Runs.ONCE)  # on the host: one program, where op by op it compiled four small ones
 def _assemble(cov, noise, held, noise_var):
     """The covariance: 0 in the noise rows/columns, NaN in the held ones, noise variances added."""
     cov = jnp.where(noise[:, None] | noise[None, :], 0.0, cov)

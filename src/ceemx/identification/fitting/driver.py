@@ -21,7 +21,7 @@ from ceemx.identification.fitting.noise_rounds import learn_noise
 from ceemx.identification.fitting.result import EpochInfo, FitResult
 from ceemx.identification.fitting.run import run_fit
 from ceemx.identification.solvers.base import AbstractFitSolver
-from ceemx.infra.runtime import one_blas_thread
+from ceemx.infra.policy import entry_point
 from ceemx.lib.typing import no_type_check
 from ceemx.models.system import AbstractSystem
 
@@ -30,7 +30,7 @@ __all__ = ["fit"]
 _INPUTS = ("system", "data", "x_init")
 
 
-@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
+@entry_point  # BLAS threads and results as the policy says (ceemx.infra.policy)
 @no_type_check  # validates its arguments: the options, then ceemx.data.checks.prepare
 def fit(
     system: AbstractSystem,

@@ -27,8 +27,9 @@ from ceemx.identification.problem import FitProblem, Trainable
 from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver, FitState, total_J
 from ceemx.infra import checkpoint as ckpt
-from ceemx.infra.compilation import BackgroundCompile, compile_in_background, has_idle_core
+from ceemx.infra.compilation import BackgroundCompile, compile_in_background
 from ceemx.infra.distributed import is_main_process, to_host
+from ceemx.infra.policy import compiles_ahead
 from ceemx.infra.warn import warn
 from ceemx.lib.tree import as_jax, trace_numbers
 from ceemx.lib.typing import States, Theta
@@ -119,13 +120,13 @@ def _precompile(
 ) -> BackgroundCompile | None:
     """The thread compiling the solver's epoch programs while the start states are computed.
 
-    ``None`` for a solver without :meth:`AbstractFitSolver.precompile`, with ``devices``, or on
-    a machine without an idle core (a second compiling thread there only competes).
+    ``None`` for a solver without :meth:`AbstractFitSolver.precompile`, with ``devices``, or
+    where the policy compiles in the foreground (:func:`ceemx.infra.policy.compiles_ahead`).
     """
     if (
         options.mesh is not None
         or type(solver).precompile is AbstractFitSolver.precompile
-        or not has_idle_core()
+        or not compiles_ahead()
     ):
         return None
     traced = trace_numbers(solver, inputs.dtype)

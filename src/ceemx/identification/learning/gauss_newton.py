@@ -29,11 +29,8 @@ from ceemx.models.system import AbstractSystem
 
 __all__ = ["ROWS_CHUNK_BYTES", "batch_gauss_newton", "gram", "theta_rows"]
 
-#: Bytes of θ-Jacobian rows :func:`batch_gauss_newton` forms at a time. Figure-3 learning step
-#: inside a fit (B = 8, T = 128, 18 rows of 342 per step): all rows at once (50 MB) 86–88 ms,
-#: ≈ 25 800 page faults an epoch; by chunks of ≈ 4 MB 58–65 ms, none (``python
-#: benchmarks/probes/epoch_in_fit.py --variants default rows-at-once``; benchmarks/README.md,
-#: "Every row in one run").
+#: Bytes of θ-Jacobian rows :func:`batch_gauss_newton` forms at a time: well below glibc's 32 MB
+#: ``mmap`` threshold, above which XLA:CPU's fresh temporaries are page-faulted in at every call.
 ROWS_CHUNK_BYTES = 4 * 2**20
 
 
@@ -200,9 +197,8 @@ def batch_gauss_newton(
 
 
 #: :func:`gram` splits θ into blocks of at least this many columns and forms only the blocks on
-#: and above the diagonal (the product is symmetric; XLA has no SYRK): with 3 blocks of 114
-#: columns 6 of 9 block products, the Figure-3 learning step inside a fit 67–68 → 56–57 ms
-#: (``python benchmarks/probes/epoch_in_fit.py --variants default gram-one-product``).
+#: and above the diagonal (the product is symmetric; XLA has no SYRK): 6 of 9 block products
+#: with 3 blocks, fewer in proportion with more.
 GRAM_BLOCK_MIN = 96
 
 

@@ -15,7 +15,7 @@ from ceemx.identification.learning.learners import AbstractLearner, LearnInfo, L
 from ceemx.identification.learning.learning_problem import AbstractLearningProblem, make_problem
 from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_key, check_nonnegative
-from ceemx.infra.runtime import one_blas_thread
+from ceemx.infra.policy import entry_point
 from ceemx.lib.tree import trace_numbers
 from ceemx.lib.typing import PerTrajectory, Theta
 from ceemx.models.system import AbstractSystem
@@ -31,7 +31,7 @@ def run_learner(
     return learner.run(problem, theta, state)
 
 
-@one_blas_thread  # XLA's LAPACK calls in one BLAS thread (ceemx.infra.runtime)
+@entry_point  # BLAS threads and results as the policy says (ceemx.infra.policy)
 def learn(
     system: AbstractSystem,
     states: Float[ArrayLike, "B T n"],

@@ -47,16 +47,14 @@ class Alternating(AbstractFitSolver):
     Attributes:
         smoother: the smoothing-step solver (:class:`ceemx.LMSmoother`). Default
             ``LMSmoother(max_steps=2)``: a partial E-step (at most two accepted-or-rejected LM
-            steps from the previous epoch's states; J still rises every epoch). On Figure 3 it
-            gives the same or lower ε per epoch than smoothing to convergence (5 steps) for
-            0.6× the smoothing time, on the single-Lorenz fits the same epochs, J and θ
-            (``benchmarks/probes/algorithm1_epoch.py``); pass ``LMSmoother()`` to smooth fully.
+            steps from the previous epoch's states; J still rises every epoch): per epoch as
+            good as smoothing to convergence, for less time; pass ``LMSmoother()`` to smooth
+            fully.
         learner: the learning-step optimiser (:class:`ceemx.LMLearner`, L-BFGS, Optax,
             Nelder–Mead). Default ``LMLearner(max_accepted=1)``: a generalised-EM M-step (one
             Gauss–Newton build and its first accepted step per epoch; J still rises every
-            epoch). On the Figure-3 problem it gives the same ε per epoch as the exact M-step
-            (``LMLearner()``, 4–5 builds; within 2.5 %, never worse) at a fraction of the cost
-            (``benchmarks/probes/algorithm1_epoch.py``); pass ``LMLearner()`` for an exact one.
+            epoch): per epoch as good as the exact M-step (several builds) at a fraction of the
+            cost; pass ``LMLearner()`` for an exact one.
         rho_theta: ρ_θ ≥ 0 of Eq. 11.
         rtol, atol: stopping rule on the improvement of J per epoch.
     """

@@ -37,9 +37,9 @@ from ceemx.identification.analysis.identifiability import Identifiability
 from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
 from ceemx.inference.smoother import LMSmoother
-from ceemx.infra.compilation import jit
 from ceemx.infra.distributed import to_host
 from ceemx.infra.options import check_nonnegative
+from ceemx.infra.policy import Runs, program
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
 
@@ -83,7 +83,7 @@ def trajectory_log_likelihood(problem: FitProblem, theta: Theta, states: States)
     return -per_trajectory_nll(problem, theta, states)
 
 
-@jit(one_shot=True)
+@program(runs=Runs.ONCE)
 def _offset(problem: FitProblem, theta: Theta, weights: PerTrajectory) -> Scalar:
     return problem.offset(theta, weights)
 
@@ -168,8 +168,8 @@ class AbstractFitSolver(eqx.Module):
     #: information of the Laplace log-evidence with the method's own ``smoother``.
     uncertainty: ClassVar[Literal["certainty-equivalent", "evidence"]] = "certainty-equivalent"
     #: Whether the epochs smooth with the warm start's program (:func:`ceemx.smooth`'s; Algorithm
-    #: 1): the warm start then compiles it optimised, once for both; otherwise (the joint method,
-    #: Laplace EM) as a one-shot program (``smooth(..., one_shot=True)``).
+    #: 1): the warm start then smooths :attr:`~ceemx.infra.policy.Runs.EVERY_EPOCH`, one program
+    #: for both; otherwise (the joint method, Laplace EM) :attr:`~ceemx.infra.policy.Runs.ONCE`.
     smooths_each_epoch: ClassVar[bool] = False
 
     def __check_init__(self):
@@ -193,9 +193,8 @@ class AbstractFitSolver(eqx.Module):
         smoother = (
             LMSmoother(batch_chunk=own.batch_chunk) if isinstance(own, LMSmoother) else LMSmoother()
         )
-        return initialize.warm_start_states(
-            system, data, smoother=smoother, one_shot=not self.smooths_each_epoch
-        )
+        runs = Runs.EVERY_EPOCH if self.smooths_each_epoch else Runs.ONCE
+        return initialize.warm_start_states(system, data, smoother=smoother, runs=runs)
 
     def check_problem(self, problem: FitProblem, theta: Theta) -> None:
         """Refuse a problem this method cannot fit, before any compute (:func:`ceemx.fit`).
@@ -220,7 +219,7 @@ class AbstractFitSolver(eqx.Module):
         """Jobs compiling the programs of ``step`` for these shapes, without running them.
 
         :func:`ceemx.fit` runs them in a background thread, largest first
-        (:func:`ceemx.infra.compilation.compile_in_background`; the main thread takes the ones
+        (where :func:`ceemx.infra.policy.compiles_ahead`; the main thread takes the ones
         still waiting when its start states are ready) with the problem, θ and start states
         ``init`` will receive (the states may be placeholders of the right shape and dtype,
         computed meanwhile). A job only does ``lower(...).compile()`` of a program, with

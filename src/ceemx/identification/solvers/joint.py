@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -68,7 +67,6 @@ from ceemx.identification.solvers.base import (
     trajectory_log_likelihood,
 )
 from ceemx.inference import smoother as smoothing_solver
-from ceemx.infra.compilation import one_shot_when
 from ceemx.infra.distributed import to_host
 from ceemx.infra.memory import check_fits
 from ceemx.infra.options import (
@@ -78,6 +76,7 @@ from ceemx.infra.options import (
     check_nonnegative,
     check_positive,
 )
+from ceemx.infra.policy import Runs, joint_iteration_work, program
 from ceemx.infra.warn import warn
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS, codes, select
@@ -242,11 +241,11 @@ class JointLM(AbstractFitSolver):
         def iteration() -> None:
             weights = jnp.ones(states.shape[:1], states.dtype)
             lam = jnp.asarray(self.damping, states.dtype)
-            cast(Any, _iteration).lower(self, problem, weights, theta, states, lam).compile()
+            _iteration.lower(self, problem, weights, theta, states, lam).compile()
 
         def check() -> None:
             weights = jnp.ones(states.shape[:1], states.dtype)
-            cast(Any, schur.schur_complement).lower(problem, theta, states, weights).compile()
+            schur.schur_complement.lower(problem, theta, states, weights).compile()
 
         if self.check_identifiability and theta.shape[0] <= MAX_P:
             return (iteration, check)
@@ -343,7 +342,7 @@ class JointLM(AbstractFitSolver):
             state.states,
             problem.data,
             False,
-            one_shot=True,  # the warm start's program, when the shapes and noise models agree
+            Runs.ONCE,  # the warm start's program, when the shapes and noise models agree
         )
         J_new = to_host(trajectory_log_likelihood(problem, state.theta, sol.states))
         J_old = to_host(state.J)
@@ -398,21 +397,14 @@ def _value(problem: FitProblem, weights: PerTrajectory, offset: Scalar):
     return value
 
 
-#: Up to this B·T·n·(n + P)² (the Gauss–Newton build's work) the joint iteration compiles as a
-#: one-shot program although it runs every epoch: on the single-Lorenz problem (B·T·n·(n + P)² =
-#: 55 296) it compiles in 2.2 s instead of 5.0 s and runs 7 ms longer, a break-even above 400
-#: iterations, where its fits take 5–12 (benchmarks/README.md, "One-shot programs").
-ITERATION_TINY_WORK = 10**5
-
-
-def _tiny_iteration(opts, problem, weights, theta: Theta, states: States, lam) -> bool:
-    """Whether the joint iteration at these shapes compiles as a one-shot program."""
+def _iteration_work(opts, problem, weights, theta: Theta, states: States, lam):
+    """The joint iteration's work (:func:`ceemx.infra.policy.joint_iteration_work`)."""
     del opts, problem, weights, lam
     B, T, n = states.shape
-    return B * T * n * (n + theta.shape[0]) ** 2 <= ITERATION_TINY_WORK
+    return joint_iteration_work(B, T, n, theta.shape[0])
 
 
-@one_shot_when(_tiny_iteration)
+@program(work=_iteration_work)  # every epoch: one-shot on tiny problems only (ceemx.infra.policy)
 def _iteration(
     opts: JointLM,
     problem: FitProblem,

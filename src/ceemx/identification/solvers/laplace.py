@@ -130,10 +130,8 @@ class LaplaceEM(AbstractFitSolver):
             and one gradient of Q (no M-step optimisation) and the steps learn the missing
             information EM creeps along; the learner and ``rho_theta`` are not used. For small
             θ (≤ ``QN_MAX_PARAMETERS`` entries: the curvature is a dense P × P Hessian) and
-            models linear in the state, where its gradient is the evidence's: on a nonlinear
-            model (the Lorenz setting of ``ceemx experiment calibration``, 20 seeds) it took 13–220
-            epochs against SQUAREM's 15–22, and one fit stopped 0.55 nat below SQUAREM's
-            evidence (``benchmarks/probes/laplace_acceleration.py``).
+            models linear in the state, where its gradient is the evidence's (on nonlinear
+            models it can take many more epochs than SQUAREM and stop below its evidence).
             ``None``: one plain EM update per epoch (exact EM).
         rtol, atol: stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``
             in an epoch.
@@ -147,8 +145,7 @@ class LaplaceEM(AbstractFitSolver):
             ``acceleration="quasi_newton"`` the coarse fit's BFGS curvature, scaled by the ratio
             of the two sizes (the evidence's Hessian grows with the data), starts the curvature:
             the epochs on all the data are then Newton-like from the first, where EM's metric
-            needs many to learn the missing information (a 10⁵-sample record: 4 epochs instead
-            of 27; ``benchmarks/README.md``).
+            needs many to learn the missing information.
             ``None``: never. Epoch 1's history record says what it did (``coarse_*``).
     """
 

@@ -25,7 +25,9 @@ under-report (short of a program the executor runs sequentially anyway, which it
 buffer sizes at run time).
 
 Host-side text processing (:func:`compiled_hlo` only calls the ``lower``/``compile`` methods of
-the function it is given); imports nothing of JAX.
+the function it is given); imports nothing of JAX. CI tooling, not part of the library:
+``.ci/check_lapack_concurrency.py`` runs it on every program of ``.ci/lapack_programs.py``, and
+``tests/test_lapack_safety.py`` imports it from this folder.
 """
 
 from __future__ import annotations
