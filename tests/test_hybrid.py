@@ -46,7 +46,7 @@ class Oscillator(ceemx.AbstractContinuousSystem):
 
 
 def multisine(T: int) -> Array:
-    t = jnp.arange(T) * DT
+    t = jnp.arange(T, dtype=jnp.float64) * DT
     u = jnp.sin(0.7 * t) + 0.6 * jnp.sin(1.9 * t + 1.0) + 0.4 * jnp.sin(3.1 * t + 2.0)
     return (2.0 * u)[None, :, None]
 
@@ -311,7 +311,7 @@ def test_neural_state_space_from_a_linear_start(duffing):
 
     true, _, _, data = duffing
     T = 400
-    t = jnp.arange(T) * DT
+    t = jnp.arange(T, dtype=jnp.float64) * DT
     u = 1.6 * (jnp.sin(0.5 * t + 0.3) + 0.6 * jnp.sin(2.3 * t) + 0.4 * jnp.sin(2.9 * t + 1.0))
     u = u[None, :, None]
     x = simulate(true, u)

@@ -243,7 +243,10 @@ class OptaxLearner(AbstractLearner):
                 k, sub = jax.random.split(k)
                 idx = jax.random.choice(sub, B, (self.batch_size,), replace=False)
                 grad = jax.grad(problem.minibatch_value)(th, idx)
-            upd, st = self.transform.update(grad, st, th)
+            # optax (0.2.8) mixes its int32 step count with floats (adam's bias correction):
+            # standard promotion for the transform, so that strict-promotion users can fit.
+            with jax.numpy_dtype_promotion("standard"):
+                upd, st = self.transform.update(grad, st, th)
             return (cast(Array, optax.apply_updates(th, upd)), st, k), None
 
         (th, opt_state, key), _ = jax.lax.scan(
