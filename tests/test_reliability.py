@@ -473,6 +473,11 @@ def fit_state(weights=(1.0, 1.0), lam=1e-3):
     )
 
 
+# A fingerprint for the checkpoints written here (one without would be resumed with a warning,
+# as from an older ceemx: tests/test_checkpoint_safety.py).
+FINGERPRINT = {"method": "a test's fit state"}
+
+
 class DiskFull:
     """A file whose writes fail as on a full disk."""
 
@@ -495,14 +500,14 @@ class DiskFull:
 def test_full_disk_keeps_the_last_checkpoint(tmp_path, monkeypatch):
     """Was "TreePathError: Error at leaf with path (GetAttrKey(name='states'),)"."""
     folder = str(tmp_path)
-    ckpt.save(folder, fit_state(), [{"epoch": 1}])
+    ckpt.save(folder, fit_state(), [{"epoch": 1}], FINGERPRINT)
     real = os.fdopen
     monkeypatch.setattr(os, "fdopen", lambda *a, **k: DiskFull(real(*a, **k)))
     with raises(ckpt.CheckpointError, "No space left on device"):
-        ckpt.save(folder, fit_state(), [{"epoch": 1}, {"epoch": 2}])
+        ckpt.save(folder, fit_state(), [{"epoch": 1}, {"epoch": 2}], FINGERPRINT)
     monkeypatch.undo()
     assert sorted(os.listdir(folder)) == ["latest.json", "state-1.eqx"]  # nothing stray
-    tree, history = ckpt.load(folder, fit_state())
+    tree, history = ckpt.load(folder, fit_state(), fingerprint=FINGERPRINT)
     assert history == [{"epoch": 1}]
 
 
@@ -526,14 +531,14 @@ def test_full_disk_at_the_start_leaves_no_probe(tmp_path, monkeypatch):
 )
 def test_resume_refuses_nonfinite_weights_and_solver_scalars(tmp_path, state, what):
     """NaN weights used to resume (J then read 0), as did a NaN damping λ."""
-    ckpt.save(str(tmp_path), state, [{"epoch": 1}])
+    ckpt.save(str(tmp_path), state, [{"epoch": 1}], FINGERPRINT)
     with raises(ckpt.CheckpointError, f"non-finite values (NaN or inf) in {what}"):
-        ckpt.load(str(tmp_path), fit_state())
+        ckpt.load(str(tmp_path), fit_state(), fingerprint=FINGERPRINT)
 
 
 def test_resume_refuses_a_history_that_does_not_match_its_epoch(tmp_path):
     """An emptied history resumed as converged=True with the wrong epoch count."""
-    ckpt.save(str(tmp_path), fit_state(), [{"epoch": 1}, {"epoch": 2}])
+    ckpt.save(str(tmp_path), fit_state(), [{"epoch": 1}, {"epoch": 2}], FINGERPRINT)
     path = tmp_path / "latest.json"
     meta = json.loads(path.read_text())
     path.write_text(json.dumps({**meta, "history": []}))
@@ -582,7 +587,7 @@ def test_a_second_writer_is_refused_naming_the_first(tmp_path):
 def test_the_lock_of_a_killed_writer_is_taken_over(tmp_path):
     proc = hold_in_another_process(tmp_path)
     proc.kill()
-    proc.wait()
+    proc.communicate()  # waits, and closes its pipes
     assert os.listdir(tmp_path) == [".lock"]  # left behind, but no longer held
     with ckpt.lock(str(tmp_path)):
         assert f"pid {os.getpid()} on host" in (tmp_path / ".lock").read_text()
