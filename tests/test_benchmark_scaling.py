@@ -1,4 +1,4 @@
-"""The ``--smoke`` modes of ``benchmarks/scaling.py`` and ``benchmarks/k100.py`` run (issue 12)."""
+"""The ``--smoke`` modes of ``benchmarks/scaling.py`` and ``benchmarks/k100.py`` run."""
 
 import json
 import pathlib

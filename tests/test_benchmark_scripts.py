@@ -1,4 +1,4 @@
-"""The benchmark scripts' ``--smoke`` modes run, so they cannot rot (issue 12).
+"""The benchmark scripts' ``--smoke`` modes run, so they cannot rot.
 
 A peer or the reference implementation whose environment is absent is skipped by the script
 itself with a message (the reference: ``benchmarks/reference/setup.sh``).
@@ -137,7 +137,7 @@ def test_particle_em_smoke(tmp_path):
         assert "reference environment absent" in proc.stdout
 
 
-def test_issue23_table_renders_every_row_from_the_committed_results():
+def test_performance_table_renders_every_row_from_the_committed_results():
     """``benchmarks/issue23_table.py --table-only`` reads each row script's JSON as committed: a
     script whose output format drifts from what the table reads fails here (no JAX, < 1 s)."""
     sys.path.insert(0, str(ROOT / "benchmarks"))

@@ -363,7 +363,7 @@ def _valid(kind: str, value) -> bool | None:
 
 
 def check_option_validated(case, value):
-    """Issue 24: no invalid value silently accepted, no valid one refused, the option named."""
+    """No invalid option value silently accepted, no valid one refused, the option named."""
     cls, name, kind = case
     valid = _valid(kind, value)
     try:

@@ -1,4 +1,4 @@
-"""Per-trajectory health (reliability issue items 1–2): outliers excluded and named, ``converged``
+"""Per-trajectory health: outliers excluded and named, ``converged``
 never True without a finite fit, ``messages()`` consistent with ``converged``."""
 
 import jax
@@ -48,7 +48,7 @@ def test_outlier_start_is_excluded_and_named(lorenz, solver):
     np.testing.assert_array_equal(res.states[2], bad[2])  # returned as given
     np.testing.assert_allclose(res.states[:2], ref.states, rtol=1e-8, atol=1e-8)
     # Kept on request (the defect's behaviour, now opt-in and warned about) — but a start of
-    # 1e10 is beyond any fit (r ≈ 1e137 > 1e16: issue 24), refused even when kept.
+    # 1e10 is beyond any fit (r ≈ 1e137 > 1e16), refused even when kept.
     with pytest.raises(ValueError, match=r"too far from the data to fit: trajectory 2 \(r = "):
         ceemx.fit(guess, data, bad, solver=solver, trainable=WHERE, max_epochs=2, outliers="warn")
 

@@ -1,4 +1,4 @@
-"""The guarded joint method and the default start (issue 13 item 1).
+"""The guarded joint method (its trust region and smoothing check) and the default start.
 
 A mechanical system with Coulomb + viscous friction, position measured, velocity hidden, a long
 record: from ``x_init=None`` both methods reach the same optimum; from a start with the velocity

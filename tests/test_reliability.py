@@ -1,4 +1,6 @@
-"""Reliability round 2 (issue 24): options validated everywhere, no ``converged=True`` on nonsense.
+"""Failure handling: options validated everywhere, no ``converged=True`` on nonsense, no quiet NaN
+in evaluation, user model bugs named, checkpoints a resume can trust, one writer per checkpoint
+folder, one dtype rule for every entry point.
 
 Each test failed before its fix (an option accepted, a fit that started on a bound or at an
 absurd J and reported convergence). Validation tests compile nothing: a counting system records
@@ -105,7 +107,7 @@ def raises(exc, match):
     return pytest.raises(exc, match=re.escape(match))
 
 
-# --- item 1: every option of every solver and learner validated on construction ---------------
+# --- every option of every solver and learner validated on construction ----------------------
 
 SOLVERS = [ceemx.Alternating, ceemx.JointLM, ceemx.LaplaceEM, ceemx.ParticleEM]
 BAD_TOLERANCES = [
@@ -270,7 +272,7 @@ def test_log_prior_checked_at_the_start(no_compute, log_prior, exc, match):
         ceemx.fit(decay(), DATA, X0, log_prior=log_prior)
 
 
-# --- item 2: no converged=True on nonsense ----------------------------------------------------
+# --- no converged=True on nonsense -------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
@@ -313,7 +315,7 @@ def test_nonfinite_start_is_refused_with_outliers_kept():
         ceemx.fit(decay(), DATA, np.full(X0.shape, 1e200), outliers="keep")
 
 
-# --- item 3: no quiet NaN in evaluation -------------------------------------------------------
+# --- no quiet NaN in evaluation ----------------------------------------------------------------
 
 
 def linear(a, obs_noise=0.1, b=1.0):
@@ -345,7 +347,7 @@ def test_diverging_benchmark_score_warns_and_carries_a_status():
     assert messages(score.status) == [RESULTS[RESULTS.diverged], RESULTS[RESULTS.successful]]
 
 
-# --- item 4 (issue item 6): user model bugs named at the first trace --------------------------
+# --- user model bugs named at the first trace ---------------------------------------------------
 
 
 def buggy_class(bug):
@@ -459,7 +461,7 @@ def test_model_methods_traced_once_per_structure():
     assert TRACES == ["dynamics", "observe"]
 
 
-# --- item 5 (issue item 4, in part): checkpoints on full disks; what a resume trusts -----------
+# --- checkpoints on full disks; what a resume trusts --------------------------------------------
 
 
 def fit_state(weights=(1.0, 1.0), lam=1e-3):
@@ -546,7 +548,7 @@ def test_resume_refuses_a_history_that_does_not_match_its_epoch(tmp_path):
         ckpt.load(str(tmp_path), fit_state())
 
 
-# --- issue item 4: one writer per checkpoint folder -------------------------------------------
+# --- one writer per checkpoint folder -----------------------------------------------------------
 
 _HOLDER = """
 import sys
@@ -601,7 +603,7 @@ def test_fit_on_a_folder_in_use_is_refused_before_compute(no_compute, tmp_path):
     assert os.listdir(tmp_path) == []
 
 
-# --- issue item 7: one dtype rule everywhere; no observation-free data ------------------------
+# --- one dtype rule everywhere; no observation-free data ----------------------------------------
 
 F32 = ceemx.Trajectories(np.asarray(RECORD.y, np.float32), np.asarray(RECORD.u, np.float32))
 
