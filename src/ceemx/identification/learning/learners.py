@@ -181,8 +181,11 @@ class LBFGSLearner(AbstractLearner):
 
         def body(c):
             th, st, k, _ = c
-            value, grad = vg(th, state=st)
-            upd, st = opt.update(grad, st, th, value=value, grad=grad, value_fn=fun)
+            # optax (0.2.8) adds its int32 memory index to a default-int range: standard
+            # promotion for its L-BFGS, so that strict-promotion users can fit.
+            with jax.numpy_dtype_promotion("standard"):
+                value, grad = vg(th, state=st)
+                upd, st = opt.update(grad, st, th, value=value, grad=grad, value_fn=fun)
             th = cast(Array, optax.apply_updates(th, upd))
             return th, st, k + 1, grad
 
