@@ -68,7 +68,7 @@ class Oscillator(ceemx.AbstractContinuousSystem):
 
 def record(system, key, T: int, freqs, amplitude: float, noise: float = 0.01):
     """A multisine-driven noisy record of ``system`` (and its true states)."""
-    t = jnp.arange(T) * DT
+    t = jnp.arange(T, dtype=float) * DT
     phases = jax.random.uniform(key, (len(freqs),), maxval=2 * jnp.pi)
     u = amplitude * sum(jnp.sin(f * t + p) for f, p in zip(freqs, phases, strict=True))
     u = u[None, :, None] / len(freqs) ** 0.5

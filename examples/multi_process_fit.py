@@ -50,7 +50,7 @@ def problem(B: int, T: int):
     one = jnp.ones((1,))
     true = CoupledLorenz(10.0 * one, 28.0 * one, 8 / 3 * one, C, process_noise=0.01, obs_noise=0.1)
     k_x1, k_sim = jax.random.split(jax.random.PRNGKey(0))
-    x1 = jnp.array([-6.0, -6.0, 24.0]) + 2.5 * jax.random.normal(k_x1, (B, 3))
+    x1 = jnp.array([[-6.0, -6.0, 24.0]]) + 2.5 * jax.random.normal(k_x1, (B, 3))
     _, data = ceemx.simulate(true, k_sim, x1, T)
     guess = CoupledLorenz(9.0 * one, 30.0 * one, 2.4 * one, C, process_noise=0.01, obs_noise=0.1)
     return guess, data

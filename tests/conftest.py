@@ -83,6 +83,12 @@ _fast_compilation()
 # cache itself pass their own folder (tests/test_compilation.py).
 if "CEEMX_COMPILATION_CACHE" not in os.environ:
     os.environ["CEEMX_COMPILATION_CACHE"] = "off"
+# Strict dtype promotion and rank-promotion errors: JAX reads its options' defaults from these
+# variables when it is imported, so the xdist workers and the test subprocesses (the CLI, the
+# examples) run under them too; ``pytest_configure`` sets them again in this process.
+STRICT_PROMOTION = {"JAX_NUMPY_DTYPE_PROMOTION": "strict", "JAX_NUMPY_RANK_PROMOTION": "raise"}
+for _name, _value in STRICT_PROMOTION.items():
+    os.environ[_name] = _value
 
 
 def _is_xdist_controller(config) -> bool:
@@ -99,7 +105,8 @@ def pytest_configure(config):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    jax.config.update("jax_numpy_rank_promotion", "raise")
+    for name, value in STRICT_PROMOTION.items():
+        jax.config.update(name.lower(), value)
 
 
 # The suite's files by their measured test seconds, heaviest first (sums of --durations over a
@@ -120,6 +127,7 @@ _HEAVY_FIRST = (
     "test_benchmark_systems.py",
     "test_baselines.py",
     "test_evaluate_real.py",
+    "test_gray_box.py",
     "test_reliability.py",
     "test_hybrid.py",
     "test_linalg.py",

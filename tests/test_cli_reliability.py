@@ -191,8 +191,9 @@ def interrupt(tmp_path, delay: float | str | None, signum=signal.SIGINT):
 
 @pytest.mark.slow
 def test_sigterm_like_sigint(tmp_path):
-    """SIGTERM used to kill the run silently, leaving an empty ``--out`` folder (issue 24, item
-    8): now one line, status 143, no folder — here sent once ``--out`` exists (≈ 0.5 s)."""
+    """SIGTERM ends the run as SIGINT does: one line, status 143, no half-written ``--out``
+    folder (it used to kill the run silently, leaving an empty one) — here sent once ``--out``
+    exists (≈ 0.5 s)."""
     assert interrupt(tmp_path, "out", signal.SIGTERM) == "ceemx: terminated"
 
 

@@ -81,6 +81,18 @@ def test_suite_compiles_with_the_library_options():
     }
 
 
+def test_suite_runs_with_strict_promotion():
+    """Every test process (this one, each xdist worker, the CLI and example subprocesses through
+    the environment) computes under strict dtype promotion and rank-promotion errors
+    (tests/conftest.py): an implicit int/float mix or an implicit broadcast of ranks raises."""
+    assert os.environ["JAX_NUMPY_DTYPE_PROMOTION"] == "strict"
+    assert os.environ["JAX_NUMPY_RANK_PROMOTION"] == "raise"
+    with pytest.raises(jax.dtypes.TypePromotionError):
+        jnp.ones(2) + jnp.ones(2, jnp.int32)
+    with pytest.raises(ValueError, match="jax_numpy_rank_promotion"):
+        jnp.ones(2) + jnp.ones((3, 2))
+
+
 def test_fast_compilation_after_jax_started_changes_nothing(monkeypatch):
     import jax.numpy as jnp
 

@@ -281,7 +281,7 @@ def test_bad_inputs_raise_naming_the_argument():
         ekf(system, ceemx.Trajectories(rng.normal(size=(B, T, 2)), data.u))
     with pytest.raises(ValueError, match="data.u"):
         ekf(system, ceemx.Trajectories(data.y, rng.normal(size=(B, T, 1))))
-    # float32 data are promoted to the system's float64, as by fit and smooth (issue 24, item 7)
+    # float32 data are promoted to the system's float64, as by fit and smooth
     assert ekf(system, linear_data(dtype=np.float32)).predicted_obs.dtype == jnp.float64
 
 

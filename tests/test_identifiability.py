@@ -130,7 +130,8 @@ def test_alternating_end_point_names_the_products(records):
     """Algorithm 1 crawls here (EM with a hidden state): after 20 epochs it has not converged,
     and the end-point analysis names what the data determine."""
     x, data = records
-    res = ceemx.fit(make(START), data, x, max_epochs=20, progress=False)
+    # Stopped before convergence, the residuals are not yet those of the noise: no noise check.
+    res = ceemx.fit(make(START), data, x, max_epochs=20, progress=False, diagnose=False)
     assert not res.converged
     found = res.identifiability
     assert found is not None and not found.stopped and found.determined == ("a·b", "a·c")

@@ -256,7 +256,8 @@ def test_one_linearisation_per_joint_iteration(lz, instrumented):
     jax.effects_barrier()
     instrumented.evaluations = 0
     opts = ceemx.JointLM(rtol=1e-13, damping=1e-9, max_theta_step=np.inf)  # rejections wanted
-    res = fit(lz, opts, guess=guess, x0=jnp.zeros_like(lz["x0"]))
+    # The noise is too tight for the data on purpose: no end-of-fit noise check (its warning).
+    res = fit(lz, opts, guess=guess, x0=jnp.zeros_like(lz["x0"]), diagnose=False)
     jax.effects_barrier()
     trials = res.history_array("trials")
     assert res.converged

@@ -168,7 +168,7 @@ def _linear_problem(B=2, T=40):
 
 @pytest.mark.slow
 def test_laplace_e_step_and_cubature_have_no_concurrent_lapack_calls():
-    """The compiled cubature step (the hang of issue 21: two batched eighs) and E-step (MAP
+    """The compiled cubature step (two batched eighs: the hang this guards against) and E-step (MAP
     smoothing, selected inverse, log-det) of Laplace EM: no two batched LAPACK calls independent
     of each other. Compiled, not run; the other programs: the ``slow`` audit below."""
     system, data = _linear_problem()
@@ -231,8 +231,9 @@ def _run_long_fits(T: int, reps: int, epochs: int, timeout: int) -> str:
 
 @pytest.mark.slow
 def test_laplace_em_long_record_returns():
-    """Issue 21: Laplace EM with learned noise on T = 25 000 samples, 3 fits (≈ 90 cubature and
-    E-step programs each hung ~4 % of calls before the fix) under a timeout."""
+    """Laplace EM with learned noise on T = 25 000 samples returns: 3 fits (≈ 90 cubature and
+    E-step programs each, which hung in ~4 % of calls with concurrent LAPACK calls) under a
+    timeout."""
     out = _run_long_fits(25_000, reps=3, epochs=10, timeout=900)
     assert out.count("fit ") == 3
 

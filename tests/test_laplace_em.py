@@ -314,7 +314,7 @@ def test_learned_noise_needs_a_gaussian_model():
 def test_laplace_em_resumes_bitwise(tmp_path, acceleration):
     """Stopped after 3 epochs and resumed, it ends where the uninterrupted run does, bit for bit.
 
-    It used to end ≈ 1e-10 away (issue 24, item 3): the resume recomputed the E-step's posterior
+    It used to end ≈ 1e-10 away: the resume recomputed the E-step's posterior
     at θ from the states it had converged to, where the uninterrupted run had smoothed from the
     states before; the smoother's start is now checkpointed with the fit.
     """

@@ -389,7 +389,7 @@ def test_lm_driver_lazy_linearisation_takes_the_same_steps():
         )(z0, steps)
 
     z0 = jnp.array([[-1.2, 1.0], [-1.2, 1.0], [0.5, jnp.nan]])
-    out = jax.jit(batched)(z0, jnp.array([200, 0, 200]))
+    out = jax.jit(batched)(z0, jnp.array([200, 0, 200], jnp.int32))
     np.testing.assert_array_equal(np.asarray(out.z[0]), np.asarray(eager.z))
     assert [int(k) for k in out.steps] == [int(eager.steps), 0, 0]
     np.testing.assert_array_equal(np.asarray(out.z[1]), [-1.2, 1.0])

@@ -1,4 +1,4 @@
-"""Residual and noise diagnostics (issue 21 item 3): the end-of-fit noise check warns when the
+"""Residual and noise diagnostics: the end-of-fit noise check warns when the
 assumed noise is inconsistent with the residuals, and ``FitResult.diagnostics()`` reports noise
 ratios, the EM noise estimate and the EKF prediction-error tests.
 

@@ -112,7 +112,7 @@ def test_learn_noise_validation(lin_data):
 @pytest.mark.slow
 @pytest.mark.parametrize("solver", ["joint", "alternate"])
 def test_stiff_model_reaches_the_true_noise_optimum_from_any_guess(solver):
-    # The case: a stiff, partially observed 3-state model with a hidden internal force,
+    # A stiff, partially observed 3-state model with a hidden internal force (tests/stiff_model.py),
     # θ started ±30 %, the noise guessed 100× off either way (process, observation or both).
     import stiff_model as sm
 

@@ -1,4 +1,4 @@
-"""The parallel-in-time block-tridiagonal solve (issue 23, item 6) and the smoother option.
+"""The parallel-in-time block-tridiagonal solve and the smoother option.
 
 Oracles: the sequential block-Cholesky solve (``blocktri``) and a dense ``jnp.linalg.solve``;
 float64, 1e-10 relative (the requirement is 1e-8; measured ≤ 2e-15 for n ≤ 9, T ≤ 1000). The

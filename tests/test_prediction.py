@@ -92,8 +92,8 @@ def test_state_space_predictor_of_a_linear_system_is_causal():
 
 def test_best_validation_keeps_the_best_epoch():
     data = _data()
-    good = LinearSystem(0.0 * jnp.eye(2), jnp.zeros((2, 2)), B=jnp.eye(2), D=jnp.zeros((2, 2)))
-    bad = LinearSystem(0.0 * jnp.eye(2), jnp.zeros((2, 2)), B=jnp.eye(2), D=5 * jnp.eye(2))
+    good = LinearSystem(0.0 * jnp.eye(2), jnp.eye(2), B=jnp.eye(2), D=jnp.zeros((2, 2)))
+    bad = LinearSystem(0.0 * jnp.eye(2), jnp.eye(2), B=jnp.eye(2), D=5 * jnp.eye(2))
     cb = BestValidation(data, start=2, initial_system=bad)
     assert cb.best_epoch == 0
 

@@ -1,4 +1,6 @@
-"""Reliability round 2 (issue 24): options validated everywhere, no ``converged=True`` on nonsense.
+"""Failure handling: options validated everywhere, no ``converged=True`` on nonsense, no quiet NaN
+in evaluation, user model bugs named, checkpoints a resume can trust, one writer per checkpoint
+folder, one dtype rule for every entry point.
 
 Each test failed before its fix (an option accepted, a fit that started on a bound or at an
 absurd J and reported convergence). Validation tests compile nothing: a counting system records
@@ -105,7 +107,7 @@ def raises(exc, match):
     return pytest.raises(exc, match=re.escape(match))
 
 
-# --- item 1: every option of every solver and learner validated on construction ---------------
+# --- every option of every solver and learner validated on construction ----------------------
 
 SOLVERS = [ceemx.Alternating, ceemx.JointLM, ceemx.LaplaceEM, ceemx.ParticleEM]
 BAD_TOLERANCES = [
@@ -270,7 +272,7 @@ def test_log_prior_checked_at_the_start(no_compute, log_prior, exc, match):
         ceemx.fit(decay(), DATA, X0, log_prior=log_prior)
 
 
-# --- item 2: no converged=True on nonsense ----------------------------------------------------
+# --- no converged=True on nonsense -------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
@@ -313,7 +315,7 @@ def test_nonfinite_start_is_refused_with_outliers_kept():
         ceemx.fit(decay(), DATA, np.full(X0.shape, 1e200), outliers="keep")
 
 
-# --- item 3: no quiet NaN in evaluation -------------------------------------------------------
+# --- no quiet NaN in evaluation ----------------------------------------------------------------
 
 
 def linear(a, obs_noise=0.1, b=1.0):
@@ -345,7 +347,7 @@ def test_diverging_benchmark_score_warns_and_carries_a_status():
     assert messages(score.status) == [RESULTS[RESULTS.diverged], RESULTS[RESULTS.successful]]
 
 
-# --- item 4 (issue item 6): user model bugs named at the first trace --------------------------
+# --- user model bugs named at the first trace ---------------------------------------------------
 
 
 def buggy_class(bug):
@@ -459,7 +461,7 @@ def test_model_methods_traced_once_per_structure():
     assert TRACES == ["dynamics", "observe"]
 
 
-# --- item 5 (issue item 4, in part): checkpoints on full disks; what a resume trusts -----------
+# --- checkpoints on full disks; what a resume trusts --------------------------------------------
 
 
 def fit_state(weights=(1.0, 1.0), lam=1e-3):
@@ -471,6 +473,11 @@ def fit_state(weights=(1.0, 1.0), lam=1e-3):
         status=select(jnp.zeros(2, bool), RESULTS.nonfinite, RESULTS.successful),
         solver_state=jnp.asarray(lam),
     )
+
+
+# A fingerprint for the checkpoints written here (one without would be resumed with a warning,
+# as from an older ceemx: tests/test_checkpoint_safety.py).
+FINGERPRINT = {"method": "a test's fit state"}
 
 
 class DiskFull:
@@ -495,14 +502,14 @@ class DiskFull:
 def test_full_disk_keeps_the_last_checkpoint(tmp_path, monkeypatch):
     """Was "TreePathError: Error at leaf with path (GetAttrKey(name='states'),)"."""
     folder = str(tmp_path)
-    ckpt.save(folder, fit_state(), [{"epoch": 1}])
+    ckpt.save(folder, fit_state(), [{"epoch": 1}], FINGERPRINT)
     real = os.fdopen
     monkeypatch.setattr(os, "fdopen", lambda *a, **k: DiskFull(real(*a, **k)))
     with raises(ckpt.CheckpointError, "No space left on device"):
-        ckpt.save(folder, fit_state(), [{"epoch": 1}, {"epoch": 2}])
+        ckpt.save(folder, fit_state(), [{"epoch": 1}, {"epoch": 2}], FINGERPRINT)
     monkeypatch.undo()
     assert sorted(os.listdir(folder)) == ["latest.json", "state-1.eqx"]  # nothing stray
-    tree, history = ckpt.load(folder, fit_state())
+    tree, history = ckpt.load(folder, fit_state(), fingerprint=FINGERPRINT)
     assert history == [{"epoch": 1}]
 
 
@@ -526,14 +533,14 @@ def test_full_disk_at_the_start_leaves_no_probe(tmp_path, monkeypatch):
 )
 def test_resume_refuses_nonfinite_weights_and_solver_scalars(tmp_path, state, what):
     """NaN weights used to resume (J then read 0), as did a NaN damping λ."""
-    ckpt.save(str(tmp_path), state, [{"epoch": 1}])
+    ckpt.save(str(tmp_path), state, [{"epoch": 1}], FINGERPRINT)
     with raises(ckpt.CheckpointError, f"non-finite values (NaN or inf) in {what}"):
-        ckpt.load(str(tmp_path), fit_state())
+        ckpt.load(str(tmp_path), fit_state(), fingerprint=FINGERPRINT)
 
 
 def test_resume_refuses_a_history_that_does_not_match_its_epoch(tmp_path):
     """An emptied history resumed as converged=True with the wrong epoch count."""
-    ckpt.save(str(tmp_path), fit_state(), [{"epoch": 1}, {"epoch": 2}])
+    ckpt.save(str(tmp_path), fit_state(), [{"epoch": 1}, {"epoch": 2}], FINGERPRINT)
     path = tmp_path / "latest.json"
     meta = json.loads(path.read_text())
     path.write_text(json.dumps({**meta, "history": []}))
@@ -541,7 +548,7 @@ def test_resume_refuses_a_history_that_does_not_match_its_epoch(tmp_path):
         ckpt.load(str(tmp_path), fit_state())
 
 
-# --- issue item 4: one writer per checkpoint folder -------------------------------------------
+# --- one writer per checkpoint folder -----------------------------------------------------------
 
 _HOLDER = """
 import sys
@@ -582,7 +589,7 @@ def test_a_second_writer_is_refused_naming_the_first(tmp_path):
 def test_the_lock_of_a_killed_writer_is_taken_over(tmp_path):
     proc = hold_in_another_process(tmp_path)
     proc.kill()
-    proc.wait()
+    proc.communicate()  # waits, and closes its pipes
     assert os.listdir(tmp_path) == [".lock"]  # left behind, but no longer held
     with ckpt.lock(str(tmp_path)):
         assert f"pid {os.getpid()} on host" in (tmp_path / ".lock").read_text()
@@ -596,7 +603,7 @@ def test_fit_on_a_folder_in_use_is_refused_before_compute(no_compute, tmp_path):
     assert os.listdir(tmp_path) == []
 
 
-# --- issue item 7: one dtype rule everywhere; no observation-free data ------------------------
+# --- one dtype rule everywhere; no observation-free data ----------------------------------------
 
 F32 = ceemx.Trajectories(np.asarray(RECORD.y, np.float32), np.asarray(RECORD.u, np.float32))
 

@@ -79,11 +79,11 @@ def _group_loss(resid, mask, scale, loss: str):
     """Loss of (G, K, m) residuals: nrms = mean over groups of the RMS within each group."""
     sq = jnp.where(mask, (resid * scale[None, None, :]) ** 2, 0.0)
     if loss == "mse":
-        return sq.sum() / jnp.maximum(mask.sum(), 1)
-    count = mask.sum(axis=(1, 2))
+        return sq.sum() / jnp.maximum(mask.sum(dtype=sq.dtype), 1)
+    count = mask.sum(axis=(1, 2), dtype=sq.dtype)
     rms = _safe_sqrt(sq.sum(axis=(1, 2)) / jnp.maximum(count, 1))
     present = count > 0
-    return jnp.where(present, rms, 0.0).sum() / jnp.maximum(present.sum(), 1)
+    return jnp.where(present, rms, 0.0).sum() / jnp.maximum(present.sum(dtype=sq.dtype), 1)
 
 
 def _minibatch_loss(model, arrays, rows, scale, loss: str):
@@ -123,7 +123,10 @@ def _epoch(
     def step(carry, rows):
         p, state = carry
         val, grads = jax.value_and_grad(value)(p, rows)
-        updates, state = _ADAM.update(grads, state, p)
+        # optax (0.2.8) mixes its int32 step count with floats (adam's bias correction):
+        # standard promotion for the transform, so that strict-promotion users can train.
+        with jax.numpy_dtype_promotion("standard"):
+            updates, state = _ADAM.update(grads, state, p)
         p = eqx.apply_updates(p, jax.tree_util.tree_map(lambda g: -lr * g, updates))
         return (p, state), val
 

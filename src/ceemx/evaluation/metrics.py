@@ -178,7 +178,7 @@ def simulation_rmse(
 def _rmse(pred, y, mask):
     """(per-trajectory, overall) RMSE of ``pred`` against ``y`` over the entries of ``mask``."""
     sq = jnp.where(mask, (pred - y) ** 2, 0.0)
-    count = jnp.sum(mask, axis=(1, 2))
+    count = jnp.sum(mask, axis=(1, 2), dtype=sq.dtype)
     per = jnp.sqrt(jnp.sum(sq, axis=(1, 2)) / jnp.maximum(count, 1))
     overall = jnp.sqrt(jnp.sum(sq) / jnp.maximum(jnp.sum(count), 1))
     return per, overall
@@ -260,7 +260,7 @@ def score_batch(
     """RMSE, NRMSE, fit % per output, then overall, on steps ≥ ``n_init`` (see BenchmarkScore)."""
     m = mask & (jnp.arange(y.shape[1]) >= n_init)[None, :, None]
     scale = scale[None, None, :]
-    count = jnp.sum(m, axis=1)  # (B, m)
+    count = jnp.sum(m, axis=1, dtype=y.dtype)  # (B, m)
     safe = jnp.maximum(count, 1)
     sq = jnp.where(m, (scale * (y_sim - y)) ** 2, 0.0)
     rmse = jnp.sqrt(jnp.sum(sq, axis=1) / safe)

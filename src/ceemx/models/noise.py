@@ -149,7 +149,7 @@ class AbstractGaussianNoise(AbstractNoise):
         mask = _full_mask(r, mask)
         chol = masked_cholesky(self.cholesky().astype(r.dtype), mask)
         z = solve_triangular(chol, jnp.where(mask, r, 0.0))
-        k = jnp.sum(mask)
+        k = jnp.sum(mask).astype(r.dtype)
         return -0.5 * jnp.sum(z**2) - jnp.sum(jnp.log(jnp.abs(jnp.diag(chol)))) - 0.5 * k * _LOG_2PI
 
 

@@ -41,7 +41,9 @@ def _as_float(a, name: str, ndim: int = 1) -> Array:
         raise TypeError(f"`{name}` must be a real array; got dtype {a.dtype}.")
     if hasattr(a, "dtype") and np.issubdtype(a.dtype, np.complexfloating):
         raise TypeError(f"`{name}` must be real; got dtype {a.dtype}.")
-    out = jnp.asarray(a, dtype=jnp.result_type(float, a))
+    out = jnp.asarray(a)
+    if not jnp.issubdtype(out.dtype, jnp.floating):  # integers and booleans: the default float
+        out = out.astype(float)
     return jnp.atleast_1d(out) if ndim == 1 else out
 
 

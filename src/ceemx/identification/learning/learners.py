@@ -182,8 +182,11 @@ class LBFGSLearner(AbstractLearner):
 
         def body(c):
             th, st, k, _ = c
-            value, grad = vg(th, state=st)
-            upd, st = opt.update(grad, st, th, value=value, grad=grad, value_fn=fun)
+            # optax (0.2.8) adds its int32 memory index to a default-int range: standard
+            # promotion for its L-BFGS, so that strict-promotion users can fit.
+            with jax.numpy_dtype_promotion("standard"):
+                value, grad = vg(th, state=st)
+                upd, st = opt.update(grad, st, th, value=value, grad=grad, value_fn=fun)
             th = cast(Array, optax.apply_updates(th, upd))
             return th, st, k + 1, grad
 
@@ -244,7 +247,10 @@ class OptaxLearner(AbstractLearner):
                 k, sub = jax.random.split(k)
                 idx = jax.random.choice(sub, B, (self.batch_size,), replace=False)
                 grad = jax.grad(problem.minibatch_value)(th, idx)
-            upd, st = self.transform.update(grad, st, th)
+            # optax (0.2.8) mixes its int32 step count with floats (adam's bias correction):
+            # standard promotion for the transform, so that strict-promotion users can fit.
+            with jax.numpy_dtype_promotion("standard"):
+                upd, st = self.transform.update(grad, st, th)
             return (cast(Array, optax.apply_updates(th, upd)), st, k), None
 
         (th, opt_state, key), _ = jax.lax.scan(
