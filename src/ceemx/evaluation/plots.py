@@ -9,7 +9,7 @@
   :mod:`ceemx.evaluation.trace_panels`.
 - :func:`plot_resid` — the autocorrelation of residuals and their cross-correlation with each
   input, with the pointwise 99 % band ±2.58/√N, as MATLAB's ``resid`` draws them (the numbers:
-  :func:`ceemx.identification.analysis.diagnostics.residual_correlations`).
+  :func:`ceemx.identification.analysis.correlations.residual_correlations`).
 - :func:`plot_residual_diagnostics` — the figure of :meth:`ceemx.FitResult.diagnostics`.
 
 Each returns a Matplotlib ``Figure`` (Agg backend; :func:`ceemx.evaluation.report.save_figure`
@@ -46,7 +46,7 @@ from ceemx.evaluation.trace_panels import (
     label_time_axes,
     zoom_window,
 )
-from ceemx.identification.analysis.diagnostics import BAND_Z, residual_correlations
+from ceemx.identification.analysis.correlations import BAND_Z, residual_correlations
 
 __all__ = ["FONTS", "plot_benchmark", "plot_resid", "plot_residual_diagnostics"]
 
