@@ -226,10 +226,24 @@ def fit_sid(
         raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
     if noise not in ("estimated", "unit"):
         raise ValueError(f"`noise` must be 'estimated' or 'unit'; got {noise!r}.")
+    ys, us = _records(data)
+    draws = _subsets(len(ys), subsets, subset_size, seed)
+    fit = dict(order=state_dim, horizon=horizon, weighting=weighting, stable=stable, refit=refit)
+    system = dict(noise=noise, jitter=jitter, initial_prior=initial_prior, dtype=data.y.dtype)
+    models = [_fit_subset([ys[b] for b in idx], [us[b] for b in idx], fit, system) for idx in draws]
+    return models if subsets is not None else models[0]
+
+
+def _records(data: Trajectories) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each trajectory's (T_b, m) outputs and (T_b, p) inputs in float64, padding cut off."""
     lengths = _trajectory_lengths(data)
     y = np.asarray(data.y, np.float64)
     u = np.asarray(data.u, np.float64)
-    B = y.shape[0]
+    return [y[b, : lengths[b]] for b in range(len(y))], [u[b, : lengths[b]] for b in range(len(u))]
+
+
+def _subsets(B: int, subsets, subset_size, seed: int) -> list[np.ndarray]:
+    """The trajectories of each model: all of them, or random subsets (module notes)."""
     if subsets is not None:
         subsets = _count("subsets", subsets, 1)
     if subset_size is None:
@@ -237,35 +251,16 @@ def fit_sid(
     else:
         size = _count("subset_size", subset_size, 1, B)
     if subsets is None and size == B:
-        draws = [np.arange(B)]
-    else:
-        rng = np.random.default_rng(seed)
-        draws = [np.sort(rng.choice(B, size=size, replace=False)) for _ in range(subsets or 1)]
-    models = []
-    for idx in draws:
-        ys = [y[b, : lengths[b]] for b in idx]
-        us = [u[b, : lengths[b]] for b in idx]
-        result = n4sid(
-            ys,
-            us,
-            order=state_dim,
-            horizon=horizon,
-            weighting=weighting,
-            stable=stable,
-            refit=refit,
-        )
-        power = float(np.mean(np.concatenate([a.ravel() for a in ys]) ** 2))
-        models.append(
-            sid_system(
-                result,
-                noise=noise,
-                jitter=jitter,
-                output_power=power,
-                initial_prior=initial_prior,
-                dtype=data.y.dtype,
-            )
-        )
-    return models if subsets is not None else models[0]
+        return [np.arange(B)]
+    rng = np.random.default_rng(seed)
+    return [np.sort(rng.choice(B, size=size, replace=False)) for _ in range(subsets or 1)]
+
+
+def _fit_subset(ys: list[np.ndarray], us: list[np.ndarray], fit: dict, system: dict):
+    """One model by :func:`~ceemx.lib.subspace.n4sid` (options ``fit``), as :func:`sid_system`."""
+    result = n4sid(ys, us, **fit)
+    power = float(np.mean(np.concatenate([a.ravel() for a in ys]) ** 2))
+    return sid_system(result, output_power=power, **system)
 
 
 def with_constant_input(data: Trajectories) -> Trajectories:
@@ -310,11 +305,7 @@ def fit_affine_sid(
     """
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
-    lengths = _trajectory_lengths(data)
-    y = np.asarray(data.y, np.float64)
-    u = np.asarray(data.u, np.float64)
-    ys = [y[b, : lengths[b]] for b in range(y.shape[0])]
-    us = [u[b, : lengths[b]] for b in range(u.shape[0])]
+    ys, us = _records(data)
     y_mean = np.concatenate(ys).mean(axis=0)
     u_mean = np.concatenate(us).mean(axis=0)
     result = n4sid(
