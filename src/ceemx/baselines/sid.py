@@ -25,7 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ceemx.data.trajectories import Trajectories
-from ceemx.lib.subspace import SubspaceResult, n4sid, spectral_radius, stabilize
+from ceemx.lib.output_error import spectral_radius, stabilize
+from ceemx.lib.subspace import SubspaceResult, n4sid
 from ceemx.lib.typing import no_type_check
 from ceemx.models.noise import CholeskyGaussian
 from ceemx.models.system import GaussianPrior
@@ -193,7 +194,7 @@ def fit_sid(
         jitter: the positive-definiteness guard (:func:`sid_system`).
         initial_prior: attach the estimated initial-state prior (:func:`sid_system`).
         stable: replace an unstable estimate by its stable projection with B, D refitted
-            (:func:`ceemx.lib.subspace.stabilize`): a linear baseline whose free run explodes
+            (:func:`ceemx.lib.output_error.stabilize`): a linear baseline whose free run explodes
             scores nothing (such a model's spectral radius is then 0.999).
         refit: refit B, D and the initial states to the free-run simulation error
             (``n4sid(..., refit=True)``): a simulation model rather than a one-step predictor.
@@ -289,7 +290,7 @@ def fit_affine_sid(
     those of the one-step predictor. Here (A, C) come from N4SID on the centred records; B, D
     (with the constant channel: a constant drive and an output offset) and the initial states
     are then the least-squares fit of the free-run simulation error on the raw records
-    (:func:`ceemx.lib.subspace.stabilize`, which also projects an unstable A). The model reads
+    (:func:`ceemx.lib.output_error.stabilize`, which also projects an unstable A). The model reads
     :func:`with_constant_input` data. On the cascaded tanks (order 2) the test RMSE goes from
     532.5 V (plain :func:`fit_sid`) to 1.88 V.
 
