@@ -257,10 +257,10 @@ from .systems.hybrid import (
 from .systems.hybrid import (
     HybridContinuous as HybridContinuous,
 )
-from .systems.hybrid import (
+from .systems.learned_term import (
     LearnedTerm as LearnedTerm,
 )
-from .systems.hybrid import (
+from .systems.learned_term import (
     weight_decay as weight_decay,
 )
 

@@ -26,7 +26,8 @@ from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import warm_start_states
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem
-from ceemx.systems.hybrid import Hybrid, HybridContinuous, learned_term
+from ceemx.systems.hybrid import Hybrid, HybridContinuous
+from ceemx.systems.learned_term import learned_term
 
 __all__ = ["hybrid"]
 
@@ -69,7 +70,7 @@ def hybrid(
         dynamics: add a learned term to the transition (vector field for a continuous model):
             ``True`` on every state equation, or the indices of the equations it enters (e.g.
             ``(1,)``: the velocity equation of a mechanical model; keeps the hidden states'
-            meaning, :class:`~ceemx.systems.hybrid.LearnedTerm`).
+            meaning, :class:`~ceemx.systems.learned_term.LearnedTerm`).
         observation: add a learned term to the observation (``True``, or output indices).
             With neither term, ``lower``/``upper`` must be given: the physics model with
             bounded states.
@@ -78,7 +79,7 @@ def hybrid(
         depth: the MLPs' number of hidden layers.
         activation: the MLPs' hidden activation.
         prior_std: standard deviation of the weight-decay prior
-            (:func:`ceemx.systems.hybrid.weight_decay`).
+            (:func:`ceemx.systems.learned_term.weight_decay`).
         use_input: whether the terms see the input u.
         lower: lower state bounds (a scalar or an n-vector; ``None``: unbounded).
         upper: upper state bounds (likewise).
