@@ -216,7 +216,7 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
     assert picked.lower(jnp.ones(4)) == "optimised lowered"
 
     import ceemx
-    from ceemx.evaluation import simulation
+    from ceemx.evaluation import initial_state
     from ceemx.identification import initialize, schur
     from ceemx.identification.solvers import joint
     from ceemx.inference import smoother
@@ -267,8 +267,8 @@ def test_one_shot_choice_follows_the_size(monkeypatch):
     # The warm start's least-squares states are not what is tested (and would compile).
     monkeypatch.setattr(initialize, "from_observations", lambda s, d: jnp.zeros((1, 8, n)))
     window = types.SimpleNamespace(y=jax.ShapeDtypeStruct((1, T_max + 1, 2), jnp.float64))
-    assert simulation._small_window(None, system, None, data, None, True)
-    assert not simulation._small_window(None, system, None, window, None, True)
+    assert initial_state._small_window(None, system, None, data, None, True)
+    assert not initial_state._small_window(None, system, None, window, None, True)
     for solver, want in [(ceemx.JointLM(), "one_shot"), (ceemx.Alternating(), "optimised")]:
         with pytest.raises(Stop):
             solver.initial_states(system, data)

@@ -77,13 +77,13 @@ def problem_case(K, B, T, fn, coupling=False):
 
 
 def initial_state_case(K, B, T):
-    from ceemx.evaluation import simulation
+    from ceemx.evaluation import initial_state, simulation
 
     system, data, states = lorenz(K, B, T, False)
     solver = trace_numbers(ceemx.LMSmoother(), states.dtype)
     weak = ceemx.models.system.with_noise(system, process_noise=jnp.asarray(1.0, states.dtype))
     system, weak = simulation.strongly_typed((system, weak))
-    return simulation.initial_state_batch.__wrapped__, (solver, system, weak, data, None, True)
+    return initial_state.initial_state_batch.__wrapped__, (solver, system, weak, data, None, True)
 
 
 def simulate_case(K, B, T):

@@ -28,7 +28,8 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ceemx.data.checks import prepare, promote_array
 from ceemx.data.trajectories import Trajectories, rollout_one
 from ceemx.evaluation.estimates import Estimate, mean_se  # the seeds' summaries, here too
-from ceemx.evaluation.simulation import free_run_batch, initial_state_prepared, strongly_typed
+from ceemx.evaluation.initial_state import initial_state_prepared
+from ceemx.evaluation.simulation import free_run_batch, strongly_typed
 from ceemx.infra.compilation import jit
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, select
@@ -284,7 +285,7 @@ def benchmark_score(
     """Score ``system`` on test records by the official ``nonlinear-benchmarks`` protocol.
 
     1. x̂₁ from the first ``n_init`` test outputs and the inputs
-       (:func:`ceemx.evaluation.simulation.estimate_initial_state`);
+       (:func:`ceemx.evaluation.initial_state.estimate_initial_state`);
     2. a noise-free :func:`ceemx.evaluation.simulation.free_run` from x̂₁ over the whole test input;
     3. RMSE, NRMSE = RMSE / std(y) and fit % = 100·(1 − ‖y − ŷ‖/‖y − ȳ‖) on ``y[n_init:]``, per
        output and overall (masked entries left out), as ``nonlinear_benchmarks.error_metrics``.
@@ -298,7 +299,7 @@ def benchmark_score(
             dataset's ``score_scale`` — or the ``y_std`` of normalised data); NRMSE and fit %
             do not depend on it. ``None``: 1.
         x1: (B, n) initial states to use instead of estimating them.
-        **kwargs: options of :func:`~ceemx.evaluation.simulation.estimate_initial_state`
+        **kwargs: options of :func:`~ceemx.evaluation.initial_state.estimate_initial_state`
             (``refine``, ``smoother``, ``warm_process_noise``).
 
     ``test`` and ``x1`` are cast to the dtype of the system's parameters, as by
@@ -314,7 +315,7 @@ def benchmark_score(
             observed output in its window or in its scored part.
 
     Compiled once per system structure, B, T and ``n_init`` (the initial-state window, see
-    :func:`~ceemx.evaluation.simulation.estimate_initial_state`); parameters and data are traced.
+    :func:`~ceemx.evaluation.initial_state.estimate_initial_state`); parameters and data are traced.
 
     Example:
         >>> ds = ceemx.datasets.silverbox()  # doctest: +SKIP
