@@ -199,9 +199,9 @@ def test_bad_inputs(lagged):
 
 
 def test_docstring_examples():
+    import ceemx.baselines.recipes
     import ceemx.baselines.regressors
-    import ceemx.baselines.training
 
-    for module in (ceemx.baselines.regressors, ceemx.baselines.training):
+    for module in (ceemx.baselines.regressors, ceemx.baselines.recipes):
         failed, attempted = doctest.testmod(module, verbose=False)
         assert attempted > 0 and failed == 0, module.__name__

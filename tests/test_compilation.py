@@ -257,7 +257,7 @@ def test_library_programs_ask_the_policy(monkeypatch):
     a joint fit's warm start smooths once, Algorithm 1's (whose E-step is that program) does not,
     and neither does ``ceemx.smooth``."""
     import ceemx
-    from ceemx.evaluation import simulation
+    from ceemx.evaluation import initial_state
     from ceemx.identification import initialize, schur
     from ceemx.identification.analysis import uncertainty
     from ceemx.identification.solvers import joint
@@ -277,11 +277,13 @@ def test_library_programs_ask_the_policy(monkeypatch):
         assert not program.compiles_one_shot(None, None, None, states(T_max + 1), None, False)
     system = LinearSystem(jnp.eye(n), jnp.eye(n)[:2], process_noise=0.1, obs_noise=0.1)
     window = types.SimpleNamespace(y=jax.ShapeDtypeStruct((1, T_max + 1, 2), jnp.float64))
-    assert not simulation.initial_state_batch.compiles_one_shot(
+    assert not initial_state.initial_state_batch.compiles_one_shot(
         None, system, None, window, None, True
     )
     window = types.SimpleNamespace(y=jax.ShapeDtypeStruct((1, T_max, 2), jnp.float64))
-    assert simulation.initial_state_batch.compiles_one_shot(None, system, None, window, None, True)
+    assert initial_state.initial_state_batch.compiles_one_shot(
+        None, system, None, window, None, True
+    )
     T_schur = 2 * 10**9 // (n * P**2)
     for program in (schur.schur_complement, uncertainty._laplace):
         assert program.compiles_one_shot(None, theta, states(T_schur), None, None)

@@ -15,6 +15,7 @@ import pytest
 
 import ceemx
 from ceemx import GaussianPrior, Trajectories
+from ceemx.evaluation import initial_state as init
 from ceemx.evaluation import metrics as ev
 from ceemx.evaluation import simulation as sim
 from ceemx.inference.ekf import ekf
@@ -149,16 +150,16 @@ def test_initial_state_recovered_on_noise_free_data():
     lin = oscillator()
     data = noise_free(lin, x1, inputs(2, 40, seed=1))
     for refine in (True, False):  # refined, and the MAP smoothing's own x₁
-        est, status = sim.estimate_initial_state(lin, data, 15, refine=refine, return_status=True)
+        est, status = init.estimate_initial_state(lin, data, 15, refine=refine, return_status=True)
         assert est.shape == (2, 2) and len(ceemx.lib.results.messages(status)) == 2
         np.testing.assert_allclose(np.asarray(est), x1, atol=1e-7)
     s = duffing()
     data = noise_free(s, x1, inputs(2, 30, seed=1))
-    np.testing.assert_allclose(np.asarray(sim.estimate_initial_state(s, data, 10)), x1, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(init.estimate_initial_state(s, data, 10)), x1, atol=1e-8)
     # two outputs determine (position, velocity) of this second-order system; one output only
     # the position (the window has two steps either way: one compilation)
-    np.testing.assert_allclose(np.asarray(sim.estimate_initial_state(s, data, 2)), x1, atol=1e-8)
-    one = np.asarray(sim.estimate_initial_state(s, data, 1))
+    np.testing.assert_allclose(np.asarray(init.estimate_initial_state(s, data, 2)), x1, atol=1e-8)
+    one = np.asarray(init.estimate_initial_state(s, data, 1))
     np.testing.assert_allclose(one[:, 0], x1[:, 0], atol=1e-8)
     assert np.all(np.isfinite(one))
 
@@ -175,7 +176,7 @@ def test_refinement_fits_the_window_when_process_noise_is_large():
     model = ceemx.with_noise(true, process_noise=1.0, obs_noise=0.05)
     errs, off = {}, {}
     for refine in (True, False):
-        est = sim.estimate_initial_state(model, data, 15, refine=refine)
+        est = init.estimate_initial_state(model, data, 15, refine=refine)
         _, ys = sim.free_run(model, est, u)
         errs[refine] = np.sqrt(np.mean((np.asarray(ys) - y)[:, :15] ** 2, axis=(1, 2)))
         off[refine] = np.max(np.abs(np.asarray(est) - x1))
@@ -189,10 +190,10 @@ def test_initial_state_compiles_once_per_structure_and_window():
     d1 = noise_free(system, np.ones((2, 2)), inputs(2, 30, seed=4))
     d2 = noise_free(system, -np.ones((2, 2)), inputs(2, 30, seed=5))
     other = duffing(k=1.3, c=0.1)  # new parameter values, same structure
-    sim.estimate_initial_state(system, d1, 10)
+    init.estimate_initial_state(system, d1, 10)
     before = TRACES["observe"]
-    sim.estimate_initial_state(other, d2, 10)
-    sim.estimate_initial_state(system, d1, 10, smoother=ceemx.LMSmoother(rtol=1e-8))
+    init.estimate_initial_state(other, d2, 10)
+    init.estimate_initial_state(system, d1, 10, smoother=ceemx.LMSmoother(rtol=1e-8))
     assert TRACES["observe"] == before
     ev.benchmark_score(other, d2, 10)
     after = TRACES["observe"]
@@ -205,22 +206,22 @@ def test_initial_state_errors():
     s = duffing()
     data = noise_free(s, np.ones((2, 2)), inputs(2, 20))
     with pytest.raises(ValueError, match="n_init"):
-        sim.estimate_initial_state(s, data, 0)
+        init.estimate_initial_state(s, data, 0)
     with pytest.raises(ValueError, match="n_init"):
-        sim.estimate_initial_state(s, data, 21)
+        init.estimate_initial_state(s, data, 21)
     with pytest.raises(TypeError, match="n_init"):
-        sim.estimate_initial_state(s, data, 2.5)  # pyright: ignore[reportArgumentType]
+        init.estimate_initial_state(s, data, 2.5)  # pyright: ignore[reportArgumentType]
     mask = np.ones((2, 20), bool)
     mask[1, :5] = False
     with pytest.raises(ValueError, match="trajectory 1 has no observed output"):
-        sim.estimate_initial_state(s, Trajectories(data.y, data.u, mask), 5)
+        init.estimate_initial_state(s, Trajectories(data.y, data.u, mask), 5)
     # (a float32 system with float64 data is no longer refused: the data are cast to float32,
     # as by fit — tests/test_reliability.py::test_every_entry_point_promotes_as_fit_and_smooth)
     bad = eqx.tree_at(lambda d: d.y, data, data.y.at[0, 3, 0].set(jnp.nan))
     with pytest.raises(ValueError, match="non-finite"):
-        sim.estimate_initial_state(s, bad, 5)
+        init.estimate_initial_state(s, bad, 5)
     with pytest.raises(ValueError, match="m = "):
-        sim.estimate_initial_state(s, Trajectories(np.zeros((2, 20, 2)), data.u), 5)
+        init.estimate_initial_state(s, Trajectories(np.zeros((2, 20, 2)), data.u), 5)
 
 
 # ---------------------------------------------------------------- k-step prediction
@@ -310,7 +311,7 @@ def test_benchmark_score_matches_a_hand_computation():
     test = Trajectories(data.y, data.u, mask)
     n, scale = 10, np.array([2.0, 0.5])
     s = ev.benchmark_score(model, test, n, scale=scale)
-    x1 = sim.estimate_initial_state(model, test, n)
+    x1 = init.estimate_initial_state(model, test, n)
     np.testing.assert_allclose(np.asarray(s.x1), np.asarray(x1), rtol=1e-12, atol=1e-12)
     x_sim, y_sim = sim.free_run(model, x1, u)
     np.testing.assert_allclose(np.asarray(s.y_sim), np.asarray(y_sim), rtol=1e-12, atol=1e-12)
@@ -419,7 +420,7 @@ def test_several_warm_starts_checked_before_compute():
     data = noise_free(s, np.ones((2, 2)), inputs(2, 20))
     for bad in ((), (1.0, -2.0), "1", (None, float("nan"))):
         with pytest.raises(ValueError, match="warm_process_noise"):
-            sim.estimate_initial_state(s, data, 5, warm_process_noise=bad)  # pyright: ignore
+            init.estimate_initial_state(s, data, 5, warm_process_noise=bad)  # pyright: ignore
 
 
 def _have_drives():
@@ -454,9 +455,9 @@ def test_several_warm_starts_keep_the_better_window_fit():
         _, ys = sim.free_run(model, x1, test.u[:, :n])
         return float(np.sqrt(np.mean((np.asarray(ys) - np.asarray(test.y[:, :n])) ** 2)))
 
-    one = sim.estimate_initial_state(model, test, n, warm_process_noise=1.0)
-    plain = sim.estimate_initial_state(model, test, n, warm_process_noise=None)
-    both = sim.estimate_initial_state(model, test, n, warm_process_noise=(1.0, None))
+    one = init.estimate_initial_state(model, test, n, warm_process_noise=1.0)
+    plain = init.estimate_initial_state(model, test, n, warm_process_noise=None)
+    both = init.estimate_initial_state(model, test, n, warm_process_noise=(1.0, None))
     assert float(one[0, 1]) < 0 < float(plain[0, 1])
     assert window_rmse(plain) < 0.5 * window_rmse(one)
     np.testing.assert_allclose(np.asarray(both), np.asarray(plain), rtol=1e-12, atol=1e-12)

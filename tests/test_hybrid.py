@@ -17,7 +17,8 @@ from ceemx.evaluation.early_stopping import EarlyStopping
 from ceemx.identification.hybrid_builder import hybrid
 from ceemx.identification.problem import trainable_mask
 from ceemx.inference.objective import log_joint
-from ceemx.systems.hybrid import HybridContinuous, learned_term, weight_decay
+from ceemx.systems.hybrid import HybridContinuous
+from ceemx.systems.learned_term import learned_term, weight_decay
 
 DT = 0.1
 

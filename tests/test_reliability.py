@@ -23,8 +23,8 @@ from jaxtyping import Array
 
 import ceemx
 from ceemx.data.checks import check_inputs
+from ceemx.evaluation.initial_state import estimate_initial_state
 from ceemx.evaluation.metrics import benchmark_score
-from ceemx.evaluation.simulation import estimate_initial_state
 from ceemx.identification.learning.learners import (
     LBFGSLearner,
     LMLearner,

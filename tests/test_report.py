@@ -169,7 +169,7 @@ def test_residual_correlations_and_plot_resid_draw_the_99_percent_band():
     from matplotlib.collections import PolyCollection
 
     from ceemx.evaluation import plots
-    from ceemx.identification.analysis.diagnostics import BAND_Z, residual_correlations
+    from ceemx.identification.analysis.correlations import BAND_Z, residual_correlations
 
     rng = np.random.default_rng(1)
     u = rng.normal(size=500)

@@ -293,7 +293,7 @@ def test_stabilize_refits_b_d_x0_exactly_and_projects_unstable_a():
     """At the true stable (A, C), the simulation-error refit recovers B, D and x₀ exactly (the
     regression is exact on noise-free data); an unstable A comes back with spectral radius
     0.999, real."""
-    from ceemx.lib.subspace import spectral_radius, stabilize
+    from ceemx.lib.output_error import spectral_radius, stabilize
 
     rng = np.random.default_rng(0)
     A = np.array([[0.9, 0.2], [-0.1, 0.8]])

@@ -50,6 +50,9 @@ from .data.trajectories import (
 from .evaluation.early_stopping import (
     EarlyStopping as EarlyStopping,
 )
+from .evaluation.initial_state import (
+    estimate_initial_state as estimate_initial_state,
+)
 from .evaluation.metrics import (
     BenchmarkScore as BenchmarkScore,
 )
@@ -70,9 +73,6 @@ from .evaluation.plots import (
 )
 from .evaluation.plots import (
     plot_resid as plot_resid,
-)
-from .evaluation.simulation import (
-    estimate_initial_state as estimate_initial_state,
 )
 from .evaluation.simulation import (
     free_run as free_run,
@@ -257,10 +257,10 @@ from .systems.hybrid import (
 from .systems.hybrid import (
     HybridContinuous as HybridContinuous,
 )
-from .systems.hybrid import (
+from .systems.learned_term import (
     LearnedTerm as LearnedTerm,
 )
-from .systems.hybrid import (
+from .systems.learned_term import (
     weight_decay as weight_decay,
 )
 

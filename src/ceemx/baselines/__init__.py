@@ -5,9 +5,10 @@ inputs) or, for SID, linear state-space systems predicted by the Kalman filter.
 """
 
 from ceemx.baselines.lstm import LSTMRegressor
+from ceemx.baselines.recipes import fit_lag, fit_lstm, fit_naive
 from ceemx.baselines.regressors import LagRegressor, lag_windows
 from ceemx.baselines.sid import fit_affine_sid, fit_sid, refine_linear, with_constant_input
-from ceemx.baselines.training import TrainInfo, fit_lag, fit_lstm, fit_naive, train_regressor
+from ceemx.baselines.training import TrainInfo, train_regressor
 
 __all__ = [
     "LSTMRegressor",

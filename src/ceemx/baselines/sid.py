@@ -25,7 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ceemx.data.trajectories import Trajectories
-from ceemx.lib.subspace import SubspaceResult, n4sid, spectral_radius, stabilize
+from ceemx.lib.output_error import spectral_radius, stabilize
+from ceemx.lib.subspace import SubspaceResult, n4sid
 from ceemx.lib.typing import no_type_check
 from ceemx.models.noise import CholeskyGaussian
 from ceemx.models.system import GaussianPrior
@@ -193,7 +194,7 @@ def fit_sid(
         jitter: the positive-definiteness guard (:func:`sid_system`).
         initial_prior: attach the estimated initial-state prior (:func:`sid_system`).
         stable: replace an unstable estimate by its stable projection with B, D refitted
-            (:func:`ceemx.lib.subspace.stabilize`): a linear baseline whose free run explodes
+            (:func:`ceemx.lib.output_error.stabilize`): a linear baseline whose free run explodes
             scores nothing (such a model's spectral radius is then 0.999).
         refit: refit B, D and the initial states to the free-run simulation error
             (``n4sid(..., refit=True)``): a simulation model rather than a one-step predictor.
@@ -226,10 +227,24 @@ def fit_sid(
         raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
     if noise not in ("estimated", "unit"):
         raise ValueError(f"`noise` must be 'estimated' or 'unit'; got {noise!r}.")
+    ys, us = _records(data)
+    draws = _subsets(len(ys), subsets, subset_size, seed)
+    fit = dict(order=state_dim, horizon=horizon, weighting=weighting, stable=stable, refit=refit)
+    system = dict(noise=noise, jitter=jitter, initial_prior=initial_prior, dtype=data.y.dtype)
+    models = [_fit_subset([ys[b] for b in idx], [us[b] for b in idx], fit, system) for idx in draws]
+    return models if subsets is not None else models[0]
+
+
+def _records(data: Trajectories) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each trajectory's (T_b, m) outputs and (T_b, p) inputs in float64, padding cut off."""
     lengths = _trajectory_lengths(data)
     y = np.asarray(data.y, np.float64)
     u = np.asarray(data.u, np.float64)
-    B = y.shape[0]
+    return [y[b, : lengths[b]] for b in range(len(y))], [u[b, : lengths[b]] for b in range(len(u))]
+
+
+def _subsets(B: int, subsets, subset_size, seed: int) -> list[np.ndarray]:
+    """The trajectories of each model: all of them, or random subsets (module notes)."""
     if subsets is not None:
         subsets = _count("subsets", subsets, 1)
     if subset_size is None:
@@ -237,35 +252,16 @@ def fit_sid(
     else:
         size = _count("subset_size", subset_size, 1, B)
     if subsets is None and size == B:
-        draws = [np.arange(B)]
-    else:
-        rng = np.random.default_rng(seed)
-        draws = [np.sort(rng.choice(B, size=size, replace=False)) for _ in range(subsets or 1)]
-    models = []
-    for idx in draws:
-        ys = [y[b, : lengths[b]] for b in idx]
-        us = [u[b, : lengths[b]] for b in idx]
-        result = n4sid(
-            ys,
-            us,
-            order=state_dim,
-            horizon=horizon,
-            weighting=weighting,
-            stable=stable,
-            refit=refit,
-        )
-        power = float(np.mean(np.concatenate([a.ravel() for a in ys]) ** 2))
-        models.append(
-            sid_system(
-                result,
-                noise=noise,
-                jitter=jitter,
-                output_power=power,
-                initial_prior=initial_prior,
-                dtype=data.y.dtype,
-            )
-        )
-    return models if subsets is not None else models[0]
+        return [np.arange(B)]
+    rng = np.random.default_rng(seed)
+    return [np.sort(rng.choice(B, size=size, replace=False)) for _ in range(subsets or 1)]
+
+
+def _fit_subset(ys: list[np.ndarray], us: list[np.ndarray], fit: dict, system: dict):
+    """One model by :func:`~ceemx.lib.subspace.n4sid` (options ``fit``), as :func:`sid_system`."""
+    result = n4sid(ys, us, **fit)
+    power = float(np.mean(np.concatenate([a.ravel() for a in ys]) ** 2))
+    return sid_system(result, output_power=power, **system)
 
 
 def with_constant_input(data: Trajectories) -> Trajectories:
@@ -294,7 +290,7 @@ def fit_affine_sid(
     those of the one-step predictor. Here (A, C) come from N4SID on the centred records; B, D
     (with the constant channel: a constant drive and an output offset) and the initial states
     are then the least-squares fit of the free-run simulation error on the raw records
-    (:func:`ceemx.lib.subspace.stabilize`, which also projects an unstable A). The model reads
+    (:func:`ceemx.lib.output_error.stabilize`, which also projects an unstable A). The model reads
     :func:`with_constant_input` data. On the cascaded tanks (order 2) the test RMSE goes from
     532.5 V (plain :func:`fit_sid`) to 1.88 V.
 
@@ -310,11 +306,7 @@ def fit_affine_sid(
     """
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
-    lengths = _trajectory_lengths(data)
-    y = np.asarray(data.y, np.float64)
-    u = np.asarray(data.u, np.float64)
-    ys = [y[b, : lengths[b]] for b in range(y.shape[0])]
-    us = [u[b, : lengths[b]] for b in range(u.shape[0])]
+    ys, us = _records(data)
     y_mean = np.concatenate(ys).mean(axis=0)
     u_mean = np.concatenate(us).mean(axis=0)
     result = n4sid(

@@ -14,6 +14,8 @@ trajectories for the LSTM (the authors train it on windows of 25 steps from a ze
 targets shifted one step later than the inputs); we validate every epoch (they did every 100);
 and epochs default to 100 (theirs: 5000 for the lag models, 1000 for the LSTM).
 
+The paper's baselines built and trained this way: :mod:`ceemx.baselines.recipes`.
+
 One epoch is one compiled function (``eqx.filter_jit``, a ``lax.scan`` over its minibatches), so
 a fit compiles it once and never again across epochs; :attr:`TrainInfo.traces` counts the traces.
 """
@@ -23,13 +25,14 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import ArrayLike, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
 from ceemx.baselines.lstm import LSTMRegressor
 from ceemx.baselines.regressors import LagRegressor
@@ -38,7 +41,7 @@ from ceemx.infra.compilation import jit
 from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import no_type_check
 
-__all__ = ["TrainInfo", "fit_lag", "fit_lstm", "fit_naive", "train_regressor"]
+__all__ = ["TrainInfo", "check_int", "check_training", "train_regressor", "validation_loss"]
 
 LOSSES = ("nrms", "mse")
 _ADAM = optax.scale_by_adam()  # one instance: a new one would be a new static argument (retrace)
@@ -159,7 +162,8 @@ def _check_key(key) -> None:
         raise TypeError(f"`key` must be a JAX PRNG key (jax.random.key or PRNGKey); got {key!r}.")
 
 
-def _check_int(name: str, value, low: int = 1) -> int:
+def check_int(name: str, value, low: int = 1) -> int:
+    """``value`` as an int ≥ ``low``; a ValueError naming ``name`` otherwise."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
         raise ValueError(f"`{name}` must be an integer >= {low}; got {value!r}.")
     return int(value)
@@ -202,7 +206,7 @@ class _Checked:
     samples: np.ndarray
 
 
-def _check(
+def check_training(
     train,
     valid,
     p: int,
@@ -232,10 +236,10 @@ def _check(
             and val > 0
         ):
             raise ValueError(f"`{name}` must be a positive finite number; got {val!r}.")
-    epochs = _check_int("epochs", epochs)
-    batch_size = _check_int("batch_size", batch_size)
+    epochs = check_int("epochs", epochs)
+    batch_size = check_int("batch_size", batch_size)
     if steps_per_epoch is not None:
-        steps_per_epoch = _check_int("steps_per_epoch", steps_per_epoch)
+        steps_per_epoch = check_int("steps_per_epoch", steps_per_epoch)
     _check_key(key)
     s = np.ones(m) if scale is None else np.asarray(scale, dtype=float)
     if s.shape not in ((), (m,)) or not np.all(np.isfinite(s)) or np.any(s <= 0):
@@ -354,17 +358,12 @@ def train_regressor(
         TypeError: a model of another class, data that is not :class:`Trajectories`, a bad key.
         ValueError: mismatched dimensions, a bad setting, or no training sample.
     """
-    if not isinstance(model, (LagRegressor, LSTMRegressor)):
-        raise TypeError(
-            f"`model` must be a LagRegressor or an LSTMRegressor; got {type(model).__name__}."
-        )
-    p, m = model.input_dim, model.output_dim
-    lags = model.lags if isinstance(model, LagRegressor) else None
-    c = _check(
+    lags = _model_lags(model)
+    c = check_training(
         train,
         valid,
-        p,
-        m,
+        model.input_dim,
+        model.output_dim,
         lags=lags,
         loss=loss,
         lr=lr,
@@ -376,179 +375,68 @@ def train_regressor(
         scale=scale,
         valid_start=valid_start,
     )
-    dtype = _param_dtype(model)
-    scale_arr = jnp.asarray(c.scale, dtype)
-    batch = min(c.batch_size, c.samples.shape[0])
-    steps = c.steps_per_epoch or math.ceil(c.samples.shape[0] / batch)
-    arrays, valid = _cast_data(train, valid, lags, dtype)
-    samples = as_jax(c.samples)
     params, static = eqx.partition(model, eqx.is_inexact_array)
-
-    def run_epoch(params, opt_state, e, k):
-        rate = jnp.asarray(lr * lr_decay / (lr_decay + e), dtype)
-        return _epoch(
-            params,
-            static,
-            opt_state,
-            k,
-            rate,
-            arrays,
-            samples,
-            scale_arr,
-            valid,
-            batch=batch,
-            steps=steps,
-            loss=loss,
-            start=c.valid_start,
-        )
-
+    run_epoch = _EpochRunner.create(model, static, c, train, valid, lr, lr_decay, loss)
     best_params, info = _train_epochs(run_epoch, params, _ADAM.init(params), key, c.epochs)
     return eqx.combine(best_params, static), info
 
 
-# ---- the paper's baselines ------------------------------------------------------------------
+def _model_lags(model) -> int | None:
+    """H of a :class:`LagRegressor`, ``None`` for an :class:`LSTMRegressor`; else raise."""
+    if not isinstance(model, (LagRegressor, LSTMRegressor)):
+        raise TypeError(
+            f"`model` must be a LagRegressor or an LSTMRegressor; got {type(model).__name__}."
+        )
+    return model.lags if isinstance(model, LagRegressor) else None
 
 
-_TRAIN_KWARGS = ("loss", "lr", "lr_decay", "steps_per_epoch", "scale", "valid_start")
+@dataclass(frozen=True)
+class _EpochRunner:
+    """``(params, opt_state, e, key) -> (params, opt_state, train loss, valid loss)``: epoch e.
 
-
-def _precheck(train, valid, key, *, lags, epochs, batch_size, **kwargs) -> None:
-    """Validate a fit's arguments before its network is built (errors name the argument)."""
-    unknown = sorted(set(kwargs) - set(_TRAIN_KWARGS))
-    if unknown:
-        raise TypeError(f"unexpected arguments {unknown}; allowed: {_TRAIN_KWARGS}.")
-    if not isinstance(train, Trajectories):
-        raise TypeError(f"`train` must be a Trajectories; got {type(train).__name__}.")
-    kwargs = {"loss": "nrms", "lr": 1e-4, "lr_decay": 1000.0, **kwargs}
-    _check(
-        train,
-        valid,
-        train.input_dim,
-        train.obs_dim,
-        lags=lags,
-        epochs=epochs,
-        batch_size=batch_size,
-        key=key,
-        **kwargs,
-    )
-
-
-@no_type_check
-def fit_lag(
-    train: Trajectories,
-    valid: Trajectories,
-    *,
-    lags: int = 25,
-    width: int = 32,
-    depth: int = 8,
-    epochs: int = 100,
-    batch_size: int = 512,
-    key: PRNGKeyArray,
-    **kwargs,
-) -> tuple[LagRegressor, TrainInfo]:
-    """The paper's lag-H model y_t = NN(u_{t−H+1:t}) (H = 25: *H25*) by the authors' recipe.
-
-    Args:
-        train: training trajectories; the model's dtype is ``train.y``'s.
-        valid: validation trajectories (the best epoch on them is returned).
-        lags: H (authors: 25).
-        width: units per hidden layer (authors: 32).
-        depth: hidden layers, tanh (authors: 8).
-        epochs: epochs of one pass over the (trajectory, t) windows each (authors: 5000 epochs of
-            T − H + 1 steps; the default is ours).
-        batch_size: windows per minibatch (the authors' were the B trajectories at one t).
-        key: PRNG key (initialisation and minibatches).
-        **kwargs: further :func:`train_regressor` arguments (``loss``, ``lr``, ``lr_decay``,
-            ``steps_per_epoch``, ``scale``, ``valid_start``).
-
-    Returns:
-        ``(model, info)``: the best-validation :class:`LagRegressor` and its :class:`TrainInfo`.
-
-    Example:
-        >>> import jax, jax.numpy as jnp
-        >>> from ceemx import Trajectories
-        >>> from ceemx.baselines import fit_lag
-        >>> u = jax.random.normal(jax.random.PRNGKey(0), (4, 20, 2))
-        >>> data = Trajectories(jnp.sin(u[..., :1]), u)
-        >>> model, info = fit_lag(
-        ...     data, data, lags=3, width=8, depth=2, epochs=2, key=jax.random.PRNGKey(1)
-        ... )
-        >>> model.predict(data).shape, len(info.valid_loss)
-        ((4, 20, 1), 2)
+    Holds what every epoch of a run shares (the data in the parameters' dtype, the samples, the
+    minibatch sizes); the learning rate is lr·d/(d + e).
     """
-    _precheck(
-        train,
-        valid,
-        key,
-        lags=_check_int("lags", lags),
-        epochs=epochs,
-        batch_size=batch_size,
-        **kwargs,
-    )
-    k_init, k_train = jax.random.split(key)
-    model = LagRegressor(
-        train.input_dim,
-        train.obs_dim,
-        lags,
-        width=width,
-        depth=depth,
-        dtype=train.y.dtype,
-        key=k_init,
-    )
-    return train_regressor(  # pyright: ignore[reportReturnType]
-        model, train, valid, epochs=epochs, batch_size=batch_size, key=k_train, **kwargs
-    )
 
+    static: Any
+    arrays: tuple
+    samples: Array
+    scale: Array
+    valid: Trajectories
+    lr: float
+    lr_decay: float
+    dtype: Any
+    batch: int
+    steps: int
+    loss: str
+    start: int
 
-@no_type_check
-def fit_naive(train: Trajectories, valid: Trajectories, **kwargs) -> tuple[LagRegressor, TrainInfo]:
-    """The paper's naive model y_t = NN(u_t): :func:`fit_lag` with H = 1 (same arguments)."""
-    if "lags" in kwargs:
-        raise TypeError("`fit_naive` has H = 1; use `fit_lag` for other lags.")
-    return fit_lag(train, valid, lags=1, **kwargs)
+    @classmethod
+    def create(cls, model, static, c: _Checked, train, valid, lr, lr_decay, loss) -> _EpochRunner:
+        """The runner of ``model``'s epochs on the checked arguments ``c``."""
+        dtype = _param_dtype(model)
+        scale = jnp.asarray(c.scale, dtype)
+        batch = min(c.batch_size, c.samples.shape[0])
+        steps = c.steps_per_epoch or math.ceil(c.samples.shape[0] / batch)
+        arrays, valid = _cast_data(train, valid, _model_lags(model), dtype)
+        samples = as_jax(c.samples)
+        return cls(static, arrays, samples, scale, valid, lr, lr_decay, dtype, batch, steps,
+                   loss, c.valid_start)  # fmt: skip
 
-
-@no_type_check
-def fit_lstm(
-    train: Trajectories,
-    valid: Trajectories,
-    *,
-    hidden: int = 32,
-    layers: int = 2,
-    epochs: int = 100,
-    batch_size: int = 16,
-    key: PRNGKeyArray,
-    **kwargs,
-) -> tuple[LSTMRegressor, TrainInfo]:
-    """The paper's LSTM baseline (2 layers of 32, linear head, from u), by the authors' recipe.
-
-    In the paper it models the naive model's residual: pass ``residual_data(train, naive(train))``
-    and compose with :class:`ceemx.evaluation.prediction.ResidualPredictor`.
-
-    Args:
-        train: training trajectories; the model's dtype is ``train.y``'s.
-        valid: validation trajectories (the best epoch on them is returned).
-        hidden: units per layer (authors: 32).
-        layers: LSTM layers (authors: 2).
-        epochs: passes over the training trajectories (authors: 1000 epochs of 25-step windows;
-            the default is ours).
-        batch_size: whole trajectories per minibatch (ours; the authors' were all trajectories).
-        key: PRNG key (initialisation and minibatches).
-        **kwargs: further :func:`train_regressor` arguments.
-
-    Returns:
-        ``(model, info)``: the best-validation :class:`LSTMRegressor` and its :class:`TrainInfo`.
-    """
-    _precheck(train, valid, key, lags=None, epochs=epochs, batch_size=batch_size, **kwargs)
-    k_init, k_train = jax.random.split(key)
-    model = LSTMRegressor(
-        train.input_dim,
-        train.obs_dim,
-        hidden=hidden,
-        layers=layers,
-        dtype=train.y.dtype,
-        key=k_init,
-    )
-    return train_regressor(  # pyright: ignore[reportReturnType]
-        model, train, valid, epochs=epochs, batch_size=batch_size, key=k_train, **kwargs
-    )
+    def __call__(self, params, opt_state, e, k):
+        rate = jnp.asarray(self.lr * self.lr_decay / (self.lr_decay + e), self.dtype)
+        return _epoch(
+            params,
+            self.static,
+            opt_state,
+            k,
+            rate,
+            self.arrays,
+            self.samples,
+            self.scale,
+            self.valid,
+            batch=self.batch,
+            steps=self.steps,
+            loss=self.loss,
+            start=self.start,
+        )

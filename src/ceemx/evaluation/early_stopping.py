@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from ceemx.data.trajectories import Trajectories
+from ceemx.evaluation.initial_state import estimate_initial_state
 from ceemx.evaluation.metrics import benchmark_score
-from ceemx.evaluation.simulation import estimate_initial_state
 from ceemx.infra.options import check_int, check_nonnegative
 from ceemx.models.system import AbstractSystem
 
@@ -29,7 +29,8 @@ __all__ = ["EarlyStopping"]
 def _score_options() -> frozenset[str]:
     """The keyword options of :func:`ceemx.benchmark_score`, read from the signatures.
 
-    Its own and those it passes on to :func:`~ceemx.evaluation.simulation.estimate_initial_state`.
+    Its own and those it passes on to
+    :func:`~ceemx.evaluation.initial_state.estimate_initial_state`.
     """
     own = inspect.signature(benchmark_score).parameters
     passed = inspect.signature(estimate_initial_state).parameters

@@ -28,7 +28,8 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ceemx.data.checks import prepare, promote_array
 from ceemx.data.trajectories import Trajectories, rollout_one
 from ceemx.evaluation.estimates import Estimate, mean_se  # the seeds' summaries, here too
-from ceemx.evaluation.simulation import free_run_batch, initial_state_prepared, strongly_typed
+from ceemx.evaluation.initial_state import initial_state_prepared
+from ceemx.evaluation.simulation import free_run_batch, strongly_typed
 from ceemx.infra.compilation import jit
 from ceemx.infra.policy import Runs, program
 from ceemx.infra.warn import warn
@@ -285,7 +286,7 @@ def benchmark_score(
     """Score ``system`` on test records by the official ``nonlinear-benchmarks`` protocol.
 
     1. x̂₁ from the first ``n_init`` test outputs and the inputs
-       (:func:`ceemx.evaluation.simulation.estimate_initial_state`);
+       (:func:`ceemx.evaluation.initial_state.estimate_initial_state`);
     2. a noise-free :func:`ceemx.evaluation.simulation.free_run` from x̂₁ over the whole test input;
     3. RMSE, NRMSE = RMSE / std(y) and fit % = 100·(1 − ‖y − ŷ‖/‖y − ȳ‖) on ``y[n_init:]``, per
        output and overall (masked entries left out), as ``nonlinear_benchmarks.error_metrics``.
@@ -299,7 +300,7 @@ def benchmark_score(
             dataset's ``score_scale`` — or the ``y_std`` of normalised data); NRMSE and fit %
             do not depend on it. ``None``: 1.
         x1: (B, n) initial states to use instead of estimating them.
-        **kwargs: options of :func:`~ceemx.evaluation.simulation.estimate_initial_state`
+        **kwargs: options of :func:`~ceemx.evaluation.initial_state.estimate_initial_state`
             (``refine``, ``smoother``, ``warm_process_noise``).
 
     ``test`` and ``x1`` are cast to the dtype of the system's parameters, as by
@@ -315,7 +316,7 @@ def benchmark_score(
             observed output in its window or in its scored part.
 
     Compiled once per system structure, B, T and ``n_init`` (the initial-state window, see
-    :func:`~ceemx.evaluation.simulation.estimate_initial_state`); parameters and data are traced.
+    :func:`~ceemx.evaluation.initial_state.estimate_initial_state`); parameters and data are traced.
 
     Example:
         >>> ds = ceemx.datasets.silverbox()  # doctest: +SKIP
@@ -328,6 +329,21 @@ def benchmark_score(
     inputs = prepare(system, test)  # one dtype, the system's, as fit and smooth
     system, test = inputs.system, inputs.data
     x1 = promote_array("x1", x1, system)
+    n_init = _check_record(test, n_init)
+    s = _check_scale(scale, system.obs_dim)
+    if x1 is None:
+        start, status = initial_state_prepared(system, test, n_init, return_status=True, **kwargs)
+    else:
+        start, status = _given_start(x1, system, test, kwargs)
+    x_sim, y_sim = free_run_batch(strongly_typed(system), start, test.u, jnp.zeros((), jnp.int32))
+    scale_arr = jnp.asarray(np.broadcast_to(s, (system.obs_dim,)), test.y.dtype)
+    metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
+    status = _flag_diverged(start, metrics[3], status)
+    return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init)
+
+
+def _check_record(test: Trajectories, n_init) -> int:
+    """``n_init`` in [1, T − 1], something to score in every trajectory, finite data; or raise."""
     T = test.num_steps
     if isinstance(n_init, bool) or not isinstance(n_init, (int, np.integer)):
         raise TypeError(f"`n_init` must be an integer; got {n_init!r}.")
@@ -343,30 +359,31 @@ def benchmark_score(
     y, u, mask = np.asarray(test.y), np.asarray(test.u), np.asarray(test.mask)
     if not (np.all(np.isfinite(np.where(mask, y, 0.0))) and np.all(np.isfinite(u))):
         raise ValueError("`test` has a non-finite observed output or input.")
-    dtype = test.y.dtype
-    m = system.obs_dim
+    return n_init
+
+
+def _check_scale(scale, m: int) -> np.ndarray:
+    """The error scale: ones without ``scale``, else a positive scalar or (m,) vector."""
     s = np.ones((m,)) if scale is None else np.asarray(scale, np.float64)
     if s.ndim > 1 or s.size not in (1, m) or not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise ValueError(f"`scale` must be a positive scalar or ({m},) vector; got {scale!r}.")
-    if x1 is None:
-        start, status = initial_state_prepared(system, test, n_init, return_status=True, **kwargs)
-    else:
-        if kwargs:
-            raise TypeError(f"options {sorted(kwargs)} estimate x1, which was given.")
-        start = jnp.asarray(x1, dtype)
-        if start.shape != (test.batch_size, system.state_dim):
-            raise ValueError(
-                f"`x1` must have shape (B, n) = {(test.batch_size, system.state_dim)}; "
-                f"got {start.shape}."
-            )
-        if not np.all(np.isfinite(np.asarray(start))):
-            raise ValueError("`x1` has a non-finite value.")
-        status = select(jnp.ones((test.batch_size,), bool), RESULTS.successful, RESULTS.successful)
-    x_sim, y_sim = free_run_batch(strongly_typed(system), start, test.u, jnp.zeros((), jnp.int32))
-    scale_arr = jnp.asarray(np.broadcast_to(s, (m,)), dtype)
-    metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
-    status = _flag_diverged(start, metrics[3], status)
-    return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init)
+    return s
+
+
+def _given_start(x1, system: AbstractSystem, test: Trajectories, options: dict):
+    """The given initial states, checked, with status ``successful`` (no estimation options)."""
+    if options:
+        raise TypeError(f"options {sorted(options)} estimate x1, which was given.")
+    start = jnp.asarray(x1, test.y.dtype)
+    if start.shape != (test.batch_size, system.state_dim):
+        raise ValueError(
+            f"`x1` must have shape (B, n) = {(test.batch_size, system.state_dim)}; "
+            f"got {start.shape}."
+        )
+    if not np.all(np.isfinite(np.asarray(start))):
+        raise ValueError("`x1` has a non-finite value.")
+    ok = jnp.ones((test.batch_size,), bool)
+    return start, select(ok, RESULTS.successful, RESULTS.successful)
 
 
 def _flag_diverged(start, rmse_overall, status: RESULTS) -> RESULTS:

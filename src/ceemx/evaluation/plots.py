@@ -3,10 +3,13 @@
 - :func:`plot_benchmark` — measured and simulated outputs of one record (one or several models)
   over the whole record and, beside it, a zoomed window; the simulation error y − ŷ on its own
   axis below; optionally hidden states with their physical meaning and bounds (and a note when a
-  state leaves them).
+  state leaves them). The initial-state window (not scored) is shaded grey, the zoomed window
+  marked yellow on the whole-record panels; axis limits follow the measured output, so a
+  diverging model cannot squash the data (its legend entry still gives its RMSE). The panels:
+  :mod:`ceemx.evaluation.trace_panels`.
 - :func:`plot_resid` — the autocorrelation of residuals and their cross-correlation with each
   input, with the pointwise 99 % band ±2.58/√N, as MATLAB's ``resid`` draws them (the numbers:
-  :func:`ceemx.identification.analysis.diagnostics.residual_correlations`).
+  :func:`ceemx.identification.analysis.correlations.residual_correlations`).
 - :func:`plot_residual_diagnostics` — the figure of :meth:`ceemx.FitResult.diagnostics`.
 
 Each returns a Matplotlib ``Figure`` (Agg backend; :func:`ceemx.evaluation.report.save_figure`
@@ -28,13 +31,22 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from jaxtyping import ArrayLike
 
 from ceemx.evaluation.report import plt, save_figure
-from ceemx.identification.analysis.diagnostics import BAND_Z, residual_correlations
+from ceemx.evaluation.trace_panels import (
+    Bounds,
+    TracePanels,
+    axes_grid,
+    draw_hidden,
+    draw_outputs,
+    label_time_axes,
+    zoom_window,
+)
+from ceemx.identification.analysis.correlations import BAND_Z, residual_correlations
 
 __all__ = ["FONTS", "plot_benchmark", "plot_resid", "plot_residual_diagnostics"]
 
@@ -50,11 +62,8 @@ FONTS: dict[Any, Any] = {
     "axes.spines.right": False,
 }
 
-_MEASURED = "0.15"
 _BAND = "#c6dbef"
 _OUT = "#d62728"
-_ZOOM = "#fff3b0"
-_INIT = "0.88"
 
 
 # --------------------------------------------------------------------------------------------
@@ -84,71 +93,6 @@ def _names(given: str | Sequence[str] | None, k: int, default: str, what: str) -
     if len(names) != k:
         raise ValueError(f"`{what}` needs {k} name{'s' if k != 1 else ''}; got {len(names)}.")
     return names
-
-
-def _envelope(x: np.ndarray, v: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The min and max of v over each of ``bins`` bins, at the bins' first x (display only)."""
-    starts = np.linspace(0, v.shape[0], max(bins, 2) + 1).astype(int)[:-1]
-    with np.errstate(invalid="ignore"):
-        lo, hi = np.fmin.reduceat(v, starts), np.fmax.reduceat(v, starts)
-    return np.append(x[starts], x[-1]), np.append(lo, lo[-1]), np.append(hi, hi[-1])
-
-
-def _zoom_window(
-    zoom: Any, err: np.ndarray, n_init: int, T: int, fraction: float, max_samples: int
-) -> tuple[int, int] | None:
-    """[a, b) of the zoomed panel: given, around the largest error, or from the start."""
-    if zoom is False:
-        return None
-    if isinstance(zoom, tuple | list):
-        a, b = (int(z) for z in zoom)
-        if not 0 <= a < b <= T:
-            raise ValueError(
-                f"`zoom` must be (start, stop) with 0 ≤ start < stop ≤ {T}; got {zoom}."
-            )
-        return a, b
-    if zoom not in (None, "error", "start"):
-        raise ValueError(f"`zoom` must be 'error', 'start', (start, stop) or False; got {zoom!r}.")
-    L = min(T, max(int(round(fraction * T)), 20), max_samples)
-    if zoom == "start":
-        a = max(0, n_init - L // 10)
-    else:
-        tail = np.abs(err[n_init:])
-        if tail.size == 0 or not np.isfinite(tail).any():
-            a = max(0, n_init - L // 10)
-        else:
-            centre = n_init + int(np.nanargmax(np.nanmax(tail, axis=-1)))
-            a = centre - L // 2
-    a = min(max(a, 0), T - L)
-    return a, a + L
-
-
-def _rmse(y: np.ndarray, y_sim: np.ndarray, n_init: int) -> np.ndarray:
-    """(m,) RMSE over samples n_init: where both are finite."""
-    d = (y_sim - y)[n_init:]
-    with np.errstate(invalid="ignore"):
-        return np.sqrt(np.nanmean(np.where(np.isfinite(d), d, np.nan) ** 2, axis=0))
-
-
-def _fmt_unit(unit: str) -> str:
-    return f" [{unit}]" if unit else ""
-
-
-def _axes_grid(fig, heights: list[float], zoomed: bool):
-    """Rows of (full, zoom) axes; the full column shares x, so does the zoom column."""
-    cols = 2 if zoomed else 1
-    grid = fig.add_gridspec(len(heights), cols, height_ratios=heights, width_ratios=[3.2, 1][:cols])
-    rows = []
-    first_full = first_zoom = None
-    for r in range(len(heights)):
-        full = fig.add_subplot(grid[r, 0], sharex=first_full)
-        first_full = first_full or full
-        zoom = None
-        if zoomed:
-            zoom = fig.add_subplot(grid[r, 1], sharex=first_zoom)
-            first_zoom = first_zoom or zoom
-        rows.append((full, zoom))
-    return rows
 
 
 def _new_figure(fig, size: tuple[float, float]):
@@ -185,14 +129,10 @@ def plot_benchmark(
 ):
     """Measured vs simulated outputs of one record, the error, and hidden states, readable.
 
-    Rows, each a panel over the whole record (left) and the zoomed window (right): per output,
-    the measured output (black) and each model's free-run simulation (legend: its RMSE on
-    samples ``n_init:``), then the simulation error y − ŷ of each model on its own axis; then,
-    when given, one row per hidden state with its label and physical bounds (dashed, the region
-    outside shaded; a note gives how often and how far the state leaves them). The first
-    ``n_init`` samples (the initial-state window, not scored) are shaded grey; the zoomed window
-    is marked yellow on the whole-record panels. Axis limits follow the measured output, so a
-    diverging model cannot squash the data (its legend entry still gives its RMSE).
+    Rows of two panels, the whole record and the zoomed window (module notes): per output, the
+    measured output (black) and each model's free-run simulation (legend: its RMSE on samples
+    ``n_init:``), then their errors y − ŷ; then one row per hidden state with its physical range
+    (dashed, the region outside shaded; a note says how often and how far the state leaves it).
 
     Args:
         y: the measured output of one record: (T,), (T, m) or (1, T, m) (NaN: missing).
@@ -217,10 +157,8 @@ def plot_benchmark(
         score_unit: the RMSE's unit in the legend (default ``unit``).
         dt: the sampling interval in seconds: time on the x-axis instead of samples.
         title: a title over the figure.
-        max_points: above this many samples the whole-record panels draw the band between each
-            of ``max_points / 2`` bins' minimum and maximum (display only).
-        fig: a ``Figure`` or ``SubFigure`` to draw into (default: a new figure, constrained layout,
-            11 in wide).
+        max_points: above this many samples, the min/max band of ``max_points / 2`` bins.
+        fig: a ``Figure`` or ``SubFigure`` to draw into (default: a new one, 11 in wide).
 
     Returns:
         The figure (``report.save_figure(fig, path)`` writes and closes it).
@@ -238,181 +176,100 @@ def plot_benchmark(
         >>> len(fig.axes)
         6
     """
+    rec = _record(y, y_sim, label, n_init, output_names, hidden, hidden_label, bounds)
+    panels = _panels(rec, zoom, zoom_fraction, int(zoom_samples), dt, max_points)
+    legend_unit = unit if score_unit is None else score_unit
+    with plt().rc_context(FONTS):
+        fig = _draw_record(fig, panels, rec, unit, legend_unit, score_scale)
+        if title:
+            fig.suptitle(title, x=0.01, ha="left", fontweight="bold")
+    return fig
+
+
+class _Record(NamedTuple):
+    """One record's arrays for :func:`plot_benchmark`, checked."""
+
+    y: np.ndarray  # (T, m)
+    sims: dict[str, np.ndarray]  # {name: (T, m)}
+    n_init: int
+    names: list[str]  # per output
+    hidden: np.ndarray | None  # (T, k)
+    hidden_names: list[str]  # per hidden state
+    bounds: list[Bounds]  # per hidden state
+
+
+def _record(y, y_sim, label, n_init, output_names, hidden, hidden_label, bounds) -> _Record:
+    """The arguments of :func:`plot_benchmark` checked, in the order of its signature."""
     yy = _as_tm(y, "y")
     T, m = yy.shape
+    sims = _simulations(y_sim, label, yy.shape)
+    n_init = int(n_init)
+    if not 0 <= n_init < T:
+        raise ValueError(f"`n_init` must be in [0, {T}); got {n_init}.")
+    names = _names(output_names, m, "y", "output_names")
+    return _Record(yy, sims, n_init, names, *_hidden_states(hidden, hidden_label, bounds, T))
+
+
+def _panels(rec: _Record, zoom, fraction: float, max_samples: int, dt, max_points: int):
+    """The x-axis of the figure: sample times, the initial-state window, the zoomed window."""
+    T = rec.y.shape[0]
+    first = next(iter(rec.sims.values()))  # its largest error places the default zoom
+    window = zoom_window(zoom, rec.y - first, rec.n_init, T, fraction, max_samples)
+    x = np.arange(T) * (1.0 if dt is None else float(dt))
+    return TracePanels(x, rec.n_init, window, max_points, in_samples=dt is None)
+
+
+def _draw_record(fig, panels: TracePanels, rec: _Record, unit: str, score_unit: str, scale):
+    """The rows of a benchmark figure: per output (output, error), then per hidden state."""
+    m = rec.y.shape[1]
+    heights = [2.3, 1.3] * m + [1.5] * len(rec.hidden_names)
+    fig = _new_figure(fig, (11.0, 0.9 + 1.25 * sum(heights)))
+    rows = axes_grid(fig, heights, panels.window is not None)
+    draw_outputs(panels, rows, rec.y, rec.sims, names=rec.names, unit=unit,
+                 score_unit=score_unit, score_scale=scale)  # fmt: skip
+    for i, name in enumerate(rec.hidden_names):
+        assert rec.hidden is not None
+        draw_hidden(panels, rows[2 * m + i], rec.hidden[:, i], name, rec.bounds[i])
+    label_time_axes(rows, "sample" if panels.in_samples else "time [s]")
+    return fig
+
+
+def _simulations(
+    y_sim: ArrayLike | Mapping[str, ArrayLike], label: str, shape: tuple[int, ...]
+) -> dict[str, np.ndarray]:
+    """``{name: (T, m) simulation}`` from one array or a mapping, each of the measured shape."""
     sims_in = dict(y_sim) if isinstance(y_sim, Mapping) else {label: y_sim}
     if not sims_in:
         raise ValueError("`y_sim` is empty: give at least one simulation.")
     sims = {}
     for name, s in sims_in.items():
         s = _as_tm(s, f"y_sim[{name!r}]")
-        if s.shape != yy.shape:
-            raise ValueError(f"y_sim[{name!r}] has shape {s.shape}; y has {yy.shape}.")
+        if s.shape != shape:
+            raise ValueError(f"y_sim[{name!r}] has shape {s.shape}; y has {shape}.")
         sims[name] = s
-    n_init = int(n_init)
-    if not 0 <= n_init < T:
-        raise ValueError(f"`n_init` must be in [0, {T}); got {n_init}.")
-    out_names = _names(output_names, m, "y", "output_names")
+    return sims
+
+
+def _hidden_states(
+    hidden: ArrayLike | None,
+    hidden_label: str | Sequence[str] | None,
+    bounds: Sequence[Any] | None,
+    T: int,
+) -> tuple[np.ndarray | None, list[str], list[Bounds]]:
+    """(T, k) hidden states (``None``: none), a label and a physical range (or None) per state."""
     hid = None if hidden is None else _as_tm(hidden, "hidden")
     if hid is not None and hid.shape[0] != T:
         raise ValueError(f"`hidden` has {hid.shape[0]} samples; y has {T}.")
     k = 0 if hid is None else hid.shape[1]
-    hid_names = _names(hidden_label, k, "hidden state", "hidden_label") if k else []
-    hid_bounds: list[tuple[float | None, float | None] | None] = [None] * k
+    names = _names(hidden_label, k, "hidden state", "hidden_label") if k else []
+    ranges: list[Bounds] = [None] * k
     if bounds is not None and k:
         pair = len(bounds) == 2 and all(b is None or np.isscalar(b) for b in bounds)
         given = [bounds] if pair else list(bounds)
         if len(given) != k:
             raise ValueError(f"`bounds` needs {k} (low, high) pairs; got {len(given)}.")
-        hid_bounds = [None if b is None else (b[0], b[1]) for b in given]  # type: ignore[index]
-    s_unit = unit if score_unit is None else score_unit
-
-    first = next(iter(sims.values()))
-    window = _zoom_window(zoom, yy - first, n_init, T, zoom_fraction, int(zoom_samples))
-    x = np.arange(T) * (1.0 if dt is None else float(dt))
-    xlabel = "sample" if dt is None else "time [s]"
-    heights = [2.3, 1.3] * m + [1.5] * k
-    pyplot = plt()
-    from matplotlib.lines import Line2D
-    from matplotlib.patches import Patch
-
-    with pyplot.rc_context(FONTS):
-        fig = _new_figure(fig, (11.0, 0.9 + 1.25 * sum(heights)))
-        rows = _axes_grid(fig, heights, window is not None)
-        lw_full = 0.5 if T > 2000 else 0.9
-        colors = {name: f"C{i}" for i, name in enumerate(sims)}
-
-        def shade(ax, zoomed: bool):
-            if zoomed:
-                assert window is not None
-                a, b = window
-                if n_init > a:
-                    ax.axvspan(x[a], x[min(n_init, b - 1)], color=_INIT, lw=0, zorder=0)
-                ax.set_xlim(x[a], x[b - 1])
-                return
-            if n_init > 0:
-                ax.axvspan(x[0], x[n_init], color=_INIT, lw=0, zorder=0)
-            if window is not None:
-                ax.axvspan(x[window[0]], x[window[1] - 1], color=_ZOOM, lw=0, zorder=0)
-            ax.set_xlim(x[0], x[-1])
-
-        def draw(ax, v, zoomed, **kw):
-            if zoomed:
-                assert window is not None
-                sl = slice(*window)
-                return ax.plot(x[sl], v[sl], **kw)[0]
-            if T <= max_points:
-                return ax.plot(x, v, **{**kw, "lw": kw["lw"] * (lw_full / 0.9)})[0]
-            # A long record: the band between each bin's min and max (exact envelope, a small
-            # file); a line stands for it in the legend.
-            xb, lo, hi = _envelope(x, v, max_points // 2)
-            ax.fill_between(xb, lo, hi, step="post", color=kw["color"], lw=0, zorder=kw["zorder"])
-            return Line2D([], [], color=kw["color"], lw=kw["lw"])
-
-        for j in range(m):
-            ax_y, ax_e = rows[2 * j], rows[2 * j + 1]
-            lo, hi = np.nanmin(yy[:, j]), np.nanmax(yy[:, j])
-            pad = 0.12 * (hi - lo) + 1e-12
-            errs = {name: yy[:, j] - s[:, j] for name, s in sims.items()}
-            # The error axis follows the best model (drawn last, on top), capped at the output's
-            # range.
-            score = {
-                n: _rmse(yy[:, j : j + 1], s[:, j : j + 1], n_init)[0] for n, s in sims.items()
-            }
-            order = sorted(errs, key=lambda n: -score[n] if np.isfinite(score[n]) else -np.inf)
-            best = order[-1]
-            with np.errstate(invalid="ignore"):
-                e_lim = float(np.nanmax(np.abs(errs[best][n_init:]), initial=0.0))
-            e_lim = 1.1 * min(e_lim if np.isfinite(e_lim) else np.inf, float(hi - lo)) + 1e-12
-            handles, labels = [], []
-            for zoomed, ax in ((False, ax_y[0]), (True, ax_y[1])):
-                if ax is None:
-                    continue
-                shade(ax, zoomed)
-                lines = {"": draw(ax, yy[:, j], zoomed, color=_MEASURED, lw=1.7, zorder=2)}
-                for name in order:  # the best model last, on top
-                    lines[name] = draw(ax, sims[name][:, j], zoomed, color=colors[name], lw=1.0,
-                                       zorder=3)  # fmt: skip
-                if not zoomed:
-                    handles = [lines[""]] + [lines[n] for n in sims]
-                    labels = ["measured"] + [
-                        f"{n} (RMSE {score[n] * score_scale:.3g}{' ' + s_unit if s_unit else ''})"
-                        for n in sims
-                    ]
-                ax.set_ylim(lo - pad, hi + pad)
-            for zoomed, ax in ((False, ax_e[0]), (True, ax_e[1])):
-                if ax is None:
-                    continue
-                shade(ax, zoomed)
-                ax.axhline(0.0, color="0.5", lw=0.6)
-                for name in order:
-                    draw(ax, errs[name], zoomed, color=colors[name], lw=1.0, zorder=2)
-                ax.set_ylim(-e_lim, e_lim)
-            ax_y[0].set_ylabel(f"{out_names[j]}{_fmt_unit(unit)}")
-            ax_e[0].set_ylabel(f"error y − ŷ{_fmt_unit(unit)}")
-            if n_init > 0:
-                handles.append(Patch(color=_INIT))
-                labels.append(f"initial-state window (n_init = {n_init})")
-            # Above the panel (a legend inside would hide data, one beside would squash it).
-            leg = ax_y[0].legend(handles, labels, loc="lower left", bbox_to_anchor=(0.0, 1.0),
-                                 ncols=2, frameon=False, borderaxespad=0.2)  # fmt: skip
-            for line in leg.get_lines():
-                line.set_linewidth(2.0)
-            if ax_y[1] is not None:
-                assert window is not None
-                a, b = window
-                span = f"samples {a}–{b - 1}" if dt is None else f"{x[a]:.4g}–{x[b - 1]:.4g} s"
-                ax_y[1].set_title(f"zoom: {span}", loc="left")
-
-        for i in range(k):
-            ax_full, ax_zoom = rows[2 * m + i]
-            v = hid[:, i]  # type: ignore[index]
-            b = hid_bounds[i]
-            note = ""
-            if b is not None:
-                low = -np.inf if b[0] is None else float(b[0])
-                high = np.inf if b[1] is None else float(b[1])
-                with np.errstate(invalid="ignore"):
-                    outside = (v < low) | (v > high)
-                if outside.any():
-                    worst = np.nanmin(v) if np.nanmin(v) < low else np.nanmax(v)
-                    note = (
-                        f"outside on {100 * outside.mean():.0f} % of samples (reaches {worst:.3g})"
-                    )
-            for zoomed, ax in ((False, ax_full), (True, ax_zoom)):
-                if ax is None:
-                    continue
-                shade(ax, zoomed)
-                draw(ax, v, zoomed, color="C0", lw=1.1, zorder=2)
-                edges = [] if b is None else [e for e in b if e is not None]
-                if b is not None and edges:
-                    vmin, vmax = np.nanmin(v), np.nanmax(v)
-                    span = max(vmax, *edges) - min(vmin, *edges) + 1e-12
-                    ylo, yhi = min(vmin, *edges) - 0.08 * span, max(vmax, *edges) + 0.08 * span
-                    for edge, other in ((b[0], ylo), (b[1], yhi)):
-                        if edge is None:
-                            continue
-                        ax.axhline(edge, color=_OUT, lw=0.9, ls="--", zorder=1)
-                        ax.axhspan(edge, other, color=_OUT, alpha=0.08, lw=0, zorder=0)
-                    ax.set_ylim(ylo, yhi)
-            text = hid_names[i]
-            if b is not None:
-                rng = ", ".join("—" if e is None else f"{e:.3g}" for e in b)
-                text += f" — physical range [{rng}]"
-            ax_full.set_title(text, loc="left")
-            if note:  # the model leaves the physical range: say so where it is seen
-                ax_full.set_title(note, loc="right", color=_OUT)
-        for full, zoom_ax in rows[-1:]:
-            full.set_xlabel(xlabel)
-            if zoom_ax is not None:
-                zoom_ax.set_xlabel(xlabel)
-        for full, zoom_ax in rows[:-1]:
-            full.tick_params(labelbottom=False)
-            if zoom_ax is not None:
-                zoom_ax.tick_params(labelbottom=False)
-        if title:
-            fig.suptitle(title, x=0.01, ha="left", fontweight="bold")
-    return fig
+        ranges = [None if b is None else (b[0], b[1]) for b in given]  # type: ignore[index]
+    return hid, names, ranges
 
 
 # --------------------------------------------------------------------------------------------

@@ -26,7 +26,8 @@ from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import warm_start_states
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem
-from ceemx.systems.hybrid import Hybrid, HybridContinuous, learned_term
+from ceemx.systems.hybrid import Hybrid, HybridContinuous
+from ceemx.systems.learned_term import learned_term
 
 __all__ = ["hybrid"]
 
@@ -69,7 +70,7 @@ def hybrid(
         dynamics: add a learned term to the transition (vector field for a continuous model):
             ``True`` on every state equation, or the indices of the equations it enters (e.g.
             ``(1,)``: the velocity equation of a mechanical model; keeps the hidden states'
-            meaning, :class:`~ceemx.systems.hybrid.LearnedTerm`).
+            meaning, :class:`~ceemx.systems.learned_term.LearnedTerm`).
         observation: add a learned term to the observation (``True``, or output indices).
             With neither term, ``lower``/``upper`` must be given: the physics model with
             bounded states.
@@ -78,7 +79,7 @@ def hybrid(
         depth: the MLPs' number of hidden layers.
         activation: the MLPs' hidden activation.
         prior_std: standard deviation of the weight-decay prior
-            (:func:`ceemx.systems.hybrid.weight_decay`).
+            (:func:`ceemx.systems.learned_term.weight_decay`).
         use_input: whether the terms see the input u.
         lower: lower state bounds (a scalar or an n-vector; ``None``: unbounded).
         upper: upper state bounds (likewise).
@@ -96,12 +97,29 @@ def hybrid(
             not finite, indices out of range, a non-positive width or prior σ, NaN or crossed
             bounds.
     """
+    inputs = _checked(physics, data, activation, dynamics, observation, lower, upper)
+    k_dyn, k_obs = _split_key(key)
+    x = _state_record(inputs, states)
+    continuous = isinstance(physics, AbstractContinuousSystem)
+    mlp = dict(width=width, depth=depth, activation=activation, prior_std=prior_std)
+    common = {**_normalisation(x, inputs.data, physics), **mlp, "use_input": use_input}
+    dyn = obs = None
+    if dynamics is not False:
+        dt = physics.dt if continuous else None  # a vector field's scale is per unit time
+        dyn = _dynamics_term(k_dyn, x, dynamics, dt, common)
+    if observation is not False:
+        obs = _observation_term(k_obs, inputs.data, observation, physics.obs_dim, common)
+    cls = HybridContinuous if continuous else Hybrid
+    return cls(physics, dyn, obs, lower=lower, upper=upper, bound_sharpness=bound_sharpness)  # type: ignore[arg-type]
+
+
+def _checked(physics, data, activation, dynamics, observation, lower, upper):
+    """The prepared inputs, after the checks that need no compute (named errors)."""
     if not isinstance(physics, AbstractSystem):
         raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be ceemx.Trajectories; got {type(data).__name__}.")
     inputs = prepare(physics, data)  # m, p, dtype: named errors before any statistics
-    data = inputs.data
     if not callable(activation):
         raise TypeError(f"`activation` must be a callable (e.g. jnp.tanh); got {activation!r}.")
     if dynamics is False and observation is False and lower is None and upper is None:
@@ -109,12 +127,22 @@ def hybrid(
             "ask for at least one learned term (`dynamics` and/or `observation`) or for state "
             "bounds (`lower`/`upper`: the physics model with bounded states)."
         )
+    return inputs
+
+
+def _split_key(key: PRNGKeyArray | None) -> tuple[PRNGKeyArray, PRNGKeyArray]:
+    """The keys of the dynamics and the observation terms (default ``PRNGKey(0)``)."""
     key = jax.random.PRNGKey(0) if key is None else key
     try:
         k_dyn, k_obs = jax.random.split(key)
     except (TypeError, ValueError):
         raise TypeError(f"`key` must be a JAX PRNG key (jax.random.key(0)); got {key!r}.") from None
-    n = physics.state_dim
+    return k_dyn, k_obs
+
+
+def _state_record(inputs, states) -> np.ndarray:
+    """(B, T, n) float states: given and checked, or the default start of :func:`ceemx.fit`."""
+    data, n = inputs.data, inputs.system.state_dim
     if states is None:
         states = warm_start_states(inputs.system, inputs.data)
     x = np.asarray(states, dtype=float)
@@ -125,51 +153,45 @@ def hybrid(
         )
     if not np.all(np.isfinite(x)):
         raise ValueError("`states` must be finite.")
-    dtype = jnp.asarray(data.y).dtype
+    return x
+
+
+def _normalisation(x: np.ndarray, data: Trajectories, physics: AbstractSystem) -> dict[str, Any]:
+    """The learned terms' input normalisation (the states' and inputs' mean and spread), dtype.
+
+    A continuous model reads its first ``control_dim`` input channels (a first-order-hold
+    model's stacked inputs carry the next step's too).
+    """
+    n = x.shape[-1]
     x_mean, x_scale = _spread(x.reshape(-1, n), 0)
-    continuous = isinstance(physics, AbstractContinuousSystem)
     u = np.asarray(data.u, dtype=float)
-    if continuous:
+    if isinstance(physics, AbstractContinuousSystem):
         u = u[..., : physics.control_dim]
     p = u.shape[-1]
     u_mean, u_scale = _spread(u.reshape(-1, p), 0) if p else (np.zeros(0), np.zeros(0))
-    common: dict[str, Any] = dict(
-        x_mean=x_mean,
-        x_scale=x_scale,
-        u_mean=u_mean,
-        u_scale=u_scale,
-        width=width,
-        depth=depth,
-        activation=activation,
-        prior_std=prior_std,
-        use_input=use_input,
-        dtype=dtype,
-    )
-    dyn = obs = None
-    if dynamics is not False:
-        step = np.diff(x, axis=1).reshape(-1, n)
-        if continuous:
-            step = step / physics.dt
-        _, out = _spread(step, 0)
-        targets = _targets(dynamics, n, "dynamics")
-        out = out if targets is None else out[list(targets)]
-        dyn = learned_term(k_dyn, out_scale=out, targets=targets, size=n, **common)
-    if observation is not False:
-        m = physics.obs_dim
-        y = np.where(np.asarray(data.mask), np.asarray(data.y, dtype=float), np.nan)
-        _, out = _spread(y.reshape(-1, m), 0)
-        targets = _targets(observation, m, "observation")
-        out = out if targets is None else out[list(targets)]
-        obs = learned_term(k_obs, out_scale=out, targets=targets, size=m, **common)
-    cls = HybridContinuous if continuous else Hybrid
-    return cls(
-        physics,  # type: ignore[arg-type]
-        dyn,
-        obs,
-        lower=lower,
-        upper=upper,
-        bound_sharpness=bound_sharpness,
-    )
+    dtype = jnp.asarray(data.y).dtype
+    return dict(x_mean=x_mean, x_scale=x_scale, u_mean=u_mean, u_scale=u_scale, dtype=dtype)
+
+
+def _dynamics_term(key, x: np.ndarray, spec, dt: float | None, common: dict[str, Any]):
+    """The transition's (vector field's) term, its output scaled by the state increments'."""
+    n = x.shape[-1]
+    step = np.diff(x, axis=1).reshape(-1, n)
+    if dt is not None:
+        step = step / dt
+    _, out = _spread(step, 0)
+    targets = _targets(spec, n, "dynamics")
+    out = out if targets is None else out[list(targets)]
+    return learned_term(key, out_scale=out, targets=targets, size=n, **common)
+
+
+def _observation_term(key, data: Trajectories, spec, m: int, common: dict[str, Any]):
+    """The observation's term, its output scaled by the observed outputs' spread."""
+    y = np.where(np.asarray(data.mask), np.asarray(data.y, dtype=float), np.nan)
+    _, out = _spread(y.reshape(-1, m), 0)
+    targets = _targets(spec, m, "observation")
+    out = out if targets is None else out[list(targets)]
+    return learned_term(key, out_scale=out, targets=targets, size=m, **common)
 
 
 def _targets(spec, size: int, name: str) -> tuple[int, ...] | None:

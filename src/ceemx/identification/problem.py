@@ -36,12 +36,11 @@ from ceemx.infra.policy import Runs, program
 from ceemx.lib.dense import symmetrize
 from ceemx.lib.tree import as_jax, is_weak
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
+from ceemx.models.constraint_checks import check_constraints, check_room
 from ceemx.models.constraints import (
     AbstractConstraint,
     Positive,
     Unconstrained,
-    check_constraints,
-    check_room,
     leaf_constraints,
 )
 from ceemx.models.noise import AbstractNoise

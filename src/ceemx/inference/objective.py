@@ -194,21 +194,68 @@ def linearize(
         wrt_x: compute the x-gradient and x-blocks (and E); ``False`` for a θ-only linearisation.
     """
     system = build(theta)
-    T, n = x.shape
-    ts = jnp.arange(T)
-    dtype = x.dtype
-
-    def obs_res(xt, th, yt, ut, t):
-        return yt - build(th).observe(xt, ut, t)
-
-    def dyn_res(xt, th, ut, t):
-        return -build(th).dynamics(xt, ut, t)  # + x_{t+1}, whose Jacobian is the identity
-
-    m = y.shape[-1]
+    point = _Point(build, theta, x, y, u, jnp.arange(x.shape[0]))
     r_obs, r_dyn = residuals(system, x, y, u)
     on, pn = system.obs_noise, system.process_noise
-    mT = lambda a: jnp.swapaxes(a, -1, -2)  # noqa: E731
-    # S_v @ A, S_w @ A, S_wᵀ @ A and S_wᵀ S_w per step; row scalings for diagonal noise.
+    S = _sqrt_curvatures(on, pn, r_obs, r_dyn, mask)
+    gv = jax.vmap(jax.grad(on.nll))(r_obs, mask)  # (T,m)
+    gw = jax.vmap(jax.grad(pn.nll))(r_dyn)  # (T-1,n)
+    value = jnp.sum(jax.vmap(on.nll)(r_obs, mask)) + jnp.sum(jax.vmap(pn.nll)(r_dyn))
+    prior = system.initial_prior
+    prior_x = None  # the prior's gradient and curvature in x₁
+    if prior is not None:
+        r0 = x[0] - prior.mean
+        value = value + prior.noise.nll(r0)
+        S0 = prior.noise.sqrt_curvature(r0)
+        prior_x = jax.grad(prior.noise.nll)(r0), S0.T @ S0
+    grad = hess = x_blocks = None
+    if wrt_x:
+        grad, hess, x_blocks = _x_blocks(point, S, gv, gw, prior_x)
+    if not wrt_theta:
+        return Linearization(value, grad, hess)
+    grad_theta, E, D = _theta_blocks(point, S, gv, gw, x_blocks)
+    if prior is not None:  # a prior whose mean depends on θ
+        grad_theta = grad_theta + _prior_theta_gradient(build, x[0], theta)
+    return Linearization(value, grad, hess, grad_theta, E, 0.5 * (D + D.T))
+
+
+def _mT(a: Array) -> Array:
+    return jnp.swapaxes(a, -1, -2)
+
+
+class _Point(NamedTuple):
+    """One trajectory at the linearisation point (x, θ), with its residual functions per step."""
+
+    build: Callable[[Any], AbstractSystem]
+    theta: Any
+    x: Trajectory
+    y: Float[Array, "T m"]
+    u: Float[Array, "T p"]
+    ts: Array
+
+    def obs_res(self, xt, th, yt, ut, t):
+        """The observation residual at one step."""
+        return yt - self.build(th).observe(xt, ut, t)
+
+    def dyn_res(self, xt, th, ut, t):
+        """The dynamics residual at one step, less x_{t+1} (whose Jacobian is the identity)."""
+        return -self.build(th).dynamics(xt, ut, t)
+
+
+class _SqrtCurvatures(NamedTuple):
+    """Products with the noise models' square-root curvatures S per step: S_v A, S_w A, S_wᵀ A.
+
+    Row scalings for diagonal noise (no d × d product per step).
+    """
+
+    Sv_mul: Callable[[Array], Array]
+    Sw_mul: Callable[[Array], Array]
+    SwT_mul: Callable[[Array], Array]
+    SwT_Sw: Array  # (T-1, n, n)
+
+
+def _sqrt_curvatures(on, pn, r_obs, r_dyn, mask) -> _SqrtCurvatures:
+    """The square-root curvatures of the observation and the process noise at the residuals."""
     if on.diagonal_curvature:
         sv = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mask)  # (T,m)
         Sv_mul = lambda a: sv[..., None] * a  # noqa: E731
@@ -222,82 +269,80 @@ def linearize(
     else:
         Sw = jax.vmap(pn.sqrt_curvature)(r_dyn)  # (T-1,n,n)
         Sw_mul = lambda a: Sw @ a  # noqa: E731
-        SwT_mul = lambda a: mT(Sw) @ a  # noqa: E731
-        SwT_Sw = mT(Sw) @ Sw
-    gv = jax.vmap(jax.grad(on.nll))(r_obs, mask)  # (T,m)
-    gw = jax.vmap(jax.grad(pn.nll))(r_dyn)  # (T-1,n)
-    value = jnp.sum(jax.vmap(on.nll)(r_obs, mask)) + jnp.sum(jax.vmap(pn.nll)(r_dyn))
-    prior = system.initial_prior
-    prior_x = None  # the prior's gradient and curvature in x₁
-    if prior is not None:
-        r0 = x[0] - prior.mean
-        value = value + prior.noise.nll(r0)
-        S0 = prior.noise.sqrt_curvature(r0)
-        prior_x = jax.grad(prior.noise.nll)(r0), S0.T @ S0
+        SwT_mul = lambda a: _mT(Sw) @ a  # noqa: E731
+        SwT_Sw = _mT(Sw) @ Sw
+    return _SqrtCurvatures(Sv_mul, Sw_mul, SwT_mul, SwT_Sw)
 
-    grad = hess = x_blocks = None
-    if wrt_x:
-        # Per-step Jacobians with respect to x_t.
-        G = jax.vmap(auto_jacobian(obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(
-            x, theta, y, u, ts
-        )
-        F = jax.vmap(jax.jacfwd(dyn_res, argnums=0), in_axes=(0, None, 0, 0))(
-            x[:-1], theta, u[:-1], ts[:-1]
-        )  # (T-1,n,n)
-        SG = Sv_mul(G)
-        SF = Sw_mul(F)
-        diag = mT(SG) @ SG
-        diag = diag.at[:-1].add(mT(SF) @ SF)
-        diag = diag.at[1:].add(SwT_Sw)
-        lower = SwT_mul(SF)  # block (t+1, t)
-        grad = jnp.einsum("tmn,tm->tn", G, gv)
-        grad = grad.at[:-1].add(jnp.einsum("tkn,tk->tn", F, gw))
-        grad = grad.at[1:].add(gw)
-        if prior_x is not None:
-            grad = grad.at[0].add(prior_x[0])
-            diag = diag.at[0].add(prior_x[1])
-        hess = BlockTridiagonal(diagonal=0.5 * (diag + mT(diag)), lower=lower)
-        x_blocks = SG, SF
-    if not wrt_theta:
-        return Linearization(value, grad, hess)
 
+def _x_blocks(p: _Point, S: _SqrtCurvatures, gv, gw, prior_x):
+    """The x-gradient, the block-tridiagonal Gauss–Newton matrix in x, and (S_v G, S_w F)."""
+    x, theta, y, u, ts = p.x, p.theta, p.y, p.u, p.ts
+    n, m = x.shape[1], y.shape[-1]
+    # Per-step Jacobians with respect to x_t.
+    G = jax.vmap(auto_jacobian(p.obs_res, 0, n, m), in_axes=(0, None, 0, 0, 0))(x, theta, y, u, ts)
+    F = jax.vmap(jax.jacfwd(p.dyn_res, argnums=0), in_axes=(0, None, 0, 0))(
+        x[:-1], theta, u[:-1], ts[:-1]
+    )  # (T-1,n,n)
+    SG = S.Sv_mul(G)
+    SF = S.Sw_mul(F)
+    diag = _mT(SG) @ SG
+    diag = diag.at[:-1].add(_mT(SF) @ SF)
+    diag = diag.at[1:].add(S.SwT_Sw)
+    lower = S.SwT_mul(SF)  # block (t+1, t)
+    grad = jnp.einsum("tmn,tm->tn", G, gv)
+    grad = grad.at[:-1].add(jnp.einsum("tkn,tk->tn", F, gw))
+    grad = grad.at[1:].add(gw)
+    if prior_x is not None:
+        grad = grad.at[0].add(prior_x[0])
+        diag = diag.at[0].add(prior_x[1])
+    return grad, BlockTridiagonal(diagonal=0.5 * (diag + _mT(diag)), lower=lower), (SG, SF)
+
+
+def _theta_blocks(p: _Point, S: _SqrtCurvatures, gv, gw, x_blocks):
+    """(θ-gradient, cross blocks E (None without x-blocks), θθ block D) of the residual factors.
+
+    A factor whose residual does not depend on θ at all (the observation map when only the
+    dynamics learn) has a zero θ-Jacobian: its products are skipped, decided at trace time.
+    """
+    x, theta, y, u, ts = p.x, p.theta, p.y, p.u, p.ts
+    (T, n), m, dtype = x.shape, y.shape[-1], x.dtype
     P = theta.shape[0]  # the length of θ
-    # A factor whose residual does not depend on θ at all (the observation map when only the
-    # dynamics learn) has a zero θ-Jacobian: its products are skipped, decided at trace time.
     D = jnp.zeros((P, P), dtype)
     grad_theta = jnp.zeros((P,), dtype)
     E = jnp.zeros((T, n, P), dtype) if x_blocks is not None else None
-    if depends_on(obs_res, 1, x[0], theta, y[0], u[0], ts[0]):
-        Gt = jax.vmap(auto_jacobian(obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(
+    if depends_on(p.obs_res, 1, x[0], theta, y[0], u[0], ts[0]):
+        Gt = jax.vmap(auto_jacobian(p.obs_res, 1, P, m), in_axes=(0, None, 0, 0, 0))(
             x, theta, y, u, ts
         )  # (T,m,P)
-        SGt = Sv_mul(Gt)
+        SGt = S.Sv_mul(Gt)
         D = D + jnp.einsum("tmp,tmq->pq", SGt, SGt)
         grad_theta = grad_theta + jnp.einsum("tmp,tm->p", Gt, gv)
         if E is not None and x_blocks is not None:
-            E = E + mT(x_blocks[0]) @ SGt
-    if T > 1 and depends_on(dyn_res, 1, x[0], theta, u[0], ts[0]):
-        Ft = jax.vmap(auto_jacobian(dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
+            E = E + _mT(x_blocks[0]) @ SGt
+    if T > 1 and depends_on(p.dyn_res, 1, x[0], theta, u[0], ts[0]):
+        Ft = jax.vmap(auto_jacobian(p.dyn_res, 1, P, n), in_axes=(0, None, 0, 0))(
             x[:-1], theta, u[:-1], ts[:-1]
         )
-        SFt = Sw_mul(Ft)
+        SFt = S.Sw_mul(Ft)
         D = D + jnp.einsum("tnp,tnq->pq", SFt, SFt)
         grad_theta = grad_theta + jnp.einsum("tnp,tn->p", Ft, gw)
         if E is not None and x_blocks is not None:
-            E = E.at[:-1].add(mT(x_blocks[1]) @ SFt)
-            E = E.at[1:].add(SwT_mul(SFt))
+            E = E.at[:-1].add(_mT(x_blocks[1]) @ SFt)
+            E = E.at[1:].add(S.SwT_mul(SFt))
     if E is not None:
         E = E.astype(dtype)
-    if prior is not None:  # a prior whose mean depends on θ
+    return grad_theta, E, D
 
-        def prior_nll(x0, th):
-            pr = build(th).initial_prior
-            assert pr is not None  # θ does not decide whether there is a prior
-            return pr.nll(x0)
 
-        gp = jax.grad(prior_nll, argnums=1)(x[0], theta)
-        grad_theta = grad_theta + gp
-    return Linearization(value, grad, hess, grad_theta, E, 0.5 * (D + D.T))
+def _prior_theta_gradient(build: Callable[[Any], AbstractSystem], x0, theta):
+    """The θ-gradient of the initial-state prior's −log p(x₁) (its mean may depend on θ)."""
+
+    def prior_nll(x0, th):
+        pr = build(th).initial_prior
+        assert pr is not None  # θ does not decide whether there is a prior
+        return pr.nll(x0)
+
+    return jax.grad(prior_nll, argnums=1)(x0, theta)
 
 
 # --- The expected complete-data objective of Laplace EM -------------------------------------------

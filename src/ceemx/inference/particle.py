@@ -23,7 +23,8 @@ below ``ess_threshold · N``. Missing observations (the data's mask) drop out of
 from __future__ import annotations
 
 import math
-from typing import Literal, cast
+from dataclasses import dataclass
+from typing import Any, Literal, cast
 
 import equinox as eqx
 import jax
@@ -146,6 +147,82 @@ def initial_prior(system: AbstractSystem, initial: GaussianPrior | None) -> Gaus
     return prior
 
 
+@dataclass(frozen=True)
+class _Bootstrap:
+    """The bootstrap proposal: x_t ~ p(x_t | x_{t−1}), incremental weights p(y_t | x_t)."""
+
+    system: AbstractSystem
+    dtype: Any
+    N: int
+
+    def obs_loglik(self, x, ut, yt, mt, t):
+        """The log-density p(y_t | x_t) (missing entries drop out)."""
+        return self.system.obs_noise.log_prob(yt - self.system.observe(x, ut, t), mt)
+
+    def initial(self, prior: GaussianPrior, k, y, u, mask, ts):
+        """(x₁ particles from p(x₁), their log-weights, log p̂(y₁))."""
+        N, dtype = self.N, self.dtype
+        m0 = prior.mean.astype(dtype)
+        x0 = m0[None, :] + prior.noise.sample(k, (N,), dtype)
+        inc = jax.vmap(lambda x: self.obs_loglik(x, u[0], y[0], mask[0], ts[0]))(x0)
+        logw0, lse = lp.log_normalize(inc)
+        return x0, logw0, lse - math.log(N)
+
+    def first_stage(self, fx, yt, ut, mt, t):
+        """No first-stage weights (0 per particle), no shared update."""
+        return jnp.zeros((self.N,), self.dtype), None
+
+    def propose(self, k, fa, yt, ut, mt, t, stage):
+        """(x_t particles, their incremental log-weights)."""
+        x_t = fa + self.system.process_noise.sample(k, (self.N,), self.dtype)
+        return x_t, jax.vmap(lambda x: self.obs_loglik(x, ut, yt, mt, t))(x_t)
+
+
+@dataclass(frozen=True)
+class _Adapted:
+    """The fully adapted proposal: x_t ~ p(x_t | x_{t−1}, y_t), first-stage p(y_t | x_{t−1}).
+
+    Closed form for Gaussian noises and an observation linear in the state (module notes).
+    """
+
+    system: AbstractSystem
+    dtype: Any
+    N: int
+
+    def update(self, P, ut, t, mt) -> tuple[kalman.GaussianUpdate, Float[Array, " m"]]:
+        """The Kalman update from prior covariance P (shared by all particles) and offset d."""
+        linear = self.system.linear_observation(ut, t)
+        assert linear is not None  # resolve_proposal checked it
+        C, d = linear
+        L_R = self.system.obs_noise.cholesky().astype(self.dtype)  # type: ignore[attr-defined]
+        return kalman.gaussian_update(P, C.astype(self.dtype), L_R, mt), d.astype(self.dtype)
+
+    def initial(self, prior: GaussianPrior, k, y, u, mask, ts):
+        """(x₁ particles from p(x₁ | y₁), their log-weights, log p̂(y₁))."""
+        N, dtype = self.N, self.dtype
+        m0 = prior.mean.astype(dtype)
+        P0 = prior.noise.covariance().astype(dtype)  # type: ignore[attr-defined]
+        up, d = self.update(P0, u[0], ts[0], mask[0])
+        z = jax.random.normal(k, (N, m0.shape[0]), dtype)
+        x0 = up.mean(m0, y[0] - d)[None, :] + z @ up.chol_post.T
+        ll0 = kalman.predictive_log_density(up, m0, y[0] - d)
+        return x0, jnp.full((N,), -math.log(N), dtype), ll0
+
+    def first_stage(self, fx, yt, ut, mt, t):
+        """Log p(y_t | x_{t−1}) per particle, and the shared update."""
+        Q = self.system.process_noise.covariance().astype(self.dtype)  # type: ignore[attr-defined]
+        up, d = self.update(Q, ut, t, mt)
+        log_pred = jax.vmap(lambda f: kalman.predictive_log_density(up, f, yt - d))(fx)
+        return log_pred, (up, d)
+
+    def propose(self, k, fa, yt, ut, mt, t, stage):
+        """(x_t particles, their incremental log-weights: 0)."""
+        up, d = stage
+        mean = jax.vmap(lambda f: up.mean(f, yt - d))(fa)
+        z = jax.random.normal(k, fa.shape, self.dtype)
+        return mean + z @ up.chol_post.T, jnp.zeros((self.N,), self.dtype)
+
+
 def _filter_one(
     system: AbstractSystem,
     prior: GaussianPrior,
@@ -160,64 +237,18 @@ def _filter_one(
     """The filter on one trajectory (see :func:`particle_filter`)."""
     N = n_particles
     T = y.shape[0]
-    dtype = y.dtype
     log_n = math.log(N)
     ts = jnp.arange(T)
     keys = jax.random.split(key, T)
-
-    def obs_loglik(x, ut, yt, mt, t):
-        return system.obs_noise.log_prob(yt - system.observe(x, ut, t), mt)
-
-    def update(P, ut, t, mt) -> tuple[kalman.GaussianUpdate, Float[Array, " m"]]:
-        """The fully adapted proposal's Kalman update (shared by all particles) and offset d."""
-        linear = system.linear_observation(ut, t)
-        assert linear is not None  # resolve_proposal checked it
-        C, d = linear
-        L_R = system.obs_noise.cholesky().astype(dtype)  # type: ignore[attr-defined]
-        return kalman.gaussian_update(P, C.astype(dtype), L_R, mt), d.astype(dtype)
-
-    def initial_particles(k):
-        """(x₁ particles, their log-weights, log p̂(y₁)): from p(x₁) or from p(x₁ | y₁)."""
-        m0 = prior.mean.astype(dtype)
-        if adapted:
-            P0 = prior.noise.covariance().astype(dtype)  # type: ignore[attr-defined]
-            up, d = update(P0, u[0], ts[0], mask[0])
-            z = jax.random.normal(k, (N, m0.shape[0]), dtype)
-            x0 = up.mean(m0, y[0] - d)[None, :] + z @ up.chol_post.T
-            ll0 = kalman.predictive_log_density(up, m0, y[0] - d)
-            return x0, jnp.full((N,), -log_n, dtype), ll0
-        x0 = m0[None, :] + prior.noise.sample(k, (N,), dtype)
-        inc = jax.vmap(lambda x: obs_loglik(x, u[0], y[0], mask[0], ts[0]))(x0)
-        logw0, lse = lp.log_normalize(inc)
-        return x0, logw0, lse - log_n
-
-    def first_stage(fx, yt, ut, mt, t):
-        """Log p(y_t | x_{t−1}) per particle (adapted) or 0 (bootstrap), and the update."""
-        if adapted:
-            Q = system.process_noise.covariance().astype(dtype)  # type: ignore[attr-defined]
-            up, d = update(Q, ut, t, mt)
-            log_pred = jax.vmap(lambda f: kalman.predictive_log_density(up, f, yt - d))(fx)
-            return log_pred, (up, d)
-        return jnp.zeros((N,), dtype), None
-
-    def propose(k, fa, yt, ut, mt, t, stage):
-        """(x_t particles, their incremental log-weights)."""
-        if adapted:
-            up, d = stage
-            mean = jax.vmap(lambda f: up.mean(f, yt - d))(fa)
-            z = jax.random.normal(k, fa.shape, dtype)
-            return mean + z @ up.chol_post.T, jnp.zeros((N,), dtype)
-        x_t = fa + system.process_noise.sample(k, (N,), dtype)
-        return x_t, jax.vmap(lambda x: obs_loglik(x, ut, yt, mt, t))(x_t)
-
-    x0, logw0, ll0 = initial_particles(keys[0])
+    proposal = (_Adapted if adapted else _Bootstrap)(system, y.dtype, N)
+    x0, logw0, ll0 = proposal.initial(prior, keys[0], y, u, mask, ts)
 
     def step(carry, inp):
         x_prev, logw_prev = carry
         yt, ut, u_prev, mt, t, kt = inp
         k_res, k_prop = jax.random.split(kt)
         fx = jax.vmap(lambda x: system.dynamics(x, u_prev, t - 1))(x_prev)
-        log_pred, stage = first_stage(fx, yt, ut, mt, t)
+        log_pred, stage = proposal.first_stage(fx, yt, ut, mt, t)
         logv, lse1 = lp.log_normalize(logw_prev + log_pred)
         ess_t = lp.ess(logv)
         resample = ess_t < threshold * N
@@ -225,7 +256,7 @@ def _filter_one(
             resample, lp.systematic_resample(k_res, logv), jnp.arange(N, dtype=jnp.int32)
         )
         base = jnp.where(resample, -log_n, logv)
-        x_t, log_inc = propose(k_prop, fx[anc], yt, ut, mt, t, stage)
+        x_t, log_inc = proposal.propose(k_prop, fx[anc], yt, ut, mt, t, stage)
         logw, lse2 = lp.log_normalize(base + log_inc)
         out = (x_t, logw, anc, ess_t, resample, lse1 + lse2)
         return (x_t, logw), out

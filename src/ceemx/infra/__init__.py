@@ -9,6 +9,7 @@ fit over several processes (:mod:`~ceemx.infra.distributed`: ``jax.distributed``
 reads, a launcher), the memory guard (:mod:`~ceemx.infra.memory`), the validation of solver and
 learner options (:mod:`~ceemx.infra.options`), warnings attributed to the user's line
 (:mod:`~ceemx.infra.warn`) and output folders checked before any compute
-(:mod:`~ceemx.infra.paths`, light enough for the command line's argument checks).
+(:mod:`~ceemx.infra.paths`, light enough for the command line's argument checks), and how the
+command ends on SIGINT or SIGTERM (:mod:`~ceemx.infra.interrupts`, as light).
 Layer rule: may import :mod:`ceemx.lib` only; every other layer may import it.
 """

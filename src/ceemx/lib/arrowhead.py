@@ -229,50 +229,64 @@ def arrowhead_solve(
 
     L, inv = factor(A)
     a_ok = jnp.all(jax.vmap(is_finite)(L))
-    # Batched block solves with the same factors are never left independent of each other (two
-    # batched LAPACK calls running at once can deadlock, ceemx.lib.dense): the solves read the
-    # inverses of the factors' diagonal blocks, computed once (no LAPACK call in the solves
-    # then); the dense method's final solve needs dθ, the CG method orders its solves after
-    # A_b⁻¹ r_b.
     if method == "dense":
-        EtZ, Etw = schur_terms(L, inv, E, r_x)
-        assert Etw is not None
-        dtheta, s_ok = cholesky_solve(D - EtZ, r_theta - Etw)
-        steps = jnp.asarray(0, jnp.int32)
-        converged = jnp.asarray(True)
-        dx = _solve_b(L, r_x - jnp.einsum("btnp,p->btn", E, dtheta), inv)
+        dx, dtheta, s_ok, steps, converged = _dense_schur(L, inv, E, D, r_x, r_theta)
     else:
-        w = _solve_b(L, r_x, inv)
-        E = after(E, w)
-        rhs = r_theta - jnp.sum(jnp.einsum("btnp,btn->bp", E, w), axis=0)
-
-        def S_mv(v):
-            Ev = jnp.einsum("btnp,p->btn", E, v)
-            return D @ v - jnp.sum(jnp.einsum("btnp,btn->bp", E, _solve_b(L, Ev, inv)), axis=0)
-
-        if cg_preconditioner == "schur_diag":
-            d = jnp.diagonal(D) - _schur_diag(L, E, cg_chunk, inv)
-        elif cg_preconditioner == "d_diag":
-            d = jnp.diagonal(D)
-        elif cg_preconditioner == "none":
-            d = jnp.ones((P,), D.dtype)
-        else:
-            raise ValueError(f"unknown cg_preconditioner {cg_preconditioner!r}")
-        m_inv = jnp.where(d > 0, 1.0 / jnp.where(d > 0, d, 1.0), 1.0)
-        max_steps = P if cg_max_steps is None else cg_max_steps
-        dtheta, steps, converged, broken = pcg(S_mv, rhs, m_inv, cg_rtol, max_steps)
-        s_ok = ~broken & jnp.all(jnp.isfinite(dtheta))
-        dx = w - _solve_b(L, jnp.einsum("btnp,p->btn", E, dtheta), inv)
-
+        cg = (_cg_preconditioner(cg_preconditioner), cg_rtol, cg_max_steps, cg_chunk)
+        dx, dtheta, s_ok, steps, converged = _cg_schur(L, inv, E, D, r_x, r_theta, *cg)
     ok = a_ok & s_ok & jnp.all(jnp.isfinite(dx)) & jnp.all(jnp.isfinite(dtheta))
-    return ArrowheadSolution(
-        dx=jnp.where(ok, dx, 0.0).astype(r_x.dtype),
-        dtheta=jnp.where(ok, dtheta, 0.0).astype(r_theta.dtype),
-        ok=ok,
-        converged=ok & converged,
-        cg_steps=steps,
-        method=method,
-    )
+    dx = jnp.where(ok, dx, 0.0).astype(r_x.dtype)
+    dtheta = jnp.where(ok, dtheta, 0.0).astype(r_theta.dtype)
+    return ArrowheadSolution(dx, dtheta, ok, ok & converged, steps, method)
+
+
+# Batched block solves with the same factors are never left independent of each other (two
+# batched LAPACK calls running at once can deadlock, ceemx.lib.dense): the solves read the
+# inverses of the factors' diagonal blocks, computed once (no LAPACK call in the solves then);
+# the dense method's final solve needs dθ, the CG method orders its solves after A_b⁻¹ r_b.
+
+
+def _dense_schur(L, inv, E, D, r_x, r_theta):
+    """(dx, dθ, S positive definite, 0 steps, converged): S formed and factored."""
+    EtZ, Etw = schur_terms(L, inv, E, r_x)
+    assert Etw is not None
+    dtheta, s_ok = cholesky_solve(D - EtZ, r_theta - Etw)
+    steps = jnp.asarray(0, jnp.int32)
+    converged = jnp.asarray(True)
+    dx = _solve_b(L, r_x - jnp.einsum("btnp,p->btn", E, dtheta), inv)
+    return dx, dtheta, s_ok, steps, converged
+
+
+def _cg_preconditioner(name: str) -> str:
+    """The CG preconditioner's name, checked."""
+    if name not in ("schur_diag", "d_diag", "none"):
+        raise ValueError(f"unknown cg_preconditioner {name!r}")
+    return name
+
+
+def _cg_schur(L, inv, E, D, r_x, r_theta, preconditioner, cg_rtol, cg_max_steps, cg_chunk):
+    """(dx, dθ, no breakdown and finite, CG steps, converged): S v applied, never formed."""
+    P = D.shape[-1]
+    w = _solve_b(L, r_x, inv)
+    E = after(E, w)
+    rhs = r_theta - jnp.sum(jnp.einsum("btnp,btn->bp", E, w), axis=0)
+
+    def S_mv(v):
+        Ev = jnp.einsum("btnp,p->btn", E, v)
+        return D @ v - jnp.sum(jnp.einsum("btnp,btn->bp", E, _solve_b(L, Ev, inv)), axis=0)
+
+    if preconditioner == "schur_diag":
+        d = jnp.diagonal(D) - _schur_diag(L, E, cg_chunk, inv)
+    elif preconditioner == "d_diag":
+        d = jnp.diagonal(D)
+    else:
+        d = jnp.ones((P,), D.dtype)
+    m_inv = jnp.where(d > 0, 1.0 / jnp.where(d > 0, d, 1.0), 1.0)
+    max_steps = P if cg_max_steps is None else cg_max_steps
+    dtheta, steps, converged, broken = pcg(S_mv, rhs, m_inv, cg_rtol, max_steps)
+    s_ok = ~broken & jnp.all(jnp.isfinite(dtheta))
+    dx = w - _solve_b(L, jnp.einsum("btnp,p->btn", E, dtheta), inv)
+    return dx, dtheta, s_ok, steps, converged
 
 
 def arrowhead_solve_matrix_free(

@@ -40,7 +40,8 @@ Kalman-filter state sequences; the least-squares regression
 gives A, B, C, D, and the residual covariance ρρᵀ/N gives Q, R, S (the innovation form:
 Q ≈ K R Kᵀ, S ≈ K R with the Kalman gain K = S R⁻¹). Finally, each trajectory's initial state x₀
 (the state at its first sample) is the least-squares fit of its simulated output error,
-y_t − D u_t − Σ_{s<t} C A^{t−1−s} B u_s = C A^t x₀ + e_t.
+y_t − D u_t − Σ_{s<t} C A^{t−1−s} B u_s = C A^t x₀ + e_t (:mod:`ceemx.lib.output_error`, which
+also refits B, D and x₀ to that error for a simulation model).
 """
 
 from __future__ import annotations
@@ -52,7 +53,9 @@ from collections.abc import Sequence
 import numpy as np
 from jaxtyping import Float
 
-__all__ = ["SubspaceResult", "default_horizon", "n4sid", "spectral_radius", "stabilize"]
+from ceemx.lib.output_error import initial_states, spectral_radius, stabilize
+
+__all__ = ["SubspaceResult", "default_horizon", "n4sid"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,7 +80,7 @@ class SubspaceResult:
         horizon: the horizon k used.
         num_columns: N, the number of block-Hankel columns (windows) over all trajectories.
         stabilized: whether the regression's A was unstable and was replaced by its stable
-            projection (:func:`stabilize`; ``n4sid(..., stable=True)``).
+            projection (:func:`~ceemx.lib.output_error.stabilize`; ``n4sid(..., stable=True)``).
     """
 
     A: Float[np.ndarray, "n n"]
@@ -202,101 +205,6 @@ def _perp(a: np.ndarray, basis: np.ndarray, rcond: float) -> np.ndarray:
     if basis.shape[0] == 0:
         return a
     return a - _coefficients(a, basis, rcond) @ basis
-
-
-def spectral_radius(a: np.ndarray) -> float:
-    """The spectral radius max |λ(a)| (0 for an empty matrix)."""
-    return float(np.max(np.abs(np.linalg.eigvals(a)))) if a.size else 0.0
-
-
-def _output_powers(A: np.ndarray, C: np.ndarray, T: int) -> np.ndarray:
-    """(T, m, n) C Aᵗ for t < T: the free response of the output to x₀."""
-    out = np.empty((T,) + C.shape)
-    power = np.eye(A.shape[0])
-    for t in range(T):
-        out[t] = C @ power
-        power = A @ power
-    return out
-
-
-def _initial_states(us, ys, A, B, C, D, k: int) -> np.ndarray:
-    """Least-squares x₀ of every trajectory from its simulated output error (see module doc)."""
-    n = A.shape[0]
-    lengths = np.array([y.shape[0] for y in ys])
-    T_max = int(lengths.max())
-    rho = spectral_radius(A)
-    if rho > 1.0 + 1e-8:  # unstable: fit on the steps where A^t stays below 1e6
-        T_max = min(T_max, max(2 * k, int(math.log(1e6) / math.log(rho))))
-    Bn, m = len(ys), ys[0].shape[1]
-    # zero-state responses of all trajectories at once (padded with zeros past each length)
-    u_pad = np.zeros((Bn, T_max, B.shape[1]))
-    y_pad = np.zeros((Bn, T_max, m))
-    for b, (u, y) in enumerate(zip(us, ys, strict=True)):
-        t = min(T_max, y.shape[0])
-        u_pad[b, :t], y_pad[b, :t] = u[:t], y[:t]
-    resid = y_pad - u_pad @ D.T
-    x = np.zeros((Bn, n))
-    for t in range(T_max):
-        resid[:, t] -= x @ C.T
-        x = x @ A.T + u_pad[:, t] @ B.T
-    obs = _output_powers(A, C, T_max)
-    x0 = np.empty((Bn, n))
-    steps = np.minimum(lengths, T_max)
-    for t in np.unique(steps):
-        idx = np.flatnonzero(steps == t)
-        lhs = obs[:t].reshape(-1, n)
-        rhs = resid[idx, :t].reshape(len(idx), -1).T
-        x0[idx] = np.linalg.lstsq(lhs, rhs, rcond=None)[0].T
-    return x0
-
-
-def stabilize(A, B, C, D, us, ys, *, radius: float = 0.999):
-    """A stable simulation model near (A, B, C, D), with B, D and x₀ refitted to the data.
-
-    A's eigenvalues are pulled into |λ| ≤ ``radius``: N4SID's least-squares A can be unstable
-    on short or nonlinear records, and its free run then explodes. Each eigenvalue outside the
-    disc keeps its phase and moves to the radius (conjugate pairs alike, so A stays real); the
-    input matrix B, the feedthrough D and every trajectory's x₀ are then the least-squares fit of
-    the free-run simulation error, which is linear in them once A and C are fixed:
-    y_t = C Aᵗ x₀ + Σ_{s<t} C A^{t−1−s} B u_s + D u_t.
-
-    Returns:
-        (A, B, D, x0) as float64 arrays, x0 of shape (len(ys), n).
-    """
-    n, p = B.shape
-    m = C.shape[0]
-    lam, V = np.linalg.eig(A)
-    scale = np.minimum(1.0, radius / np.maximum(np.abs(lam), 1e-300))
-    A = np.real(V @ np.diag(lam * scale) @ np.linalg.inv(V))
-    cols = []  # per trajectory: (T·m, n·p + m·p) regressors of vec(B), vec(D); (T·m, n) of x0
-    powers = _output_powers(A, C, max(y.shape[0] for y in ys))
-    for u, y in zip(us, ys, strict=True):
-        T = y.shape[0]
-        reg = np.zeros((T, m, n * p + m * p))
-        xs = np.zeros((n * p, n))  # row i·p + j: the state's response to B's entry (i, j)
-        rows_q = np.arange(n)[:, None] * p + np.arange(p)[None, :]
-        for t in range(T):
-            reg[t, :, : n * p] = (xs @ C.T).T
-            reg[t, :, n * p :] = np.kron(np.eye(m), u[t][None, :])
-            xs = xs @ A.T
-            xs[rows_q, np.arange(n)[:, None]] += u[t][None, :]
-        cols.append((reg.reshape(T * m, -1), powers[:T].reshape(T * m, n), y.reshape(-1)))
-    Bn = len(cols)
-    rows = sum(c[0].shape[0] for c in cols)
-    lhs = np.zeros((rows, n * p + m * p + Bn * n))
-    rhs = np.zeros(rows)
-    r = 0
-    for b, (reg, obs, y) in enumerate(cols):
-        k = reg.shape[0]
-        lhs[r : r + k, : n * p + m * p] = reg
-        lhs[r : r + k, n * p + m * p + b * n : n * p + m * p + (b + 1) * n] = obs
-        rhs[r : r + k] = y
-        r += k
-    sol = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
-    B = sol[: n * p].reshape(n, p)
-    D = sol[n * p : n * p + m * p].reshape(m, p)
-    x0 = sol[n * p + m * p :].reshape(Bn, n)
-    return A, B, D, x0
 
 
 def _trajectories(y, u) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -443,11 +351,8 @@ def n4sid(
 ) -> SubspaceResult:
     """Identify (A, B, C, D) and residual covariances from many trajectories by N4SID.
 
-    The algorithm and its equations are in the module docstring: block-Hankel windows of every
-    trajectory side by side, an incrementally accumulated triangular factor, oblique projections,
-    a (weighted) SVD truncated to ``order`` states, and a least-squares regression of the
-    shifted state sequence. The data should be (roughly) zero-mean: a constant offset is not part
-    of the model.
+    The algorithm and its equations are in the module notes. The data should be (roughly)
+    zero-mean: a constant offset is not part of the model.
 
     Args:
         y: outputs: a (T, m) array (one trajectory), a (B, T, m) array, or a sequence of
@@ -464,12 +369,13 @@ def n4sid(
         chunk_rows: windows stacked before each QR update (``None``: max(4r, 4096)); memory is
             O(r·(r + chunk_rows)).
         stable: when the estimated A is unstable (spectral radius ≥ 1), replace it by its
-            stable projection and refit B, D and x₀ (:func:`stabilize`;
+            stable projection and refit B, D and x₀ (:func:`~ceemx.lib.output_error.stabilize`;
             ``SubspaceResult.stabilized`` says so).
         refit: always refit B, D and x₀ to the free-run simulation error at the estimated
-            (A, C) (:func:`stabilize`, which also projects an unstable A): N4SID's B and D are
-            those of the one-step predictor, which on nonlinear or offset data can simulate far
-            off (the cascaded tanks' order-2 model: 532 V test RMSE, 1.9 V refitted).
+            (A, C) (:func:`~ceemx.lib.output_error.stabilize`, which also projects an unstable
+            A): N4SID's B and D are those of the one-step predictor, which on nonlinear or offset
+            data can simulate far off (the cascaded tanks' order-2 model: 532 V test RMSE, 1.9 V
+            refitted).
 
     Returns:
         A :class:`SubspaceResult` in float64.
@@ -502,14 +408,20 @@ def n4sid(
     chunk = max(4 * r, 4096) if chunk_rows is None else max(int(chunk_rows), 1)
 
     rows = _Rows(_compress(us, ys, k, r, chunk).T, k, p, m)  # the rows of L stand for data rows
-    Uf, Yf = rows.u(k, 2 * k), rows.y(k, 2 * k)
-    Ok = _oblique(Yf, Uf, rows.past(k), rcond)
-    Ok1 = _oblique(rows.y(k + 1, 2 * k), rows.u(k + 1, 2 * k), rows.past(k + 1), rcond)
-    gamma, sv = _observability(Ok, Uf, Yf, n=n, N=N, weighting=weighting, rcond=rcond)
-    Xk = np.linalg.pinv(gamma) @ Ok
-    Xk1 = np.linalg.pinv(gamma[:-m]) @ Ok1
+    Xk, Xk1, sv = _state_sequences(rows, n=n, N=N, weighting=weighting, rcond=rcond)
+    fit = _regression(Xk, Xk1, rows, N=N, rcond=rcond)
+    options = dict(estimate_x0=estimate_x0, stable=stable, refit=refit)
+    return _result(fit, Xk, sv, us, ys, k=k, N=N, **options)
 
-    theta, cov = _regression(Xk, Xk1, rows, N=N, rcond=rcond)
+
+def _result(fit, Xk, sv, us, ys, *, k: int, N: int, estimate_x0: bool, stable: bool, refit: bool):
+    """The :class:`SubspaceResult` of the regression ``fit`` = (Θ, residual covariance).
+
+    A, B, C, D are Θ's blocks and Q, R, S the covariance's (module notes); B, D and x₀ are
+    refitted to the simulation error when A is unstable and ``stable`` (or always with ``refit``),
+    else the x₀ alone are fitted (when ``estimate_x0``).
+    """
+    (theta, cov), n = fit, Xk.shape[0]
     A, B = theta[:n, :n], theta[:n, n:]
     C, D = theta[n:, :n], theta[n:, n:]
     Q, R, S = cov[:n, :n], cov[n:, n:], cov[:n, n:]
@@ -519,20 +431,18 @@ def n4sid(
         A, B, D, x0 = stabilize(A, B, C, D, us, ys)
         x0 = x0 if estimate_x0 else None
     else:
-        x0 = _initial_states(us, ys, A, B, C, D, k) if estimate_x0 else None
-    return SubspaceResult(
-        A=A,
-        B=B,
-        C=C,
-        D=D,
-        Q=Q,
-        R=R,
-        S=S,
-        K=K,
-        singular_values=sv,
-        state_cov=Xk @ Xk.T / N,
-        x0=x0,
-        horizon=k,
-        num_columns=N,
-        stabilized=stabilized,
-    )
+        x0 = initial_states(us, ys, A, B, C, D, k) if estimate_x0 else None
+    state_cov = Xk @ Xk.T / N
+    return SubspaceResult(A, B, C, D, Q, R, S, K, sv, state_cov, x0, k, N, stabilized)
+
+
+def _state_sequences(rows: _Rows, *, n: int, N: int, weighting: str, rcond: float):
+    """X_k and X_{k+1} from the oblique projections O_k, O_{k−1} and Γ_k; the singular values."""
+    k, m = rows.k, rows.m
+    Uf, Yf = rows.u(k, 2 * k), rows.y(k, 2 * k)
+    Ok = _oblique(Yf, Uf, rows.past(k), rcond)
+    Ok1 = _oblique(rows.y(k + 1, 2 * k), rows.u(k + 1, 2 * k), rows.past(k + 1), rcond)
+    gamma, sv = _observability(Ok, Uf, Yf, n=n, N=N, weighting=weighting, rcond=rcond)
+    Xk = np.linalg.pinv(gamma) @ Ok
+    Xk1 = np.linalg.pinv(gamma[:-m]) @ Ok1
+    return Xk, Xk1, sv

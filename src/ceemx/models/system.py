@@ -17,7 +17,7 @@ from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Real
 
 from ceemx.lib.typing import Scalar, State
-from ceemx.models.constraints import check_constraints
+from ceemx.models.constraint_checks import check_constraints
 from ceemx.models.noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT, as_noise
 
 __all__ = [

@@ -8,6 +8,8 @@
 - :mod:`~ceemx.identification.analysis.noise_estimate` — the noise the data show (residual
   moments, :func:`~ceemx.identification.analysis.noise_estimate.estimate_noise`);
 - :mod:`~ceemx.identification.analysis.diagnostics` — the residual diagnostics report;
+- :mod:`~ceemx.identification.analysis.correlations` — residual auto- and input
+  cross-correlations with their bands (MATLAB's ``resid``), from any residuals;
 - :mod:`~ceemx.identification.analysis.summary` — the text summary of a fit.
 
 :class:`ceemx.FitResult` delegates to these, one line per method. They read the fit problem, the

@@ -48,7 +48,6 @@ identification; never the other way round).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from statistics import NormalDist
 from typing import Any, NamedTuple
@@ -61,6 +60,12 @@ from jaxtyping import ArrayLike
 
 from ceemx.data.checks import prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
+from ceemx.identification.analysis.correlations import (
+    BAND_Z,
+    Correlations,
+    correlation_statistics,
+    lag_ranges,
+)
 from ceemx.identification.analysis.end_point import end_point
 from ceemx.identification.analysis.noise_check import FACTOR, LOWER, NoiseCheck, chi2_band
 from ceemx.identification.analysis.noise_estimate import (
@@ -74,17 +79,7 @@ from ceemx.inference.ekf import ekf_prepared
 from ceemx.lib.tree import as_jax
 from ceemx.models.system import AbstractSystem, GaussianPrior
 
-__all__ = [
-    "BAND_Z",
-    "Correlations",
-    "ResidualDiagnostics",
-    "fit_diagnostics",
-    "residual_correlations",
-    "residual_diagnostics",
-]
-
-#: the pointwise 99 % normal quantile of the correlation bands (±BAND_Z/√N, as ``resid`` draws)
-BAND_Z = 2.5758293035489004
+__all__ = ["ResidualDiagnostics", "fit_diagnostics", "residual_diagnostics"]
 
 _COMPONENT = {"process_noise": "state", "obs_noise": "output"}
 
@@ -200,18 +195,6 @@ class ResidualDiagnostics:
         )
 
 
-def _lag_ranges(lags: Sequence[int]) -> str:
-    """``[1, 2, 3, 7]`` → ``"1–3, 7"``; ``[-5, -4]`` → ``"-5 to -4"``."""
-    runs: list[list[int]] = []
-    for k in lags:
-        if runs and k == runs[-1][-1] + 1:
-            runs[-1].append(int(k))
-        else:
-            runs.append([int(k)])
-    sep = lambda a, b: " to " if min(a, b) < 0 else "–"  # noqa: E731
-    return ", ".join(f"{r[0]}" if len(r) == 1 else f"{r[0]}{sep(r[0], r[-1])}{r[-1]}" for r in runs)
-
-
 def _strong(system: AbstractSystem) -> AbstractSystem:
     """Weakly typed leaves (``process_noise=0.1``) made strong: one compiled program for all."""
     return jax.tree_util.tree_map(
@@ -240,130 +223,6 @@ def _innovations(system, data, x1, initial):
         s.append(np.sqrt(np.sum(L**2, axis=-1)))
     z = np.stack(e) / np.stack(s)
     return np.where(np.asarray(data.mask, bool), z, np.nan)
-
-
-def _correlations(z: np.ndarray, u: np.ndarray, M: int):
-    """Per output: N, pair counts, r(k), cross-correlations with every input (module notes)."""
-    B, T, m = z.shape
-    p = u.shape[-1]
-    acf = np.zeros((m, M + 1))
-    pairs = np.zeros((m, M + 1))
-    xcf = np.full((m, p, 2 * M + 1), np.nan)
-    xpairs = np.zeros((m, p, 2 * M + 1))
-    counts = np.zeros(m)
-    mean = np.zeros(m)
-    nis = np.zeros(m)
-    us = u - u.reshape(-1, p).mean(axis=0)
-    u_sd = us.reshape(-1, p).std(axis=0)
-    for i in range(m):
-        present = np.isfinite(z[..., i])
-        counts[i] = present.sum()
-        if counts[i] == 0:
-            acf[i] = np.nan
-            nis[i] = mean[i] = np.nan
-            continue
-        nis[i] = np.nanmean(z[..., i] ** 2)
-        mean[i] = np.nanmean(z[..., i])
-        c = np.where(present, z[..., i] - mean[i], 0.0)
-        var = np.sum(c**2) / counts[i]
-        for k in range(M + 1):
-            both = present[:, k:] & present[:, : T - k]
-            pairs[i, k] = both.sum()
-            if pairs[i, k] > 0 and var > 0:
-                acf[i, k] = np.sum(c[:, k:] * c[:, : T - k]) / pairs[i, k] / var
-        for j in range(p):
-            if not u_sd[j] > 0 or not var > 0:
-                continue
-            for idx, k in enumerate(range(-M, M + 1)):
-                # ẽ_t against u_{t−k}
-                if k >= 0:
-                    zz, uu, pr = c[:, k:], us[:, : T - k, j], present[:, k:]
-                else:
-                    zz, uu, pr = c[:, : T + k], us[:, -k:, j], present[:, : T + k]
-                xpairs[i, j, idx] = pr.sum()
-                if xpairs[i, j, idx] > 0:
-                    xcf[i, j, idx] = np.sum(zz * uu) / xpairs[i, j, idx] / np.sqrt(var) / u_sd[j]
-    return counts, nis, mean, acf, pairs, xcf, xpairs
-
-
-class Correlations(NamedTuple):
-    """Residual correlations of :func:`residual_correlations`, per output (``m``) and input (``p``).
-
-    Attributes:
-        autocorrelation: (m, M + 1) r(k), k = 0…M (r(0) = 1).
-        cross_correlation: (m, p, 2M + 1) the correlation of e_t with u_{t−k}, k = −M…M (NaN
-            where an input is constant).
-        counts: (m,) N, the present samples per output.
-        pair_counts: (m, M + 1) N_k, the pairs at each autocorrelation lag.
-        cross_pair_counts: (m, p, 2M + 1) the pairs at each cross-correlation lag.
-        mean: (m,) the mean residual.
-        lags: M.
-    """
-
-    autocorrelation: np.ndarray
-    cross_correlation: np.ndarray
-    counts: np.ndarray
-    pair_counts: np.ndarray
-    cross_pair_counts: np.ndarray
-    mean: np.ndarray
-    lags: int
-
-    def band(self, z: float = BAND_Z) -> np.ndarray:
-        """(m, M + 1) the pointwise band ±z/√N_k of the autocorrelation (99 % by default)."""
-        return z / np.sqrt(np.maximum(self.pair_counts, 1))
-
-    def cross_band(self, z: float = BAND_Z) -> np.ndarray:
-        """(m, p, 2M + 1) the pointwise band ±z/√N_k of the cross-correlations."""
-        return z / np.sqrt(np.maximum(self.cross_pair_counts, 1))
-
-
-def _as_btc(values: ArrayLike, name: str) -> np.ndarray:
-    a = np.asarray(values, np.float64)
-    if a.ndim == 1:
-        return a[None, :, None]
-    if a.ndim == 2:
-        return a[None]
-    if a.ndim == 3:
-        return a
-    raise ValueError(f"`{name}` must be (T,), (T, c) or (B, T, c); got shape {a.shape}.")
-
-
-def residual_correlations(
-    residuals: ArrayLike, inputs: ArrayLike | None = None, *, lags: int = 25
-) -> Correlations:
-    """Autocorrelation of residuals and their cross-correlation with the inputs (MATLAB ``resid``).
-
-    The statistics :func:`residual_diagnostics` tests, from any residuals: one-step prediction
-    errors, free-run simulation errors y − ŷ, whitened CE residuals. Pairs are never formed across
-    a trajectory's end; NaN marks a missing sample.
-
-    Args:
-        residuals: e, (T,), (T, m) or (B, T, m).
-        inputs: u, (T,), (T, p) or (B, T, p) with the same B and T (``None``: no inputs).
-        lags: M, the largest lag (capped at T − 1).
-
-    Returns:
-        The :class:`Correlations`; ``.band()`` and ``.cross_band()`` give the pointwise 99 %
-        bands ±2.58/√N_k that ``resid`` draws.
-
-    Raises:
-        ValueError: bad shapes, or ``lags`` < 1.
-    """
-    e = _as_btc(residuals, "residuals")
-    B, T, _ = e.shape
-    u = np.zeros((B, T, 0)) if inputs is None else _as_btc(inputs, "inputs")
-    if u.shape[:2] != (B, T):
-        raise ValueError(
-            f"`inputs` must have the residuals' batch and time sizes {(B, T)}; got {u.shape[:2]}."
-        )
-    if isinstance(lags, bool) or not isinstance(lags, int | np.integer) or lags < 1:
-        raise ValueError(f"`lags` must be an integer ≥ 1; got {lags!r}.")
-    M = int(min(lags, T - 1))
-    p = u.shape[-1]
-    if p == 0:  # a constant stand-in (no correlations computed), dropped below
-        u = np.zeros((B, T, 1))
-    counts, _, mean, acf, pairs, xcf, xpairs = _correlations(e, u, M)
-    return Correlations(acf, xcf[:, :p], counts, pairs, xpairs[:, :p], mean, M)
 
 
 def residual_diagnostics(
@@ -401,6 +260,45 @@ def residual_diagnostics(
             noise).
         ValueError: ``lags`` < 1 or ``factor`` ≤ 1.
     """
+    _check_request(system, lags, factor)
+    M = int(min(lags, data.num_steps - 1))
+    system = _strong(system)
+    inputs = prepare(system, data, states, identify=True)
+    noise = _noise_reading(system, inputs, estimate)
+    ratio_ok, ratio_problems = _noise_verdicts(noise, factor)
+    x1 = np.asarray(noise.states[:, 0])
+    if states is not None:  # where the MAP failed, the given start
+        x1 = np.where(np.isfinite(x1), x1, np.asarray(states)[:, 0])
+    prior = system.initial_prior if initial is None else initial
+    z = _innovations(inputs.system, inputs.data, x1, prior)
+    c, nis = correlation_statistics(z, np.asarray(data.u), M)
+    tests = _prediction_error_tests(c, nis)
+    return ResidualDiagnostics(
+        noise_ratios=noise.ratios,
+        assumed_std=noise.assumed,
+        estimated_std=noise.estimated,
+        nis=nis,
+        bias=c.mean,
+        autocorrelation=c.autocorrelation,
+        cross_correlation=c.cross_correlation,
+        counts=c.counts,
+        pair_counts=c.pair_counts,
+        box_pierce=tests.box_pierce,
+        box_pierce_p=tests.box_pierce_p,
+        white=tests.white,
+        independent=tests.independent,
+        unbiased=tests.unbiased,
+        nis_ok=tests.nis_ok,
+        ratio_ok=ratio_ok,
+        lags=M,
+        factor=factor,
+        noise_check=noise_check,
+        problems=tuple(noise.problems + ratio_problems + tests.problems),
+    )
+
+
+def _check_request(system: AbstractSystem, lags, factor) -> None:
+    """Gaussian noise models, an integer ``lags`` ≥ 1 and a finite ``factor`` > 1, or raise."""
     for name in NOISE_FIELDS:
         if not getattr(system, name).is_gaussian:
             raise TypeError(
@@ -411,10 +309,20 @@ def residual_diagnostics(
         raise ValueError(f"`lags` must be an integer ≥ 1; got {lags!r}.")
     if not (np.isfinite(factor) and factor > 1):
         raise ValueError(f"`factor` must be finite and > 1; got {factor!r}.")
-    M = int(min(lags, data.num_steps - 1))
-    system = _strong(system)
-    inputs = prepare(system, data, states, identify=True)
-    problems: list[str] = []
+
+
+class _NoiseReading(NamedTuple):
+    """The noise part of the diagnostics: per field, per component (module notes, item 1)."""
+
+    ratios: dict  # one E-step's realised / assumed variance
+    assumed: dict  # the assumed standard deviations
+    estimated: dict | None  # the standard deviations the data say (None: not estimated)
+    states: Any  # (B, T, n) the MAP states (NaN where the Laplace posterior is not finite)
+    problems: list[str]
+
+
+def _noise_reading(system: AbstractSystem, inputs, estimate: bool) -> _NoiseReading:
+    """The Laplace E-step's noise ratios and, with ``estimate``, the noise the data say."""
     nm = moments_prepared(inputs.system, inputs.data, start_states(inputs))
     ok = np.asarray(nm.ok)
     assumed = {name: _std(getattr(system, name)) for name in NOISE_FIELDS}
@@ -426,23 +334,25 @@ def residual_diagnostics(
             estimated = {name: _std(getattr(fitted, name)) for name in NOISE_FIELDS}
     else:
         ratios = {name: np.full(len(assumed[name]), np.nan) for name in NOISE_FIELDS}
+    problems = []
     if not ok.all():
         problems.append(
             f"the Laplace posterior is not finite for trajectories {np.flatnonzero(~ok).tolist()}"
             " (a state neither observed nor pinned by a prior on x₁ makes the Gauss–Newton "
             "matrix singular): they are left out of the noise ratios."
         )
-    if initial is None:
-        initial = system.initial_prior
-    x1 = np.asarray(nm.states[:, 0])
-    if states is not None:  # where the MAP failed, the given start
-        x1 = np.where(np.isfinite(x1), x1, np.asarray(states)[:, 0])
-    z = _innovations(inputs.system, inputs.data, x1, initial)
-    counts, nis, mean, acf, pairs, xcf, xpairs = _correlations(z, np.asarray(data.u), M)
+    return _NoiseReading(ratios, assumed, estimated, nm.states, problems)
 
-    ratio_ok = {}
+
+def _noise_verdicts(noise: _NoiseReading, factor: float) -> tuple[dict, list[str]]:
+    """Per field, which components are consistent, and a message for each that is not.
+
+    The verdict is the evidence maximiser's when estimated (unbiased either way), else the
+    E-step's: the ratio must lie in [1/F, F].
+    """
+    ratio_ok, problems = {}, []
+    ratios, assumed, estimated = noise.ratios, noise.assumed, noise.estimated
     for name in NOISE_FIELDS:
-        # The verdict: the evidence maximiser when estimated (unbiased either way), else the E-step.
         r = ratios[name] if estimated is None else (estimated[name] / assumed[name]) ** 2
         ok = ~np.isfinite(r) | ((r >= 1.0 / factor) & (r <= factor))
         ratio_ok[name] = ok
@@ -457,97 +367,113 @@ def residual_diagnostics(
             else:
                 text += f": the realised variance is {r[i]:.3g}× the assumed (Laplace E-step)"
             problems.append(f"{text}: the assumed noise is {way}.")
+    return ratio_ok, problems
 
-    nis_ok = np.ones(len(nis), bool)
-    white = np.ones(len(nis), bool)
-    unbiased = np.ones(len(nis), bool)
-    independent = np.ones(xcf.shape[:2], bool)
-    box = np.full(len(nis), np.nan)
-    box_p = np.full(len(nis), np.nan)
+
+@dataclass
+class _ErrorTests:
+    """The one-step prediction-error tests per output (module notes, item 2); all pass at first."""
+
+    nis_ok: np.ndarray
+    white: np.ndarray
+    unbiased: np.ndarray
+    independent: np.ndarray
+    box_pierce: np.ndarray
+    box_pierce_p: np.ndarray
+    problems: list[str]
+
+    @classmethod
+    def passed(cls, m: int, p: int) -> _ErrorTests:
+        """Every test passed (and no Box–Pierce statistic) for m outputs and p inputs."""
+        ones = np.ones(m, bool)
+        nan = np.full(m, np.nan)
+        return cls(ones, ones.copy(), ones.copy(), np.ones((m, p), bool), nan, nan.copy(), [])
+
+
+def _prediction_error_tests(c: Correlations, nis: np.ndarray) -> _ErrorTests:
+    """NIS, whiteness, then (for white errors only: their bands assume it) bias and inputs."""
+    M = c.lags
+    tests = _ErrorTests.passed(len(nis), c.cross_correlation.shape[1])
     z_bonf = NormalDist().inv_cdf(1.0 - 0.005 / (2 * M + 1))
     z_bias = NormalDist().inv_cdf(1.0 - 0.0005)
     for i in range(len(nis)):
-        N = counts[i]
+        N = c.counts[i]
         if N < 2:
             continue
-        lo, hi = chi2_band(N)
-        nis_lo, nis_hi = min(LOWER, lo), max(FACTOR, hi)
-        if not nis_lo <= nis[i] <= nis_hi:
-            nis_ok[i] = False
-            way = "too tight (or the model misses dynamics)" if nis[i] > 1 else "too loose"
-            problems.append(
-                f"output {i + 1}: the one-step prediction errors are {nis[i]:.3g}× their "
-                f"predicted variance (NIS; {np.sqrt(nis[i]):.3g}× in std): the assumed noise is "
-                f"{way}."
-            )
-        box[i] = float(np.sum(pairs[i, 1:] * acf[i, 1:] ** 2))
-        box_p[i] = _chi2_sf(box[i], M)
-        if box_p[i] < 0.01:
-            white[i] = False
-            band = BAND_Z / np.sqrt(np.maximum(pairs[i, 1:], 1))
-            out = [k for k in range(1, M + 1) if abs(acf[i, k]) > band[k - 1]]
-            where = f"at lags {_lag_ranges(out)}" if out else "over lags 1–" + str(M)
-            problems.append(
-                f"output {i + 1}: the one-step prediction errors are correlated {where} "
-                f"(Box–Pierce p = {box_p[i]:.2g}): the model misses dynamics, or the noise "
-                "ratio is off (a too tight process noise makes the filter sluggish)."
-            )
-        if not white[i]:
+        message = _nis_test(i, nis[i], N)
+        if message:
+            tests.nis_ok[i] = False
+            tests.problems.append(message)
+        tests.box_pierce[i] = float(np.sum(c.pair_counts[i, 1:] * c.autocorrelation[i, 1:] ** 2))
+        tests.box_pierce_p[i] = _chi2_sf(tests.box_pierce[i], M)
+        if tests.box_pierce_p[i] < 0.01:
+            tests.white[i] = False
+            tests.problems.append(_correlated_message(i, c, tests.box_pierce_p[i]))
             continue  # the bias and input tests assume white errors (their bands do)
-        if abs(mean[i]) * np.sqrt(N) > z_bias:
-            unbiased[i] = False
-            problems.append(
-                f"output {i + 1}: the one-step prediction errors have mean {mean[i]:+.3g} "
+        if abs(c.mean[i]) * np.sqrt(N) > z_bias:
+            tests.unbiased[i] = False
+            tests.problems.append(
+                f"output {i + 1}: the one-step prediction errors have mean {c.mean[i]:+.3g} "
                 "(in predicted standard deviations): the model misses an offset."
             )
-        for j in range(xcf.shape[1]):
-            row = xcf[i, j]
-            if not np.isfinite(row).any():
-                continue
-            scaled = np.abs(row) * np.sqrt(np.maximum(xpairs[i, j], 1))
-            if np.nanmax(scaled) > z_bonf:
-                independent[i, j] = False
-                ks = np.arange(-M, M + 1)
-                band = BAND_Z / np.sqrt(np.maximum(xpairs[i, j], 1))
-                out = ks[np.abs(row) > band]
-                pos = [int(k) for k in out if k >= 0]
-                neg = [int(k) for k in out if k < 0]
-                text = (
-                    f"output {i + 1}: the one-step prediction errors correlate with input {j + 1}"
-                )
-                if pos:
-                    text += (
-                        f" at lags {_lag_ranges(pos)} (input before error): the model misses "
-                        "how the input acts (input dynamics, delay or feedthrough)"
-                    )
-                if neg:
-                    text += (
-                        f"{';' if pos else ''} at lags {_lag_ranges(neg)} (error before input): "
-                        "feedback in the data"
-                    )
-                problems.append(text + ".")
-    return ResidualDiagnostics(
-        noise_ratios=ratios,
-        assumed_std=assumed,
-        estimated_std=estimated,
-        nis=nis,
-        bias=mean,
-        autocorrelation=acf,
-        cross_correlation=xcf,
-        counts=counts,
-        pair_counts=pairs,
-        box_pierce=box,
-        box_pierce_p=box_p,
-        white=white,
-        independent=independent,
-        unbiased=unbiased,
-        nis_ok=nis_ok,
-        ratio_ok=ratio_ok,
-        lags=M,
-        factor=factor,
-        noise_check=noise_check,
-        problems=tuple(problems),
+        for j in range(c.cross_correlation.shape[1]):
+            message = _input_test(i, j, c, z_bonf)
+            if message:
+                tests.independent[i, j] = False
+                tests.problems.append(message)
+    return tests
+
+
+def _nis_test(i: int, nis: float, N: float) -> str | None:
+    """The message when output i's NIS is outside the band of the end-of-fit ρ (else None)."""
+    lo, hi = chi2_band(N)
+    nis_lo, nis_hi = min(LOWER, lo), max(FACTOR, hi)
+    if nis_lo <= nis <= nis_hi:
+        return None
+    way = "too tight (or the model misses dynamics)" if nis > 1 else "too loose"
+    return (
+        f"output {i + 1}: the one-step prediction errors are {nis:.3g}× their predicted variance "
+        f"(NIS; {np.sqrt(nis):.3g}× in std): the assumed noise is {way}."
     )
+
+
+def _correlated_message(i: int, c: Correlations, p_value: float) -> str:
+    """Output i's errors are not white: at which lags they leave the pointwise band."""
+    M = c.lags
+    band = BAND_Z / np.sqrt(np.maximum(c.pair_counts[i, 1:], 1))
+    out = [k for k in range(1, M + 1) if abs(c.autocorrelation[i, k]) > band[k - 1]]
+    where = f"at lags {lag_ranges(out)}" if out else "over lags 1–" + str(M)
+    return (
+        f"output {i + 1}: the one-step prediction errors are correlated {where} (Box–Pierce "
+        f"p = {p_value:.2g}): the model misses dynamics, or the noise ratio is off (a too tight "
+        "process noise makes the filter sluggish)."
+    )
+
+
+def _input_test(i: int, j: int, c: Correlations, z_bonf: float) -> str | None:
+    """The message when output i's errors correlate with input j beyond the Bonferroni bound."""
+    M = c.lags
+    row, xpairs = c.cross_correlation[i, j], c.cross_pair_counts[i, j]
+    if not np.isfinite(row).any():
+        return None
+    scaled = np.abs(row) * np.sqrt(np.maximum(xpairs, 1))
+    if not np.nanmax(scaled) > z_bonf:
+        return None
+    ks = np.arange(-M, M + 1)
+    band = BAND_Z / np.sqrt(np.maximum(xpairs, 1))
+    out = ks[np.abs(row) > band]
+    pos = [int(k) for k in out if k >= 0]
+    neg = [int(k) for k in out if k < 0]
+    text = f"output {i + 1}: the one-step prediction errors correlate with input {j + 1}"
+    if pos:
+        text += (
+            f" at lags {lag_ranges(pos)} (input before error): the model misses how the input "
+            "acts (input dynamics, delay or feedthrough)"
+        )
+    if neg:
+        text += f"{';' if pos else ''} at lags {lag_ranges(neg)} (error before input): feedback"
+        text += " in the data"
+    return text + "."
 
 
 def _std(noise) -> np.ndarray:
