@@ -106,7 +106,8 @@ def free_run_one(system: AbstractSystem, x1, u, t0):
         y = system.observe(x, ut, t).astype(dtype)
         return system.dynamics(x, ut, t).astype(dtype), (x, y)
 
-    _, (xs, ys) = jax.lax.scan(step, x1, (u, t0 + jnp.arange(u.shape[0])))
+    ts = jnp.arange(u.shape[0])  # the default integer, as every other time index
+    _, (xs, ys) = jax.lax.scan(step, x1, (u, jnp.asarray(t0, ts.dtype) + ts))
     return xs, ys
 
 
