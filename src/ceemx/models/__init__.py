@@ -15,8 +15,8 @@ from ceemx.models.noise import (
     AbstractNoise,
     CholeskyGaussian,
     DiagonalGaussian,
-    StudentT,
 )
+from ceemx.models.student_t import StudentT
 from ceemx.models.system import (
     AbstractContinuousSystem,
     AbstractSystem,

@@ -7,8 +7,9 @@ present:
   marginal), normaliser included;
 - ``sqrt_curvature(r, mask)``: a d × d matrix S with W = SᵀS a positive semi-definite curvature of
   ``nll`` at r, and, for Gaussian models, SᵀS r = ∇nll. Second-order solvers build Gauss–Newton
-  blocks JᵀWJ from it: for Gaussian noise S r is the whitened residual; for Student-t noise S is the
-  iteratively-reweighted (Fisher-scoring) weight, always positive definite.
+  blocks JᵀWJ from it: for Gaussian noise S r is the whitened residual; for Student-t noise
+  (:mod:`ceemx.models.student_t`) S is the iteratively-reweighted (Fisher-scoring) weight, always
+  positive definite.
 
 Masked components contribute nothing: for a full covariance the present components keep their
 exact marginal (the covariance is reduced to the present rows and columns).
@@ -21,7 +22,9 @@ construction checks), ``describe`` (the fit summary), ``variance_ratios``, ``ful
 of :func:`ceemx.identification.analysis.noise_estimate.estimate_noise`), ``scale_parameters`` (the
 log-coordinates and standard errors of learned standard deviations). Defaults work for any density
 where the answer does not depend on the model (a Gaussian from its Cholesky factor alone) and
-refuse, naming the class and what to implement, where it does.
+refuse, naming the class and what to implement, where it does. This file holds the interface and
+the Gaussian models; every other model is one class in a file of its own, built with the helpers
+at the end of this one (``full_mask``, ``check_positive``, ``check_scale_shape``).
 """
 
 from __future__ import annotations
@@ -54,7 +57,6 @@ __all__ = [
     "AbstractGaussianNoise",
     "DiagonalGaussian",
     "CholeskyGaussian",
-    "StudentT",
     "as_noise",
 ]
 
@@ -66,7 +68,8 @@ def _cholesky_tril(cov: Array) -> Array:
     return jnp.tril(jnp.linalg.cholesky(cov))
 
 
-def _full_mask(r: Float[Array, " d"], mask: Bool[Array, " d"] | None) -> Bool[Array, " d"]:
+def full_mask(r: Float[Array, " d"], mask: Bool[Array, " d"] | None) -> Bool[Array, " d"]:
+    """The present components of ``r`` as a boolean vector (all of them for ``mask=None``)."""
     if mask is None:
         return jnp.ones(r.shape, dtype=bool)
     return jnp.broadcast_to(mask, r.shape)
@@ -213,9 +216,10 @@ class AbstractNoise(eqx.Module):
         return self.with_scale_parameters(s * c)
 
     def scale_parameters(self) -> Array | None:
-        """The leaf of standard deviations that parameterises the model, else ``None``.
+        """The leaf of per-component scales that parameterises the model, else ``None``.
 
-        Shape () (one scale shared by every component) or (d,). Returned as stored (it locates
+        Scales in the sense of a location-scale family (standard deviations for a Gaussian),
+        shape () (one scale shared by every component) or (d,). Returned as stored (it locates
         the leaf for ``eqx.tree_at``). Learners take its logarithm as coordinates; the noise
         estimate learns it per component; standard errors of Gaussian scales are σ²/(2N).
         """
@@ -244,7 +248,7 @@ class AbstractGaussianNoise(AbstractNoise):
         self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
     ) -> Float[Array, "d d"]:
         """The whitening matrix L⁻¹ of the present components (zero rows for masked ones)."""
-        return whitening_matrix(self.cholesky().astype(r.dtype), _full_mask(r, mask))
+        return whitening_matrix(self.cholesky().astype(r.dtype), full_mask(r, mask))
 
     def covariance(self) -> Float[Array, "d d"]:
         """Σ = L Lᵀ."""
@@ -264,7 +268,7 @@ class AbstractGaussianNoise(AbstractNoise):
 
     def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Exact Gaussian log-density of the present components."""
-        mask = _full_mask(r, mask)
+        mask = full_mask(r, mask)
         chol = masked_cholesky(self.cholesky().astype(r.dtype), mask)
         z = solve_triangular(chol, jnp.where(mask, r, 0.0))
         k = jnp.sum(mask)
@@ -337,7 +341,7 @@ class DiagonalGaussian(AbstractGaussianNoise):
         self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
     ) -> Float[Array, " d"]:
         """The diagonal of diag(mask / scale): 1/scale on present components, 0 on masked ones."""
-        mask = _full_mask(r, mask)
+        mask = full_mask(r, mask)
         return jnp.where(mask, 1.0 / self.std().astype(r.dtype), 0.0)
 
     def sqrt_curvature(
@@ -348,19 +352,19 @@ class DiagonalGaussian(AbstractGaussianNoise):
 
     def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
         """Sum of independent normal log-densities over the present components."""
-        mask = _full_mask(r, mask)
+        mask = full_mask(r, mask)
         s = self.std().astype(r.dtype)
         terms = -0.5 * (r / s) ** 2 - jnp.log(s) - 0.5 * _LOG_2PI
         return jnp.sum(jnp.where(mask, terms, 0.0))
 
     def check(self, name: str) -> None:
         """Scales must be finite and positive."""
-        _check_positive(name + ".scale", self.scale)
+        check_positive(name + ".scale", self.scale)
 
     def check_dimension(self, name: str, dim: int, what: str) -> None:
         """``dim`` equal to the system's, ``scale`` a scalar or of shape (dim,)."""
         AbstractNoise.check_dimension(self, name, dim, what)  # the scale, not the factor
-        _check_scale_shape(name, self.scale, dim)
+        check_scale_shape(name, self.scale, dim)
 
     def describe(self) -> dict[str, Any]:
         """The standard deviations."""
@@ -415,12 +419,10 @@ class CholeskyGaussian(AbstractGaussianNoise):
 
     def check(self, name: str) -> None:
         """The factor must be square with a finite, positive diagonal."""
-        import numpy as np
-
         c = np.asarray(self.chol)
         if c.ndim != 2 or c.shape[0] != c.shape[1]:
             raise ValueError(f"`{name}.chol` must be a square matrix, got shape {c.shape}.")
-        _check_positive(name + ".chol diagonal", np.diag(c))
+        check_positive(name + ".chol diagonal", np.diag(c))
 
     def check_dimension(self, name: str, dim: int, what: str) -> None:
         """``chol`` of shape (dim, dim)."""
@@ -444,94 +446,13 @@ class CholeskyGaussian(AbstractGaussianNoise):
         return CholeskyGaussian(jnp.asarray(self.chol) * c)
 
 
-class StudentT(AbstractNoise):
-    """Multivariate Student-t noise with ``df`` degrees of freedom and scale matrix L Lᵀ.
-
-    log p(r) = log Γ((ν+k)/2) − log Γ(ν/2) − (k/2) log(νπ) − log|L| − ((ν+k)/2) log(1 + δ²/ν),
-    δ² = ‖L⁻¹r‖², k the number of present components. The curvature used by the smoother is the
-    Fisher-scoring / IRLS weight ((ν+k)/(ν+δ²)) L⁻ᵀL⁻¹ — positive definite everywhere, and with
-    SᵀS r = ∇nll(r) — so each Gauss–Newton step is a majorise–minimise step.
-    """
-
-    scale: Float[Array, ...]
-    df: Float[Array, ""]
-    dim: int = eqx.field(static=True)
-
-    def __init__(self, scale, df, dim: int):
-        self.scale = jnp.asarray(scale)
-        self.df = jnp.asarray(df)
-        self.dim = int(dim)
-
-    def _chol(self, dtype) -> Float[Array, "d d"]:
-        s = jnp.asarray(self.scale, dtype)
-        if s.ndim == 2:
-            return jnp.tril(s)
-        return jnp.diag(jnp.broadcast_to(s, (self.dim,)))
-
-    def _whitened(self, r, mask):
-        chol = masked_cholesky(self._chol(r.dtype), mask)
-        z = solve_triangular(chol, jnp.where(mask, r, 0.0))
-        return z, chol
-
-    def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:
-        """Multivariate-t log-density of the present components."""
-        mask = _full_mask(r, mask)
-        z, chol = self._whitened(r, mask)
-        k = jnp.sum(mask).astype(r.dtype)
-        nu = self.df.astype(r.dtype)
-        d2 = jnp.sum(z**2)
-        return (
-            jax.scipy.special.gammaln(0.5 * (nu + k))
-            - jax.scipy.special.gammaln(0.5 * nu)
-            - 0.5 * k * jnp.log(nu * jnp.pi)
-            - jnp.sum(jnp.log(jnp.abs(jnp.diag(chol))))
-            - 0.5 * (nu + k) * jnp.log1p(d2 / nu)
-        )
-
-    def sample(self, key: PRNGKeyArray, shape: tuple[int, ...], dtype) -> Float[Array, ...]:
-        """A Gaussian scale mixture: L z / sqrt(g), g ~ Gamma(ν/2, rate ν/2)."""
-        k1, k2 = jax.random.split(key)
-        L = self._chol(dtype)
-        z = jax.random.normal(k1, (*shape, L.shape[0]), dtype) @ L.T
-        nu = self.df.astype(dtype)
-        g = jax.random.gamma(k2, 0.5 * nu, shape, dtype) / (0.5 * nu)
-        return z / jnp.sqrt(g)[..., None]
-
-    def sqrt_curvature(
-        self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None
-    ) -> Float[Array, "d d"]:
-        """sqrt((ν+k)/(ν+δ²)) L⁻¹ on the present components."""
-        mask = _full_mask(r, mask)
-        z, chol = self._whitened(r, mask)
-        k = jnp.sum(mask).astype(r.dtype)
-        nu = self.df.astype(r.dtype)
-        w = (nu + k) / (nu + jnp.sum(z**2))
-        return jnp.sqrt(w) * whitening_matrix(self._chol(r.dtype), mask)
-
-    def check(self, name: str) -> None:
-        """Scale and degrees of freedom must be positive."""
-        import numpy as np
-
-        s = np.asarray(self.scale)
-        _check_positive(name + ".scale", np.diag(s) if s.ndim == 2 else s)
-        _check_positive(name + ".df", self.df)
-
-    def check_dimension(self, name: str, dim: int, what: str) -> None:
-        """``dim`` equal to the system's, ``scale`` a scalar or of shape (dim,) or (dim, dim)."""
-        super().check_dimension(name, dim, what)
-        _check_scale_shape(name, self.scale, dim, matrix=True)
-
-    def describe(self) -> dict[str, Any]:
-        """The scale and the degrees of freedom."""
-        return {"scale": self.scale, "df": self.df}
-
-
 def as_noise(value: AbstractNoise | ArrayLike, dim: int) -> AbstractNoise:
     """A noise model as given, or ``DiagonalGaussian(value, dim)`` for a scale (scalar, vector)."""
     return value if isinstance(value, AbstractNoise) else DiagonalGaussian(value, dim)
 
 
-def _check_scale_shape(name: str, scale, dim: int, matrix: bool = False) -> None:
+def check_scale_shape(name: str, scale, dim: int, matrix: bool = False) -> None:
+    """Raise ``ValueError`` unless ``scale`` is a scalar, (dim,) or, with ``matrix``, (dim, dim)."""
     shape = tuple(jnp.shape(scale))
     if not (shape in ((), (dim,)) or (matrix and shape == (dim, dim))):
         raise ValueError(
@@ -539,9 +460,8 @@ def _check_scale_shape(name: str, scale, dim: int, matrix: bool = False) -> None
         )
 
 
-def _check_positive(name: str, value) -> None:
-    import numpy as np
-
+def check_positive(name: str, value) -> None:
+    """Raise ``ValueError`` naming ``name`` unless every entry of ``value`` is finite and > 0."""
     v = np.asarray(value)
     if not np.all(np.isfinite(v)):
         raise ValueError(f"`{name}` must be finite; got {v}.")
