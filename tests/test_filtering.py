@@ -17,7 +17,8 @@ from jaxtyping import Array, ArrayLike, Float, Real
 import ceemx
 from ceemx.inference.ekf import FilterSolution, ekf
 from ceemx.lib.results import codes
-from ceemx.models.noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT
+from ceemx.models.noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian
+from ceemx.models.student_t import StudentT
 from ceemx.models.system import AbstractSystem, GaussianPrior
 from ceemx.systems import LinearSystem
 

@@ -234,6 +234,9 @@ from .models import (
     Interval as Interval,
 )
 from .models import (
+    LaplaceNoise as LaplaceNoise,
+)
+from .models import (
     LessThan as LessThan,
 )
 from .models import (

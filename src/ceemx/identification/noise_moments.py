@@ -19,9 +19,8 @@ from jaxtyping import Array, Float
 from ceemx.data.trajectories import Trajectories
 from ceemx.infra.compilation import jit
 from ceemx.lib.cubature import pair_points_first_half
-from ceemx.lib.dense import cho_solve, cholesky
 from ceemx.lib.typing import PerTrajectory
-from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
+from ceemx.models.noise import AbstractNoise, SecondMoments
 from ceemx.models.system import AbstractSystem
 
 __all__ = [
@@ -29,6 +28,7 @@ __all__ = [
     "COARSE_STEPS",
     "NOISE_FIELDS",
     "coarse_shape",
+    "field_moments",
     "noise_second_moments",
     "updated_noise",
 ]
@@ -54,24 +54,6 @@ def coarse_shape(B: int, T: int, steps: int | None = COARSE_STEPS) -> tuple[int,
     return b, min(T, max(2, -(-steps // b)))
 
 
-def _masked_fill(S_oo, R, mask):
-    """E[v vᵀ] of a Gaussian residual v ~ N(·, R) whose present part has second moment S_oo.
-
-    The missing part is filled in from its conditional given the present part under R (the
-    complete-data moment of EM for missing observations).
-    """
-    m = R.shape[-1]
-    eye = jnp.eye(m, dtype=R.dtype)
-    Mo = jnp.diag(mask.astype(R.dtype))
-    # (M R M + I − M)⁻¹ by an elementwise Cholesky: this runs batched over time steps, where
-    # batched LAPACK calls can deadlock (ceemx.lib.dense)
-    inv_o = Mo @ cho_solve(cholesky(Mo @ R @ Mo + eye - Mo), eye) @ Mo
-    K = (eye - Mo) @ R @ inv_o
-    IK = eye + K
-    cond = (eye - Mo) @ (R - R @ inv_o @ R) @ (eye - Mo)
-    return IK @ S_oo @ IK.T + cond
-
-
 @jit
 def noise_second_moments(
     system: AbstractSystem,
@@ -85,12 +67,12 @@ def noise_second_moments(
     Returns a dict: ``dyn`` (n, n) Σ_b w_b Σ_t E[r^w_t r^wᵀ_t] and ``dyn_count`` Σ_b w_b (T−1);
     ``obs_diag`` (m,) Σ_b w_b Σ_t mask·E[(r^v_t)²] and ``obs_count`` (m,) Σ_b w_b Σ_t mask;
     ``obs_full`` (m, m) the same with missing components filled in from their conditional under
-    the current observation covariance (computed for a CholeskyGaussian observation noise, the
-    only one that uses it; otherwise the unfilled moments) and ``obs_full_count`` Σ_b w_b T.
+    the current observation noise where it couples them
+    (:meth:`ceemx.AbstractNoise.masked_fill`; otherwise the unfilled moments) and
+    ``obs_full_count`` Σ_b w_b T.
     """
     n = points.shape[-1]
-    obs = system.obs_noise  # only a full covariance uses the filled moment
-    R = obs.covariance() if isinstance(obs, CholeskyGaussian) else None
+    obs = system.obs_noise
     T = points.shape[1]
     ts = jnp.arange(T)
 
@@ -98,7 +80,7 @@ def noise_second_moments(
         def obs_step(xs, yt, ut, mk, t):
             v = jax.vmap(lambda x: jnp.where(mk, yt - system.observe(x, ut, t), 0.0))(xs)
             S = jnp.einsum("ki,kj->ij", v, v) / xs.shape[0]
-            return S, (_masked_fill(S, R, mk) if R is not None else S)
+            return S, obs.masked_fill(S, mk)
 
         S_obs, S_full = jax.vmap(obs_step)(xp, y, u, mask, ts)
 
@@ -131,30 +113,25 @@ def noise_second_moments(
     }
 
 
-def updated_noise(noise, field: str, moments: dict[str, Array]):
-    """The noise model of ``field`` set to its closed-form M-step (same class and leaf shapes)."""
+def field_moments(field: str, moments: dict[str, Array]) -> SecondMoments:
+    """The mean residual second moments of ``field`` from the sums of noise_second_moments."""
     if field == "process_noise":
-        cov = moments["dyn"] / moments["dyn_count"]
-        var_diag, count = jnp.diagonal(cov), None
-    else:
-        count = moments["obs_count"]
-        var_diag = moments["obs_diag"] / jnp.where(count > 0, count, 1.0)
-        cov = moments["obs_full"] / moments["obs_full_count"]
-    if isinstance(noise, DiagonalGaussian):
-        old = jnp.asarray(noise.scale)
-        if old.ndim == 0:
-            if count is None:
-                scale = jnp.sqrt(jnp.mean(var_diag))
-            else:
-                scale = jnp.sqrt(jnp.sum(moments["obs_diag"]) / jnp.sum(count))
-        else:
-            scale = jnp.sqrt(var_diag)
-            if count is not None:  # a component never observed keeps its scale
-                scale = jnp.where(count > 0, scale, jnp.broadcast_to(old, scale.shape))
-        return DiagonalGaussian(scale.astype(old.dtype).reshape(old.shape), noise.dim)
-    if isinstance(noise, CholeskyGaussian):
-        return CholeskyGaussian(jnp.linalg.cholesky(0.5 * (cov + cov.T)).astype(noise.chol.dtype))
-    raise TypeError(  # checked in LaplaceEM.init; kept for direct callers
-        f"`system.{field}` is {type(noise).__name__}: learned noise needs DiagonalGaussian or "
-        "CholeskyGaussian."
+        full = moments["dyn"] / moments["dyn_count"]
+        diagonal = jnp.diagonal(full)
+        return SecondMoments(full, diagonal, jnp.mean(diagonal))
+    count = moments["obs_count"]
+    return SecondMoments(
+        full=moments["obs_full"] / moments["obs_full_count"],
+        diagonal=moments["obs_diag"] / jnp.where(count > 0, count, 1.0),
+        pooled=jnp.sum(moments["obs_diag"]) / jnp.sum(count),
+        present=count > 0,
     )
+
+
+def updated_noise(noise: AbstractNoise, field: str, moments: dict[str, Array]) -> AbstractNoise:
+    """The noise model of ``field`` set to its closed-form M-step (same class and leaf shapes).
+
+    Raises:
+        TypeError: for a model without a closed-form update (``learnable_in_closed_form``).
+    """
+    return noise.covariance_update(field_moments(field, moments))

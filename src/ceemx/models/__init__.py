@@ -15,8 +15,9 @@ from ceemx.models.noise import (
     AbstractNoise,
     CholeskyGaussian,
     DiagonalGaussian,
-    StudentT,
 )
+from ceemx.models.laplace_noise import LaplaceNoise
+from ceemx.models.student_t import StudentT
 from ceemx.models.system import (
     AbstractContinuousSystem,
     AbstractSystem,
@@ -38,6 +39,7 @@ __all__ = [
     "GaussianPrior",
     "GreaterThan",
     "Interval",
+    "LaplaceNoise",
     "LessThan",
     "Positive",
     "StudentT",

@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike, Float, Real
 
 from ceemx.lib.typing import Scalar, State
 from ceemx.models.constraint_checks import check_constraints
-from ceemx.models.noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT, as_noise
+from ceemx.models.noise import AbstractNoise, as_noise
 
 __all__ = [
     "AbstractSystem",
@@ -175,15 +175,15 @@ class AbstractSystem(eqx.Module):
                 f"{type(prior).__name__}."
             )
         n, m = self.state_dim, self.obs_dim
-        _check_noise_dim("system.process_noise", self.process_noise, n, "state_dim")
-        _check_noise_dim("system.obs_noise", self.obs_noise, m, "obs_dim")
+        self.process_noise.check_dimension("system.process_noise", n, "state_dim")
+        self.obs_noise.check_dimension("system.obs_noise", m, "obs_dim")
         if prior is not None:
             if tuple(jnp.shape(prior.mean)) != (n,):
                 raise ValueError(
                     f"`system.initial_prior.mean` must have shape (state_dim,) = ({n},); got "
                     f"{tuple(jnp.shape(prior.mean))}."
                 )
-            _check_noise_dim("system.initial_prior.noise", prior.noise, n, "state_dim")
+            prior.noise.check_dimension("system.initial_prior.noise", n, "state_dim")
         _check_parameters(self)
         check_constraints(self)
 
@@ -239,31 +239,6 @@ def _parameter_fields(system: AbstractSystem) -> list[dataclasses.Field]:
         for f in dataclasses.fields(system)
         if f.name not in _NOISE_FIELDS and not f.metadata.get("static", False)
     ]
-
-
-def _noise_dim(noise: AbstractNoise) -> int | None:
-    """The residual dimension a noise model is built for (``None``: it does not say)."""
-    if isinstance(noise, CholeskyGaussian):
-        return int(jnp.shape(noise.chol)[-1])
-    dim = getattr(noise, "dim", None)
-    return dim if isinstance(dim, int) else None
-
-
-def _check_noise_dim(name: str, noise: AbstractNoise, dim: int, what: str) -> None:
-    d = _noise_dim(noise)
-    if d is not None and d != dim:
-        raise ValueError(f"`{name}` has dimension {d} but the system's {what} is {dim}.")
-    if isinstance(noise, DiagonalGaussian | StudentT):
-        shape = tuple(jnp.shape(noise.scale))
-        ok = shape in ((), (dim,)) or (isinstance(noise, StudentT) and shape == (dim, dim))
-        if not ok:
-            raise ValueError(
-                f"`{name}.scale` must be a scalar or have shape ({dim},); got shape {shape}."
-            )
-    if isinstance(noise, CholeskyGaussian) and tuple(jnp.shape(noise.chol)) != (dim, dim):
-        raise ValueError(
-            f"`{name}.chol` must have shape ({dim}, {dim}); got {tuple(jnp.shape(noise.chol))}."
-        )
 
 
 def _check_parameters(system: AbstractSystem) -> None:

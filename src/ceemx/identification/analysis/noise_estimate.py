@@ -47,7 +47,6 @@ from ceemx.infra.compilation import jit
 from ceemx.infra.policy import entry_point
 from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import trace_numbers
-from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
 from ceemx.models.system import AbstractSystem
 
 __all__ = [
@@ -145,32 +144,21 @@ def moments_prepared(
     return NoiseMoments(moments, x_hat, log_ev, ok)
 
 
-def _whitened_diagonal(noise, cov: np.ndarray) -> np.ndarray:
-    """diag(L⁻¹ S L⁻ᵀ) for the noise model's covariance LLᵀ (NaN for non-Gaussian models)."""
-    if isinstance(noise, DiagonalGaussian):
-        var = np.broadcast_to(np.asarray(noise.scale, float) ** 2, (noise.dim,))
-        return np.diagonal(cov) / var
-    if isinstance(noise, CholeskyGaussian):
-        L = np.asarray(noise.chol, float)
-        W = np.linalg.solve(L, np.linalg.solve(L, cov).T)
-        return np.diagonal(W)
-    return np.full(cov.shape[0], np.nan)
-
-
 def noise_ratios(system: AbstractSystem, nm: NoiseMoments) -> dict[str, np.ndarray]:
     """Realised / assumed variance per component: ``{"process_noise": (n,), "obs_noise": (m,)}``.
 
-    Whitened by the assumed covariance for a full (Cholesky) model; NaN for a noise model that is
-    not Gaussian, and for an observation component that is never observed.
+    Whitened by the assumed covariance where it is full
+    (:meth:`ceemx.AbstractNoise.variance_ratios`); NaN for a noise model without a covariance, and
+    for an observation component that is never observed.
     """
-    out = {"process_noise": _whitened_diagonal(system.process_noise, nm.process_covariance)}
+    out = {"process_noise": system.process_noise.variance_ratios(nm.process_covariance)}
     obs = system.obs_noise
     count = np.asarray(nm.moments["obs_count"])
-    if isinstance(obs, CholeskyGaussian):
+    if obs.full_covariance:
         full = np.asarray(nm.moments["obs_full"]) / float(nm.moments["obs_full_count"])
-        ratio = _whitened_diagonal(obs, full)
+        ratio = obs.variance_ratios(full)
     else:
-        ratio = _whitened_diagonal(obs, np.diag(nm.obs_variance))
+        ratio = obs.variance_ratios(np.diag(nm.obs_variance))
     out["obs_noise"] = np.where(count > 0, ratio, np.nan)
     return out
 
@@ -180,17 +168,14 @@ def with_noise_from_moments(
 ) -> AbstractSystem:
     """The system with the noise models in ``fields`` set to the realised moments (closed form).
 
-    A scalar :class:`DiagonalGaussian` scale stays scalar (the pooled variance); a per-component
-    one gets one scale per component; a :class:`CholeskyGaussian` gets the full matrix. A
+    Each model by its :meth:`ceemx.AbstractNoise.covariance_update`: a scalar
+    :class:`~ceemx.DiagonalGaussian` scale stays scalar (the pooled variance); a per-component one
+    gets one scale per component; a :class:`~ceemx.CholeskyGaussian` gets the full matrix. A
     component never observed keeps its scale.
     """
     for field in fields:
         noise = getattr(system, field)
-        if not isinstance(noise, DiagonalGaussian | CholeskyGaussian):
-            raise ValueError(
-                f"`system.{field}` is {type(noise).__name__}: noise is estimated in closed form "
-                "for DiagonalGaussian or CholeskyGaussian noise models only."
-            )
+        _check_closed_form(field, noise)
         new = updated_noise(noise, field, nm.moments)
         system = eqx.tree_at(lambda s, f=field: getattr(s, f), system, replace=new)
     return system
@@ -260,20 +245,7 @@ def estimate_noise(
         ValueError: for an unknown field, a noise model that is not Gaussian, or an invalid
             ``max_evaluations``.
     """
-    fields = tuple(dict.fromkeys(fields))
-    for field in fields:
-        if field not in NOISE_FIELDS:
-            raise ValueError(f"`fields` entries must be in {NOISE_FIELDS}; got {field!r}.")
-        noise = getattr(system, field)
-        if not isinstance(noise, DiagonalGaussian | CholeskyGaussian):
-            raise ValueError(
-                f"`system.{field}` is {type(noise).__name__}: noise is estimated for "
-                "DiagonalGaussian or CholeskyGaussian noise models only."
-            )
-    if isinstance(max_evaluations, bool) or not isinstance(max_evaluations, int | np.integer):
-        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
-    if max_evaluations < 1:
-        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
+    fields = _checked_options(system, fields, max_evaluations)
     inputs = prepare(system, data, states, identify=True)
     return estimate_noise_prepared(
         system,
@@ -285,6 +257,29 @@ def estimate_noise(
         max_evaluations=max_evaluations,
         smoother=smoother,
     )
+
+
+def _checked_options(system: AbstractSystem, fields: Sequence[str], max_evaluations) -> tuple:
+    """The distinct ``fields`` of :func:`estimate_noise`, checked with ``max_evaluations``."""
+    fields = tuple(dict.fromkeys(fields))
+    for field in fields:
+        if field not in NOISE_FIELDS:
+            raise ValueError(f"`fields` entries must be in {NOISE_FIELDS}; got {field!r}.")
+        _check_closed_form(field, getattr(system, field))
+    if isinstance(max_evaluations, bool) or not isinstance(max_evaluations, int | np.integer):
+        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
+    if max_evaluations < 1:
+        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
+    return fields
+
+
+def _check_closed_form(field: str, noise) -> None:
+    if not noise.learnable_in_closed_form:
+        raise ValueError(
+            f"`system.{field}` is {type(noise).__name__}: noise is estimated for noise models "
+            "with a closed-form covariance update (`learnable_in_closed_form`: DiagonalGaussian "
+            "or CholeskyGaussian) only."
+        )
 
 
 def estimate_noise_prepared(
@@ -453,9 +448,9 @@ class _ScaleLayout:
         self.sizes = []
         parts = []
         for f in self.fields:
-            noise = self.base[f]
-            if per_component and isinstance(noise, DiagonalGaussian):
-                scale = np.asarray(noise.scale, float)
+            scale = self.base[f].scale_parameters()
+            if per_component and scale is not None:
+                scale = np.asarray(scale, float)
                 self.sizes.append(scale.size)
                 parts.append(np.log(scale).ravel())
             else:  # one factor on the whole covariance, z = log c (start 0)
@@ -469,16 +464,12 @@ class _ScaleLayout:
         for field, size in zip(self.fields, self.sizes, strict=True):
             noise = self.base[field]
             if size:
-                old = jnp.asarray(noise.scale)
+                old = jnp.asarray(noise.scale_parameters())
                 scale = jnp.asarray(np.exp(z[i : i + size]).reshape(old.shape), old.dtype)
-                new = DiagonalGaussian(scale, noise.dim)
+                new = noise.with_scale_parameters(scale)
                 i += size
             else:
-                c = float(np.exp(z[i]))
-                if isinstance(noise, DiagonalGaussian):
-                    new = DiagonalGaussian(jnp.asarray(noise.scale) * c, noise.dim)
-                else:
-                    new = CholeskyGaussian(jnp.asarray(noise.chol) * c)
+                new = noise.scaled(float(np.exp(z[i])))
                 i += 1
             system = eqx.tree_at(lambda s, f=field: getattr(s, f), system, replace=new)
         return system
@@ -486,10 +477,9 @@ class _ScaleLayout:
     def gradient(self, system: AbstractSystem, nm: NoiseMoments) -> np.ndarray:
         """∂ log-evidence / ∂ z: N_i·(ratio_i − 1) per component, summed for a factor."""
         ratios = noise_ratios(system, nm)
-        obs = system.obs_noise
         obs_count = (
             np.full(system.obs_dim, float(nm.moments["obs_full_count"]))
-            if isinstance(obs, CholeskyGaussian)
+            if system.obs_noise.full_covariance
             else np.asarray(nm.moments["obs_count"], float)
         )
         counts = {
@@ -500,7 +490,7 @@ class _ScaleLayout:
         for field, size in zip(self.fields, self.sizes, strict=True):
             g = counts[field] * np.nan_to_num(ratios[field] - 1.0)
             if size:
-                scale = np.asarray(self.base[field].scale)
+                scale = np.asarray(self.base[field].scale_parameters())
                 out.append(np.atleast_1d(g.sum()) if scale.ndim == 0 else g.reshape(-1))
             else:
                 out.append(np.atleast_1d(g.sum()))

@@ -43,7 +43,7 @@ import numpy as np
 
 from ceemx.lib.results import RESULTS, codes
 from ceemx.models.constraints import Unconstrained
-from ceemx.models.noise import AbstractNoise, CholeskyGaussian, DiagonalGaussian, StudentT
+from ceemx.models.noise import AbstractNoise
 
 __all__ = ["ParameterRow", "Summary", "fit_summary", "parameter_rows", "short_repr"]
 
@@ -162,16 +162,8 @@ def describe_noise(noise: AbstractNoise | None) -> str:
     """A noise model in a few words with its scales, e.g. ``"DiagonalGaussian, std 0.1"``."""
     if noise is None:
         return "none"
-    kind = type(noise).__name__
-    if isinstance(noise, DiagonalGaussian):
-        return f"{kind}, std {_values(noise.scale)}"
-    if isinstance(noise, StudentT):
-        return f"{kind}, scale {_values(noise.scale)}, df {_num(float(noise.df), 4)}"
-    if isinstance(noise, CholeskyGaussian):
-        chol = np.asarray(noise.chol, np.float64)
-        std = np.sqrt(np.sum(chol**2, axis=1))
-        return f"{kind}, marginal std {_values(std)}"
-    return kind
+    values = noise.describe()
+    return ", ".join([type(noise).__name__] + [f"{k} {_values(v)}" for k, v in values.items()])
 
 
 def _count(n: int, one: str, many: str | None = None) -> str:

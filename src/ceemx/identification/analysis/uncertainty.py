@@ -208,11 +208,11 @@ def _noise_variances(
 
     For Gaussian noise the Fisher information is block-diagonal between the mean parameters and
     the scales, and a scale σ estimated from N residuals has variance σ²/(2N) (a scalar scale
-    shared by d components: N·d residuals). Entries of full covariance factors (CholeskyGaussian)
-    get NaN: no per-entry formula is given. Other entries: ``is_noise`` False, ``var`` 0.
+    shared by d components: N·d residuals); the scale is the model's
+    :meth:`ceemx.AbstractNoise.scale_parameters`. Entries of other noise leaves (full covariance
+    factors, CholeskyGaussian) get NaN: no per-entry formula is given. Other entries:
+    ``is_noise`` False, ``var`` 0.
     """
-    from ceemx.models.noise import DiagonalGaussian
-
     system = problem.build(theta)
     data = problem.data
     w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
@@ -230,14 +230,14 @@ def _noise_variances(
         flags = eqx.tree_at(
             lambda t, f=field: getattr(t, f), flags, jtu.tree_map(jnp.ones_like, sub)
         )
-        if isinstance(noise, DiagonalGaussian):
-            scale = jnp.asarray(noise.scale)
+        nan = jtu.tree_map(lambda a: jnp.full_like(a, jnp.nan), sub)
+        var = eqx.tree_at(lambda t, f=field: getattr(t, f), var, nan)
+        scale = noise.scale_parameters() if noise.is_gaussian else None
+        if scale is not None:
+            scale = jnp.asarray(scale)
             n_res = count.sum() if scale.ndim == 0 else count
             v = scale**2 / (2.0 * jnp.asarray(np.maximum(n_res, 1.0), theta.dtype))
-            var = eqx.tree_at(lambda t, f=field: getattr(t, f).scale, var, v)
-        else:
-            nan = jtu.tree_map(lambda a: jnp.full_like(a, jnp.nan), sub)
-            var = eqx.tree_at(lambda t, f=field: getattr(t, f), var, nan)
+            var = eqx.tree_at(lambda t, f=field: getattr(t, f).scale_parameters(), var, v)
     return ravel_pytree(flags)[0] > 0, ravel_pytree(var)[0]
 
 

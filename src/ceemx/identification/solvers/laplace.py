@@ -73,7 +73,6 @@ from ceemx.infra.options import check_choice, check_int
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes
 from ceemx.lib.typing import PerTrajectory, States, Theta
-from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["COARSE_MAX_EPOCHS", "LaplaceEM"]
@@ -87,11 +86,11 @@ def _check_learned_noise(problem: FitProblem, system: AbstractSystem) -> tuple[s
     learned = tuple(f for f in NOISE_FIELDS if problem.trains(f))
     for field in learned:
         noise = getattr(system, field)
-        if not isinstance(noise, DiagonalGaussian | CholeskyGaussian):
+        if not noise.learnable_in_closed_form:
             raise ValueError(
                 f"`trainable` selects `system.{field}`, a {type(noise).__name__}: LaplaceEM "
-                "learns noise covariances in closed form, for DiagonalGaussian or CholeskyGaussian "
-                "noise models only."
+                "learns noise covariances in closed form, for noise models that have one "
+                "(`learnable_in_closed_form`: DiagonalGaussian or CholeskyGaussian) only."
             )
     return learned
 

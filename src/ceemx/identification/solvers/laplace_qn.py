@@ -4,8 +4,9 @@
 one step per epoch along H⁻¹g: g the ascent gradient of the Laplace log-evidence (+ log-prior),
 from the gradient of Q at θ (Fisher's identity; exact on models linear in the state), H⁻¹ a
 BFGS inverse curvature started from the complete-data information −∇²Q (EM's metric). The pieces
-here are the maths of those steps: the coordinates (log for DiagonalGaussian noise scales), the
-derivatives of Q, the start of the curvature and the damped BFGS update.
+here are the maths of those steps: the coordinates (log for the noise models' standard
+deviations, :meth:`ceemx.AbstractNoise.scale_parameters`), the derivatives of Q, the start of the
+curvature and the damped BFGS update.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ from ceemx.inference.posterior import GaussianPosterior
 from ceemx.infra.compilation import jit
 from ceemx.lib.results import RESULTS
 from ceemx.lib.typing import Theta
-from ceemx.models.noise import DiagonalGaussian
 
 __all__ = [
     "QN_BACKTRACKS",
@@ -120,15 +120,18 @@ def log_prior_value(problem: FitProblem, theta: Theta) -> float:
 
 
 class Coordinates:
-    """θ ⇄ z for the quasi-Newton steps: log for the learned DiagonalGaussian scales, else θ."""
+    """θ ⇄ z for the quasi-Newton steps: log for learned noise ``scale_parameters``, else θ."""
 
     def __init__(self, problem: FitProblem, theta: Theta):
         marks = jtu.tree_map(lambda x: np.zeros(np.shape(x)), problem.template)
         for field in ("process_noise", "obs_noise"):
             noise = getattr(problem.template, field, None)
-            if problem.trains(field) and isinstance(noise, DiagonalGaussian):
-                ones = np.ones(np.shape(noise.scale))
-                marks = eqx.tree_at(lambda s, f=field: getattr(s, f).scale, marks, replace=ones)
+            scale = None if noise is None else noise.scale_parameters()
+            if problem.trains(field) and scale is not None:
+                ones = np.ones(np.shape(scale))
+                marks = eqx.tree_at(
+                    lambda s, f=field: getattr(s, f).scale_parameters(), marks, replace=ones
+                )
         flat = [np.ravel(a) for a in jtu.tree_leaves(marks)]
         self.mask = (np.concatenate(flat) > 0.5) if flat else np.zeros(0, bool)
         self.dtype = theta.dtype
