@@ -35,7 +35,8 @@ Paths (``--path``): ``default`` is ``ceemx.fit(model, data)`` — no solver, noi
 option, ``max_epochs`` at the library default; ``jointlm``: ``solver=ceemx.JointLM()``;
 ``jointlm-learn``: the same with ``noise="learn"``; ``laplace-learn``: ``solver=ceemx.LaplaceEM()``
 with ``trainable`` the model's parameters plus ``process_noise`` and ``obs_noise``;
-``laplace-qn-learn``: the same with ``acceleration="quasi_newton"``; ``laplace-fixed``: LaplaceEM,
+``laplace-learn-500``: the same with ``max_epochs=500`` (is 100 enough?); ``laplace-qn-learn``:
+the same with ``acceleration="quasi_newton"``; ``laplace-fixed``: LaplaceEM,
 the guessed noise kept; ``joint-then-laplace``: a JointLM fit at the guessed noise, then
 ``laplace-learn`` from its θ and states (the two fits' times, epochs and flags are recorded; the
 estimate and interval are the second's); ``jointlm-learn-then-laplace``: the same with the first
@@ -345,9 +346,11 @@ def _with_noise(cfg: Config):
     return lambda s: (*(getattr(s, p) for p in cfg.params), s.process_noise, s.obs_noise)
 
 
-def _laplace(cfg, system, data, x_init=None, **options):
+def _laplace(cfg, system, data, x_init=None, max_epochs=100, **options):
     solver = ceemx.LaplaceEM(**options)
-    return ceemx.fit(system, data, x_init, solver=solver, trainable=_with_noise(cfg))
+    return ceemx.fit(
+        system, data, x_init, solver=solver, trainable=_with_noise(cfg), max_epochs=max_epochs
+    )
 
 
 def _two_stage(first: Callable):
@@ -367,6 +370,7 @@ PATHS: dict[str, Callable] = {
         [],
     ),
     "laplace-learn": lambda cfg, s, d: (_laplace(cfg, s, d), []),
+    "laplace-learn-500": lambda cfg, s, d: (_laplace(cfg, s, d, max_epochs=500), []),
     "laplace-qn-learn": lambda cfg, s, d: (_laplace(cfg, s, d, acceleration="quasi_newton"), []),
     "laplace-fixed": lambda cfg, s, d: (ceemx.fit(s, d, solver=ceemx.LaplaceEM()), []),
     "joint-then-laplace": _two_stage(lambda cfg, s, d: ceemx.fit(s, d, solver=ceemx.JointLM())),
@@ -766,6 +770,28 @@ def print_table(path: str, mode: str, guess: str, markdown: bool) -> None:
     )
 
 
+def compare(files: list[str]) -> None:
+    """One line per configuration × parameter, one column group per results file: coverage,
+    bias / median SE, converged share and median seconds per fit (all fits of the file)."""
+    data = {}
+    for name in files:
+        path, _, mode = name.partition(":")
+        fits = [
+            r for r in read_lines(out_path(path, mode or "alternate")) if r.get("kind") == "fit"
+        ]
+        data[name] = {row[0] + " " + row[1]: row for row in table_rows(fits) if row[2] == "all"}
+    keys = list(dict.fromkeys(k for rows in data.values() for k in rows))
+    head = ["model param"] + [f"{n}: cover, bias/SE, conv, s/fit" for n in files]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for k in keys:
+        cells = [k]
+        for name in files:
+            r = data[name].get(k)
+            cells.append(f"{r[12].split(' ')[0]} ({r[3]}), {r[7]}, {r[13]}, {r[14]}" if r else "–")
+        print("| " + " | ".join(cells) + " |")
+
+
 def main() -> None:
     """Run the bank (or print its table)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -784,10 +810,18 @@ def main() -> None:
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--table", action="store_true", help="print the table of --path and exit")
     ap.add_argument("--markdown", action="store_true")
+    ap.add_argument(
+        "--compare",
+        default=None,
+        help="comma-separated PATH[:FACTOR] results to print side by side, then exit",
+    )
     args = ap.parse_args()
     if args.out:
         global OUT
         OUT = pathlib.Path(args.out)
+    if args.compare:
+        compare(args.compare.split(","))
+        return
     if args.table:
         print_table(args.path, args.noise_factor, args.noise_guess, args.markdown)
         return
