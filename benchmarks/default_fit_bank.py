@@ -40,7 +40,8 @@ the same with ``acceleration="quasi_newton"``; ``laplace-fixed``: LaplaceEM,
 the guessed noise kept; ``joint-then-laplace``: a JointLM fit at the guessed noise, then
 ``laplace-learn`` from its θ and states (the two fits' times, epochs and flags are recorded; the
 estimate and interval are the second's); ``jointlm-learn-then-laplace``: the same with the first
-stage ``jointlm-learn``.
+stage ``jointlm-learn``; ``jointlm-learn-then-laplace-fixed``: ``jointlm-learn``, then LaplaceEM
+in θ alone at the noise it learned (the Laplace evidence's maximiser in θ, noise held).
 
 Recorded per fit (JSON lines appended to ``benchmarks/results/default_fit_bank_<path>.jsonl``,
 one line per fit, resumable: a (configuration, seed) already in the file is skipped): per
@@ -353,10 +354,10 @@ def _laplace(cfg, system, data, x_init=None, max_epochs=100, **options):
     )
 
 
-def _two_stage(first: Callable):
+def _two_stage(first: Callable, laplace: Callable = _laplace):
     def run(cfg, system, data):
         r1 = first(cfg, system, data)
-        r2 = _laplace(cfg, r1.system, data, r1.states)
+        r2 = laplace(cfg, r1.system, data, r1.states)
         return r2, [r1]
 
     return run
@@ -374,6 +375,10 @@ PATHS: dict[str, Callable] = {
     "laplace-qn-learn": lambda cfg, s, d: (_laplace(cfg, s, d, acceleration="quasi_newton"), []),
     "laplace-fixed": lambda cfg, s, d: (ceemx.fit(s, d, solver=ceemx.LaplaceEM()), []),
     "joint-then-laplace": _two_stage(lambda cfg, s, d: ceemx.fit(s, d, solver=ceemx.JointLM())),
+    "jointlm-learn-then-laplace-fixed": _two_stage(
+        lambda cfg, s, d: ceemx.fit(s, d, solver=ceemx.JointLM(), noise="learn"),
+        laplace=lambda cfg, s, d, x: ceemx.fit(s, d, x, solver=ceemx.LaplaceEM()),
+    ),
     "jointlm-learn-then-laplace": _two_stage(
         lambda cfg, s, d: ceemx.fit(s, d, solver=ceemx.JointLM(), noise="learn")
     ),
@@ -504,6 +509,23 @@ def fit_record(cfg: Config, path: str, seed: int, mode: str, guess: str, first: 
             p: bool(rows[p][2] <= cfg.true[p] <= rows[p][3]) if p in rows else False
             for p in cfg.params
         }
+        if type(result.solver).__name__ == "LaplaceEM" and any("noise" in k for k in rows):
+            # The θ intervals with the learned noise held at its estimate (the evidence's
+            # Hessian in θ alone): an interval where the full one is NaN because a noise scale
+            # is not determined. A zero-epoch LaplaceEM fit at the end point gives them.
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                held = ceemx.fit(
+                    result.system, data, result.states, solver=result.solver, max_epochs=0
+                )
+                rows_held = _rows(held)[0]
+            rec["rows_noise_held"] = rows_held
+            rec["covers_noise_held"] = {
+                p: bool(rows_held[p][2] <= cfg.true[p] <= rows_held[p][3])
+                if p in rows_held
+                else False
+                for p in cfg.params
+            }
         rec["error"] = None
     except Exception as e:  # a fit that raises is a failure of the path, recorded
         rec["wall_s"] = time.perf_counter() - t0
@@ -656,6 +678,28 @@ def _fmt(x: float, digits: int = 4) -> str:
     return f"{x:.{digits}g}"
 
 
+def held_fallback(fit: dict) -> dict:
+    """The fit with its NaN-SE rows replaced by the noise-held ones (``--held-fallback``)."""
+    held = fit.get("rows_noise_held")
+    if not held or fit.get("error"):
+        return fit
+    rows, covers = dict(fit["rows"]), dict(fit["covers"])
+    for p, row in fit["rows"].items():
+        if p in held and not math.isfinite(row[1]):
+            rows[p] = held[p]
+            covers[p] = fit["covers_noise_held"].get(p, False)
+    return {**fit, "rows": rows, "covers": covers}
+
+
+HELD_FALLBACK = False  # --held-fallback
+
+
+def load_fits(file: pathlib.Path) -> list[dict]:
+    """The fit records of a results file (with ``--held-fallback`` applied)."""
+    fits = [r for r in read_lines(file) if r.get("kind") == "fit"]
+    return [held_fallback(f) for f in fits] if HELD_FALLBACK else fits
+
+
 def table_rows(fits: list[dict]) -> list[list[str]]:
     """The table's rows over ``fits`` (one path): configuration × parameter × noise subset."""
     rows = []
@@ -686,6 +730,8 @@ def table_rows(fits: list[dict]) -> list[list[str]]:
                 bias = float(np.mean(est) - truth) if est.size else nan
                 sd = float(np.std(est, ddof=1)) if est.size > 1 else nan
                 good = np.isfinite(se) & (se > 0)
+                with_se = [f for f in ok if p in f["rows"] and np.isfinite(f["rows"][p][1])]
+                k_se = sum(bool(f["covers"].get(p)) for f in with_se)
                 med_se = float(np.median(se[good])) if good.any() else nan
                 z = (est[good] - truth) / se[good]
                 rows.append(
@@ -703,6 +749,8 @@ def table_rows(fits: list[dict]) -> list[list[str]]:
                         _fmt(float(np.mean(z)) if z.size else nan, 3),
                         _fmt(float(np.sqrt(np.mean(z**2))) if z.size else nan, 3),
                         f"{k / n:.0%} [{lo:.0%}, {hi:.0%}]",
+                        f"{len(ok) - len(with_se)}",
+                        f"{k_se / len(with_se):.0%}" if with_se else "–",
                         f"{conv}/{len(ok)}",
                         _fmt(statistics.median(steady), 3) if steady else "–",
                         _fmt(statistics.median(firsts), 3) if firsts else "–",
@@ -725,6 +773,8 @@ HEADER = [
     "mean z",
     "RMS z",
     "95 % coverage [Wilson 95 %]",
+    "no SE",
+    "coverage with SE",
     "converged",
     "median s/fit",
     "first fit s",
@@ -734,7 +784,7 @@ HEADER = [
 def print_table(path: str, mode: str, guess: str, markdown: bool) -> None:
     """The table of one path's results file, with the machines and loads it ran on."""
     lines = read_lines(out_path(path, mode, guess))
-    fits = [r for r in lines if r.get("kind") == "fit"]
+    fits = load_fits(out_path(path, mode, guess))
     runs = [r for r in lines if r.get("kind") == "run"]
     ends = [r for r in lines if r.get("kind") == "end"]
     print(f"## path `{path}` (noise factor: {mode}, on {guess} noise); {len(fits)} fits")
@@ -764,7 +814,9 @@ def print_table(path: str, mode: str, guess: str, markdown: bool) -> None:
         "median reported SE over the estimates' SD (1 = honest error bars); z = (estimate − "
         "truth) / its own SE per fit: mean z (bias in each fit's own SEs) and RMS z (≈ 1 when "
         "the error bars are honest, bias included); coverage: share of fits whose printed "
-        "95 % interval holds the truth (failed fits and NaN intervals count as misses); "
+        "95 % interval holds the truth (failed fits and NaN intervals count as misses); no SE: "
+        "fits whose covariance was NaN (not positive definite); coverage with SE: among the "
+        "others; "
         "converged: of the fits that returned; median s/fit: fits after the first in a "
         "process; first fit: compilation included."
     )
@@ -775,20 +827,22 @@ def compare(files: list[str]) -> None:
     bias / median SE, converged share and median seconds per fit (all fits of the file)."""
     data = {}
     for name in files:
-        path, _, mode = name.partition(":")
-        fits = [
-            r for r in read_lines(out_path(path, mode or "alternate")) if r.get("kind") == "fit"
-        ]
+        path, mode, guess = ([*name.split(":"), "", ""])[:3]
+        fits = load_fits(out_path(path, mode or "alternate", guess or "both"))
         data[name] = {row[0] + " " + row[1]: row for row in table_rows(fits) if row[2] == "all"}
     keys = list(dict.fromkeys(k for rows in data.values() for k in rows))
-    head = ["model param"] + [f"{n}: cover, bias/SE, conv, s/fit" for n in files]
+    head = ["model param"] + [f"{n}: coverage (fits; no SE), bias/SE, conv., s/fit" for n in files]
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
     for k in keys:
         cells = [k]
         for name in files:
             r = data[name].get(k)
-            cells.append(f"{r[12].split(' ')[0]} ({r[3]}), {r[7]}, {r[13]}, {r[14]}" if r else "–")
+            cells.append(
+                f"{r[12].split(' ')[0]} ({r[3]}; {r[13]} no SE), {r[7]}, {r[15]}, {r[16]}"
+                if r
+                else "–"
+            )
         print("| " + " | ".join(cells) + " |")
 
 
@@ -811,14 +865,22 @@ def main() -> None:
     ap.add_argument("--table", action="store_true", help="print the table of --path and exit")
     ap.add_argument("--markdown", action="store_true")
     ap.add_argument(
+        "--held-fallback",
+        action="store_true",
+        help="in tables, NaN-SE rows of noise-learning Laplace fits from the noise-held intervals",
+    )
+    ap.add_argument(
         "--compare",
         default=None,
-        help="comma-separated PATH[:FACTOR] results to print side by side, then exit",
+        help="comma-separated PATH[:FACTOR[:GUESS]] results to print side by side, then exit",
     )
     args = ap.parse_args()
     if args.out:
         global OUT
         OUT = pathlib.Path(args.out)
+    if args.held_fallback:
+        global HELD_FALLBACK
+        HELD_FALLBACK = True
     if args.compare:
         compare(args.compare.split(","))
         return
