@@ -12,7 +12,9 @@ compare with the ones quoted there. Methods (``--methods``):
   learning (k, c, σ_w, σ_v);
 - ``laplace_fixed`` / ``laplace_fixed_qn``: the same with the noise fixed at the start;
 - ``joint_then_laplace`` / ``joint_then_laplace_qn``: a JointLM fit, then Laplace EM learning
-  the noise from its θ and states (the two fits' time together).
+  the noise from its θ and states (the two fits' time together);
+- ``joint_lm_learn``: JointLM with ``noise="learn"``; ``joint_learn_then_laplace_fixed``: that,
+  then Laplace EM (SQUAREM) in θ alone at the noise it learned.
 
 Timing as in ``laplace_long_record.py``: the first fit of each method in the process includes
 compilation (``first_fit_s``), then ``--reps`` steady-state fits cycling the methods; ``uptime``
@@ -69,8 +71,19 @@ def _two_stage(**options):
     return run
 
 
+def _joint_learn(start, data):
+    return ceemx.fit(start, data, solver=ceemx.JointLM(), noise="learn", max_epochs=100)
+
+
+def _joint_learn_then_laplace_fixed(start, data):
+    first = _joint_learn(start, data)
+    return _laplace(first.system, data, first.states, learn=False), first
+
+
 METHODS = {
     "joint_lm": lambda s, d: (_joint(s, d), None),
+    "joint_lm_learn": lambda s, d: (_joint_learn(s, d), None),
+    "joint_learn_then_laplace_fixed": _joint_learn_then_laplace_fixed,
     "laplace_em": lambda s, d: (_laplace(s, d), None),
     "laplace_em_qn": lambda s, d: (_laplace(s, d, acceleration="quasi_newton"), None),
     "laplace_fixed": lambda s, d: (_laplace(s, d, learn=False), None),
