@@ -312,30 +312,38 @@ def test_learn_arguments(states, rho, trainable):
 # --- every option of every solver and learner: pure validation --------------------------------
 
 _NONNEG, _POS_INT, _NONNEG_INT, _FRACTION = "nonneg", "int>=1", "int>=0", "fraction"
+_TOL, _DAMPING = "tolerance", "damping"  # in [0, 1); > 0 and below 1/rtol
 _POS_INT_OR_NONE = "int>=1 or None"
 OPTIONS = [
     *[
-        (cls, name, _NONNEG)
+        (cls, name, kind)
         for cls in (ceemx.Alternating, ceemx.JointLM, ceemx.LaplaceEM, ceemx.ParticleEM)
-        for name in ("rtol", "atol")
+        for name, kind in (("rtol", _TOL), ("atol", _NONNEG))
     ],
     *[
         (cls, "rho_theta", _NONNEG)
         for cls in (ceemx.Alternating, ceemx.JointLM, ceemx.LaplaceEM, ceemx.ParticleEM)
     ],
-    *[(ceemx.JointLM, name, _NONNEG) for name in ("rho_x", "damping", "check_rtol", "cg_rtol")],
+    (ceemx.JointLM, "rho_x", _NONNEG),
+    (ceemx.JointLM, "damping", _DAMPING),
+    *[(ceemx.JointLM, name, _TOL) for name in ("check_rtol", "cg_rtol")],
     (ceemx.JointLM, "max_trials", _POS_INT),
     (ceemx.JointLM, "dense_max_p", _NONNEG_INT),
     (ceemx.ParticleEM, "ess_threshold", _FRACTION),
     *[(ceemx.ParticleEM, name, _POS_INT) for name in ("n_particles", "n_smoothed", "memory")],
     (ceemx.ParticleEM, "burn_in", _NONNEG_INT),
-    *[(ceemx.LMSmoother, name, _NONNEG) for name in ("rho_x", "rtol", "atol", "damping")],
+    *[(ceemx.LMSmoother, name, _NONNEG) for name in ("rho_x", "atol")],
+    (ceemx.LMSmoother, "rtol", _TOL),
+    (ceemx.LMSmoother, "damping", _DAMPING),
     (ceemx.LMSmoother, "max_steps", _NONNEG_INT),
-    *[(ceemx.LMLearner, name, _NONNEG) for name in ("rtol", "atol", "damping")],
+    (ceemx.LMLearner, "rtol", _TOL),
+    (ceemx.LMLearner, "atol", _NONNEG),
+    (ceemx.LMLearner, "damping", _DAMPING),
     (ceemx.LMLearner, "max_steps", _POS_INT),
     (ceemx.LBFGSLearner, "gtol", _NONNEG),
     *[(ceemx.LBFGSLearner, name, _POS_INT) for name in ("max_steps", "memory_size")],
-    *[(ceemx.NelderMeadLearner, name, _NONNEG) for name in ("rtol", "atol")],
+    (ceemx.NelderMeadLearner, "rtol", _TOL),
+    (ceemx.NelderMeadLearner, "atol", _NONNEG),
     (ceemx.NelderMeadLearner, "max_steps", _POS_INT_OR_NONE),  # None: 200 per parameter
 ]
 OPTION_VALUES = st.one_of(
@@ -358,7 +366,9 @@ def _valid(kind: str, value) -> bool | None:
         return False
     if kind in (_POS_INT, _POS_INT_OR_NONE, _NONNEG_INT):
         return isinstance(value, int) and value >= (0 if kind == _NONNEG_INT else 1)
-    ok = np.isfinite(value) and value >= 0 and (kind != _FRACTION or value <= 1)
+    ok = np.isfinite(value) and (value > 0 if kind == _DAMPING else value >= 0)
+    ok = ok and (kind != _DAMPING or value < 1e10)  # below 1/rtol (the defaults: 1e10, 1e12)
+    ok = ok and (kind != _FRACTION or value <= 1) and (kind != _TOL or value < 1)
     return None if isinstance(value, int) and ok else bool(ok)
 
 

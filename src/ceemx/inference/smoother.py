@@ -13,7 +13,15 @@ from ceemx import lib
 from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.objective import linearize, neg_log_joint_single, nll_offset_single
-from ceemx.infra.options import check_bool, check_choice, check_int, check_nonnegative
+from ceemx.infra.options import (
+    check_bool,
+    check_choice,
+    check_damping,
+    check_int,
+    check_nonnegative,
+    check_rtol,
+    recheck,
+)
 from ceemx.infra.policy import Runs, entry_point, program, smoothing_work
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.parallel_blocktri import parallel_solve
@@ -75,8 +83,10 @@ class LMSmoother(eqx.Module):
     time_parallel: bool | str = eqx.field(default=False, static=True)
 
     def __check_init__(self):
-        for name in ("rho_x", "rtol", "atol", "damping"):
+        for name in ("rho_x", "atol"):
             check_nonnegative(name, getattr(self, name))
+        check_rtol("rtol", self.rtol)
+        check_damping("damping", self.damping, self.rtol)
         check_int("max_steps", self.max_steps, 0)
         check_bool("throw", self.throw)
         if isinstance(self.batch_chunk, str):
@@ -355,6 +365,8 @@ def smooth(
     """
     if solver is not None and not isinstance(solver, LMSmoother):
         raise TypeError(f"`solver` must be a ceemx.LMSmoother; got {solver!r}.")
+    if solver is not None:
+        recheck(solver)  # as constructed: eqx.tree_at skips __check_init__
     inputs = prepare(system, data, x_init)
     return smooth_prepared(inputs.system, inputs.data, inputs.states, solver, covariance=covariance)
 

@@ -4,27 +4,54 @@ Each check runs on the host when an options object is built (Equinox ``__check_i
 any compute, and raises ``TypeError`` (wrong kind) or ``ValueError`` (bad value) with a message
 that names the option and says what it must be: "`rtol` must be finite and >= 0; got nan.".
 Traced values pass unchecked (an options object rebuilt inside ``jit`` was checked when made).
+
+Construction is not the only way an options object is made: ``eqx.tree_at`` (the usual Equinox
+way to change one field) and ``dataclasses.replace`` bypass ``__check_init__``. The entry points
+that run a solver (:func:`ceemx.fit`, :func:`ceemx.smooth`) therefore check it again with
+:func:`recheck`, once, before any compute.
+
+What the numbers may be, beyond their kind:
+
+- relative tolerances (``rtol``, :func:`check_rtol`): finite, ≥ 0 and < 1. A stopping rule
+  "improvement ≤ rtol·|objective|" with rtol ≥ 1 declares convergence while an iteration still
+  removes as much misfit as it leaves;
+- Marquardt damping (``damping``, :func:`check_damping`): finite, > 0, and with
+  ``damping·rtol < 1``. λ = 0 never grows after a rejected step (λ·ν = 0), so a rejected
+  Gauss–Newton step is tried again unchanged until the trials run out; a λ with λ·rtol ≥ 1
+  shortens the first step (Marquardt's scaling: by 1/(1 + λ) along each variable) until its
+  predicted decrease is below ``rtol·|objective|`` whatever the start — "converged" at once;
+- integers (:func:`check_int`): at most 2³¹ − 1, since JAX carries them as int32 (a larger
+  ``max_steps`` would wrap, silently, to a negative or small bound).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Collection
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
 __all__ = [
+    "INT_MAX",
     "check_bool",
     "check_choice",
+    "check_damping",
     "check_int",
     "check_key",
     "check_nonnegative",
     "check_positive",
     "check_real",
+    "check_rtol",
+    "recheck",
 ]
+
+#: The largest integer option: JAX carries iteration bounds and counts as int32.
+INT_MAX = 2**31 - 1
 
 
 def check_real(name: str, value: Any) -> np.ndarray | None:
@@ -80,7 +107,81 @@ def check_int(name: str, value: Any, minimum: int, *, none: bool = False) -> int
         raise TypeError(f"`{name}` must be {kind}; got {value!r}.")
     if value < minimum:
         raise ValueError(f"`{name}` must be an integer >= {minimum}; got {value}.")
+    if value > INT_MAX:
+        raise ValueError(
+            f"`{name}` must be an integer <= 2**31 - 1 = {INT_MAX} (it is carried as int32, "
+            f"where a larger value wraps); got {value}."
+        )
     return int(value)
+
+
+def check_rtol(name: str, value: Any) -> None:
+    """Raise unless ``value`` is real, finite, >= 0 and < 1 (a relative tolerance)."""
+    check_nonnegative(name, value)
+    a = check_real(name, value)
+    if a is not None and not np.all(a < 1):
+        raise ValueError(
+            f"`{name}` must be < 1 (a relative tolerance: at 1 or more an iteration that still "
+            f"removes as much misfit as it leaves counts as converged); got {value!r}."
+        )
+
+
+def check_damping(name: str, value: Any, rtol: Any) -> None:
+    """Raise unless ``value`` is a usable initial Marquardt damping for relative tolerance ``rtol``.
+
+    Finite and > 0 (λ = 0 never grows after a rejection), and ``value·rtol < 1`` (a larger λ
+    makes the first step's predicted decrease smaller than ``rtol·|objective|`` at any start:
+    the iteration would stop at once, "converged"). See the module notes.
+    """
+    a = check_real(name, value)
+    if a is None:
+        return
+    if not (np.all(np.isfinite(a)) and np.all(a > 0)):
+        raise ValueError(
+            f"`{name}` must be finite and > 0 (a damping of 0 never grows after a rejected "
+            f"step, so the step is retried unchanged); got {value!r}."
+        )
+    try:
+        r = check_real("rtol", rtol)
+    except TypeError:  # the tolerance's own check names it
+        return
+    if r is not None and 0 <= float(r) < 1 and float(a) * float(r) >= 1.0:
+        raise ValueError(
+            f"`{name}` = {value!r} with rtol = {rtol!r}: the initial damping must be below "
+            f"1/rtol = {1.0 / float(r):.3g}. Marquardt's damping shortens the first step by "
+            "about 1/(1 + damping), so its predicted decrease falls below the tolerance "
+            "rtol·|objective| at any start and the iteration stops at once, 'converged'."
+        )
+
+
+def recheck(options: Any) -> None:
+    """Run again every check made when ``options`` and the modules it holds were constructed.
+
+    ``eqx.tree_at`` and ``dataclasses.replace`` build Equinox modules without calling their
+    ``__check_init__``: a solver whose ``rho_x`` was set to −1 that way would run. Entry points
+    call this once, before any compute; each module's checks run as Equinox runs them (every
+    ``__check_init__`` of its classes), the modules it holds (a solver's smoother and learner)
+    first.
+
+    Raises:
+        TypeError, ValueError: as the module's own checks, naming the option.
+    """
+    seen: set[int] = set()
+
+    def visit(node: Any) -> None:
+        if not isinstance(node, eqx.Module) or id(node) in seen:
+            return
+        seen.add(id(node))
+        for field in dataclasses.fields(node):
+            value = getattr(node, field.name, None)
+            for item in value if isinstance(value, list | tuple) else (value,):
+                visit(item)
+        for kls in type(node).__mro__:
+            check = kls.__dict__.get("__check_init__")
+            if check is not None:
+                check(node)
+
+    visit(options)
 
 
 def check_bool(name: str, value: Any) -> None:

@@ -35,6 +35,15 @@ class RESULTS(eqx.Enumeration):
         "the free-run simulation is not finite: the model diverges (or overflows) from its "
         "initial state under these inputs"
     )
+    never_moved = (
+        "not converged: the fit never moved (θ, or the states, identical to the start after "
+        "every epoch): every step was refused or rounded away, so the stopping rule was met "
+        "without a fit (a start where the model's output does not depend on what is learned, "
+        "non-finite model values wherever the steps led, or options that freeze the iterates)"
+    )
+    nonfinite_objective = (
+        "not converged: J (or the method's objective) is not finite at the end of the fit"
+    )
 
 
 def codes(status: RESULTS) -> np.ndarray:
@@ -81,4 +90,6 @@ _ITEMS = (
     RESULTS.particle_failure,
     RESULTS.outlier,
     RESULTS.diverged,
+    RESULTS.never_moved,
+    RESULTS.nonfinite_objective,
 )

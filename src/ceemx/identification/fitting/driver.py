@@ -20,6 +20,7 @@ from ceemx.identification.fitting.fit_options import fit_options
 from ceemx.identification.fitting.noise_rounds import learn_noise
 from ceemx.identification.fitting.result import EpochInfo, FitResult
 from ceemx.identification.fitting.run import run_fit
+from ceemx.identification.fitting.start import require_observations
 from ceemx.identification.solvers.base import AbstractFitSolver
 from ceemx.infra.policy import entry_point
 from ceemx.lib.typing import no_type_check
@@ -106,6 +107,7 @@ def fit(
     # every option, checked before any compute (the inputs are prepared next)
     options = fit_options(**{k: v for k, v in locals().items() if k not in _INPUTS})
     inputs = prepare(system, data, x_init, identify=True)
+    require_observations(inputs.data)  # every solver, both noise modes: before any compute
     if noise == "learn":
         return learn_noise(system, inputs, options)
     return run_fit(system, inputs, options)

@@ -12,7 +12,12 @@ import numpy as np
 
 from ceemx.identification.fitting.fit_options import FitOptions
 from ceemx.identification.fitting.result import EpochInfo
-from ceemx.identification.fitting.start import FitStart, gathered
+from ceemx.identification.fitting.start import (
+    FitStart,
+    all_failed,
+    gathered,
+    refuse_failed_start,
+)
 from ceemx.identification.solvers.base import FitState, total_J
 from ceemx.infra import checkpoint as ckpt
 from ceemx.infra.distributed import is_main_process, to_host
@@ -40,6 +45,9 @@ def run_epochs(start: FitStart, options: FitOptions) -> tuple[FitState, bool]:
             t0 = time.perf_counter()
             before = state
             state, own = solver.step(problem, state)
+            if epoch == 1 and all_failed(state) and not all_failed(before):
+                # why every trajectory failed at once, when the start says (else the status does)
+                refuse_failed_start(problem, before.theta, before.states, solver, at_init=False)
             record = _record(epoch, before, state, time.perf_counter() - t0, own)
             stop, converged = solver.terminate(problem, before, state, record)
             info = EpochInfo(epoch, problem.build(state.theta), state.states, record)

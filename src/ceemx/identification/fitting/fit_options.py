@@ -1,4 +1,10 @@
-"""The options of one :func:`ceemx.fit` call, checked before any compute."""
+"""The options of one :func:`ceemx.fit` call, checked before any compute.
+
+:func:`fit_options` checks each option by itself (and the solver's own options again, as
+``eqx.tree_at`` may have changed them unchecked); :func:`check_against_start` checks the solver's
+tolerances and trust-region weights against the data, once the start's misfit is known: none may
+be so large that the stopping rule cannot fail or the iterates cannot move.
+"""
 
 from __future__ import annotations
 
@@ -14,9 +20,9 @@ from ceemx.data.sharding import resolve_devices
 from ceemx.identification.fitting.health import OUTLIER_OPTIONS
 from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver
-from ceemx.infra.options import check_key
+from ceemx.infra.options import check_key, recheck
 
-__all__ = ["NOISE_OPTIONS", "FitOptions", "fit_options"]
+__all__ = ["NOISE_OPTIONS", "FitOptions", "check_against_start", "fit_options"]
 
 #: ``fit(..., noise=...)``: fit at the system's noise, or learn its two factors from the data
 NOISE_OPTIONS = ("fixed", "learn")
@@ -70,6 +76,7 @@ def fit_options(
             f"`solver` must be a fit solver such as ceemx.Alternating() or ceemx.JointLM(); "
             f"got {solver!r}."
         )
+    recheck(solver)  # its options as constructed: eqx.tree_at skips __check_init__
     max_epochs = _check_max_epochs(max_epochs)
     if key is not None:
         check_key(key)
@@ -114,3 +121,57 @@ def _check_max_epochs(max_epochs) -> int:
     if max_epochs < 0:
         raise ValueError(f"`max_epochs` must be >= 0; got {max_epochs}.")
     return int(max_epochs)
+
+
+def check_against_start(
+    solver: AbstractFitSolver, misfit: float, n_residuals: float, theta, states
+) -> None:
+    """Refuse tolerances and trust-region weights that decide the fit before it starts.
+
+    ``misfit`` is S₀ = −J − c at the start, ½‖whitened residuals‖² for Gaussian noise (summed
+    over the trajectories taking part); ``n_residuals`` is their number of residual entries, N.
+
+    - ``atol`` ≥ max(S₀, N/2): no epoch of a CE fit can raise J by more than the misfit left
+      (J + c ≤ 0), and N/2 is the misfit expected at the truth: such a tolerance is met by the
+      first epoch whatever it does.
+    - a trust-region weight ρ (``rho_theta``; ``rho_x`` of the solver or its ``smoother``) with
+      √(S₀/ρ) ≤ ε·max(1, |v|) for the largest entry v of what it holds (θ, unconstrained, or
+      the states): every step beyond rounding would cost more than the whole misfit, so the
+      iterates can never move and the fit stops at once.
+
+    Raises:
+        ValueError: naming the option, its limit and the start's misfit (before any epoch).
+    """
+    atol = float(getattr(solver, "atol", 0.0))
+    atol_limit = max(misfit, 0.5 * n_residuals)
+    if np.isfinite(atol_limit) and atol >= atol_limit:
+        raise ValueError(
+            f"`atol` = {atol:g} cannot fail: no epoch raises J by more than the misfit left "
+            f"(½‖whitened residuals‖² = {misfit:.6g} at the start), nor by more than the "
+            f"misfit expected at the truth ({0.5 * n_residuals:g}, half the {n_residuals:g} "
+            "residual entries), so every epoch would meet it and the fit would stop at once, "
+            f"'converged'. Use atol < {atol_limit:.6g} (the default 0 leaves the rule to rtol)."
+        )
+    smoother = getattr(solver, "smoother", None)
+    weights = [
+        ("rho_theta", getattr(solver, "rho_theta", None), theta, "θ", "it"),
+        ("rho_x", getattr(solver, "rho_x", None), states, "the states", "they"),
+        ("smoother.rho_x", getattr(smoother, "rho_x", None), states, "the states", "they"),
+    ]
+    for name, rho, held, what, pronoun in weights:
+        if rho is None or not misfit > 0:
+            continue
+        rho = float(rho)
+        values = np.asarray(held)
+        scale = max(1.0, float(np.max(np.abs(values)))) if values.size else 1.0
+        rounding = float(np.finfo(values.dtype).eps) * scale
+        with np.errstate(divide="ignore"):
+            reach = float(np.sqrt(misfit / rho)) if rho > 0 else np.inf
+        if reach <= rounding:
+            raise ValueError(
+                f"`{name}` = {rho:g} holds {what} at the start: a step of length "
+                f"√(S₀/{name}) = {reach:.3g} would already cost the whole misfit at the start "
+                f"(S₀ = ½‖whitened residuals‖² = {misfit:.6g}), and that is below the rounding "
+                f"of {what} ({rounding:.3g}), so {pronoun} could never move and the fit would "
+                f"stop at once. Use {name} < {misfit / rounding**2:.3g}."
+            )

@@ -31,13 +31,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ceemx.identification.problem import FitProblem, per_trajectory_nll, per_trajectory_offset
 from ceemx.infra.distributed import to_host
+from ceemx.infra.policy import Runs, program
 from ceemx.lib.typing import States, Theta
 
-__all__ = ["ABSURD_MEAN_SQUARE", "OUTLIER_OPTIONS", "Health", "check_start", "trajectory_health"]
+__all__ = [
+    "ABSURD_MEAN_SQUARE",
+    "OUTLIER_OPTIONS",
+    "Health",
+    "check_start",
+    "failed_start",
+    "trajectory_health",
+]
 
 OUTLIER_OPTIONS = ("exclude", "warn", "keep")
 
@@ -53,11 +63,19 @@ class Health:
         mean_square: (B,) r_b, the mean squared whitened residual at the start.
         flagged: (B,) whether b is an outlier (see the module notes).
         median: the median of the finite r_b.
+        count: (B,) N_b, the residual entries of each trajectory.
     """
 
     mean_square: np.ndarray
     flagged: np.ndarray
     median: float
+    count: np.ndarray
+
+    def misfit(self, take: np.ndarray | None = None) -> float:
+        """Σ_b ½·r_b·N_b over the trajectories ``take`` (all): −J − c, ½‖whitened residuals‖²."""
+        r, n = self.mean_square, self.count
+        take = np.ones(r.shape, bool) if take is None else np.asarray(take, bool)
+        return float(np.sum(np.where(take, 0.5 * r * n, 0.0)))
 
     def describe(self, indices) -> str:
         """``b (r = …)`` for the given trajectories, e.g. for a warning."""
@@ -87,7 +105,7 @@ def trajectory_health(
             med = float(np.median(z[finite]))
             mad = 1.4826 * float(np.median(np.abs(z[finite] - med)))
             flagged |= finite & (z - med > max(k * mad, np.log(ratio)))
-    return Health(r, flagged, median)
+    return Health(r, flagged, median, np.asarray(count, np.float64))
 
 
 def check_start(
@@ -96,7 +114,7 @@ def check_start(
     states: States,
     health: Health | None = None,
     excluded: np.ndarray | None = None,
-) -> None:
+) -> Health:
     """Refuse a start no fit can be judged from: J not finite anywhere, or absurdly large.
 
     Every trajectory taking part (not ``excluded``) must have r_b ≤ :data:`ABSURD_MEAN_SQUARE`
@@ -104,6 +122,9 @@ def check_start(
     any improvement a fit could make and the relative stopping rules compare against a
     meaningless scale: starts of 10¹⁰ on a Lorenz model stopped after two epochs as "converged"
     at J = −2.55e67. Such a start is a wrong unit or scale of ``x_init`` or of θ.
+
+    Returns:
+        The health record (``health`` as given, or computed).
 
     Raises:
         ValueError: naming the trajectories, their r_b and what to check (before any epoch).
@@ -131,3 +152,47 @@ def check_start(
             "cannot be judged. Check the scale and units of `x_init` and of the initial "
             "parameters and the noise models (or pass x_init=None for the solver's warm start)."
         )
+    return health
+
+
+@program(runs=Runs.ONCE)  # only after a start every trajectory failed at (a diagnosis)
+def _start_gradient(problem: FitProblem, theta: Theta, states: States):
+    def total(th, x):
+        return jnp.sum(problem.per_trajectory(th, x)) + problem.neg_log_prior(th)
+
+    return jax.grad(total, argnums=(0, 1))(theta, states)
+
+
+def failed_start(problem: FitProblem, theta: Theta, states: States) -> str | None:
+    """Why every trajectory failed at a start whose J is finite: the gradient, named; or ``None``.
+
+    Called (and compiled) only when a solver's first evaluation failed on every trajectory: the
+    gradient of −J (and the log-prior) at the start, and the entries where it is not finite —
+    θ's by name and value, the states by trajectory, time step and component.
+    """
+    g_theta, g_x = (to_host(g) for g in _start_gradient(problem, theta, states))
+    parts = []
+    bad = ~np.isfinite(g_theta)
+    if bad.any():
+        names = problem.parameter_names()
+        values = to_host(problem.natural(theta))
+        shown = [f"{names[i]} = {values[i]:.6g}" for i in np.flatnonzero(bad)[:5]]
+        more = ", …" if bad.sum() > 5 else ""
+        parts.append(f"with respect to the parameters {', '.join(shown)}{more}")
+    bad_x = ~np.isfinite(g_x)
+    if bad_x.any():
+        b, t, i = (int(k) for k in np.argwhere(bad_x)[0])
+        which = np.flatnonzero(bad_x.reshape(bad_x.shape[0], -1).any(axis=1)).tolist()
+        parts.append(
+            f"with respect to the states of trajectories {which[:10]} (first: trajectory {b}, "
+            f"time step {t}, component {i}, at x = {float(to_host(states)[b, t, i]):.6g})"
+        )
+    if not parts:
+        return None
+    return (
+        "the fit cannot start: J is finite at the start but its gradient is not, "
+        + "; ".join(parts)
+        + ". Every method's first step needs it (the model is not differentiable there, e.g. a "
+        "square root or logarithm at 0, or it overflows). Start elsewhere: other initial "
+        "parameters, or `x_init` away from that point."
+    )

@@ -21,8 +21,14 @@ import numpy as np
 from ceemx.data.checks import Prepared, check_states, prepare
 from ceemx.data.sharding import shard_batch
 from ceemx.data.trajectories import Trajectories
-from ceemx.identification.fitting.fit_options import FitOptions
-from ceemx.identification.fitting.health import Health, check_start, trajectory_health
+from ceemx.identification.analysis.summary import describe_noise
+from ceemx.identification.fitting.fit_options import FitOptions, check_against_start
+from ceemx.identification.fitting.health import (
+    Health,
+    check_start,
+    failed_start,
+    trajectory_health,
+)
 from ceemx.identification.problem import FitProblem, Trainable
 from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver, FitState, total_J
@@ -31,11 +37,21 @@ from ceemx.infra.compilation import BackgroundCompile, compile_in_background
 from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.policy import compiles_ahead
 from ceemx.infra.warn import warn
+from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import as_jax, trace_numbers
 from ceemx.lib.typing import States, Theta
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["FitStart", "gathered", "precompile_fit", "screen_outliers", "start_fit"]
+__all__ = [
+    "FitStart",
+    "all_failed",
+    "gathered",
+    "precompile_fit",
+    "refuse_failed_start",
+    "require_observations",
+    "screen_outliers",
+    "start_fit",
+]
 
 
 @dataclasses.dataclass
@@ -91,13 +107,20 @@ def start_fit(
     compiling = _precompile(solver, problem, theta, inputs, options)
     states, problem, solver = _start_states(solver, problem, inputs, options)
     excluded, health = screen_outliers(problem, theta, states, options.outliers)
-    check_start(problem, theta, states, health, excluded)  # refuses absurd or non-finite starts
+    # refuses absurd or non-finite starts, then tolerances and trust regions no fit can fail
+    tested = check_start(problem, theta, states, health, excluded)
+    take = ~excluded & np.isfinite(tested.mean_square)
+    check_against_start(
+        options.solver, tested.misfit(take), float(np.sum(tested.count[take])), theta, states
+    )
     all_states = states
     if excluded.any():
         keep = np.flatnonzero(~excluded)
         states, problem = states[keep], problem.subset(keep)
     key = jax.random.PRNGKey(0) if options.key is None else options.key
     state = solver.init(problem, theta, states, key)
+    if all_failed(state):
+        refuse_failed_start(problem, theta, states, solver, at_init=True)
     initial_J = total_J(state)
     state, history, fingerprint = _resume(solver, problem, theta, state, options)
     return FitStart(
@@ -113,6 +136,69 @@ def start_fit(
         fingerprint,
         compiling,
     )
+
+
+def require_observations(data: Trajectories) -> None:
+    """Refuse data with no observed entry (every y masked): nothing to fit θ or states to.
+
+    Raises:
+        ValueError: naming ``data``, before any compute.
+    """
+    mask = np.asarray(data.mask)
+    if not mask.any():
+        B, T, m = data.y.shape
+        raise ValueError(
+            f"`data` holds no observation: every entry of y ({B} trajectories × {T} steps × {m} "
+            "outputs) is masked, so J has no data term and any fit would 'converge' at its "
+            "start. Pass data with at least one observed entry (mask True)."
+        )
+
+
+def all_failed(state: FitState) -> bool:
+    """Whether no trajectory of ``state`` can go on: none takes part, or every one is non-finite."""
+    ok = to_host(state.weights) > 0
+    if not ok.any():
+        return True
+    nonfinite = np.asarray(to_host(state.status == RESULTS.nonfinite)).reshape(-1)
+    return bool(np.all(nonfinite[ok]))
+
+
+def refuse_failed_start(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    solver: AbstractFitSolver,
+    *,
+    at_init: bool,
+) -> None:
+    """Raise the reason a fit failed on every trajectory at its start, when there is one.
+
+    Called when the solver's ``init`` (``at_init``) or its first epoch left no trajectory to fit
+    from a start whose J is finite (:func:`check_start`): the gradient of J at the start,
+    where not finite, named by :func:`~ceemx.identification.fitting.health.failed_start`. A
+    failed ``init`` with a finite gradient (Laplace EM's E-step: a posterior covariance not
+    finite) is refused too, naming the noise models; a first epoch that failed from a start with
+    a finite gradient is not (its step led there: the fit ends with that status).
+
+    Raises:
+        ValueError: as above.
+    """
+    reason = failed_start(problem, theta, states)
+    if reason is None and at_init:
+        system = problem.build(theta)
+        noise = "; ".join(
+            f"{field} {describe_noise(getattr(system, field))}"
+            for field in ("process_noise", "obs_noise")
+        )
+        reason = (
+            f"the fit cannot start: {type(solver).__name__}'s first evaluation failed on every "
+            "trajectory although J and its gradient are finite there (for LaplaceEM: the E-step's "
+            "posterior covariance is not finite, as when a noise scale is near zero). The noise "
+            f"models: {noise}. Start from noise scales of the size of the residuals "
+            "(ceemx.estimate_noise) or other initial parameters."
+        )
+    if reason is not None:
+        raise ValueError(reason)
 
 
 def _precompile(

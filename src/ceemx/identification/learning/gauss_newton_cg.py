@@ -30,7 +30,13 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.identification.learning.learners import AbstractLearner, LearnInfo
 from ceemx.identification.learning.learning_problem import AbstractLearningProblem, LearningProblem
 from ceemx.inference.objective import residuals
-from ceemx.infra.options import check_choice, check_int, check_nonnegative
+from ceemx.infra.options import (
+    check_choice,
+    check_damping,
+    check_int,
+    check_nonnegative,
+    check_rtol,
+)
 from ceemx.lib.arrowhead import pcg
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.typing import PerTrajectory, States, Theta
@@ -212,9 +218,12 @@ class GaussNewtonCGLearner(AbstractLearner):
     def __check_init__(self):
         check_int("max_steps", self.max_steps, 1)
         check_int("cg_max_steps", self.cg_max_steps, 1)
-        for name in ("rtol", "atol", "damping", "cg_rtol"):
-            check_nonnegative(name, getattr(self, name))
+        check_nonnegative("atol", self.atol)
+        for name in ("rtol", "cg_rtol"):
+            check_rtol(name, getattr(self, name))
         check_choice("scaling", self.scaling, ("diagonal", "identity"))
+        # λ is relative to the curvature (Marquardt) only with diagonal scaling
+        check_damping("damping", self.damping, self.rtol if self.scaling == "diagonal" else 0.0)
 
     def run(
         self, problem: AbstractLearningProblem, theta: Theta, state: Any

@@ -20,7 +20,7 @@ from jaxtyping import Array, PRNGKeyArray
 
 from ceemx.identification.learning.learning_problem import AbstractLearningProblem
 from ceemx.infra.memory import check_fits
-from ceemx.infra.options import check_int, check_nonnegative
+from ceemx.infra.options import check_damping, check_int, check_nonnegative, check_rtol
 from ceemx.lib.dense import cholesky_solve
 from ceemx.lib.lm import levenberg_marquardt, marquardt_scale
 from ceemx.lib.results import RESULTS
@@ -95,8 +95,9 @@ class LMLearner(AbstractLearner):
     def __check_init__(self):
         check_int("max_steps", self.max_steps, 1)
         check_int("max_accepted", self.max_accepted, 1, none=True)
-        for name in ("rtol", "atol", "damping"):
-            check_nonnegative(name, getattr(self, name))
+        check_rtol("rtol", self.rtol)
+        check_nonnegative("atol", self.atol)
+        check_damping("damping", self.damping, self.rtol)
 
     def check_memory(self, n_params: int, batch_size: int, itemsize: int) -> None:
         """The B + 4 dense P × P Gauss–Newton matrices of a step must fit in memory."""
@@ -284,8 +285,8 @@ class NelderMeadLearner(AbstractLearner):
 
     def __check_init__(self):
         check_int("max_steps", self.max_steps, 1, none=True)
-        for name in ("rtol", "atol"):
-            check_nonnegative(name, getattr(self, name))
+        check_rtol("rtol", self.rtol)
+        check_nonnegative("atol", self.atol)
 
     def run(
         self, problem: AbstractLearningProblem, theta: Theta, state: Any

@@ -38,7 +38,7 @@ from ceemx.identification.learning.learners import AbstractLearner
 from ceemx.identification.problem import FitProblem, per_trajectory_nll
 from ceemx.inference.smoother import LMSmoother
 from ceemx.infra.distributed import to_host
-from ceemx.infra.options import check_nonnegative
+from ceemx.infra.options import check_nonnegative, check_rtol
 from ceemx.infra.policy import Runs, program
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.typing import PerTrajectory, Scalar, States, Theta
@@ -104,8 +104,14 @@ def starting_state(
 
 
 def total_J(state: FitState) -> float:
-    """Σ_b J_b over the trajectories taking part (host-side)."""
+    """Σ_b J_b over the trajectories taking part (host-side); NaN when none takes part.
+
+    (An empty sum of 0.0 would read as a finite, even a good, objective in the history of an
+    epoch whose every trajectory failed.)
+    """
     w = to_host(state.weights)
+    if not np.any(w > 0):
+        return float("nan")
     return float(np.sum(np.where(w > 0, to_host(state.J), 0.0)))
 
 
@@ -174,8 +180,8 @@ class AbstractFitSolver(eqx.Module):
 
     def __check_init__(self):
         # Equinox runs every class's __check_init__: each solver's own checks come on top.
-        for name in ("rtol", "atol"):
-            check_nonnegative(name, getattr(self, name))
+        check_rtol("rtol", self.rtol)
+        check_nonnegative("atol", self.atol)
 
     def initial_states(self, system, data) -> States:
         """The start states of ``fit(..., x_init=None)``: ``initialize.warm_start``'s.

@@ -72,9 +72,11 @@ from ceemx.infra.memory import check_fits
 from ceemx.infra.options import (
     check_bool,
     check_choice,
+    check_damping,
     check_int,
     check_nonnegative,
     check_positive,
+    check_rtol,
 )
 from ceemx.infra.policy import Runs, joint_iteration_work, program
 from ceemx.infra.warn import warn
@@ -162,8 +164,13 @@ class JointLM(AbstractFitSolver):
     }
 
     def __check_init__(self):
-        for name in ("rho_x", "rho_theta", "damping", "check_rtol", "cg_rtol"):
+        for name in ("rho_x", "rho_theta"):
             check_nonnegative(name, getattr(self, name))
+        for name in ("check_rtol", "cg_rtol"):
+            check_rtol(name, getattr(self, name))
+        # λ is relative to the curvature (Marquardt) except in θ with the identity border scaling
+        relative = self.border == "dense" or self.border_scaling == "diagonal"
+        check_damping("damping", self.damping, self.rtol if relative else 0.0)
         check_positive("max_theta_step", self.max_theta_step, allow_inf=True)  # inf: no bound
         if self.linear_solver not in ("auto", "dense", "cg"):
             raise ValueError(

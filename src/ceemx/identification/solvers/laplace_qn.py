@@ -93,13 +93,19 @@ def qn_start(problem: FitProblem, theta: Theta, e: GaussianPosterior):
     """(H⁻¹, g) in z at θ: the inverse curvature and the ascent gradient.
 
     The curvature is the complete-data information −∇²Q (EM's metric), its eigenvalues clipped
-    to be positive.
+    to be positive. Where Q's derivatives are not finite (an E-step that failed: a noise scale
+    that collapsed, a posterior not finite) there is no curvature to start from: the identity
+    and a zero gradient, so the next epoch takes a plain EM update (its line search has no
+    ascent direction) and starts the curvature again after it.
     """
     coords = Coordinates(problem, theta)
     _, grad, hess = q_derivatives(problem, theta, e, hessian=True)
     grad, hess = np.asarray(grad, float), np.asarray(hess, float)
     scale = coords.dtheta_dz(theta)
     Hz = scale[:, None] * hess * scale[None, :] + np.diag(np.where(coords.mask, grad * scale, 0.0))
+    if not (np.all(np.isfinite(Hz)) and np.all(np.isfinite(grad))):
+        P = theta.shape[0]
+        return jnp.eye(P, dtype=theta.dtype), jnp.zeros((P,), theta.dtype)
     w, U = np.linalg.eigh(0.5 * (Hz + Hz.T))
     top = float(np.max(np.abs(w))) if w.size else 1.0
     w = np.maximum(w, 1e-10 * max(top, 1e-300))
