@@ -254,7 +254,7 @@ def test_coupled_lorenz_from_lists():
     ids=["alt-rho_theta", "joint-rho_theta", "joint-rho_x", "lm-rho_x", "lm-rtol", "lm-damping"],
 )
 def test_options_must_be_finite_nonnegative(make, bad):
-    with pytest.raises(ValueError, match="must be finite and >= 0"):
+    with pytest.raises(ValueError, match="must be finite and >=? 0"):  # damping: > 0
         make(bad)
 
 

@@ -58,7 +58,7 @@ class LMSmoother(eqx.Module):
             ``rtol·|objective| + atol``.
         atol: absolute tolerance on the objective.
         max_steps: bound on iterations (accepted and rejected) per trajectory.
-        damping: initial Marquardt damping λ₀.
+        damping: initial Marquardt damping λ₀ (> 0 and below 1/rtol: :mod:`ceemx.infra.options`).
         throw: raise (via ``eqx.error_if``) when any trajectory fails; otherwise report statuses.
         batch_chunk: smooth at most this many trajectories at once (``None``: all of them;
             ``"auto"``, the default: :func:`auto_batch_chunk`). Memory grows as (chunk)·T·n²

@@ -42,7 +42,8 @@ class RESULTS(eqx.Enumeration):
         "non-finite model values wherever the steps led, or options that freeze the iterates)"
     )
     nonfinite_objective = (
-        "not converged: J (or the method's objective) is not finite at the end of the fit"
+        "not converged: the objective (J, or the method's own) or its derivatives became "
+        "non-finite during the fit, from a finite start"
     )
 
 

@@ -80,8 +80,9 @@ def end_status(
     ``nonfinite_objective`` where their J is not finite, ``never_moved`` (the ``successful``
     ones) when θ — or the states — did not change in any epoch; ``converged`` is false then,
     when no trajectory took part, and when one taking part ended ``stalled``. A trajectory that
-    took part in ``first`` (the state the epochs started from) and failed later (``nonfinite``:
-    the solver's words for the start of its own solve) reads ``nonfinite_objective`` too.
+    took part in ``first`` (the state the epochs started from) with a finite J and failed later
+    (``nonfinite``: the solver's words for the start of its own solve) reads
+    ``nonfinite_objective`` too.
     """
     ok = np.asarray(to_host(state.weights) > 0).reshape(-1)
     status = state.status
@@ -90,6 +91,7 @@ def end_status(
         late = np.asarray(codes(status)).reshape(-1) == nonfinite
         late &= np.asarray(to_host(first.weights) > 0).reshape(-1)
         late &= np.asarray(codes(first.status)).reshape(-1) != nonfinite
+        late &= np.isfinite(np.asarray(to_host(first.J))).reshape(-1)
         status = select(as_jax(late), RESULTS.nonfinite_objective, status)
     if not ok.any():
         return dataclasses.replace(state, status=status), False

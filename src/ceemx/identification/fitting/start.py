@@ -229,7 +229,16 @@ def _start_states(
     states = inputs.states
     if states is None:
         states = solver.initial_states(inputs.system, inputs.data)
-        check_states(inputs.system, inputs.data, states)
+        try:
+            check_states(inputs.system, inputs.data, states)
+        except ValueError as err:  # x_init was not given: say where the states came from
+            raise ValueError(
+                f"the warm start (x_init=None: {type(solver).__name__}.initial_states) gave "
+                f"states no fit can start from: {str(err).replace('`x_init` has', 'it has')} The "
+                "model is not finite where least squares through the observation map put the "
+                "states (e.g. a logarithm of a negative state), or the initial parameters are "
+                "far off: pass x_init, or other initial parameters."
+            ) from None
     states = as_jax(states)
     if options.mesh is not None:
         data, states = shard_batch(inputs.data, states, options.mesh)

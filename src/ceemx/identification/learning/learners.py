@@ -79,7 +79,7 @@ class LMLearner(AbstractLearner):
     Attributes:
         max_steps: bound on LM iterations (accepted or rejected) per EM epoch.
         rtol, atol: convergence on the decrease of the objective.
-        damping: initial λ.
+        damping: initial λ (> 0 and below 1/rtol: :mod:`ceemx.infra.options`).
         max_accepted: also stop after this many accepted steps (``None``: no such bound, the
             M-step is solved to ``rtol``). ``1`` is a generalised-EM M-step: one Gauss–Newton
             build and the first step that lowers the objective (rejected trials cost a value

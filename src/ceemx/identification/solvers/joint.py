@@ -103,7 +103,7 @@ class JointLM(AbstractFitSolver):
         rho_x: proximal weight on the states (adds 2ρ_x to their curvature every iteration).
         rho_theta: proximal weight on θ.
         rtol, atol: stopping rule on the improvement of J (and the LM's predicted decrease).
-        damping: initial Marquardt λ.
+        damping: initial Marquardt λ (> 0 and below 1/rtol: :mod:`ceemx.infra.options`).
         max_trials: bound on rejected trials within one iteration.
         linear_solver: ``"auto"`` (dense Schur complement when P ≤ ``dense_max_p``, otherwise
             matrix-free preconditioned CG on S), ``"dense"`` or ``"cg"``.
