@@ -36,10 +36,10 @@ class RESULTS(eqx.Enumeration):
         "initial state under these inputs"
     )
     never_moved = (
-        "not converged: the fit never moved (θ, or the states, identical to the start after "
-        "every epoch): every step was refused or rounded away, so the stopping rule was met "
-        "without a fit (a start where the model's output does not depend on what is learned, "
-        "non-finite model values wherever the steps led, or options that freeze the iterates)"
+        "not converged: the fit never moved (θ, or the states while θ moved, the same as at the "
+        "start after every epoch): every step was refused or rounded away, so the stopping rule "
+        "was met without a fit (non-finite model values wherever the steps led, a model that "
+        "does not depend on what is learned)"
     )
     nonfinite_objective = (
         "not converged: the objective (J, or the method's own) or its derivatives became "

@@ -519,7 +519,10 @@ def _weights(e: GaussianPosterior) -> PerTrajectory:
 
 
 def _total(values, weights) -> float:
+    """Σ over the trajectories with weight > 0; NaN when none has (not an empty sum of 0)."""
     w = np.asarray(weights)
+    if not np.any(w > 0):
+        return float("nan")
     return float(np.sum(np.where(w > 0, np.asarray(values), 0.0)))
 
 
