@@ -204,6 +204,12 @@ def test_a_start_with_a_nonfinite_gradient_is_refused_naming_it():
             fit(x_init=x, solver=ceemx.Alternating())
 
 
+def test_a_start_with_a_nonfinite_J_names_the_noise():
+    """A noise scale whose square underflows makes J infinite for any states: say so."""
+    with pytest.raises(ValueError, match=r"no trajectory has a finite objective.*std 1e-160"):
+        fit(root(noise=1e-160))
+
+
 def test_a_failed_start_with_a_finite_gradient_names_the_noise():
     """Laplace EM's E-step failing at the start (a collapsed noise scale) raised deep inside."""
     problem, theta = ceemx.FitProblem.create(root(), DATA)

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ceemx.identification.analysis.summary import describe_noise
 from ceemx.identification.problem import FitProblem, per_trajectory_nll, per_trajectory_offset
 from ceemx.infra.distributed import to_host
 from ceemx.infra.policy import Runs, program
@@ -46,6 +47,7 @@ __all__ = [
     "Health",
     "check_start",
     "failed_start",
+    "no_finite_start",
     "trajectory_health",
 ]
 
@@ -108,6 +110,24 @@ def trajectory_health(
     return Health(r, flagged, median, np.asarray(count, np.float64))
 
 
+def no_finite_start(problem: FitProblem, theta: Theta, count: int) -> str:
+    """The refusal of a start where J is not finite on any of ``count`` trajectories.
+
+    It names the noise models (a scale near zero, or one whose square overflows, makes J
+    infinite for any states) besides what else to check.
+    """
+    system = problem.build(theta)
+    noise = "; ".join(
+        f"{field}: {describe_noise(getattr(system, field))}"
+        for field in ("process_noise", "obs_noise")
+    )
+    return (
+        "no trajectory has a finite objective at the start: check the model's parameters and "
+        f"noise ({noise}), the inputs and `x_init` (J is not finite for all {count} "
+        "trajectories)."
+    )
+
+
 def check_start(
     problem: FitProblem,
     theta: Theta,
@@ -133,11 +153,7 @@ def check_start(
     r = health.mean_square
     take = np.ones(r.shape, bool) if excluded is None else ~np.asarray(excluded, bool)
     if not np.any(np.isfinite(r) & take):
-        raise ValueError(
-            "no trajectory has a finite objective at the start: check the model's parameters "
-            "and noise, the inputs and `x_init` (J is not finite for all "
-            f"{int(take.sum())} trajectories)."
-        )
+        raise ValueError(no_finite_start(problem, theta, int(take.sum())))
     with np.errstate(invalid="ignore"):
         absurd = take & np.isfinite(r) & (r > ABSURD_MEAN_SQUARE)
     if absurd.any():

@@ -27,6 +27,7 @@ from ceemx.identification.fitting.health import (
     Health,
     check_start,
     failed_start,
+    no_finite_start,
     trajectory_health,
 )
 from ceemx.identification.problem import FitProblem, Trainable
@@ -185,11 +186,7 @@ def refuse_failed_start(
     """
     reason = failed_start(problem, theta, states)
     if reason is None and at_init:
-        system = problem.build(theta)
-        noise = "; ".join(
-            f"{field} {describe_noise(getattr(system, field))}"
-            for field in ("process_noise", "obs_noise")
-        )
+        noise = _noise_of(problem.build(theta))
         reason = (
             f"the fit cannot start: {type(solver).__name__}'s first evaluation failed on every "
             "trajectory although J and its gradient are finite there (for LaplaceEM: the E-step's "
@@ -236,14 +233,23 @@ def _start_states(
                 f"the warm start (x_init=None: {type(solver).__name__}.initial_states) gave "
                 f"states no fit can start from: {str(err).replace('`x_init` has', 'it has')} The "
                 "model is not finite where least squares through the observation map put the "
-                "states (e.g. a logarithm of a negative state), or the initial parameters are "
-                "far off: pass x_init, or other initial parameters."
+                "states (e.g. a logarithm of a negative state), or the initial parameters or "
+                f"noise are far off ({_noise_of(inputs.system)}): pass x_init, or other initial "
+                "parameters or noise."
             ) from None
     states = as_jax(states)
     if options.mesh is not None:
         data, states = shard_batch(inputs.data, states, options.mesh)
         problem = problem.with_data(data)
     return states, problem, trace_numbers(solver, states.dtype)
+
+
+def _noise_of(system: AbstractSystem) -> str:
+    """The system's noise models in a few words (for messages)."""
+    return "; ".join(
+        f"{field}: {describe_noise(getattr(system, field))}"
+        for field in ("process_noise", "obs_noise")
+    )
 
 
 def _placeholder(inputs: Prepared) -> States:
@@ -261,11 +267,7 @@ def screen_outliers(problem: FitProblem, theta: Theta, states: States, outliers:
         return excluded, None
     health = trajectory_health(problem, theta, states)
     if not np.any(np.isfinite(health.mean_square)):
-        raise ValueError(
-            "no trajectory has a finite objective at the start: check the model's "
-            "parameters and noise, the inputs and `x_init` (J is not finite for all "
-            f"{problem.data.batch_size} trajectories)."
-        )
+        raise ValueError(no_finite_start(problem, theta, problem.data.batch_size))
     bad = health.flagged & np.isfinite(health.mean_square)
     if bad.any():
         idx = np.flatnonzero(bad)
