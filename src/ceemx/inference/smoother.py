@@ -355,6 +355,7 @@ def smooth(
     """
     if solver is not None and not isinstance(solver, LMSmoother):
         raise TypeError(f"`solver` must be a ceemx.LMSmoother; got {solver!r}.")
+    check_bool("covariance", covariance)
     inputs = prepare(system, data, x_init)
     return smooth_prepared(inputs.system, inputs.data, inputs.states, solver, covariance=covariance)
 

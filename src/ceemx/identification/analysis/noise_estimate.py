@@ -44,6 +44,7 @@ from ceemx.identification.noise_moments import (
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
 from ceemx.inference.smoother import LMSmoother
 from ceemx.infra.compilation import jit
+from ceemx.infra.options import INT32_MAX, check_bool
 from ceemx.infra.policy import entry_point
 from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import trace_numbers
@@ -246,6 +247,10 @@ def estimate_noise(
             ``max_evaluations``.
     """
     fields = _checked_options(system, fields, max_evaluations)
+    check_bool("per_component", per_component)
+    check_bool("search", search)
+    if smoother is not None and not isinstance(smoother, LMSmoother):
+        raise TypeError(f"`smoother` must be a ceemx.LMSmoother or None; got {smoother!r:.80}.")
     inputs = prepare(system, data, states, identify=True)
     return estimate_noise_prepared(
         system,
@@ -261,6 +266,10 @@ def estimate_noise(
 
 def _checked_options(system: AbstractSystem, fields: Sequence[str], max_evaluations) -> tuple:
     """The distinct ``fields`` of :func:`estimate_noise`, checked with ``max_evaluations``."""
+    if isinstance(fields, str):  # a string is a sequence of letters, not of fields
+        raise TypeError(
+            f"`fields` must be a sequence of names, e.g. ({fields!r},); got {fields!r}."
+        )
     fields = tuple(dict.fromkeys(fields))
     for field in fields:
         if field not in NOISE_FIELDS:
@@ -268,8 +277,10 @@ def _checked_options(system: AbstractSystem, fields: Sequence[str], max_evaluati
         _check_closed_form(field, getattr(system, field))
     if isinstance(max_evaluations, bool) or not isinstance(max_evaluations, int | np.integer):
         raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
-    if max_evaluations < 1:
-        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
+    if not 1 <= max_evaluations <= INT32_MAX:
+        raise ValueError(
+            f"`max_evaluations` must be an integer in [1, 2**31 - 1]; got {max_evaluations!r}."
+        )
     return fields
 
 
