@@ -148,8 +148,10 @@ def _check_max_epochs(max_epochs) -> int:
 
 def _check_callbacks(callbacks) -> tuple[Callable[[Any], Any], ...]:
     """``callbacks`` as a tuple of callables; a single callable or a string is refused."""
-    if callable(callbacks) or isinstance(callbacks, str | bytes) or not isinstance(
-        callbacks, Sequence
+    if (
+        callable(callbacks)
+        or isinstance(callbacks, str | bytes)
+        or not isinstance(callbacks, Sequence)
     ):
         raise TypeError(
             f"`callbacks` must be a list or tuple of callables (e.g. [f] for one); got "
