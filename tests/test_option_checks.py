@@ -56,6 +56,9 @@ CALLS = {
     "EarlyStopping": lambda **kw: ceemx.EarlyStopping(DATA, 3, **kw),
     "perturb": lambda **kw: ceemx.perturb(KEY, SYSTEM, **kw),
     "enable_compilation_cache": lambda **kw: ceemx.enable_compilation_cache(**kw),
+    "plot_benchmark": lambda **kw: ceemx.plot_benchmark(
+        np.sin(np.arange(50.0)), np.zeros(50), **kw
+    ),
 }
 
 # (entry point, option, bad value, exception, what the message says after the option's name)
@@ -103,6 +106,10 @@ CASES = [
     ("perturb", "where", 3, TypeError, "must be a callable or None"),
     ("enable_compilation_cache", "path", 3, TypeError, "must be a path (str or os.PathLike)"),
     ("enable_compilation_cache", "min_compile_time_s", True, TypeError, "must be a real number"),
+    ("plot_benchmark", "n_init", 2.5, TypeError, "must be an integer"),
+    ("plot_benchmark", "max_points", -1, ValueError, "must be an integer in [2, 2147483647]"),
+    ("plot_benchmark", "zoom_fraction", -1.0, ValueError, "must be in (0, 1]"),
+    ("plot_benchmark", "dt", -1.0, ValueError, "must be finite and > 0"),
 ]
 
 
