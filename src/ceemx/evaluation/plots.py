@@ -164,9 +164,8 @@ def plot_benchmark(
         The figure (``report.save_figure(fig, path)`` writes and closes it).
 
     Raises:
-        ValueError, TypeError: shapes that do not match, or a bad ``zoom``, ``n_init``, name
-            count, ``zoom_fraction``, ``zoom_samples``, ``max_points``, ``score_scale`` or
-            ``dt`` (named).
+        ValueError, TypeError: shapes that do not match, or a bad ``zoom``, name count or
+            numeric option (``n_init``, ``max_points``, ``dt``, …: named).
 
     Example:
         >>> import numpy as np

@@ -295,7 +295,7 @@ def _raise_write_error(folder: str, err: BaseException) -> None:
     if cause is None:
         return
     code = cause.errno
-    name = f"{errno.errorcode[code]}, " if code in errno.errorcode else ""
+    name = f"{errno.errorcode[code]}, " if code is not None and code in errno.errorcode else ""
     limit = " — the process's file-size limit, `ulimit -f`" if code == errno.EFBIG else ""
     raise CheckpointError(
         f"could not write the checkpoint in {folder!r}: {cause.strerror or cause} "
