@@ -1,7 +1,8 @@
-"""Validation of solver and learner options: one helper per kind of option, used by every class.
+"""Validation of options: one helper per kind of option, for every class and public function.
 
-Each check runs on the host when an options object is built (Equinox ``__check_init__``), before
-any compute, and raises ``TypeError`` (wrong kind) or ``ValueError`` (bad value) with a message
+Each check runs on the host when an options object is built (Equinox ``__check_init__``) or a
+public function is entered (its keyword options: ``fit``, ``smooth``, ``hybrid``, …), before any
+compute, and raises ``TypeError`` (wrong kind) or ``ValueError`` (bad value) with a message
 that names the option and says what it must be: "`rtol` must be finite and >= 0; got nan.".
 Traced values pass unchecked (an options object rebuilt inside ``jit`` was checked when made).
 """
