@@ -1,6 +1,6 @@
 """Checkpoints under contention and on full disks: nothing lost.
 
-    python benchmarks/checkpoint_contention.py [--runs 20] [--disk-runs 10] [--no-lock]
+    python benchmarks/checkpoint_contention.py [--runs 20] [--disk-runs 12] [--no-lock]
 
 **Concurrent writers.** Each run starts two processes that fit the same small problem (a
 2-state linear system, B = 2, T = 40, ``Alternating``, 150 epochs, one save per epoch) into the
@@ -11,11 +11,16 @@ finiteness) and equals the finished fit (θ bitwise, 150 epochs); a third fit fr
 resumes it and returns that θ. ``--no-lock`` replaces the lock by nothing, to show the failure it
 prevents (crashed writers, as before the lock).
 
-**Full disks.** Each run fits uninterrupted, then fits with a checkpoint while the disk "fills" at
-epoch k = 2..11 (``os.fdopen`` returning a file whose writes raise ``ENOSPC``, as in
-``tests/test_reliability.py``): the fit must fail with a ``CheckpointError`` saying "No space
-left on device", leave exactly ``latest.json`` and ``state-<k-1>.eqx`` (no temporaries), and a
-resume once the disk has space must end bitwise equal to the uninterrupted fit.
+**Full disks, for real.** Each run fits uninterrupted in this process (T = 400: a 13 kB state
+file, 12 epochs), then fits in a subprocess with a checkpoint whose save at epoch k fails
+part-way for real: either the process's file-size limit drops (``RLIMIT_FSIZE`` to 300…10300
+bytes, SIGXFSZ ignored: the write takes what fits and the next fails with EFBIG), or — where a
+tmpfs can be mounted (root) — a 256 kB file system holding the checkpoint is filled by another
+file to within 0, 1 or 2 pages (ENOSPC). The cuts fall in the state file and in
+``latest.json``, at the first save (k = 1) and later ones. The fit must fail with a
+``CheckpointError`` naming the reason ("File too large", "No space left on device"; never
+"errno None"), leave exactly ``latest.json`` and ``state-<k-1>.eqx`` (nothing at k = 1; no
+temporaries), and a resume once there is room must end bitwise equal to the uninterrupted fit.
 
 Prints one line per run and a summary; exit status 1 when anything was lost. Backs
 ``docs/guarantees.md`` ("Checkpoints": "Two writers" and "Full disks").
@@ -25,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import errno
 import json
 import os
 import subprocess
@@ -62,8 +66,8 @@ except Exception as err:
 EPOCHS = 150
 
 
-def problem():
-    """A 2-state linear system and its data: cheap to compile and to step."""
+def problem(T: int = 40):
+    """A 2-state linear system and T steps of its data: cheap to compile and to step."""
     import jax
     import numpy as np
 
@@ -73,20 +77,20 @@ def problem():
     a = np.array([[0.9, 0.1], [-0.1, 0.9]])
     b, c, d = np.ones((2, 1)), np.eye(2)[:1], np.zeros((1, 1))
     true = LinearSystem(a, c, b, d, process_noise=0.1, obs_noise=0.1)
-    u = np.random.default_rng(1).standard_normal((2, 40, 1))
-    _, data = ceemx.simulate(true, jax.random.PRNGKey(0), np.zeros((2, 2)), 40, u)
+    u = np.random.default_rng(1).standard_normal((2, T, 1))
+    _, data = ceemx.simulate(true, jax.random.PRNGKey(0), np.zeros((2, 2)), T, u)
     guess = LinearSystem(0.8 * a, c, b, d, process_noise=0.1, obs_noise=0.1)
-    return guess, data, np.zeros((2, 40, 2))
+    return guess, data, np.zeros((2, T, 2))
 
 
-def worker_source() -> str:
+def worker_source(worker: str = _WORKER) -> str:
     import inspect
 
     return (
-        "def PROBLEM():\n"
+        "def PROBLEM(T=40):\n"
         + "\n".join("    " + line for line in inspect.getsource(problem).splitlines()[1:])
         + "\n"
-        + _WORKER
+        + worker
     )
 
 
@@ -152,80 +156,149 @@ def contention_run(i: int, no_lock: bool) -> tuple[bool, str]:
         return not problems, f"run {i + 1}: " + ("; ".join(problems) or "ok") + f" [{summary}]"
 
 
-class _DiskFull:
-    def __init__(self, f):
-        self.f = f
+_DISK_WORKER = r"""
+import json, os, resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # past the limit a write fails with EFBIG
+import jax
+jax.config.update("jax_enable_x64", True)
+import ceemx
 
-    def write(self, data):
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+folder, mode, disk = sys.argv[1], sys.argv[2], sys.argv[5]
+k, amount = int(sys.argv[3]), int(sys.argv[4])
+system, data, x0 = PROBLEM(DISK_T)
 
-    def __getattr__(self, name):
-        return getattr(self.f, name)
 
-    def __enter__(self):
-        return self
+def fault(info):  # runs before epoch `info.epoch` is saved
+    if info.epoch != k:
+        return
+    if mode == "fsize":
+        resource.setrlimit(resource.RLIMIT_FSIZE, (amount, resource.RLIM_INFINITY))
+    else:  # fill the small file system to within `amount` bytes
+        fs = os.statvfs(disk)
+        with open(os.path.join(disk, "filler"), "wb") as f:
+            f.write(b"\0" * max(0, fs.f_bavail * fs.f_frsize - amount))
 
-    def __exit__(self, *exc):
-        self.f.close()
+
+try:
+    ceemx.fit(system, data, x0, solver=ceemx.Alternating(rtol=0.0, atol=0.0), max_epochs=EPOCHS,
+              progress=False, diagnose=False, checkpoint=folder, callbacks=[fault])
+    print(json.dumps({"error": None}))
+except Exception as err:
+    print(json.dumps({"error": f"{type(err).__name__}: {err}"}))
+"""
+
+DISK_EPOCHS = 12
+#: steps of the full-disk runs' records: a 13 kB state file, whose (2, T, 2) states NumPy writes
+#: in one piece — the write a limit or a full disk cuts part-way
+DISK_T = 400
+
+
+def _mount_small_fs(path: str) -> str | None:
+    """Mount a 256 kB tmpfs at ``path``; the reason when that is not possible."""
+    if not sys.platform.startswith("linux") or os.geteuid() != 0:
+        return "mounting a tmpfs needs Linux and root"
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", path],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    return None if done.returncode == 0 else f"mount refused: {done.stderr.strip()}"
+
+
+def _disk_cases(n: int, disk_ok: bool) -> list[tuple[str, int, int]]:
+    """(mode, epoch k at whose save the fault strikes, bytes left), alternating the two modes.
+
+    Limits of 300, 4300 and 8300 bytes cut the state file part-way; 0 bytes of disk left fail
+    its first write, 4096 cut it part-way, 16384 let it be written and cut ``latest.json``. The
+    first save (k = 1) is struck in both modes.
+    """
+    cases = []
+    for i in range(n):
+        j = i // 2
+        if disk_ok and i % 2:
+            cases.append(
+                ("disk", 1 + (2 * j + 1) % DISK_EPOCHS if j else 1, (4096, 16384, 0)[j % 3])
+            )
+        else:
+            cases.append(("fsize", 1 + (2 * j) % DISK_EPOCHS, (300, 4300, 8300)[j % 3]))
+    return cases
 
 
 def disk_runs(n: int) -> list[tuple[bool, str]]:
+    """Fits whose checkpoint writes fail for real part-way (see the module notes)."""
     import numpy as np
 
     import ceemx
-    from ceemx.infra import checkpoint as ckpt
 
-    system, data, x0 = problem()
+    system, data, x0 = problem(DISK_T)
     solver = ceemx.Alternating(rtol=0.0, atol=0.0)
 
     def run(**kwargs):
         return ceemx.fit(
-            system, data, x0, solver=solver, max_epochs=12, progress=False, diagnose=False, **kwargs
+            system,
+            data,
+            x0,
+            solver=solver,
+            max_epochs=DISK_EPOCHS,
+            progress=False,
+            diagnose=False,
+            **kwargs,
         )
 
     full = run()
-    real = os.fdopen
+    script = f"EPOCHS, DISK_T = {DISK_EPOCHS}, {DISK_T}\n" + worker_source(_DISK_WORKER)
     out = []
-    for i in range(n):
-        k = 2 + i  # the disk fills while epoch k is saved
-        problems = []
-        with tempfile.TemporaryDirectory() as folder:
-
-            def fill(info, k=k):
-                if info.epoch == k:
-                    os.fdopen = lambda *a, **kw: _DiskFull(real(*a, **kw))
-
-            try:
-                run(checkpoint=folder, callbacks=[fill])
-                problems.append("no error")
-            except ckpt.CheckpointError as err:
-                if "No space left on device" not in str(err):
-                    problems.append(f"message: {err}")
-            except Exception as err:  # noqa: BLE001 - reported
-                problems.append(f"{type(err).__name__}: {err}")
-            finally:
-                os.fdopen = real
-            names = sorted(os.listdir(folder))
-            if names != ["latest.json", f"state-{k - 1}.eqx"]:
-                problems.append(f"folder holds {names}")
-            res = run(checkpoint=folder)
-            if not np.array_equal(np.asarray(res.theta), np.asarray(full.theta)):
-                problems.append("resume differs from the uninterrupted fit")
-            if len(res.history) != len(full.history):
-                problems.append("history length differs")
-        out.append(
-            (
-                not problems,
-                f"disk run {i + 1} (full at epoch {k}): " + ("; ".join(problems) or "ok"),
-            )
-        )
+    with tempfile.TemporaryDirectory() as tmp:
+        disk = os.path.join(tmp, "disk")
+        os.makedirs(disk)
+        no_disk = _mount_small_fs(disk)
+        if no_disk:
+            print(f"full-disk runs use the file-size limit only: {no_disk}", flush=True)
+        try:
+            for i, (mode, k, amount) in enumerate(_disk_cases(n, no_disk is None)):
+                folder = os.path.join(disk if mode == "disk" else tmp, f"ckpt-{i}")
+                done = subprocess.run(
+                    [sys.executable, "-c", script, folder, mode, str(k), str(amount), disk],
+                    capture_output=True,
+                    text=True,
+                    timeout=600,
+                    check=False,
+                )
+                lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
+                error = json.loads(lines[-1])["error"] if lines else done.stderr[-300:]
+                names = sorted(os.listdir(folder)) if os.path.isdir(folder) else []
+                if os.path.exists(os.path.join(disk, "filler")):
+                    os.remove(os.path.join(disk, "filler"))
+                problems = []
+                reason = "No space left on device" if mode == "disk" else "File too large"
+                if error is None:
+                    problems.append("no error")
+                elif reason not in error or "errno None" in error:
+                    problems.append(f"message: {error[:200]}")
+                want = [] if k == 1 else ["latest.json", f"state-{k - 1}.eqx"]
+                if names != want:
+                    problems.append(f"folder holds {names}, expected {want}")
+                res = run(checkpoint=folder)
+                if not np.array_equal(np.asarray(res.theta), np.asarray(full.theta)):
+                    problems.append("resume differs from the uninterrupted fit")
+                if len(res.history) != len(full.history):
+                    problems.append("history length differs")
+                where = f"{mode} {amount} B left" if mode == "disk" else f"ulimit -f {amount} B"
+                line = f"disk run {i + 1} ({where}, at the save of epoch {k}): "
+                said = (error or "").split("': ", 1)[-1].split(";", 1)[0]  # the reason
+                out.append((not problems, line + ("; ".join(problems) or f"ok [{said}]")))
+                print(out[-1][1], flush=True)
+        finally:
+            if no_disk is None:
+                subprocess.run(["umount", disk], check=False)
     return out
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=(__doc__ or "").strip().splitlines()[0])
     parser.add_argument("--runs", type=int, default=20)
-    parser.add_argument("--disk-runs", type=int, default=10)
+    parser.add_argument("--disk-runs", type=int, default=12)
     parser.add_argument("--no-lock", action="store_true")
     args = parser.parse_args()
     import jax
@@ -237,9 +310,7 @@ def main() -> int:
         results.append(contention_run(i, args.no_lock))
         print(results[-1][1], flush=True)
     if args.disk_runs:
-        for r in disk_runs(args.disk_runs):
-            results.append(r)
-            print(r[1], flush=True)
+        results.extend(disk_runs(args.disk_runs))
     good = sum(ok for ok, _ in results)
     print(
         f"{good}/{len(results)} runs lost nothing ({args.runs} concurrent-writer, "

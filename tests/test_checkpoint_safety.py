@@ -3,23 +3,31 @@
 Each test is a regression test for a way a checkpoint used to be trusted blindly: another fit's
 checkpoint of the same shapes (other data, system or method options), a non-finite state, a
 truncated ``latest.json``, a checkpoint of the other fit method, and an unwritable folder (which
-failed only after a full epoch). A tiny linear problem (n = 2, m = 1, T = 12, B = 2) keeps them
-fast.
+failed only after a full epoch); and for the writes that fail part-way — a file-size limit and a
+full file system, injected for real in a subprocess (tests/checkpoint_faults.py). A tiny linear
+problem (n = 2, m = 1, T = 12, B = 2) keeps them fast.
 """
 
 import dataclasses
+import errno
 import json
 import os
+import re
 import stat
+import subprocess
+import sys
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import ceemx
+from ceemx.identification.solvers import FitState
 from ceemx.infra import checkpoint as ckpt
 from ceemx.infra.checkpoint import CheckpointError
+from ceemx.lib.results import RESULTS, select
 from ceemx.systems import LinearSystem
 
 A_TRUE = jnp.array([[0.9, 0.1], [-0.1, 0.8]])
@@ -225,3 +233,160 @@ def test_fingerprint_has_no_memory_addresses():
     fp = ckpt.fingerprint(theta, problem, theta, ceemx.Alternating())
     assert "log_prior" in fp["system_structure"]
     assert not any(" at 0x" in v for v in fp.values())
+
+
+# --- write faults, for real: a file-size limit and a full file system ---------------------------
+
+FAULTS = os.path.join(os.path.dirname(__file__), "checkpoint_faults.py")
+
+
+def _mount_small_fs(path) -> str | None:
+    """Mount a 64 kB tmpfs at ``path``; the reason when that is not possible here."""
+    if not sys.platform.startswith("linux"):
+        return "tmpfs is Linux's"
+    if os.geteuid() != 0:
+        return "mounting a tmpfs needs root"
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(path)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    return None if done.returncode == 0 else f"mount refused: {done.stderr.strip()}"
+
+
+@pytest.fixture(scope="module")
+def faults(tmp_path_factory):
+    """What tests/checkpoint_faults.py saw (one subprocess: the file-size limit is its own)."""
+    base = tmp_path_factory.mktemp("faults")
+    disk = base / "disk"
+    disk.mkdir()
+    no_disk = _mount_small_fs(disk)
+    try:
+        done = subprocess.run(
+            [sys.executable, FAULTS, str(base / "limited"), *([] if no_disk else [str(disk)])],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
+        )
+    finally:
+        if no_disk is None:
+            subprocess.run(["umount", str(disk)], check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.splitlines()[-1]), no_disk
+
+
+KEPT = "the previous checkpoint there, if any, is kept unchanged"
+
+
+@pytest.mark.parametrize(
+    "scenario, files, epochs",
+    [
+        ("second", ["latest.json", "state-1.eqx"], 1),
+        ("first", [], None),
+        ("latest", ["latest.json", "state-1.eqx"], 1),
+    ],
+)
+def test_file_size_limit_mid_write_keeps_the_last_checkpoint(faults, scenario, files, epochs):
+    """A write past ``ulimit -f`` writes what fits; the state file's read "800 requested and
+    340 written (errno None)" (NumPy's writer), at the first save as at a later one."""
+    seen = faults[0][scenario]
+    assert "File too large (EFBIG, errno 27" in seen["error"] and KEPT in seen["error"]
+    assert seen["files"] == files and seen["epochs"] == epochs  # no temporaries; resumable
+
+
+def test_file_size_limit_at_the_probe_leaves_nothing(faults):
+    seen = faults[0]["probe"]
+    assert "is not writable (File too large)" in seen["error"] and seen["files"] == []
+
+
+def test_full_small_file_system_keeps_the_last_checkpoint(faults):
+    """A 64 kB tmpfs with 4 kB left under a 24 kB state file: the write stops short; it read
+    "3000 requested and 477 written (errno None)". Space again: it resumes and saves."""
+    results, no_disk = faults
+    if no_disk:
+        pytest.skip(no_disk)
+    seen = results["disk"]
+    assert "No space left on device (ENOSPC, errno 28)" in seen["error"] and KEPT in seen["error"]
+    assert seen["files"] == ["latest.json", "state-1.eqx"]
+    assert seen["epochs"] == 1 and seen["epochs_after"] == 2
+
+
+def small_state(**replace):
+    state = FitState(
+        theta=jnp.zeros(3),
+        states=jnp.zeros((2, 4, 1)),
+        J=jnp.zeros(2),
+        weights=jnp.ones(2),
+        status=select(jnp.zeros(2, bool), RESULTS.nonfinite, RESULTS.successful),
+        solver_state=(jnp.asarray(1e-3), jnp.zeros(2), jnp.zeros((2, 4, 1))),
+    )
+    return dataclasses.replace(state, **replace)
+
+
+FP = {"method": "a test's fit state"}
+
+
+def test_a_write_short_again_on_its_retry_is_no_space(tmp_path, monkeypatch):
+    """The rule for short writes, which no file system here produces twice in a row: a short
+    write is retried once (a retry that writes the rest saves), a second short one is ENOSPC."""
+    folder = str(tmp_path)
+    real, calls = os.write, []
+
+    def short_once(fd, data):  # the first write takes half, the retry the rest
+        calls.append(len(data))
+        return real(fd, bytes(data[: len(data) // 2]) if len(calls) == 1 else data)
+
+    monkeypatch.setattr(os, "write", short_once)
+    ckpt.save(folder, small_state(), [{"epoch": 1}], FP)
+    monkeypatch.setattr(os, "write", lambda fd, data: real(fd, bytes(data[: len(data) // 2])))
+    with pytest.raises(CheckpointError, match=r"a write stopped short: \d+ of \d+ bytes.*ENOSPC"):
+        ckpt.save(folder, small_state(), [{"epoch": 1}, {"epoch": 2}], FP)
+    monkeypatch.undo()
+    assert sorted(os.listdir(folder)) == ["latest.json", "state-1.eqx"]
+    assert ckpt.load(folder, small_state(), fingerprint=FP)[1] == [{"epoch": 1}]
+
+
+@pytest.mark.parametrize("call", ["fsync", "close"])
+def test_failure_at_fsync_or_close_keeps_the_last_checkpoint(tmp_path, monkeypatch, call):
+    """An I/O error surfacing only at fsync or close (delayed allocation, network file systems;
+    not producible on this machine's file systems) is named like a failed write."""
+    folder = str(tmp_path)
+    ckpt.save(folder, small_state(), [{"epoch": 1}], FP)
+    real = getattr(os, call)
+
+    def failing(fd):
+        real(fd)
+        raise OSError(errno.EIO, os.strerror(errno.EIO))
+
+    monkeypatch.setattr(os, call, failing)
+    with pytest.raises(CheckpointError, match=r"Input/output error \(EIO, errno 5\); " + KEPT):
+        ckpt.save(folder, small_state(), [{"epoch": 1}, {"epoch": 2}], FP)
+    monkeypatch.undo()
+    assert sorted(os.listdir(folder)) == ["latest.json", "state-1.eqx"]
+
+
+@pytest.mark.parametrize(
+    "leaf, name",
+    [(1, "solver_state[1]"), (2, "solver_state[2]")],
+    ids=["log-evidence", "smoother-start"],
+)
+def test_nan_in_a_per_trajectory_solver_leaf_is_not_resumed(tmp_path, leaf, name):
+    """Laplace EM keeps (learner state, (B,) log-evidence, (B, T, n) smoother start): only its
+    scalars were checked, so a NaN log-evidence of a trajectory taking part was resumed."""
+    solver_state = list(small_state().solver_state)
+    solver_state[leaf] = solver_state[leaf].at[0].set(jnp.nan)
+    ckpt.save(str(tmp_path), small_state(solver_state=tuple(solver_state)), [{"epoch": 1}], FP)
+    with pytest.raises(CheckpointError, match=re.escape(f"(NaN or inf) in {name}")):
+        ckpt.load(str(tmp_path), small_state(), fingerprint=FP)
+
+
+def test_nan_of_an_excluded_trajectory_is_resumed(tmp_path):
+    """A failed trajectory (weight 0) keeps NaN in its per-trajectory entries; no epoch reads
+    them, so the checkpoint resumes."""
+    nan_first = (jnp.asarray(1e-3), jnp.asarray([jnp.nan, 0.0]), jnp.zeros((2, 4, 1)))
+    state = small_state(weights=jnp.asarray([0.0, 1.0]), solver_state=nan_first)
+    ckpt.save(str(tmp_path), state, [{"epoch": 1}], FP)
+    tree, _ = ckpt.load(str(tmp_path), small_state(), fingerprint=FP)
+    assert np.isnan(np.asarray(tree.solver_state[1])[0])

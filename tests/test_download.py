@@ -7,6 +7,7 @@ raises the error ``requests`` raises without a network.
 """
 
 import dataclasses
+import hashlib
 import zipfile
 from pathlib import Path
 
@@ -127,6 +128,72 @@ def test_offline_fails_with_one_sentence(fresh, monkeypatch):
         datasets.silverbox(download=False)
     with pytest.raises(datasets.DatasetUnavailable, match="Could not download"):
         download.fetch("silverbox", url=(fresh / "missing.zip").as_uri())
+
+
+# --- a cached file that fails its checksum is fetched again ------------------------------------
+
+TOY_DATA = b"u,y\n1,2\n"
+
+
+def _toy_zip(path: Path, data: bytes) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("Files/toy.csv", data)
+    return path
+
+
+@pytest.fixture
+def toy(fresh, tmp_path, monkeypatch):
+    """A dataset ``toy`` served as a file:// archive; its data file downloaded into the cache."""
+    host = _toy_zip(tmp_path / "host" / "toy.zip", TOY_DATA)
+    digest = hashlib.sha256(TOY_DATA).hexdigest()
+    src = download.Source(host.as_uri(), "toy.zip", "toy.csv", "toy/toy.csv", digest)
+    monkeypatch.setitem(download.SOURCES, "toy", src)
+    target = download.fetch("toy")
+    assert target == fresh / "toy" / "toy.csv" and target.read_bytes() == TOY_DATA
+    return target, host
+
+
+def test_a_corrupt_cached_file_is_set_aside_and_fetched_again(toy):
+    """It was returned as it was; the loaders then refused it at every call ("sha256 of … is
+    …; replace it with the official file"), the cache never repaired."""
+    target, host = toy
+    target.write_bytes(b"u,y\n1,9\n")  # a torn or altered file
+    host.unlink()  # no download: the cached archive holds the right file
+    assert datasets.data_file("toy") == target and target.read_bytes() == TOY_DATA
+    assert target.with_name("toy.csv.corrupt").read_bytes() == b"u,y\n1,9\n"
+    # The cached archive holds a wrong file too: downloaded afresh.
+    target.write_bytes(b"garbage")
+    _toy_zip(target.parents[1] / "archives" / "toy.zip", b"garbage")
+    _toy_zip(host, TOY_DATA)
+    assert datasets.data_file("toy") == target and target.read_bytes() == TOY_DATA
+
+
+def test_a_corrupt_cached_file_offline_fails_with_one_sentence(toy, monkeypatch):
+    import pooch
+    import requests
+
+    def offline(self, url, output_file, pooch, check_only=False):
+        raise requests.exceptions.ConnectionError("Failed to resolve host. Try again.")
+
+    target, _ = toy
+    url = "https://example.org/toy.zip"  # the pooch boundary: an HTTP download that fails
+    monkeypatch.setitem(
+        download.SOURCES, "toy", dataclasses.replace(download.SOURCES["toy"], url=url)
+    )
+    monkeypatch.setattr(pooch.HTTPDownloader, "__call__", offline)
+    target.write_bytes(b"garbage")
+    with pytest.raises(datasets.DatasetUnavailable, match="download=False"):
+        datasets.data_file("toy", download=False)  # refused, not returned
+    assert target.read_bytes() == b"garbage"
+    (target.parents[1] / "archives" / "toy.zip").unlink()
+    with pytest.raises(datasets.DatasetUnavailable) as info:
+        datasets.data_file("toy")
+    message = str(info.value)
+    aside = target.with_name("toy.csv.corrupt")
+    assert message.startswith("The cached toy.csv of the toy dataset failed its sha256 check")
+    assert f"moved to {aside}" in message and url in message and str(target) in message
+    assert message.count(". ") == 0 and aside.read_bytes() == b"garbage"
 
 
 def test_cache_folder(monkeypatch, tmp_path):

@@ -7,7 +7,6 @@ absurd J and reported convergence). Validation tests compile nothing: a counting
 every trace of its methods, and the refusals must come before the first one.
 """
 
-import errno
 import json
 import os
 import re
@@ -481,47 +480,7 @@ def fit_state(weights=(1.0, 1.0), lam=1e-3):
 FINGERPRINT = {"method": "a test's fit state"}
 
 
-class DiskFull:
-    """A file whose writes fail as on a full disk."""
-
-    def __init__(self, f):
-        self.f = f
-
-    def write(self, data):
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    def __getattr__(self, name):
-        return getattr(self.f, name)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.f.close()
-
-
-def test_full_disk_keeps_the_last_checkpoint(tmp_path, monkeypatch):
-    """Was "TreePathError: Error at leaf with path (GetAttrKey(name='states'),)"."""
-    folder = str(tmp_path)
-    ckpt.save(folder, fit_state(), [{"epoch": 1}], FINGERPRINT)
-    real = os.fdopen
-    monkeypatch.setattr(os, "fdopen", lambda *a, **k: DiskFull(real(*a, **k)))
-    with raises(ckpt.CheckpointError, "No space left on device"):
-        ckpt.save(folder, fit_state(), [{"epoch": 1}, {"epoch": 2}], FINGERPRINT)
-    monkeypatch.undo()
-    assert sorted(os.listdir(folder)) == ["latest.json", "state-1.eqx"]  # nothing stray
-    tree, history = ckpt.load(folder, fit_state(), fingerprint=FINGERPRINT)
-    assert history == [{"epoch": 1}]
-
-
-def test_full_disk_at_the_start_leaves_no_probe(tmp_path, monkeypatch):
-    def full_open(path, mode="r", *args, **kwargs):
-        return DiskFull(open(path, mode, *args, **kwargs))
-
-    monkeypatch.setattr(ckpt, "open", full_open, raising=False)
-    with raises(ckpt.CheckpointError, "is not writable (No space left on device)"):
-        ckpt.check_folder(str(tmp_path))
-    assert os.listdir(tmp_path) == []
+# Full disks and file-size limits, for real: tests/test_checkpoint_safety.py.
 
 
 @pytest.mark.parametrize(

@@ -38,6 +38,7 @@ from ceemx.baselines.lstm import LSTMRegressor
 from ceemx.baselines.regressors import LagRegressor
 from ceemx.data.trajectories import Trajectories
 from ceemx.infra.compilation import jit
+from ceemx.infra.options import INT32_MAX
 from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import no_type_check
 
@@ -163,9 +164,11 @@ def _check_key(key) -> None:
 
 
 def check_int(name: str, value, low: int = 1) -> int:
-    """``value`` as an int ≥ ``low``; a ValueError naming ``name`` otherwise."""
+    """``value`` as an int in [``low``, 2**31 - 1]; a ValueError naming ``name`` otherwise."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
         raise ValueError(f"`{name}` must be an integer >= {low}; got {value!r}.")
+    if value > INT32_MAX:
+        raise ValueError(f"`{name}` must be an integer <= 2**31 - 1; got {value!r}.")
     return int(value)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -9,6 +11,7 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from ceemx.infra.options import check_int
 from ceemx.infra.policy import Runs, program
 from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import (
@@ -350,12 +353,25 @@ class Trajectories(eqx.Module):
         return Trajectories(cut(self.y), cut(self.u), cut(self.mask))
 
 
-def _resolve_noise(flag, default: AbstractNoise) -> AbstractNoise | None:
-    if flag is True:
-        return default
-    if flag is False or flag is None:
+def _resolve_noise(name: str, flag, default: AbstractNoise) -> AbstractNoise | None:
+    if isinstance(flag, bool | np.bool_):
+        return default if flag else None
+    if flag is None:
         return None
+    if not isinstance(flag, AbstractNoise):
+        raise TypeError(
+            f"`{name}` must be True, False or a noise model such as ceemx.DiagonalGaussian; "
+            f"got {flag!r:.80}."
+        )
     return flag
+
+
+def _num_steps(num_steps, u) -> int:
+    """``num_steps`` checked (an integer in [1, 2**31 - 1]) and equal to the inputs' T."""
+    T = cast(int, check_int("num_steps", num_steps, 1))
+    if u is not None and np.ndim(u) == 3 and np.shape(u)[1] != T:
+        raise ValueError(f"`num_steps` = {T} but `u` has T = {np.shape(u)[1]} steps.")
+    return T
 
 
 def sample_noise(noise: AbstractNoise, key: PRNGKeyArray, shape, dtype) -> Array:
@@ -410,10 +426,10 @@ def simulate(
     """
     x0 = as_jax(x0)
     B, _ = x0.shape
-    T = int(num_steps)
+    T = _num_steps(num_steps, u)
     u = jnp.zeros((B, T, 0), x0.dtype) if u is None else jnp.asarray(u, x0.dtype)
-    pn = _resolve_noise(process_noise, system.process_noise)
-    on = _resolve_noise(obs_noise, system.obs_noise)
+    pn = _resolve_noise("process_noise", process_noise, system.process_noise)
+    on = _resolve_noise("obs_noise", obs_noise, system.obs_noise)
     xs, y = _simulate(system, key, x0, u, pn, on)
     # Built outside the compiled program, so that concrete observations are validated (a
     # simulation that diverged to inf or NaN is refused here, naming the index).

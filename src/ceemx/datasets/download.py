@@ -21,10 +21,13 @@ folder, ``~/.cache/ceemx/datasets`` on Linux: ``pooch.os_cache``), a ``../shared
 development checkout — and only then the download into the cache. The cache keeps the layout of
 a data folder (``cascaded_tanks/dataBenchmark.csv``, …), so it can be handed to ``root=``.
 
-What is checked: the data file's sha256 (a mismatch removes the file and raises). The archives'
-digests are not pinned: the hosts re-pack them (the Silverbox archive moved twice), and the data
-inside is what the published digests are of. A ``file://`` URL copies a local archive (a mirror
-on a shared drive; the tests).
+What is checked: the data file's sha256, after a download and at every use of the cache (once
+per file version per process). A downloaded file that fails is removed with its archive and
+raises; a cached file that fails (torn, altered) is moved aside to ``<file>.corrupt`` and fetched
+again — from the cached archive, else downloaded. The archives' digests are not pinned: the
+hosts re-pack them (the Silverbox archive moved twice), and the data inside is what the
+published digests are of. A ``file://`` URL copies a local archive (a mirror on a shared drive;
+the tests).
 
 Without a network the loader raises :class:`DatasetUnavailable` (a ``FileNotFoundError``) with
 one sentence: what could not be downloaded from where, and where to put the file by hand.
@@ -129,6 +132,26 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+#: digests of cached files already read in this process, by (path, size, mtime)
+_DIGESTS: dict[tuple[str, int, int], str] = {}
+
+
+def _digest(path: Path) -> str:
+    """:func:`sha256` of ``path``, read once per file version per process."""
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _DIGESTS:
+        _DIGESTS[key] = sha256(path)
+    return _DIGESTS[key]
+
+
+def _set_aside(target: Path) -> Path:
+    """Move a cached data file that failed its check to ``<name>.corrupt``; return that path."""
+    aside = target.with_name(target.name + ".corrupt")
+    os.replace(target, aside)
+    return aside
+
+
 def _copy_local(fname: str, action, pooch, *, check_only: bool | None = None):
     """A pooch downloader for ``file://`` URLs (``fname``): copies the local file to ``action``.
 
@@ -168,6 +191,10 @@ def fetch(
 ) -> Path:
     """The dataset's data file in the cache, downloaded and checked on first use.
 
+    A cached data file whose sha256 is not the published one (a torn or altered file) is moved
+    aside to ``<file>.corrupt`` and fetched again: extracted afresh from the cached archive, and
+    where that gives the wrong file too, from a new download.
+
     Args:
         name: a key of :data:`SOURCES`.
         cache: the cache folder (see :func:`cache_dir`).
@@ -179,27 +206,59 @@ def fetch(
 
     Raises:
         ValueError: an unknown name; the archive is not a zip holding the data file; the data
-            file's sha256 is not the published one (the file is removed).
-        DatasetUnavailable: the archive could not be downloaded (offline, the host moved).
+            file's sha256 is not the published one (the file and the archive are removed).
+        DatasetUnavailable: the archive could not be downloaded (offline, the host moved); one
+            sentence, which also says when a corrupt cached file was set aside.
     """
     if name not in SOURCES:
         raise ValueError(f"unknown dataset {name!r}; choose from {', '.join(SOURCES)}.")
     src = SOURCES[name]
     folder = cache_dir(cache)
     target = folder / src.file
-    if target.is_file() and sha256(target) == src.sha256:
-        return target
+    corrupt = None
+    if target.is_file():
+        if _digest(target) == src.sha256:
+            return target
+        corrupt = _set_aside(target)
     url = src.url if url is None else url
+    cached_archive = folder / "archives" / src.archive
+    for _ in range(2):  # a cached archive, then (if it holds another file) a new download
+        downloaded = not cached_archive.is_file()
+        archive = _retrieve(name, src, url, folder, target, progress, corrupt)
+        try:
+            _extract(archive, src.member, target)
+        except (zipfile.BadZipFile, ValueError) as e:
+            archive.unlink(missing_ok=True)
+            raise ValueError(
+                f"the file downloaded from {url} is not the {name} archive ({e}); the host may "
+                f"have moved it: pass `url=` or put {src.member} at {target} by hand."
+            ) from None
+        digest = sha256(target)
+        if digest == src.sha256:
+            return target
+        target.unlink()
+        archive.unlink(missing_ok=True)  # the next attempt downloads it afresh
+        if downloaded:
+            raise ValueError(
+                f"sha256 of the {src.member} downloaded from {url} is {digest}; expected "
+                f"{src.sha256} (the published {name} file). It was removed; the host may serve "
+                "another version."
+            )
+    raise AssertionError("unreachable: the second attempt downloads")  # pragma: no cover
+
+
+def _retrieve(name: str, src: Source, url: str, folder: Path, target: Path, progress, corrupt):
+    """The archive, from the cache or downloaded by pooch; offline: one sentence."""
     import pooch
 
     logger = pooch.get_logger()  # its "use this known_hash" advice is not for our users
     level = logger.level
     logger.setLevel("WARNING")
     try:
-        archive = Path(
+        return Path(
             pooch.retrieve(
                 url,
-                known_hash=None,  # the data file's digest is checked below (module notes)
+                known_hash=None,  # the data file's digest is checked by fetch (module notes)
                 fname=src.archive,
                 path=folder / "archives",
                 downloader=_copy_local if url.startswith("file://") else None,
@@ -207,31 +266,20 @@ def fetch(
             )
         )
     except Exception as e:  # offline, refused, moved: one sentence says what to do
+        why = f"{type(e).__name__}: {e}".replace(". ", "; ").rstrip(".")
+        what = (
+            f"The cached {src.member} of the {name} dataset failed its sha256 check (moved to "
+            f"{corrupt}) and could not be downloaded again"
+            if corrupt is not None
+            else f"Could not download the {name} dataset"
+        )
         raise DatasetUnavailable(
-            f"Could not download the {name} dataset ({src.archive}) from {url} "
-            f"({type(e).__name__}: {e}); download it by hand and put its {src.member} at "
-            f"{target} (or under a folder named by the CEEMX_DATA environment variable, as "
-            f"{src.file})."
+            f"{what} ({src.archive}) from {url} ({why}); download it by hand and put its "
+            f"{src.member} at {target} (or under a folder named by the CEEMX_DATA environment "
+            f"variable, as {src.file})."
         ) from None
     finally:
         logger.setLevel(level)
-    try:
-        _extract(archive, src.member, target)
-    except (zipfile.BadZipFile, ValueError) as e:
-        archive.unlink(missing_ok=True)
-        raise ValueError(
-            f"the file downloaded from {url} is not the {name} archive ({e}); the host may "
-            f"have moved it: pass `url=` or put {src.member} at {target} by hand."
-        ) from None
-    digest = sha256(target)
-    if digest != src.sha256:
-        target.unlink()
-        raise ValueError(
-            f"sha256 of the {src.member} downloaded from {url} is {digest}; expected "
-            f"{src.sha256} (the published {name} file). It was removed; the host may serve "
-            "another version."
-        )
-    return target
 
 
 def _checkout_folders() -> list[Path]:
@@ -286,7 +334,8 @@ def data_file(
         download: allow the download (``False``: only files already on disk).
 
     Returns:
-        The file's path (its sha256 is checked by the loaders, and after a download).
+        The file's path (a cached file's sha256 checked here — a corrupt one fetched again —,
+        the others' by the loaders).
 
     Raises:
         ValueError: for an unknown name.
@@ -312,6 +361,14 @@ def data_file(
         return path
     cached = cache_dir(cache) / file
     if cached.is_file():
+        if download:
+            return fetch(name, cache=cache)  # checked; a corrupt file fetched again
+        if _digest(cached) != SOURCES[name].sha256:
+            raise DatasetUnavailable(
+                f"the cached {name} data file {cached} failed its sha256 check and "
+                "download=False: allow the download to fetch it again, or put the official "
+                f"file there or under a folder named by CEEMX_DATA (as {file})."
+            )
         return cached
     for folder in _checkout_folders():
         if (folder / file).is_file():

@@ -30,6 +30,7 @@ from ceemx.evaluation.simulation import (
 )
 from ceemx.identification.initialize import from_observations
 from ceemx.inference.smoother import LMSmoother, smooth_batch
+from ceemx.infra.options import check_bool
 from ceemx.infra.policy import Runs, program, smoothing_work
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import after, cholesky_solve
@@ -267,6 +268,10 @@ def initial_state_prepared(
     x_init = promote_array("x_init", x_init, system)
     T = data.num_steps
     n_init = T if n_init is None else check_int("n_init", n_init, 1, T)
+    check_bool("refine", refine)
+    check_bool("return_status", return_status)
+    if smoother is not None and not isinstance(smoother, LMSmoother):
+        raise TypeError(f"`smoother` must be a ceemx.LMSmoother or None; got {smoother!r:.80}.")
     window = _window(data, n_init)
     seen = np.asarray(window.mask).any(axis=(1, 2))
     if not seen.all():

@@ -364,8 +364,12 @@ def _check_record(test: Trajectories, n_init) -> int:
 
 def _check_scale(scale, m: int) -> np.ndarray:
     """The error scale: ones without ``scale``, else a positive scalar or (m,) vector."""
-    s = np.ones((m,)) if scale is None else np.asarray(scale, np.float64)
-    if s.ndim > 1 or s.size not in (1, m) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+    try:  # a string, a complex value, a ragged list: not a number, refused below
+        s = np.ones((m,)) if scale is None else np.asarray(scale, np.float64)
+    except (TypeError, ValueError):
+        s = np.asarray(np.nan)
+    bad = isinstance(scale, bool) or s.ndim > 1 or s.size not in (1, m)
+    if bad or not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise ValueError(f"`scale` must be a positive scalar or ({m},) vector; got {scale!r}.")
     return s
 

@@ -164,7 +164,8 @@ def plot_benchmark(
         The figure (``report.save_figure(fig, path)`` writes and closes it).
 
     Raises:
-        ValueError: shapes that do not match, or a bad ``zoom``, ``n_init`` or name count.
+        ValueError, TypeError: shapes that do not match, or a bad ``zoom``, name count or
+            numeric option (``n_init``, ``max_points``, ``dt``, …: named).
 
     Example:
         >>> import numpy as np
@@ -176,6 +177,7 @@ def plot_benchmark(
         >>> len(fig.axes)
         6
     """
+    _check_plot_options(zoom_fraction, zoom_samples, score_scale, dt, max_points)
     rec = _record(y, y_sim, label, n_init, output_names, hidden, hidden_label, bounds)
     panels = _panels(rec, zoom, zoom_fraction, int(zoom_samples), dt, max_points)
     legend_unit = unit if score_unit is None else score_unit
@@ -184,6 +186,34 @@ def plot_benchmark(
         if title:
             fig.suptitle(title, x=0.01, ha="left", fontweight="bold")
     return fig
+
+
+def _check_plot_options(zoom_fraction, zoom_samples, score_scale, dt, max_points) -> None:
+    """:func:`plot_benchmark`'s numeric options, each named when it is not what it must be."""
+    _positive("zoom_fraction", zoom_fraction, upper=1.0)
+    _count("zoom_samples", zoom_samples, 1)
+    _count("max_points", max_points, 2)
+    _positive("score_scale", score_scale)
+    if dt is not None:
+        _positive("dt", dt)
+
+
+def _count(name: str, value, low: int, high: int = 2**31 - 1) -> int:
+    """``value`` as an int in [low, high] (a bool is not one), else an error naming it."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise TypeError(f"`{name}` must be an integer; got {value!r}.")
+    if not low <= value <= high:
+        raise ValueError(f"`{name}` must be an integer in [{low}, {high}]; got {value!r}.")
+    return int(value)
+
+
+def _positive(name: str, value, upper: float = math.inf) -> None:
+    """Raise unless ``value`` is a real number in (0, ``upper``] (finite)."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise TypeError(f"`{name}` must be a real number; got {value!r}.")
+    if not (math.isfinite(value) and 0 < value <= upper):
+        bound = "finite and > 0" if upper == math.inf else f"in (0, {upper:g}]"
+        raise ValueError(f"`{name}` must be {bound}; got {value!r}.")
 
 
 class _Record(NamedTuple):
@@ -203,9 +233,7 @@ def _record(y, y_sim, label, n_init, output_names, hidden, hidden_label, bounds)
     yy = _as_tm(y, "y")
     T, m = yy.shape
     sims = _simulations(y_sim, label, yy.shape)
-    n_init = int(n_init)
-    if not 0 <= n_init < T:
-        raise ValueError(f"`n_init` must be in [0, {T}); got {n_init}.")
+    n_init = _count("n_init", n_init, 0, T - 1)
     names = _names(output_names, m, "y", "output_names")
     return _Record(yy, sims, n_init, names, *_hidden_states(hidden, hidden_label, bounds, T))
 

@@ -27,6 +27,7 @@ from ceemx.data.checks import prepare, promote_array, promote_tree
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.ekf import ekf_prepared
 from ceemx.infra.compilation import jit
+from ceemx.infra.options import INT32_MAX
 from ceemx.lib.typing import Inputs, Observations, States, no_type_check
 from ceemx.models.system import AbstractSystem, GaussianPrior
 
@@ -61,15 +62,15 @@ def _finite(name: str, a: np.ndarray) -> None:
 
 
 def check_int(name: str, value, low: int, high: int | None = None) -> int:
-    """``value`` as an int in [low, high] (no upper bound: ``None``); errors name ``name``."""
+    """``value`` as an int in [low, high] (``None``: up to 2**31 - 1, JAX's int32 counts)."""
     try:
         if isinstance(value, bool):
             raise TypeError
         v = operator.index(value)
     except TypeError:
         raise TypeError(f"`{name}` must be an integer; got {value!r}.") from None
-    if v < low or (high is not None and v > high):
-        bound = f"[{low}, {high}]" if high is not None else f">= {low}"
+    if v < low or v > (INT32_MAX if high is None else high):
+        bound = f"[{low}, {high}]" if high is not None else f"[{low}, 2**31 - 1]"
         raise ValueError(f"`{name}` must be in {bound}; got {v}.")
     return v
 
@@ -180,7 +181,7 @@ def free_run(
         if ub.ndim != 3 or ub.shape[0] != xb.shape[0] or ub.shape[2] != p or ub.shape[1] < 1:
             want = f"(T, {p})" if single else f"(B, T, {p}) with B = {xb.shape[0]}"
             raise ValueError(f"`u` must have shape {want}; got {jnp.shape(u)}.")
-        if num_steps is not None and num_steps != ub.shape[1]:
+        if num_steps is not None and check_int("num_steps", num_steps, 1) != ub.shape[1]:
             raise ValueError(f"`num_steps` = {num_steps} but `u` has T = {ub.shape[1]} steps.")
         _finite("u", np.asarray(ub))
     _finite("x1", np.asarray(xb))

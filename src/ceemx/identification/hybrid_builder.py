@@ -25,9 +25,10 @@ from jaxtyping import ArrayLike, Float, PRNGKeyArray
 from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.initialize import warm_start_states
+from ceemx.infra.options import check_bool, check_positive
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem
 from ceemx.systems.hybrid import Hybrid, HybridContinuous
-from ceemx.systems.learned_term import learned_term
+from ceemx.systems.learned_term import check_mlp, learned_term
 
 __all__ = ["hybrid"]
 
@@ -92,12 +93,14 @@ def hybrid(
     Raises:
         TypeError / ValueError: naming the argument — before any compute: a wrong physics or
             data type, data whose m or p differ from the model's, an activation that is not
-            callable, a key that is not a PRNG key, no learned term asked for; then (after the
-            default start's smoothing when ``states`` is None): states of the wrong shape or
-            not finite, indices out of range, a non-positive width or prior σ, NaN or crossed
-            bounds.
+            callable, a key that is not a PRNG key, no learned term asked for, a width or depth
+            out of range or whose networks would not fit in memory, a non-positive prior σ or
+            bound sharpness; then (after the default start's smoothing when ``states`` is
+            None): states of the wrong shape or not finite, indices out of range, NaN or
+            crossed bounds.
     """
     inputs = _checked(physics, data, activation, dynamics, observation, lower, upper)
+    _check_network(inputs, width, depth, prior_std, use_input, bound_sharpness)
     k_dyn, k_obs = _split_key(key)
     x = _state_record(inputs, states)
     continuous = isinstance(physics, AbstractContinuousSystem)
@@ -128,6 +131,17 @@ def _checked(physics, data, activation, dynamics, observation, lower, upper):
             "bounds (`lower`/`upper`: the physics model with bounded states)."
         )
     return inputs
+
+
+def _check_network(inputs, width, depth, prior_std, use_input, bound_sharpness) -> None:
+    """The networks' options, and their size against the memory, before any compute."""
+    check_positive("prior_std", prior_std)
+    check_bool("use_input", use_input)
+    check_positive("bound_sharpness", bound_sharpness)
+    system = inputs.system
+    n_in = system.state_dim + (system.input_dim if use_input else 0)
+    out = max(system.state_dim, system.obs_dim)  # the larger of the two terms
+    check_mlp(width, depth, n_in, out, np.dtype(inputs.data.y.dtype).itemsize)
 
 
 def _split_key(key: PRNGKeyArray | None) -> tuple[PRNGKeyArray, PRNGKeyArray]:

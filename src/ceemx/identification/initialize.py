@@ -21,6 +21,7 @@ from ceemx.data.checks import prepare, promote_tree
 from ceemx.data.trajectories import Trajectories, rollout_one
 from ceemx.inference.smoother import LMSmoother, smooth_prepared
 from ceemx.infra.compilation import jit
+from ceemx.infra.options import check_callable, check_key, check_nonnegative, check_positive
 from ceemx.infra.policy import Runs, entry_point, program
 from ceemx.models.system import AbstractSystem, with_noise
 
@@ -101,6 +102,7 @@ def warm_start(
     """
     if smoother is not None and not isinstance(smoother, LMSmoother):
         raise TypeError(f"`smoother` must be a ceemx.LMSmoother; got {smoother!r}.")
+    check_positive("process_noise", process_noise)
     inputs = prepare(system, data, identify=True)
     return warm_start_states(
         inputs.system, inputs.data, process_noise=process_noise, smoother=smoother
@@ -165,6 +167,9 @@ def perturb(
     Returns:
         A perturbed copy of ``tree``.
     """
+    check_key(key)
+    check_nonnegative("frac", frac)
+    check_callable("where", where, none=True)
     target = tree if where is None else where(tree)
     leaves, treedef = jtu.tree_flatten(target)
     new = jtu.tree_unflatten(treedef, _perturb_leaves(key, leaves, frac))

@@ -365,6 +365,7 @@ def smooth(
     """
     if solver is not None and not isinstance(solver, LMSmoother):
         raise TypeError(f"`solver` must be a ceemx.LMSmoother; got {solver!r}.")
+    check_bool("covariance", covariance)
     if solver is not None:
         recheck(solver)  # as constructed: eqx.tree_at skips __check_init__
     inputs = prepare(system, data, x_init)

@@ -16,7 +16,9 @@ raises :class:`CheckpointError`, or, with ``mismatch="restart"``, warns and star
 
 from __future__ import annotations
 
+import errno
 import hashlib
+import io
 import json
 import os
 import re
@@ -119,19 +121,58 @@ def lock(folder: str | None) -> Iterator[None]:
         yield
 
 
-def _atomic_write(path: str, write) -> None:
+#: Bytes handed to one ``os.write``: Linux writes at most 0x7ffff000 bytes per call, so a larger
+#: request would come back short on a disk with room; a short write of a smaller one means the
+#: file system is out of space (or the file-size limit is reached).
+_WRITE_CHUNK = 1 << 30
+
+
+def _atomic_write(path: str, data: bytes) -> None:
+    """``data`` into ``path`` atomically: a temporary in the folder, fsync, ``os.replace``.
+
+    Any failure — a short or failed write, fsync, close — removes the temporary and raises an
+    ``OSError`` with its errno; ``path`` is untouched.
+    """
     folder = os.path.dirname(path) or "."
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-")
     try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
+        try:
+            _write_all(fd, data, tmp)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
+
+
+def _write_all(fd: int, data: bytes, name: str) -> None:
+    """Write all of ``data`` to ``fd``; a short write is retried once, then is ``ENOSPC``.
+
+    A file system with less room than asked writes what fits and returns the count; only the
+    next write fails with the reason (ENOSPC, EFBIG past ``ulimit -f``, EDQUOT). The retry
+    surfaces that errno; a retry that again writes short, or nothing, raises ``ENOSPC`` naming
+    the counts (NumPy's own writer reported such a disk as "3200 requested and 476 written").
+    """
+    view = memoryview(data)
+    done = 0
+    while done < len(view):
+        want = min(len(view) - done, _WRITE_CHUNK)
+        n = os.write(fd, view[done : done + want])
+        done += n
+        if n == want:
+            continue
+        retry = os.write(fd, view[done : done + want - n]) if n > 0 else 0
+        done += retry
+        if retry != want - n:
+            raise OSError(
+                errno.ENOSPC,
+                f"No space left on device (a write stopped short: {done} of {len(view)} bytes "
+                "written, and a retry wrote no more than part of the rest)",
+                name,
+            )
 
 
 def _sha256_file(path: str) -> str:
@@ -209,8 +250,11 @@ def save(folder: str, tree, history: list[dict], fingerprint: dict | None = None
     epoch = len(history)
     name = f"state-{epoch}.eqx"
     path = os.path.join(folder, name)
+    buffer = io.BytesIO()  # serialised first: the disk sees one plain write (_write_all)
+    eqx.tree_serialise_leaves(buffer, tree)
+    data = buffer.getvalue()
     try:
-        _atomic_write(path, lambda f: eqx.tree_serialise_leaves(f, tree))
+        _atomic_write(path, data)
     except Exception as err:
         _raise_write_error(folder, err)
         raise
@@ -218,13 +262,13 @@ def save(folder: str, tree, history: list[dict], fingerprint: dict | None = None
         "format": _FORMAT,
         "epoch": epoch,
         "state": name,
-        "state_sha256": _sha256_file(path),
+        "state_sha256": hashlib.sha256(data).hexdigest(),
         "fingerprint": fingerprint,
         "history": history,
     }
     text = json.dumps(meta, default=_to_builtin)
     try:
-        _atomic_write(os.path.join(folder, _LATEST), lambda f: f.write(text.encode()))
+        _atomic_write(os.path.join(folder, _LATEST), text.encode())
     except Exception as err:
         if os.path.exists(path):  # latest.json still names the previous state: keep that one
             os.remove(path)
@@ -240,20 +284,23 @@ def save(folder: str, tree, history: list[dict], fingerprint: dict | None = None
 
 
 def _raise_write_error(folder: str, err: BaseException) -> None:
-    """A :class:`CheckpointError` for an OS error behind ``err`` (Equinox wraps it per leaf).
+    """A :class:`CheckpointError` naming the OS error behind ``err`` and its errno, if any.
 
-    A full disk surfaced as "TreePathError: Error at leaf with path (GetAttrKey(name='states'),)";
-    now it reads "… No space left on device …; the previous checkpoint … is kept".
+    The message says what the user needs: the folder, the reason ("No space left on device",
+    "File too large" past the file-size limit), and that the previous checkpoint is intact.
     """
     cause: BaseException | None = err
     while cause is not None and not isinstance(cause, OSError):
         cause = cause.__cause__ or cause.__context__
     if cause is None:
         return
+    code = cause.errno
+    name = f"{errno.errorcode[code]}, " if code is not None and code in errno.errorcode else ""
+    limit = " — the process's file-size limit, `ulimit -f`" if code == errno.EFBIG else ""
     raise CheckpointError(
         f"could not write the checkpoint in {folder!r}: {cause.strerror or cause} "
-        f"(errno {cause.errno}); the previous checkpoint there, if any, is kept unchanged. Free "
-        "space or pass another folder to go on."
+        f"({name}errno {code}{limit}); the previous checkpoint there, if any, is kept unchanged. "
+        "Free space or pass another folder to go on."
     ) from err
 
 
@@ -294,8 +341,11 @@ def _describe_mismatch(saved: dict, now: dict) -> list[str]:
 def _non_finite(tree) -> list[str]:
     """Fields of a fit state with NaN/inf where they must be finite.
 
-    These are θ, the weights, the solver's scalar state (e.g. the joint method's damping λ), and
-    the states and J of the trajectories taking part (weight > 0).
+    θ and the weights everywhere; the states and J of the trajectories taking part (weight > 0);
+    and every floating leaf of the solver's state — its scalars (the joint method's damping λ),
+    Laplace EM's per-trajectory log-evidence and smoother start, Particle EM's stored draws, the
+    learner's state — everywhere except, in a leaf of per-trajectory values (leading axis B), at
+    the excluded trajectories, whose values no epoch reads.
     """
     bad = []
     theta = getattr(tree, "theta", None)
@@ -304,14 +354,15 @@ def _non_finite(tree) -> list[str]:
     weights = getattr(tree, "weights", None)
     if weights is not None and not np.all(np.isfinite(np.asarray(weights))):
         bad.append("weights")
-    scalars = [
-        leaf
-        for leaf in jtu.tree_leaves(getattr(tree, "solver_state", None))
-        if eqx.is_inexact_array(leaf) and np.ndim(leaf) == 0
-    ]
-    if not all(np.isfinite(np.asarray(leaf)) for leaf in scalars):
-        bad.append("solver_state (a scalar such as the damping)")
     active = None if weights is None else np.asarray(weights) > 0
+    for path, leaf in jtu.tree_flatten_with_path(getattr(tree, "solver_state", None))[0]:
+        if not eqx.is_inexact_array(leaf):
+            continue
+        arr = np.asarray(leaf)
+        if active is not None and arr.ndim and arr.shape[0] == active.shape[0]:
+            arr = arr[active]
+        if not np.all(np.isfinite(arr)):
+            bad.append(f"solver_state{jtu.keystr(path)}")
     for name in ("states", "J"):
         value = getattr(tree, name, None)
         if value is None or active is None:

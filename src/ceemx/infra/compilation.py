@@ -34,6 +34,8 @@ import equinox as eqx
 import jax
 from jax.core import Tracer
 
+from ceemx.infra.options import check_nonnegative, check_path
+
 try:  # no public query of JAX's trace state; the arguments' tracers tell where it is absent
     from jax._src.core import trace_state_clean as _trace_state_clean
 except ImportError:  # pragma: no cover
@@ -97,9 +99,10 @@ def enable_compilation_cache(
 
     Raises:
         ValueError: a negative or non-finite ``min_compile_time_s``.
+        TypeError: a ``min_compile_time_s`` that is not a number, a ``path`` that is not one.
     """
-    if not (min_compile_time_s >= 0 and min_compile_time_s != float("inf")):
-        raise ValueError(f"`min_compile_time_s` must be finite and >= 0; got {min_compile_time_s}.")
+    check_nonnegative("min_compile_time_s", min_compile_time_s)
+    path = check_path("path", path, none=True)
     if path is None:
         env = os.environ.get("CEEMX_COMPILATION_CACHE")
         if env is not None and env.strip().lower() in _OFF:

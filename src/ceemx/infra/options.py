@@ -1,7 +1,8 @@
-"""Validation of solver and learner options: one helper per kind of option, used by every class.
+"""Validation of options: one helper per kind of option, for every class and public function.
 
-Each check runs on the host when an options object is built (Equinox ``__check_init__``), before
-any compute, and raises ``TypeError`` (wrong kind) or ``ValueError`` (bad value) with a message
+Each check runs on the host when an options object is built (Equinox ``__check_init__``) or a
+public function is entered (its keyword options: ``fit``, ``smooth``, ``hybrid``, …), before any
+compute, and raises ``TypeError`` (wrong kind) or ``ValueError`` (bad value) with a message
 that names the option and says what it must be: "`rtol` must be finite and >= 0; got nan.".
 Traced values pass unchecked (an options object rebuilt inside ``jit`` was checked when made).
 
@@ -27,6 +28,7 @@ What the numbers may be, beyond their kind:
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Collection
 from typing import Any
 
@@ -37,21 +39,25 @@ import numpy as np
 from jax.core import Tracer
 
 __all__ = [
-    "INT_MAX",
+    "INT32_MAX",
     "check_bool",
+    "check_callable",
     "check_choice",
     "check_damping",
     "check_int",
     "check_key",
     "check_nonnegative",
+    "check_path",
     "check_positive",
     "check_real",
     "check_rtol",
     "recheck",
 ]
 
-#: The largest integer option: JAX carries iteration bounds and counts as int32.
-INT_MAX = 2**31 - 1
+#: The largest integer option: counts (steps, epochs, particles, widths) become int32 loop bounds
+#: and shapes in JAX, where a larger Python int fails late (``OverflowError`` naming no option)
+#: or wraps to a negative or small bound.
+INT32_MAX = 2**31 - 1
 
 
 def check_real(name: str, value: Any) -> np.ndarray | None:
@@ -95,10 +101,13 @@ def check_positive(name: str, value: Any, *, allow_inf: bool = False) -> None:
         raise ValueError(f"`{name}` must be {what}; got {value!r}.")
 
 
-def check_int(name: str, value: Any, minimum: int, *, none: bool = False) -> int | None:
-    """``value`` as an integer >= ``minimum`` (``None`` passes if ``none``); raises naming it.
+def check_int(
+    name: str, value: Any, minimum: int, *, none: bool = False, maximum: int = INT32_MAX
+) -> int | None:
+    """``value`` as an integer in [``minimum``, ``maximum``] (``None`` passes if ``none``).
 
-    A bool is not an int here (``max_steps=True`` is a mistake, not 1).
+    A bool is not an int here (``max_steps=True`` is a mistake, not 1). The upper bound defaults
+    to :data:`INT32_MAX`: JAX counts in int32, where ``2**31`` steps would wrap.
     """
     if value is None and none:
         return None
@@ -107,11 +116,9 @@ def check_int(name: str, value: Any, minimum: int, *, none: bool = False) -> int
         raise TypeError(f"`{name}` must be {kind}; got {value!r}.")
     if value < minimum:
         raise ValueError(f"`{name}` must be an integer >= {minimum}; got {value}.")
-    if value > INT_MAX:
-        raise ValueError(
-            f"`{name}` must be an integer <= 2**31 - 1 = {INT_MAX} (it is carried as int32, "
-            f"where a larger value wraps); got {value}."
-        )
+    if value > maximum:
+        why = " (2**31 - 1: counts are int32 in JAX)" if maximum == INT32_MAX else ""
+        raise ValueError(f"`{name}` must be an integer <= {maximum}{why}; got {value}.")
     return int(value)
 
 
@@ -184,10 +191,35 @@ def recheck(options: Any) -> None:
     visit(options)
 
 
-def check_bool(name: str, value: Any) -> None:
-    """Raise ``TypeError`` unless ``value`` is ``True`` or ``False``."""
+def check_bool(name: str, value: Any, *, none: bool = False) -> None:
+    """Raise ``TypeError`` unless ``value`` is ``True`` or ``False`` (or ``None`` if ``none``).
+
+    Truthy stand-ins are refused: ``covariance="False"`` would otherwise mean True.
+    """
+    if value is None and none:
+        return
     if not isinstance(value, bool | np.bool_):
-        raise TypeError(f"`{name}` must be True or False; got {value!r}.")
+        kind = "True, False or None" if none else "True or False"
+        raise TypeError(f"`{name}` must be {kind}; got {_short(value)}.")
+
+
+def check_callable(name: str, value: Any, *, none: bool = False) -> None:
+    """Raise ``TypeError`` unless ``value`` is callable (or ``None`` if ``none``)."""
+    if (value is None and none) or callable(value):
+        return
+    kind = "a callable or None" if none else "a callable"
+    raise TypeError(f"`{name}` must be {kind}; got {_short(value)}.")
+
+
+def check_path(name: str, value: Any, *, none: bool = False) -> str | None:
+    """``value`` as a ``str`` path: a ``str`` or ``os.PathLike`` of one (``None`` if ``none``)."""
+    if value is None and none:
+        return None
+    path = os.fspath(value) if isinstance(value, str | os.PathLike) else None
+    if not isinstance(path, str):
+        kind = "a path (str or os.PathLike)" + (" or None" if none else "")
+        raise TypeError(f"`{name}` must be {kind}; got {_short(value)}.")
+    return path
 
 
 def check_choice(name: str, value: Any, choices: Collection[Any]) -> None:

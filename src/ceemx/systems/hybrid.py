@@ -179,7 +179,8 @@ def _bounds(physics: AbstractSystem, lower, upper, sharpness, *terms):
             raise ValueError(f"`{name}` must not be NaN; got {v}.")
     if any(a >= b for a, b in zip(lo, hi, strict=True)):
         raise ValueError(f"`lower` must be below `upper` in every entry; got {lo} and {hi}.")
-    if not (isinstance(sharpness, int | float) and 0 < sharpness < math.inf):
+    number = isinstance(sharpness, int | float) and not isinstance(sharpness, bool)
+    if not (number and 0 < sharpness < math.inf):
         raise ValueError(f"`bound_sharpness` must be a positive finite number; got {sharpness!r}.")
     scales = [t.x_scale for t in terms if t is not None]
     scale = np.asarray(scales[0], float) if scales else np.ones(n)

@@ -10,6 +10,7 @@ chosen entries of the model's vector only; :func:`learned_term` builds one aroun
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -18,13 +19,14 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Scalar
 
-from ceemx.infra.options import check_int, check_positive
+from ceemx.infra.memory import check_fits
+from ceemx.infra.options import check_bool, check_int, check_positive
 from ceemx.lib.tree import as_jax
 from ceemx.models.constraints import param
 from ceemx.models.system import AbstractSystem
 from ceemx.systems.neural import init_mlp
 
-__all__ = ["LearnedTerm", "learned_term", "weight_decay"]
+__all__ = ["LearnedTerm", "check_mlp", "learned_term", "weight_decay"]
 
 
 class LearnedTerm(eqx.Module):
@@ -119,10 +121,10 @@ def learned_term(
     if targets is not None:
         targets = _check_targets(targets, size, out)
     check_positive("prior_std", prior_std)
+    check_bool("use_input", use_input)
     if net is None:
-        check_int("width", width, 1)
-        check_int("depth", depth, 0)
         n_in = n + (p if use_input else 0)
+        check_mlp(width, depth, n_in, out, np.dtype(dtype).itemsize)
         net = init_mlp(key, n_in, out, width, depth, activation, dtype, 0.0)  # output zero
     assert net is not None
     return LearnedTerm(
@@ -132,6 +134,26 @@ def learned_term(
         targets=targets,
         size=size,
         **{k: as_jax(a) for k, a in arrays.items()},
+    )
+
+
+def check_mlp(width, depth, n_in: int, out: int, itemsize: int) -> None:
+    """Raise, before any allocation, for a bad ``width``/``depth`` or an MLP too big to build.
+
+    The estimate is twice the weights (the initialisation's random draws and the scaled weights
+    live at once); a network past the machine's memory otherwise fails inside XLA — past about
+    10⁹ weights per layer with an abort of the whole process, not an exception.
+    """
+    width = cast(int, check_int("width", width, 1))
+    depth = cast(int, check_int("depth", depth, 0))
+    if depth == 0:
+        weights = (n_in + 1) * out
+    else:
+        weights = (n_in + 1) * width + (depth - 1) * (width + 1) * width + (width + 1) * out
+    check_fits(
+        f"the {weights:.3g} weights of an MLP of width {width} and depth {depth}",
+        2 * weights * itemsize,
+        "pass a smaller `width` or `depth`.",
     )
 
 

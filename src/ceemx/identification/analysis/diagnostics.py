@@ -76,6 +76,7 @@ from ceemx.identification.analysis.noise_estimate import (
     start_states,
 )
 from ceemx.inference.ekf import ekf_prepared
+from ceemx.infra.options import check_bool, check_real
 from ceemx.lib.tree import as_jax
 from ceemx.models.system import AbstractSystem, GaussianPrior
 
@@ -261,6 +262,7 @@ def residual_diagnostics(
         ValueError: ``lags`` < 1 or ``factor`` ≤ 1.
     """
     _check_request(system, lags, factor)
+    check_bool("estimate", estimate)
     M = int(min(lags, data.num_steps - 1))
     system = _strong(system)
     inputs = prepare(system, data, states, identify=True)
@@ -307,6 +309,7 @@ def _check_request(system: AbstractSystem, lags, factor) -> None:
             )
     if isinstance(lags, bool) or not isinstance(lags, int | np.integer) or lags < 1:
         raise ValueError(f"`lags` must be an integer ≥ 1; got {lags!r}.")
+    check_real("factor", factor)
     if not (np.isfinite(factor) and factor > 1):
         raise ValueError(f"`factor` must be finite and > 1; got {factor!r}.")
 

@@ -44,6 +44,7 @@ from ceemx.identification.noise_moments import (
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
 from ceemx.inference.smoother import LMSmoother
 from ceemx.infra.compilation import jit
+from ceemx.infra.options import check_bool, check_int
 from ceemx.infra.policy import entry_point
 from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import trace_numbers
@@ -221,7 +222,7 @@ def estimate_noise(
         system: the model at the θ to estimate the noise for.
         data: B observed trajectories.
         states: start states of the first smoothing (``None``: as a fit starts).
-        fields: which noise models to estimate (``"process_noise"``, ``"obs_noise"``).
+        fields: which noise models to estimate (``"process_noise"``, ``"obs_noise"``: one, both).
         per_component: one factor per noise model (``False``) or one scale per component of
             each diagonal model (``True``; a full covariance still takes one factor).
         search: before L-BFGS, evaluate the factors on a grid of decades (10⁻³…10³ times the
@@ -245,7 +246,7 @@ def estimate_noise(
         ValueError: for an unknown field, a noise model that is not Gaussian, or an invalid
             ``max_evaluations``.
     """
-    fields = _checked_options(system, fields, max_evaluations)
+    fields = _checked_options(system, fields, max_evaluations, per_component, search, smoother)
     inputs = prepare(system, data, states, identify=True)
     return estimate_noise_prepared(
         system,
@@ -259,17 +260,18 @@ def estimate_noise(
     )
 
 
-def _checked_options(system: AbstractSystem, fields: Sequence[str], max_evaluations) -> tuple:
-    """The distinct ``fields`` of :func:`estimate_noise`, checked with ``max_evaluations``."""
-    fields = tuple(dict.fromkeys(fields))
+def _checked_options(system, fields, max_evaluations, per_component, search, smoother) -> tuple:
+    """The distinct ``fields`` of :func:`estimate_noise`, checked with its other options."""
+    fields = tuple(dict.fromkeys((fields,) if isinstance(fields, str) else fields))  # one name
     for field in fields:
         if field not in NOISE_FIELDS:
             raise ValueError(f"`fields` entries must be in {NOISE_FIELDS}; got {field!r}.")
         _check_closed_form(field, getattr(system, field))
-    if isinstance(max_evaluations, bool) or not isinstance(max_evaluations, int | np.integer):
-        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
-    if max_evaluations < 1:
-        raise ValueError(f"`max_evaluations` must be an integer ≥ 1; got {max_evaluations!r}.")
+    check_int("max_evaluations", max_evaluations, 1)
+    check_bool("per_component", per_component)
+    check_bool("search", search)
+    if smoother is not None and not isinstance(smoother, LMSmoother):
+        raise TypeError(f"`smoother` must be a ceemx.LMSmoother or None; got {smoother!r:.80}.")
     return fields
 
 

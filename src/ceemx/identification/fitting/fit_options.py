@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import jax
 import numpy as np
@@ -20,12 +20,28 @@ from ceemx.data.sharding import resolve_devices
 from ceemx.identification.fitting.health import OUTLIER_OPTIONS
 from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver
-from ceemx.infra.options import check_key, recheck
+from ceemx.infra.options import (
+    check_bool,
+    check_callable,
+    check_choice,
+    check_int,
+    check_key,
+    check_path,
+    recheck,
+)
 
-__all__ = ["NOISE_OPTIONS", "FitOptions", "check_against_start", "fit_options"]
+__all__ = [
+    "CHECKPOINT_MISMATCH_OPTIONS",
+    "NOISE_OPTIONS",
+    "FitOptions",
+    "check_against_start",
+    "fit_options",
+]
 
 #: ``fit(..., noise=...)``: fit at the system's noise, or learn its two factors from the data
 NOISE_OPTIONS = ("fixed", "learn")
+#: ``fit(..., checkpoint_mismatch=...)``: on a checkpoint that cannot be resumed
+CHECKPOINT_MISMATCH_OPTIONS = ("raise", "restart")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,13 +73,30 @@ class FitOptions:
 
 
 def fit_options(
-    *, solver, noise, outliers, max_epochs, key, devices, checkpoint, **rest
+    *,
+    solver,
+    noise,
+    outliers,
+    max_epochs,
+    key,
+    devices,
+    checkpoint,
+    checkpoint_mismatch,
+    callbacks,
+    progress,
+    diagnose,
+    **rest,
 ) -> FitOptions:
-    """The checked :class:`FitOptions` (``rest``: the options with nothing to check here).
+    """The checked :class:`FitOptions` (``rest``: the options checked where they are read).
 
     Raises:
         ValueError, TypeError: naming the option, before any compute.
     """
+    check_bool("diagnose", diagnose)
+    check_bool("progress", progress, none=True)
+    check_choice("checkpoint_mismatch", checkpoint_mismatch, CHECKPOINT_MISMATCH_OPTIONS)
+    checkpoint = check_path("checkpoint", checkpoint, none=True)
+    callbacks = _check_callbacks(callbacks)
     if noise not in NOISE_OPTIONS:
         raise ValueError(f"`noise` must be 'fixed' or 'learn'; got {noise!r}.")
     if noise == "learn":
@@ -95,6 +128,10 @@ def fit_options(
         outliers=outliers,
         mesh=mesh,
         checkpoint=checkpoint,
+        checkpoint_mismatch=checkpoint_mismatch,
+        callbacks=callbacks,
+        progress=progress,
+        diagnose=diagnose,
         **rest,
     )
 
@@ -120,7 +157,23 @@ def _check_max_epochs(max_epochs) -> int:
         raise TypeError(f"`max_epochs` must be an int; got {max_epochs!r}.")
     if max_epochs < 0:
         raise ValueError(f"`max_epochs` must be >= 0; got {max_epochs}.")
-    return int(max_epochs)
+    return cast(int, check_int("max_epochs", max_epochs, 0))
+
+
+def _check_callbacks(callbacks) -> tuple[Callable[[Any], Any], ...]:
+    """``callbacks`` as a tuple of callables; a single callable or a string is refused."""
+    if (
+        callable(callbacks)
+        or isinstance(callbacks, str | bytes)
+        or not isinstance(callbacks, Sequence)
+    ):
+        raise TypeError(
+            f"`callbacks` must be a list or tuple of callables (e.g. [f] for one); got "
+            f"{callbacks!r:.80}."
+        )
+    for i, callback in enumerate(callbacks):
+        check_callable(f"callbacks[{i}]", callback)
+    return tuple(callbacks)
 
 
 def check_against_start(

@@ -7,6 +7,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import ArrayLike, Float, PRNGKeyArray
 
 from ceemx.data.checks import prepare
@@ -77,6 +78,7 @@ def learn(
         check_key(key)
     inputs = prepare(system, data, states, name="states", unobserved_warning=False)
     system, data, states = inputs.system, inputs.data, jnp.asarray(inputs.states)
+    weights = _check_weights(weights, data.batch_size)
     learner = trace_numbers(learner, states.dtype)
     problem, theta = make_problem(
         system,
@@ -91,3 +93,18 @@ def learn(
         learner_state = learner.init(theta, jax.random.PRNGKey(0) if key is None else key)
     theta_new, learner_state, info = run_learner(learner, problem, theta, learner_state)
     return problem.build(theta_new), learner_state, info
+
+
+def _check_weights(weights, B: int):
+    """``weights`` as (B,) finite non-negative floats (``None`` passes), or raise naming them."""
+    if weights is None:
+        return None
+    try:
+        w = np.asarray(weights, np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"`weights` must be (B,) = ({B},) numbers; got {weights!r:.80}.") from None
+    if w.shape != (B,) or not np.all(np.isfinite(w) & (w >= 0)):
+        raise ValueError(
+            f"`weights` must be (B,) = ({B},) finite numbers >= 0; got shape {w.shape}: {w!r:.80}."
+        )
+    return weights
