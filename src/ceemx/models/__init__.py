@@ -10,13 +10,13 @@ from ceemx.models.constraints import (
     Unconstrained,
     param,
 )
+from ceemx.models.laplace_noise import LaplaceNoise
 from ceemx.models.noise import (
     AbstractGaussianNoise,
     AbstractNoise,
     CholeskyGaussian,
     DiagonalGaussian,
 )
-from ceemx.models.laplace_noise import LaplaceNoise
 from ceemx.models.student_t import StudentT
 from ceemx.models.system import (
     AbstractContinuousSystem,
