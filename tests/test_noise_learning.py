@@ -221,6 +221,11 @@ def test_noise_check_does_not_call_interpolating_states_consistent(lin_data):
     assert check.interpolating and not check.consistent
     assert check.message is not None and "interpolate the data" in check.message
     assert "DEGENERATE" in check.summary()
+    # every noise 100× too loose: all residuals are small, which is "too loose", not interpolation
+    loose = linear(q=100 * Q, r=100 * R)
+    check = noise_check(loose, lin_data, residual_moments(loose, lin_data).states)
+    assert check is not None and check.ratio < check.band[0] and not check.interpolating
+    assert check.message is not None and "too loose" in check.message
 
 
 class _Rounds:
@@ -276,3 +281,5 @@ def test_degenerate_noise_estimates_are_not_fitted_at(monkeypatch, lin_data):
         r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
     assert fake.fitted_at == [pytest.approx(Q)] and r.converged
     assert _std(r.system.process_noise) == pytest.approx(Q)
+    assert any("the noise was not learned" in m for m in r.messages())
+    assert r.summary().count("(given)") == 2

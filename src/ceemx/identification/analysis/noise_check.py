@@ -43,9 +43,10 @@ interpolate the data, the observation residuals vanish, the process residuals ca
 and ρ stays near 1 (0.94 on a hysteretic record with a learned σ_v of 1e-10). The observation
 group's mean squared whitened residual tells: it falls with σ_v/s, s the one-step spread the
 process noise allows at the outputs. Below :data:`INTERPOLATION` (residuals 100× smaller than
-their assumed standard deviation) the check is not consistent whatever ρ: the observation
-noise is orders of magnitude below what the data resolve against the process noise — a
-collapsed estimate, or a process noise far too loose for the observation noise.
+their assumed standard deviation) while ρ is in the band or above it — the other residuals
+carry it — the check is not consistent: the observation noise is orders of magnitude below what
+the data resolve against the process noise, a collapsed estimate or a process noise far too
+loose for it. (With ρ below the band every residual is small: a noise too loose, as above.)
 
 ρ is an aggregate: a wrong scale of one component shows up diluted, so a ρ inside the band does
 not prove every scale right (:meth:`ceemx.FitResult.diagnostics` estimates each). For d < 1 or
@@ -311,13 +312,20 @@ def noise_check(
         per_trajectory=np.where(finite, per_trajectory, np.nan),
         learned=tuple(learned),
         converged=converged,
-        interpolating=bool(
-            obs_count.sum() > 0 and groups["observation"][0] < INTERPOLATION * obs_count.sum()
-        ),
+        interpolating=_interpolating(groups, ratio, min(band[0], lo)),
     )
     if check.consistent or {"process_noise", "obs_noise"} <= set(learned):
         return check
     return dataclasses.replace(check, message=_message(check))
+
+
+def _interpolating(groups: dict, ratio: float, lower: float) -> bool:
+    """The observation residuals vanish while the others carry ρ into the band or above it.
+
+    With ρ below the band every residual is small: the noise is too loose, a case of its own.
+    """
+    total, count = groups["observation"]
+    return bool(count > 0 and total < INTERPOLATION * count and ratio >= lower)
 
 
 def _interpolation_message(check: NoiseCheck) -> str:

@@ -184,7 +184,9 @@ def _names_list(names: Sequence[str], most: int = 8) -> str:
 
 def _learned(result, field: str) -> bool:
     problem = result.problem
-    return bool(result.noise_rounds) or bool(problem is not None and problem.trains(field))
+    if result.noise_rounds:  # noise="learn": unless no estimate but a degenerate one came
+        return bool(result.noise_rounds[-1].get("learned", True))
+    return bool(problem is not None and problem.trains(field))
 
 
 def _trajectory_lines(result) -> tuple[str, list[str]]:
@@ -289,7 +291,12 @@ def noise_round_messages(rounds) -> list[str]:
     The floors the last estimate was held at, and why the rounds stopped when they did not settle.
     """
     last = rounds[-1]
-    out: list[str] = list(last.get("notes") or ())
+    out = [f"the last noise estimate: {note}" for note in last.get("notes") or ()]
+    if last.get("learned") is False:
+        out.append(
+            "the noise was not learned: every estimate lay at the degenerate boundary σ_v → 0, "
+            "so the fit is at the noise given"
+        )
     if last.get("round", 0) and not last.get("settled", True):
         out.append(
             f"the noise did not settle in {_count(len(rounds) - 1, 'round')} (last change "

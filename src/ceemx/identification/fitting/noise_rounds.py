@@ -40,25 +40,30 @@ def learn_noise(
 ) -> FitResult:
     """``fit(..., noise="learn")``: CE fits alternated with the noise the data show (module notes).
 
-    The user's noise models give the shape (which components are noisier, correlations); one
-    factor on each — process and observation — is learned, because those two factors are what a
-    guess gets wrong by orders of magnitude and what moves a CE fit (J weighs dynamics against
-    observations by them). Round 0 estimates the factors at the starting θ
+    The user's noise models give the shape; one factor on each — process and observation — is
+    learned: what a guess gets wrong by orders of magnitude and what moves a CE fit. Round 0 estimates the factors at the starting θ
     (:func:`~ceemx.identification.analysis.noise_estimate.estimate_noise`: the Laplace
     log-evidence maximised, a grid of decades around the guess first, the observation noise
-    held at or above its floors from the data, :mod:`~ceemx.identification.analysis.noise_floor`);
-    a θ still far off then puts its model error into the process noise — a loose process noise,
-    the safe side for the CE fit that follows. Each round fits θ and the states at the current
-    noise (``fit`` with the given solver, warm-started), then re-estimates the factors at the
-    fitted θ, again from the user's guess (so a degenerate maximum found once is not
-    inherited); it stops when no factor changes by more than 5 % and the fit converged. After
-    ``max_rounds`` rounds without that, it warns and the result is not converged.
+    held at or above its floors from the data, :mod:`~ceemx.identification.analysis.noise_floor`).
+    Each round fits θ and the states at the current noise (``fit`` with the given solver,
+    warm-started), then re-estimates the factors at the fitted θ, again from the user's guess (so
+    a degenerate maximum found once is not inherited); it stops when no factor changes by more
+    than 5 % and the fit converged. After ``max_rounds`` rounds without that, it warns and the
+    result is not converged.
+
+    An estimate at the degenerate boundary σ_v → 0 (``NoiseMoments.degenerate``) is not fitted
+    at: at a θ still far off, the process noise absorbs the model error, the states interpolate
+    the data, and a CE fit at that noise leaves the hidden states free and hardly moves θ. The
+    round fits at the previous noise instead — the first at the user's, from the MAP states of
+    the estimate (which follow the data) — and the next estimate, at a fitted θ, is the data's.
+    When no estimate is anything but degenerate the fit stays at the user's noise, with a
+    warning that the noise was not learned.
 
     The result is the last round's fit, at the noise that round used — the last record of
-    ``FitResult.noise_rounds`` (one per round: round 0 the estimate at the start, round k the
-    noise fit k ran at, its epochs, whether it converged, ``change``: how far the estimate made
-    after it moved the factors, ``time``: seconds of the round, ``floored`` and ``notes``: the
-    floors the estimate was held at).
+    ``FitResult.noise_rounds``: round 0 the estimate at the start; round k the noise fit k ran
+    at, its epochs and whether it converged, and of the estimate made after it the evidence,
+    ``floored``, ``degenerate``, ``notes`` and ``change`` (how far it moved the factors; 0 when
+    degenerate), ``settled``, ``time`` (seconds of the round); the last also ``learned``.
 
     Args:
         system: the model at its initial θ, with the user's noise guess (as given).
@@ -103,6 +108,7 @@ def learn_noise(
     assert result is not None
     for w in last:
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    rounds[-1]["learned"] = learned
     if not learned:
         warn(_not_learned(rounds), NoiseEstimateWarning)
     if not (settled and result.converged):

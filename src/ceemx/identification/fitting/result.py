@@ -85,7 +85,8 @@ class FitResult(eqx.Module):
             the last round's is :attr:`system`'s; ``log_evidence``; ``floored`` and ``notes``:
             the floors from the data its estimate was held at; ``epochs``, ``converged``,
             ``change``: how far the estimate after the fit moved the factors; ``settled``;
-            ``time``: seconds; round 0 is the estimate at the start); else ``()``.
+            ``time``: seconds; round 0 is the estimate at the start; the last one also holds
+            ``learned``: whether any estimate was not degenerate); else ``()``.
         noise_check: the end-of-fit noise check
             (:mod:`ceemx.identification.analysis.noise_check`): are the residuals consistent with
             the assumed noise? (``None`` with
