@@ -95,20 +95,24 @@ def test_learned_noise_does_not_collapse_on_the_hysteretic_record():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("solver", [ceemx.JointLM(), None], ids=["joint", "default"])
-def test_learned_noise_on_the_encoder_record_at_full_size(solver):
-    # The size: 2 048 samples, the position read by a 5e-8 m encoder. Whatever the
-    # solver, the learned σ_v is never below what the encoder can show, and a fit that says
-    # converged free-runs like one at the nominal noise.
+@pytest.mark.parametrize(
+    "solver, max_epochs", [(ceemx.JointLM(), 200), (None, 60)], ids=["joint", "default"]
+)
+def test_learned_noise_on_the_encoder_record_at_full_size(solver, max_epochs):
+    # 2 048 samples, the position read by a 5e-8 m encoder. Whatever the solver, the learned σ_v
+    # is never below what the encoder can show, and a fit that says converged free-runs like one
+    # at the nominal noise (the default solver, Algorithm 1, before the floors: σ_v = 1.1e-10 m,
+    # "converged", free run 4.2e-5 m; now it does not converge at the noise given and says so).
     bw, data, test = _records(2048)
     guess = bw.make(bw.perturbed(1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NoiseEstimateWarning)
         warnings.simplefilter("ignore", ceemx.NoiseCheckWarning)
-        r = ceemx.fit(guess, data, solver=solver, noise="learn", max_epochs=200)
+        r = ceemx.fit(guess, data, solver=solver, noise="learn", max_epochs=max_epochs)
     assert _obs_std(r.system) >= QUANTUM / np.sqrt(12) * (1 - 1e-9)
     if r.converged:
         assert _free_run_rmse(r.system, test) < 1e-7
-    if solver is not None:  # JointLM: the noise is learned (σ_v at the encoder's quantum)
-        assert r.converged
+    if solver is not None:  # JointLM: σ_v at the encoder's quantum, in 2 rounds (before: 5,
+        # three of them at the degenerate estimate)
+        assert r.converged and len(r.noise_rounds) - 1 <= 3
         assert _obs_std(r.system) == pytest.approx(QUANTUM / np.sqrt(12), rel=0.1)
