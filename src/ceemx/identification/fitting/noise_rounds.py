@@ -41,8 +41,7 @@ def learn_noise(
     """``fit(..., noise="learn")``: CE fits alternated with the noise the data show (module notes).
 
     The user's noise models give the shape; one factor on each — process and observation — is
-    learned: what a guess gets wrong by orders of magnitude and what moves a CE fit. Round 0
-    estimates the factors at the starting θ
+    learned: what a guess gets wrong by orders of magnitude. Round 0 estimates them at the start
     (:func:`~ceemx.identification.analysis.noise_estimate.estimate_noise`: the Laplace
     log-evidence maximised, a grid of decades around the guess first, the observation noise
     held at or above its floors from the data, :mod:`~ceemx.identification.analysis.noise_floor`).
