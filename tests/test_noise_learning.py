@@ -7,11 +7,18 @@ import numpy as np
 import pytest
 
 import ceemx
+from ceemx.identification.analysis.noise_check import noise_check
 from ceemx.identification.analysis.noise_estimate import (
+    NoiseEstimateWarning,
+    NoiseMoments,
     estimate_noise,
     noise_ratios,
     residual_moments,
 )
+from ceemx.identification.analysis.noise_floor import EVIDENCE_MARGIN
+from ceemx.identification.fitting import noise_rounds
+from ceemx.identification.fitting.result import FitResult
+from ceemx.lib.results import RESULTS
 from ceemx.systems import LinearSystem
 
 A = jnp.array([[0.95, 0.1], [-0.1, 0.9]])
@@ -38,6 +45,13 @@ def estimate_from_truth(lin_data):
 
 def _std(noise):
     return float(np.sqrt(np.asarray(noise.covariance())[0, 0]))
+
+
+@pytest.fixture(scope="module")
+def clean_data():
+    """The same record without observation noise (σ_v = 1e-12): the evidence rises as σ_v → 0."""
+    _, data = ceemx.simulate(linear(r=1e-12), jax.random.PRNGKey(3), jnp.zeros((2, 2)), 200)
+    return data
 
 
 @pytest.mark.slow
@@ -134,3 +148,138 @@ def test_stiff_model_reaches_the_true_noise_optimum_from_any_guess(solver):
         obs = r.noise_rounds[-1]["obs_noise_std"][0] / sm.OBS_STD
         assert np.allclose(proc, proc[0]) and 0.8 < proc[0] < 1.25, (pf, of, proc)
         assert 0.8 < obs < 1.25, (pf, of, obs)
+
+
+# ---------------------------------------------------------------------------------------------
+# Learned noise that cannot collapse (analysis.noise_floor) and what the estimate says about it
+# ---------------------------------------------------------------------------------------------
+
+
+def _off():
+    """The model with θ off (A × 0.8): at the start of a fit, the process noise absorbs the
+    model error and the evidence rises as σ_v → 0."""
+    f64 = jnp.float64
+    return LinearSystem(
+        0.8 * A, C, process_noise=jnp.asarray(Q, f64), obs_noise=jnp.asarray(R, f64)
+    )
+
+
+def test_observation_noise_is_held_at_the_quantum_of_quantised_data(clean_data):
+    # An encoder's record: y on a grid of 0.05, no other observation noise, θ off. The
+    # evidence's maximum lay below the grid (without the floor: σ_v at the box's lower edge,
+    # R·e⁻¹²); the estimate is held at quantum/√12, and says so.
+    quantised = ceemx.Trajectories(jnp.round(clean_data.y / 0.05) * 0.05, clean_data.u)
+    with pytest.warns(NoiseEstimateWarning, match="quantum of y"):
+        est, nm, _ = estimate_noise(_off(), quantised)
+    assert _std(est.obs_noise) == pytest.approx(0.05 / np.sqrt(12), rel=1e-6)
+    assert nm.floored == ("obs_noise",) and nm.degenerate == () and nm.at_edge == ()
+
+
+def test_degenerate_observation_noise_is_held_at_the_evidence_margin(clean_data):
+    # Continuous data without observation noise: the evidence keeps rising as σ_v → 0 (the
+    # states interpolate the data). The estimate is the largest σ_v the data allow: its
+    # evidence within the margin of the value at the box's lower edge (σ_v = R·e⁻¹²), and a
+    # decade above it outside.
+    with pytest.warns(NoiseEstimateWarning, match="largest the data allow"):
+        est, nm, _ = estimate_noise(linear(), clean_data)
+    sv = _std(est.obs_noise)
+    assert nm.degenerate == ("obs_noise",) and sv > 1e-3
+    q = _std(est.process_noise)
+    edge = residual_moments(linear(q, R * np.exp(-12.0)), clean_data, nm.states).evidence
+    above = residual_moments(linear(q, 10 * sv), clean_data, nm.states).evidence
+    assert edge - EVIDENCE_MARGIN - 1e-6 <= nm.evidence
+    assert above < edge - EVIDENCE_MARGIN
+
+
+def test_estimate_noise_flags_the_edge_of_its_search_box(lin_data):
+    # data 1e150× the guess's scale: the evidence rises to the box's upper edge (guess·e¹²),
+    # which the estimate returned without a word
+    big = ceemx.Trajectories(lin_data.y * 1e150, lin_data.u)
+    with pytest.warns(NoiseEstimateWarning, match="upper edge of its search box"):
+        est, nm, _ = estimate_noise(linear(), big)
+    assert set(nm.at_edge) == {"process_noise", "obs_noise"}
+    assert _std(est.obs_noise) == pytest.approx(R * np.exp(12.0), rel=1e-9)
+
+
+def test_noise_is_not_learned_from_data_without_observation_or_variation(lin_data):
+    none = ceemx.Trajectories(lin_data.y, lin_data.u, jnp.zeros(lin_data.y.shape[:2], bool))
+    zero = ceemx.Trajectories(jnp.zeros_like(lin_data.y), lin_data.u)
+    constant = ceemx.Trajectories(jnp.full_like(lin_data.y, 3.5), lin_data.u)
+    for data, what in [(none, "no observation"), (zero, "constant"), (constant, "constant")]:
+        with pytest.raises(ValueError, match=what):
+            estimate_noise(linear(), data)
+        with pytest.raises(ValueError, match=what):
+            ceemx.fit(linear(), data, solver=ceemx.JointLM(), noise="learn")
+
+
+def test_noise_check_does_not_call_interpolating_states_consistent(lin_data):
+    # σ_v collapsed (1e-6 against the record's 0.2) and the process noise loose enough to carry
+    # every residual: ρ = 1.18 lies in the band, yet the states interpolate the data
+    system = linear(q=0.25, r=1e-6)
+    check = noise_check(system, lin_data, residual_moments(system, lin_data).states)
+    assert check is not None and check.band[0] < check.ratio < check.band[1]
+    assert check.interpolating and not check.consistent
+    assert check.message is not None and "interpolate the data" in check.message
+    assert "DEGENERATE" in check.summary()
+    # every noise 100× too loose: all residuals are small, which is "too loose", not interpolation
+    loose = linear(q=100 * Q, r=100 * R)
+    check = noise_check(loose, lin_data, residual_moments(loose, lin_data).states)
+    assert check is not None and check.ratio < check.band[0] and not check.interpolating
+    assert check.message is not None and "too loose" in check.message
+
+
+class _Rounds:
+    """Stand-ins for a noise round's fit and estimate: a noise factor per estimate, a record."""
+
+    def __init__(self, factors, degenerate=()):
+        self.factors, self.degenerate, self.fitted_at = list(factors), degenerate, []
+
+    def estimate(self, system, data, states, **_):
+        c = self.factors.pop(0)
+        nm = NoiseMoments({}, states, jnp.zeros(2), jnp.ones(2, bool), degenerate=self.degenerate)
+        return linear(Q * c, R * c), nm, 1
+
+    def run_fit(self, system, inputs, options):
+        self.fitted_at.append(_std(system.process_noise))
+        history = [{"epoch": 1, "time": 100.0, "J": 0.0}]
+        return FitResult(
+            system, inputs.states, RESULTS.successful, history, True, options.solver, 0.0
+        )
+
+
+def test_noise_rounds_that_do_not_settle_say_so(monkeypatch, lin_data):
+    # every estimate doubles the noise: the rounds stop unsettled after 6. They warn, the result
+    # is not converged, its system carries the last round's noise (the one reported), and the
+    # summary gives every round's time, "(learned)" and the number of rounds.
+    fake = _Rounds([2.0**k for k in range(7)])
+    monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
+    monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
+    x0 = jnp.zeros((2, 200, 2))
+    with pytest.warns(
+        NoiseEstimateWarning, match="stopped after 6 rounds before the noise settled"
+    ):
+        r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
+    assert not r.converged and len(r.noise_rounds) == 7
+    assert _std(r.system.process_noise) == pytest.approx(r.noise_rounds[-1]["process_noise_std"][0])
+    assert _std(r.system.process_noise) == pytest.approx(fake.fitted_at[-1])
+    text = " ".join(r.summary().split())  # wrapped lines joined
+    total = sum(round_["time"] for round_ in r.noise_rounds)
+    assert f"{total:.3g} s in all (6 noise rounds)" in text
+    assert "noise learned in 6 rounds" in text and "not settled" in text
+    assert text.count("(learned)") == 2 and "(given)" not in text
+    assert any("did not settle" in m for m in r.messages())
+
+
+def test_degenerate_noise_estimates_are_not_fitted_at(monkeypatch, lin_data):
+    # every estimate sits at the degenerate boundary (σ_v → 0): no fit runs at one; the fit
+    # runs at the noise given, converges, and the result says the noise was not learned
+    fake = _Rounds([1e-3] * 7, degenerate=("obs_noise",))
+    monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
+    monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
+    x0 = jnp.zeros((2, 200, 2))
+    with pytest.warns(NoiseEstimateWarning, match="could not learn the noise"):
+        r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
+    assert fake.fitted_at == [pytest.approx(Q)] and r.converged
+    assert _std(r.system.process_noise) == pytest.approx(Q)
+    assert any("the noise was not learned" in m for m in r.messages())
+    assert r.summary().count("(given)") == 2

@@ -96,6 +96,9 @@ from .identification.analysis.noise_check import (
     NoiseCheckWarning as NoiseCheckWarning,
 )
 from .identification.analysis.noise_estimate import (
+    NoiseEstimateWarning as NoiseEstimateWarning,
+)
+from .identification.analysis.noise_estimate import (
     estimate_noise as estimate_noise,
 )
 from .identification.fitting.driver import (

@@ -38,6 +38,16 @@ because their causes do:
   It has to be tighter than 1/4: the states absorb a too loose noise, so ρ moves much less than
   the scale error — process noise 10× too loose (std) gave ρ = 0.40 on the stiff model.
 
+**Interpolation.** ρ cannot see an observation noise that collapsed: as σ_v → 0 the states
+interpolate the data, the observation residuals vanish, the process residuals carry everything
+and ρ stays near 1 (0.94 on a hysteretic record with a learned σ_v of 1e-10). The observation
+group's mean squared whitened residual tells: it falls with σ_v/s, s the one-step spread the
+process noise allows at the outputs. Below :data:`INTERPOLATION` (residuals 100× smaller than
+their assumed standard deviation) while ρ is in the band or above it — the other residuals
+carry it — the check is not consistent: the observation noise is orders of magnitude below what
+the data resolve against the process noise, a collapsed estimate or a process noise far too
+loose for it. (With ρ below the band every residual is small: a noise too loose, as above.)
+
 ρ is an aggregate: a wrong scale of one component shows up diluted, so a ρ inside the band does
 not prove every scale right (:meth:`ceemx.FitResult.diagnostics` estimates each). For d < 1 or
 non-Gaussian noise there is no check (``None``).
@@ -77,6 +87,7 @@ from ceemx.models.system import AbstractSystem
 
 __all__ = [
     "FACTOR",
+    "INTERPOLATION",
     "LOWER",
     "NoiseCheck",
     "NoiseCheckWarning",
@@ -99,6 +110,10 @@ class NoiseCheckWarning(UserWarning):
 FACTOR = 4.0
 #: the lower bound of ρ (model error cannot lower ρ, so it is tighter; module notes)
 LOWER = 0.5
+
+#: the observation residuals' mean squared whitened value below which the states interpolate
+#: the data (residuals 100× below their assumed standard deviation; module notes)
+INTERPOLATION = 1e-4
 
 #: two-sided tail probability of the statistical widening of the band for small d.o.f.
 _TAIL = 1e-3
@@ -165,6 +180,8 @@ class NoiseCheck:
             check does not warn when every noise model was learned.
         converged: whether the fit converged (a fit stopped early leaves model error in ρ).
         message: the warning text (``None`` when consistent or not warned about).
+        interpolating: the observation residuals' mean squared whitened value is below
+            :data:`INTERPOLATION`: the states interpolate the data (module notes).
     """
 
     ratio: float
@@ -179,11 +196,19 @@ class NoiseCheck:
     learned: tuple[str, ...] = ()
     converged: bool = True
     message: str | None = None
+    interpolating: bool = False
 
     @property
     def consistent(self) -> bool:
-        """Whether ρ lies inside :attr:`band`."""
-        return bool(self.band[0] <= self.ratio <= self.band[1])
+        """Whether ρ lies inside :attr:`band` and the states do not interpolate the data."""
+        return bool(self.band[0] <= self.ratio <= self.band[1]) and not self.interpolating
+
+    @property
+    def verdict(self) -> str:
+        """``"consistent"``, ``"INCONSISTENT"`` or ``"DEGENERATE"`` (the states interpolate)."""
+        if self.interpolating:
+            return "DEGENERATE (the states interpolate the data)"
+        return "consistent" if self.consistent else "INCONSISTENT"
 
     @property
     def std_ratio(self) -> float:
@@ -192,7 +217,7 @@ class NoiseCheck:
 
     def summary(self) -> str:
         """A few lines of plain text."""
-        verdict = "consistent" if self.consistent else "INCONSISTENT"
+        verdict = self.verdict
         lines = [
             f"noise check (CE residuals at the fit): rho = {self.ratio:.3g} "
             f"(sqrt = {self.std_ratio:.3g} in std; band [{self.band[0]:.3g}, {self.band[1]:.3g}], "
@@ -287,10 +312,32 @@ def noise_check(
         per_trajectory=np.where(finite, per_trajectory, np.nan),
         learned=tuple(learned),
         converged=converged,
+        interpolating=_interpolating(groups, ratio, min(band[0], lo)),
     )
     if check.consistent or {"process_noise", "obs_noise"} <= set(learned):
         return check
     return dataclasses.replace(check, message=_message(check))
+
+
+def _interpolating(groups: dict, ratio: float, lower: float) -> bool:
+    """The observation residuals vanish while the others carry ρ into the band or above it.
+
+    With ρ below the band every residual is small: the noise is too loose, a case of its own.
+    """
+    total, count = groups["observation"]
+    return bool(count > 0 and total < INTERPOLATION * count and ratio >= lower)
+
+
+def _interpolation_message(check: NoiseCheck) -> str:
+    total, count = check.groups["observation"]
+    return (
+        f"the states interpolate the data: the observation residuals are {total / count:.3g}× "
+        f"their assumed variance (below {INTERPOLATION:g}), so rho = {check.ratio:.3g} cannot "
+        "judge the noise. The observation noise is orders of magnitude below the one-step "
+        "spread the process noise allows at the outputs: a collapsed (learned) observation "
+        "noise, or a process noise far too loose for it; a CE fit then fits θ to one-step "
+        "residuals and may free-run badly."
+    )
 
 
 _TIGHT = {
@@ -315,6 +362,8 @@ _LOOSE = {
 
 def _message(check: NoiseCheck) -> str:
     """The warning: which way, by how much, which residual group carries it, what to do."""
+    if check.interpolating and check.band[0] <= check.ratio <= check.band[1]:
+        return _interpolation_message(check) + _ADVICE
     rho = check.ratio
     # Each group's excess over its share of the expected Σ r̂² (the d.o.f. apportioned by size).
     share = check.dof / check.residuals
@@ -345,8 +394,13 @@ def _message(check: NoiseCheck) -> str:
         text += " The fit stopped before convergence: part of this may be model error."
     if check.learned:
         text += f" The solver learned {', '.join(check.learned)}; the rest was fixed."
-    return text + (
-        " Learn the noise: fit(..., noise='learn'), ceemx.estimate_noise(system, data) (scales "
-        "from the data at this θ) or solver=ceemx.LaplaceEM() with trainable noise; "
-        "FitResult.diagnostics() gives the full report (ceemx.identification.analysis.noise_check)."
-    )
+    if check.interpolating:
+        text += " " + _interpolation_message(check)
+    return text + _ADVICE
+
+
+_ADVICE = (
+    " Learn the noise: fit(..., noise='learn'), ceemx.estimate_noise(system, data) (scales "
+    "from the data at this θ) or solver=ceemx.LaplaceEM() with trainable noise; "
+    "FitResult.diagnostics() gives the full report (ceemx.identification.analysis.noise_check)."
+)

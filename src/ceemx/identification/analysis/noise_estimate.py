@@ -33,6 +33,8 @@ from jaxtyping import Array, ArrayLike
 
 from ceemx.data.checks import Prepared, prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
+from ceemx.identification.analysis.evidence_search import LOG_RANGE, EvidenceSearch, decade_grid
+from ceemx.identification.analysis.noise_floor import check_informative, flagged, with_floors
 from ceemx.identification.initialize import warm_start_states
 from ceemx.identification.learning.expected import cubature_points
 from ceemx.identification.noise_moments import (
@@ -46,12 +48,14 @@ from ceemx.inference.smoother import LMSmoother
 from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_bool, check_int
 from ceemx.infra.policy import entry_point
+from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import trace_numbers
 from ceemx.models.system import AbstractSystem
 
 __all__ = [
     "NOISE_FIELDS",
+    "NoiseEstimateWarning",
     "NoiseMoments",
     "estimate_noise",
     "noise_ratios",
@@ -69,12 +73,23 @@ class NoiseMoments(eqx.Module):
         states: (B, T, n) the MAP trajectories they were computed at.
         log_evidence: (B,) the Laplace log-evidence per trajectory at θ.
         ok: (B,) whether the posterior of each trajectory was finite (the others are left out).
+        floored: the noise fields :func:`estimate_noise` held at a floor from the data, above
+            the evidence's maximum (:mod:`~ceemx.identification.analysis.noise_floor`).
+        degenerate: the noise fields whose evidence maximum lies at the degenerate boundary
+            σ_v → 0, the states interpolating the data (held at the evidence's margin).
+        at_edge: the noise fields whose estimate sits at an edge of the search box
+            (guess·e^±12): the evidence kept rising beyond it.
+        notes: one sentence per floor or edge, with the numbers.
     """
 
     moments: dict[str, Array]
     states: Array
     log_evidence: Array
     ok: Array
+    floored: tuple[str, ...] = eqx.field(static=True, default=())
+    degenerate: tuple[str, ...] = eqx.field(static=True, default=())
+    at_edge: tuple[str, ...] = eqx.field(static=True, default=())
+    notes: tuple[str, ...] = eqx.field(static=True, default=())
 
     @property
     def process_covariance(self) -> np.ndarray:
@@ -85,7 +100,10 @@ class NoiseMoments(eqx.Module):
     def evidence(self) -> float:
         """Σ_b of the Laplace log-evidence over the finite posteriors (−inf when none is)."""
         ok = np.asarray(self.ok)
-        return float(np.sum(np.asarray(self.log_evidence)[ok])) if ok.any() else -np.inf
+        if not ok.any():
+            return -np.inf
+        with np.errstate(over="ignore"):  # terms of −1e300 (data far off the noise's scale)
+            return float(np.sum(np.asarray(self.log_evidence)[ok]))
 
     @property
     def obs_variance(self) -> np.ndarray:
@@ -200,23 +218,22 @@ def estimate_noise(
     (:func:`ceemx.inference.posterior.gaussian_posterior`), and its gradient in a log-scale is
     free once the expected residual moments are known: ∂/∂ log σ_i = N_i·(ratio_i − 1),
     ratio_i = E_q[r_i²]/σ_i² (:func:`noise_ratios`, whitened for a full covariance; N_i the
-    number of residuals of component i) — the statistic of the closed-form EM update. EM itself
-    creeps here: from too tight a process noise the states follow the dynamics, the observation
-    noise absorbs the misfit, and both ratios sit near 1 while the evidence still rises by
-    hundreds of nats along the ridge where process noise grows and observation noise shrinks.
-    So the scales are found by L-BFGS (SciPy, on the host; each evaluation one MAP smoothing and
-    its posterior, warm-started) on the log-evidence in log-scale, which follows such ridges.
-    Where a scale → 0 the evidence goes flat (all the noise in the other model: the output-error
-    plateau) and L-BFGS stops; a decade step of each scale from its answer, and L-BFGS again from
-    any that gains, finds the slope beyond (up to three times).
+    number of residuals of component i) — the statistic of the closed-form EM update, which
+    creeps along the evidence's ridges (``docs/decisions.md``). So the scales are found by L-BFGS
+    (SciPy, on the host; each evaluation one MAP smoothing and its posterior, warm-started).
+    Where a scale → 0 the evidence goes flat (the output-error plateau) and L-BFGS stops; a
+    decade step of each scale, and L-BFGS again from any that gains, finds the slope beyond.
+
+    σ_v is held at or above floors from the data (:mod:`~.noise_floor`: a quantised y's
+    quantum/√12; where the evidence does not fall as σ_v → 0, the largest σ_v within 1.92 nats of
+    its maximum); a floor or an edge of the box (start·e^±12) is named in a warning.
 
     By default each noise model keeps its shape and learns one factor (its covariance times c²):
     the two factors of process and observation noise are what a guess gets wrong by orders of
     magnitude, and the evidence determines them well. ``per_component=True`` learns every scale
-    of a :class:`DiagonalGaussian` instead — but in a partially observed model the evidence is
-    often flat along some of them (noise on a hidden state that the record cannot tell from noise
-    on its neighbour), and at a θ still far from the optimum the model error lands in whichever
-    scale absorbs it best, so use it at a fitted θ.
+    of a :class:`DiagonalGaussian`; in a partially observed model the evidence is often flat
+    along some of them, and at a θ far off the model error lands in whichever scale absorbs it
+    best: use it at a fitted θ.
 
     Args:
         system: the model at the θ to estimate the noise for.
@@ -227,10 +244,9 @@ def estimate_noise(
             each diagonal model (``True``; a full covariance still takes one factor).
         search: before L-BFGS, evaluate the factors on a grid of decades (10⁻³…10³ times the
             start; every combination for up to two factors, one factor at a time beyond) and
-            start from the best point. The evidence has a second, degenerate maximum — all noise
-            in the process, the observations fitted exactly (σ_v → 0) — whose basin a start far
-            too loose in the process noise falls into; the grid finds the other basin when it
-            is higher. Only when every field takes one factor (``per_component=False``). On
+            start from the best point: a start far too loose in the process noise falls into
+            the basin of the degenerate maximum σ_v → 0; the grid finds the other basin. Only
+            when every field takes one factor (``per_component=False``). On
             long data (:func:`ceemx.identification.noise_moments.coarse_shape`: from 40 000
             time steps) the grid and a first L-BFGS run on their first 10 000 steps, then
             L-BFGS on all of them from there.
@@ -239,16 +255,18 @@ def estimate_noise(
 
     Returns:
         ``(system, moments, evaluations)``: the system with the estimated noise, the moments
-        under it and the number of posterior evaluations made (on all the data and on their
-        first part, together).
+        under it and the number of posterior evaluations made (on all the data and its part).
 
     Raises:
-        ValueError: for an unknown field, a noise model that is not Gaussian, or an invalid
-            ``max_evaluations``.
+        ValueError: for an unknown field, a noise model that is not Gaussian, an invalid
+            ``max_evaluations``, data with no observation or whose observed outputs are all
+            constant (no noise can be told from signal).
     """
     fields = _checked_options(system, fields, max_evaluations, per_component, search, smoother)
     inputs = prepare(system, data, states, identify=True)
-    return estimate_noise_prepared(
+    if fields:
+        check_informative(inputs.data)
+    out = estimate_noise_prepared(
         system,
         inputs.data,
         start_states(inputs),
@@ -258,6 +276,17 @@ def estimate_noise(
         max_evaluations=max_evaluations,
         smoother=smoother,
     )
+    if out[1].notes:
+        warn("estimate_noise: " + "; ".join(out[1].notes) + ".", NoiseEstimateWarning)
+    return out
+
+
+class NoiseEstimateWarning(UserWarning):
+    """A noise estimate held at a floor from the data, or sitting at an edge of its search box.
+
+    The numbers are in the warning and in :attr:`NoiseMoments.notes`
+    (:mod:`ceemx.identification.analysis.noise_floor`).
+    """
 
 
 def _checked_options(system, fields, max_evaluations, per_component, search, smoother) -> tuple:
@@ -304,8 +333,8 @@ def estimate_noise_prepared(
     if not fields:
         return system, nm, 1
     layout = _ScaleLayout(system, fields, bool(per_component))
-    bounds = [(z - _LOG_RANGE, z + _LOG_RANGE) for z in layout.z0]
-    full = _EvidenceSearch(system, data, layout, nm, smoother, bounds, max_evaluations)
+    bounds = [(z - LOG_RANGE, z + LOG_RANGE) for z in layout.z0]
+    full = _search(system, data, layout, nm, smoother, bounds, max_evaluations)
     start, part_evaluations = layout.z0, 0
     shape = coarse_shape(*nm.states.shape[:2])
     if search and layout.factors_only:
@@ -316,129 +345,43 @@ def estimate_noise_prepared(
             b, t = shape
             part_data = data[:b].head(t)
             first = moments_prepared(_promoted(system), part_data, nm.states[:b, :t], smoother)
-            searched = _EvidenceSearch(
-                system, part_data, layout, first, smoother, bounds, max_evaluations
-            )
-        for z in _grid(layout.z0):
+            searched = _search(system, part_data, layout, first, smoother, bounds, max_evaluations)
+        for z in decade_grid(layout.z0):
             searched.objective(z)
         if searched is not full:
             searched.climb(searched.best_z)
             part_evaluations = len(searched.cache)
         start = searched.best_z
     full.climb(start)
-    best = full.best
-    return layout.system(system, best["z"]), best["nm"], len(full.cache) + part_evaluations
+    if "obs_noise" in fields:  # the degenerate boundary σ_v → 0 (analysis.noise_floor)
+        full = with_floors(full, layout, data)
+    z = full.best["z"]
+    estimate = layout.system(system, z)
+    stds = {f: _stds(getattr(estimate, f)) for f in NOISE_FIELDS}
+    nm = flagged(full.best["nm"], layout, stds, z, full)
+    return estimate, nm, len(full.cache) + part_evaluations
+
+
+def _search(system, data, layout, nm, smoother, bounds, max_evaluations) -> EvidenceSearch:
+    """The evidence search over ``layout``'s log-scales of ``system`` on ``data``."""
+
+    def evaluate(z, states):
+        trial = _promoted(layout.system(system, z))
+        return moments_prepared(trial, data, states, smoother)
+
+    def gradient(z, m):
+        return layout.gradient(layout.system(system, z), m)
+
+    return EvidenceSearch(evaluate, gradient, layout.z0, nm, bounds, max_evaluations)
+
+
+def _stds(noise) -> np.ndarray:
+    return np.sqrt(np.diagonal(np.asarray(noise.covariance(), float)))
 
 
 def _promoted(system: AbstractSystem) -> AbstractSystem:
     """The system's floating arrays in its working dtype (as :func:`ceemx.data.checks.prepare`)."""
     return promote_tree(system, system)
-
-
-class _EvidenceSearch:
-    """−(Laplace log-evidence) of one data set in the log-scales z, its gradient, its best point.
-
-    Each evaluation smooths from the best point's MAP states so far (warm), and is cached.
-    """
-
-    def __init__(self, system, data, layout, nm, smoother, bounds, max_evaluations):
-        self.system, self.data, self.layout, self.smoother = system, data, layout, smoother
-        self.bounds, self.max_evaluations = bounds, max_evaluations
-        # |∂/∂ log σ| at which to stop: the evidence's curvature in a log-scale is ≈ 2N (N
-        # residuals), so the gain still ahead, ≈ g²/4N, is then 1e-8 nat from N = 2 500 on
-        # (the fixed 1e-2 of before below that, where it is ≤ 1e-5/N)
-        self.steps = float(np.prod(nm.states.shape[:2]))
-        self.gtol = 1e-2 * max(1.0, np.sqrt(self.steps / 2500.0))
-        self.cache: dict[bytes, NoiseMoments] = {layout.z0.tobytes(): nm}
-        self.best = {"f": -nm.evidence, "z": layout.z0.copy(), "nm": nm}
-
-    @property
-    def best_z(self) -> np.ndarray:
-        """A copy of the best z so far."""
-        return self.best["z"].copy()
-
-    def objective(self, z):
-        """(−evidence, its gradient in z) at z; 1e300 where the posterior is not finite."""
-        key = z.tobytes()
-        if key not in self.cache:
-            trial = self.layout.system(self.system, z)
-            states = self.best["nm"].states
-            self.cache[key] = moments_prepared(_promoted(trial), self.data, states, self.smoother)
-        m = self.cache[key]
-        f = -m.evidence
-        if not np.isfinite(f):
-            return 1e300, np.zeros_like(z)
-        if f < self.best["f"]:
-            self.best.update(f=f, z=z.copy(), nm=m)
-        return f, -self.layout.gradient(self.layout.system(self.system, z), m)
-
-    def refine(self, z):
-        """L-BFGS-B from z (SciPy, on the host), on the evidence per time step.
-
-        Per time step, so that its first step (the gradient's length) is of the scales' order
-        whatever the data's size; summed, it jumped to the bounds on a 10⁵-sample record.
-        """
-        from scipy.optimize import minimize
-
-        def scaled(z):
-            f, g = self.objective(z)
-            return f / self.steps, g / self.steps
-
-        minimize(
-            scaled,
-            z,
-            jac=True,
-            method="L-BFGS-B",
-            bounds=self.bounds,
-            options={
-                "maxfun": self.max_evaluations,
-                "ftol": 1e-10,
-                "gtol": self.gtol / self.steps,
-            },
-        )
-
-    def climb(self, z):
-        """L-BFGS from z, then from any decade step of one scale that gains (a few times).
-
-        L-BFGS stops where the evidence goes flat: a scale → 0 (all the noise in the other
-        model: a whole output-error plateau) or → ∞. A decade either way of each scale from
-        its answer finds the slope again where it lies beyond (a 10⁵-sample record: σ_w stuck
-        at 3e-6, 300× below the evidence's maximum, 2 400 nats lower).
-        """
-        self.refine(z)
-        for _ in range(_ESCAPES):
-            f_before, z_best = self.best["f"], self.best_z
-            for k in range(z_best.size):
-                for step in (_DECADE, -_DECADE):
-                    z = z_best.copy()
-                    z[k] += step
-                    if self.bounds[k][0] <= z[k] <= self.bounds[k][1]:
-                        self.objective(z)
-            if not self.best["f"] < f_before - 1e-9 * abs(f_before):
-                return
-            self.refine(self.best_z)
-
-
-def _grid(z0: np.ndarray) -> list[np.ndarray]:
-    """Points in decades of every factor (all combinations up to two factors, else one by one)."""
-    steps = np.log(10.0) * np.arange(-3.0, 4.0)
-    if z0.size <= 2:
-        mesh = np.meshgrid(*[z + steps for z in z0], indexing="ij")
-        return [np.array(p) for p in zip(*(m.ravel() for m in mesh), strict=True)]
-    out = []
-    for i in range(z0.size):
-        for s in steps:
-            z = z0.copy()
-            z[i] += s
-            out.append(z)
-    return out
-
-
-#: how far (in log-scale) from its start a scale may move in one estimate: a factor e^12 ≈ 1.6e5
-_LOG_RANGE = 12.0
-_DECADE = float(np.log(10.0))
-#: restarts of L-BFGS from a decade step that found more evidence
-_ESCAPES = 3
 
 
 class _ScaleLayout:
@@ -460,6 +403,33 @@ class _ScaleLayout:
                 parts.append(np.zeros(1))
         self.z0 = np.concatenate(parts)
         self.factors_only = not any(self.sizes)
+        #: the field of each entry of z
+        self.entry_fields = [
+            f for f, k in zip(self.fields, self.sizes, strict=True) for _ in range(max(k, 1))
+        ]
+
+    def entries_of(self, field: str) -> list[int]:
+        """The indices of z that scale ``field``."""
+        return [i for i, f in enumerate(self.entry_fields) if f == field]
+
+    def floor_z(self, i: int, floors: np.ndarray) -> float:
+        """The smallest z_i at which every component it scales has std ≥ its floor (−inf: none).
+
+        ``floors``: (d,) per component of the entry's field (NaN: no floor).
+        """
+        field = self.entry_fields[i]
+        first = self.entries_of(field)[0]
+        if self.sizes[self.fields.index(field)] and floors.size == len(self.entries_of(field)):
+            wanted = floors[i - first : i - first + 1]  # one scale per component
+            base = np.ones(1)
+        else:  # a factor on the whole covariance (z = log c), or one scale shared by all
+            wanted = floors
+            noise = self.base[field]
+            base = np.sqrt(np.diagonal(np.asarray(noise.covariance(), float)))
+            if self.sizes[self.fields.index(field)]:  # a shared scale: z is its log
+                base = base / float(np.asarray(noise.scale_parameters()))
+        ok = np.isfinite(wanted) & (base > 0)
+        return float(np.log(np.max(wanted[ok] / base[ok]))) if ok.any() else -np.inf
 
     def system(self, system: AbstractSystem, z: np.ndarray) -> AbstractSystem:
         i = 0

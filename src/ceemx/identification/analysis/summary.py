@@ -45,7 +45,14 @@ from ceemx.lib.results import RESULTS, codes
 from ceemx.models.constraints import Unconstrained
 from ceemx.models.noise import AbstractNoise
 
-__all__ = ["ParameterRow", "Summary", "fit_summary", "parameter_rows", "short_repr"]
+__all__ = [
+    "ParameterRow",
+    "Summary",
+    "fit_summary",
+    "noise_round_messages",
+    "parameter_rows",
+    "short_repr",
+]
 
 Format = Literal["text", "markdown"]
 
@@ -177,6 +184,8 @@ def _names_list(names: Sequence[str], most: int = 8) -> str:
 
 def _learned(result, field: str) -> bool:
     problem = result.problem
+    if result.noise_rounds:  # noise="learn": unless no estimate but a degenerate one came
+        return bool(result.noise_rounds[-1].get("learned", True))
     return bool(problem is not None and problem.trains(field))
 
 
@@ -198,6 +207,9 @@ def _timing(result) -> str:
     if not times:
         return "no epoch run"
     total = float(np.nansum(times))
+    if result.noise_rounds:  # every round's fit and noise estimate, not the last fit's alone
+        rounds = [float(r.get("time", np.nan)) for r in result.noise_rounds]
+        return f"{float(np.nansum(rounds)):.3g} s in all ({len(rounds) - 1} noise rounds)"
     text = f"{total:.3g} s in all"
     if len(times) > 1:
         rest = float(np.median(times[1:]))
@@ -235,17 +247,10 @@ def _facts(result) -> list[tuple[str, str]]:
     status, _ = _trajectory_lines(result)
     facts.append(("status", status))
     if result.noise_rounds:
-        last = result.noise_rounds[-1]
-        facts.append(
-            (
-                "noise learned",
-                f"{len(result.noise_rounds) - 1} round(s), last change "
-                f"{float(last.get('change', np.nan)):.3g}",
-            )
-        )
+        facts.append(("noise rounds", _rounds_line(result.noise_rounds)))
     check = result.noise_check
     if check is not None:
-        verdict = "consistent" if check.consistent else "INCONSISTENT"
+        verdict = check.verdict
         facts.append(
             (
                 "noise check",
@@ -264,6 +269,41 @@ def _facts(result) -> list[tuple[str, str]]:
             ("identifiability", text + (" (the fit stopped on it)" if ident.stopped else ""))
         )
     return facts
+
+
+def _rounds_line(rounds) -> str:
+    """``noise="learn"`` in a line: the rounds, the last change, whether a floor held."""
+    last, n = rounds[-1], len(rounds) - 1
+    change = last.get("change")
+    text = f"noise learned in {_count(n, 'round')}"
+    if change is not None:
+        text += f" (last change {100 * float(change):.3g} %" + (
+            ")" if last.get("settled") else ", not settled)"
+        )
+    if last.get("floored"):
+        text += f"; held at a floor from the data: {', '.join(last['floored'])} (messages)"
+    return text
+
+
+def noise_round_messages(rounds) -> list[str]:
+    """The messages of ``fit(..., noise="learn")``.
+
+    The floors the last estimate was held at, and why the rounds stopped when they did not settle.
+    """
+    last = rounds[-1]
+    out = [f"the last noise estimate: {note}" for note in last.get("notes") or ()]
+    if last.get("learned") is False:
+        out.append(
+            "the noise was not learned: every estimate lay at the degenerate boundary σ_v → 0, "
+            "so the fit is at the noise given"
+        )
+    if last.get("round", 0) and not last.get("settled", True):
+        out.append(
+            f"the noise did not settle in {_count(len(rounds) - 1, 'round')} (last change "
+            f"{100 * float(last.get('change', np.nan)):.3g} %): the fit is at the last round's "
+            "noise and not converged"
+        )
+    return out
 
 
 # --------------------------------------------------------------------------------------------

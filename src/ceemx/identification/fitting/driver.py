@@ -90,7 +90,8 @@ def fit(
             factor on each from the data, CE fits alternated with the maximiser of the Laplace
             log-evidence until they settle (``FitResult.noise_rounds``; ``max_epochs`` bounds
             each round; not with ``checkpoint``; for :class:`ceemx.Alternating` and
-            :class:`ceemx.JointLM`).
+            :class:`ceemx.JointLM`); the observation noise has floors from the data and
+            never collapses (``docs/guarantees.md``, "Learned noise").
 
     Returns:
         A :class:`FitResult`.

@@ -7,6 +7,7 @@ noise, then :func:`~ceemx.identification.analysis.noise_estimate.estimate_noise`
 from __future__ import annotations
 
 import dataclasses
+import time
 import warnings
 from collections.abc import Sequence
 
@@ -15,14 +16,17 @@ import numpy as np
 
 from ceemx.data.checks import Prepared, promote_tree
 from ceemx.identification.analysis.noise_estimate import (
+    NoiseEstimateWarning,
     NoiseMoments,
     estimate_noise_prepared,
     start_states,
 )
+from ceemx.identification.analysis.noise_floor import check_informative
 from ceemx.identification.fitting.fit_options import FitOptions
 from ceemx.identification.fitting.result import FitResult
 from ceemx.identification.fitting.run import run_fit
 from ceemx.identification.noise_moments import NOISE_FIELDS
+from ceemx.infra.warn import warn
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["NOISE_ROUND_RTOL", "learn_noise"]
@@ -36,19 +40,30 @@ def learn_noise(
 ) -> FitResult:
     """``fit(..., noise="learn")``: CE fits alternated with the noise the data show (module notes).
 
-    The user's noise models give the shape (which components are noisier, correlations); one
-    factor on each — process and observation — is learned, because those two factors are what a
-    guess gets wrong by orders of magnitude and what moves a CE fit (J weighs dynamics against
-    observations by them). Round 0 estimates the factors at the starting θ
+    The user's noise models give the shape; one factor on each — process and observation — is
+    learned: what a guess gets wrong by orders of magnitude. Round 0 estimates them at the start
     (:func:`~ceemx.identification.analysis.noise_estimate.estimate_noise`: the Laplace
-    log-evidence maximised, a grid of decades around the
-    guess first); a θ still far off then puts its model error into the process noise — a loose
-    process noise, the safe side for the CE fit that follows. Each round fits θ and the states
-    at the current noise (``fit`` with the given solver, warm-started), then re-estimates the
-    factors at the fitted θ, again from the user's guess (so a degenerate maximum found once is
-    not inherited); it stops when no factor changes by more than 5 % and the fit converged, or
-    after ``max_rounds`` rounds. The result is the last round's fit, at noise consistent with
-    its own residuals; ``FitResult.noise_rounds`` records each round.
+    log-evidence maximised, a grid of decades around the guess first, the observation noise
+    held at or above its floors from the data, :mod:`~ceemx.identification.analysis.noise_floor`).
+    Each round fits θ and the states at the current noise (``fit`` with the given solver,
+    warm-started), then re-estimates the factors at the fitted θ, again from the user's guess (so
+    a degenerate maximum found once is not inherited); it stops when no factor changes by more
+    than 5 % and the fit converged. After ``max_rounds`` rounds without that, it warns and the
+    result is not converged.
+
+    An estimate at the degenerate boundary σ_v → 0 (``NoiseMoments.degenerate``) is not fitted
+    at: at a θ still far off, the process noise absorbs the model error, the states interpolate
+    the data, and a CE fit at that noise leaves the hidden states free and hardly moves θ. The
+    round fits at the previous noise instead — the first at the user's, from the MAP states of
+    the estimate (which follow the data) — and the next estimate, at a fitted θ, is the data's.
+    When no estimate is anything but degenerate the fit stays at the user's noise, with a
+    warning that the noise was not learned.
+
+    The result is the last round's fit, at the noise that round used — the last record of
+    ``FitResult.noise_rounds``: round 0 the estimate at the start; round k the noise fit k ran
+    at, its epochs and whether it converged, and of the estimate made after it the evidence,
+    ``floored``, ``degenerate``, ``notes`` and ``change`` (how far it moved the factors; 0 when
+    degenerate), ``settled``, ``time`` (seconds of the round); the last also ``learned``.
 
     Args:
         system: the model at its initial θ, with the user's noise guess (as given).
@@ -58,34 +73,94 @@ def learn_noise(
 
     Returns:
         The last round's :class:`ceemx.FitResult`, with ``noise_rounds`` filled in.
+
+    Raises:
+        ValueError: for data with no observation, or whose observed outputs are all constant.
     """
     if isinstance(max_rounds, bool) or not isinstance(max_rounds, int) or max_rounds < 1:
         raise ValueError(f"`max_rounds` must be an integer ≥ 1; got {max_rounds!r}.")
     guess, data = system, inputs.data
-    system, nm, _ = estimate_noise_prepared(guess, data, start_states(inputs))
-    states = nm.states
-    rounds: list[dict] = [_round_record(0, system, nm, None)]
-    result = None
-    last: list = []
+    check_informative(data)
+    clock = time.perf_counter()
+    estimate, nm, _ = estimate_noise_prepared(guess, data, start_states(inputs))
+    rounds: list[dict] = [_round_record(0, estimate, nm, None, time.perf_counter() - clock)]
+    system, states, learned = _next_noise(guess, estimate, nm)
+    result, settled, last = None, False, []
     for k in range(1, max_rounds + 1):
+        clock = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:  # the last round's are re-issued
             warnings.simplefilter("always")
             result = run_fit(system, Prepared(promote_tree(system, system), data, states), options)
         last = list(caught)
         fitted = _with_noise_of(result.system, guess)
-        new, nm, _ = estimate_noise_prepared(fitted, data, result.states)
-        change = float(np.max(np.abs(_stds(new, NOISE_FIELDS) / _stds(system, NOISE_FIELDS) - 1)))
-        rounds.append(_round_record(k, new, nm, result, change))
-        if not np.isfinite(change):
+        new, new_nm, _ = estimate_noise_prepared(fitted, data, result.states)
+        change = 0.0 if new_nm.degenerate else _change(new, system)  # a degenerate one is kept out
+        learned = learned or not new_nm.degenerate
+        settled = bool(change <= NOISE_ROUND_RTOL)
+        rounds.append(_round_record(k, system, new_nm, result, time.perf_counter() - clock))
+        rounds[-1].update(change=change, settled=settled and bool(result.converged))
+        if (settled and result.converged) or not np.isfinite(change):
             break
-        settled = change <= NOISE_ROUND_RTOL
-        system, states = (result.system, result.states) if settled else (new, nm.states)
-        if settled and result.converged:
-            break
+        if not settled:  # the next round fits at the new estimate, from its MAP states
+            system, states = new, new_nm.states
+        else:  # the same noise: the fit goes on from where it stopped
+            system, states = result.system, result.states
     assert result is not None
     for w in last:
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    rounds[-1]["learned"] = learned
+    if not learned:
+        warn(_not_learned(rounds), NoiseEstimateWarning)
+    if not (settled and result.converged):
+        warn(_unsettled(rounds, result.converged), NoiseEstimateWarning)
+        result = dataclasses.replace(result, converged=False)
     return dataclasses.replace(result, noise_rounds=tuple(rounds))
+
+
+def _next_noise(guess: AbstractSystem, estimate: AbstractSystem, nm: NoiseMoments):
+    """``(system, states, learned)`` the first fit starts from.
+
+    The start's estimate, or the guess where that estimate is degenerate (analysis.noise_floor:
+    at a θ still far off, the model error the process noise absorbs leaves σ_v → 0, and a CE fit
+    at that noise hardly moves θ — the states interpolate the data).
+    """
+    if nm.degenerate:
+        return guess, nm.states, False
+    return estimate, nm.states, True
+
+
+def _change(new: AbstractSystem, old: AbstractSystem) -> float:
+    """The largest relative change of a noise std from ``old`` to ``new``."""
+    return float(np.max(np.abs(_stds(new, NOISE_FIELDS) / _stds(old, NOISE_FIELDS) - 1)))
+
+
+def _not_learned(rounds: list[dict]) -> str:
+    return (
+        "fit(..., noise='learn') could not learn the noise from this record: every estimate's "
+        "evidence maximum lay at the degenerate boundary, the observation noise → 0 with the "
+        "states interpolating the data (FitResult.noise_rounds: 'notes'). A CE fit at such a "
+        "noise fits θ to one-step residuals and free-runs badly, so the fit is at the noise "
+        "given. The data cannot tell observation noise from process noise at the observed "
+        "states here: give the sensor's accuracy as the observation noise and fit with "
+        "noise='fixed', or learn the noise with solver=ceemx.LaplaceEM()."
+    )
+
+
+def _unsettled(rounds: list[dict], converged: bool) -> str:
+    last = rounds[-1]
+    why = (
+        f"the last estimate moved a noise factor by {100 * last['change']:.3g} % (more than "
+        f"{100 * NOISE_ROUND_RTOL:.3g} %)"
+        if not last["change"] <= NOISE_ROUND_RTOL
+        else "the last round's fit did not converge"
+    )
+    return (
+        f"fit(..., noise='learn') stopped after {len(rounds) - 1} rounds before the noise "
+        f"settled: {why}{'' if converged else ', and its fit did not converge'}. The result is "
+        "the last round's fit at the noise it used, reported not converged "
+        "(FitResult.noise_rounds holds every round). Fit again from it (more max_epochs), or "
+        "at a fixed noise."
+    )
 
 
 def _with_noise_of(system: AbstractSystem, other: AbstractSystem) -> AbstractSystem:
@@ -96,15 +171,24 @@ def _with_noise_of(system: AbstractSystem, other: AbstractSystem) -> AbstractSys
     return system
 
 
-def _round_record(k: int, system: AbstractSystem, nm: NoiseMoments, result, change=None) -> dict:
+def _round_record(k: int, system: AbstractSystem, nm: NoiseMoments, result, seconds) -> dict:
+    """The record of round k.
+
+    The noise its fit ran at (round 0: the start's estimate), the flags of the estimate made
+    after it (round 0: its own), its fit's epochs, the round's seconds.
+    """
     return {
         "round": k,
         "process_noise_std": _stds(system, ("process_noise",)).round(12).tolist(),
         "obs_noise_std": _stds(system, ("obs_noise",)).round(12).tolist(),
         "log_evidence": nm.evidence,
+        "floored": nm.floored,
+        "degenerate": nm.degenerate,
+        "notes": nm.notes,
         "epochs": None if result is None else result.epochs,
         "converged": None if result is None else bool(result.converged),
-        "change": change,
+        "change": None,
+        "time": seconds,
     }
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from ceemx.identification.analysis.diagnostics import fit_diagnostics
 from ceemx.identification.analysis.identifiability import Identifiability, fit_identifiability
 from ceemx.identification.analysis.noise_check import NoiseCheck
-from ceemx.identification.analysis.summary import fit_summary, short_repr
+from ceemx.identification.analysis.summary import fit_summary, noise_round_messages, short_repr
 from ceemx.identification.analysis.uncertainty import (
     fit_covariance,
     fit_parameter_estimates,
@@ -81,8 +81,12 @@ class FitResult(eqx.Module):
         theta: the final flat θ in the problem's unconstrained coordinates.
         weights: the final (B',) trajectory weights of the fitted trajectories (0: failed).
         noise_rounds: with ``fit(..., noise="learn")``, one record per noise round (``round``,
-            ``process_noise_std``, ``obs_noise_std``, ``log_evidence``, ``epochs``,
-            ``converged``, ``change``; round 0 is the estimate at the start); else ``()``.
+            ``process_noise_std``, ``obs_noise_std``: the noise that round's fit ran at, which
+            the last round's is :attr:`system`'s; ``log_evidence``; ``floored`` and ``notes``:
+            the floors from the data its estimate was held at; ``epochs``, ``converged``,
+            ``change``: how far the estimate after the fit moved the factors; ``settled``;
+            ``time``: seconds; round 0 is the estimate at the start; the last one also holds
+            ``learned``: whether any estimate was not degenerate); else ``()``.
         noise_check: the end-of-fit noise check
             (:mod:`ceemx.identification.analysis.noise_check`): are the residuals consistent with
             the assumed noise? (``None`` with
@@ -142,6 +146,8 @@ class FitResult(eqx.Module):
             out = [*out, self.identifiability.message]
         if self.noise_check is not None and self.noise_check.message:
             out = [*out, self.noise_check.message]
+        if self.noise_rounds:  # noise="learn": the floors held, rounds that did not settle
+            out = [*out, *noise_round_messages(self.noise_rounds)]
         return out
 
     def diagnostics(self, **options):
