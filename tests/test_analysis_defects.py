@@ -1,0 +1,221 @@
+"""Post-fit analysis and evaluation: defects that used to pass silently or crash.
+
+- ``FitResult.diagnostics()`` on systems without inputs, on fits whose trajectories failed, on
+  records of different lengths (the padding left out of the statistics); verdicts of tests that
+  were not run are ``None``, never ``True``.
+- ``free_run`` and ``simulate`` refuse the model-output bugs ``fit`` and ``smooth`` refuse.
+- ``benchmark_score`` on a constant test output; identifiability with a negative parameter and
+  a bounded message; ``EarlyStopping.restore`` with another fit's result; initial states outside
+  a hybrid's bounds.
+
+One small linear-Gaussian model family (n = 2, m = 1, strongly typed float64: one program per
+shape for every test that uses it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import ceemx
+from ceemx.identification.analysis.diagnostics import residual_diagnostics
+from ceemx.identification.analysis.noise_estimate import residual_moments
+
+jax.config.update("jax_enable_x64", True)
+
+A = np.array([[0.95, 0.1], [-0.1, 0.9]])
+B_IN = np.array([[0.0], [0.5]])
+C = np.array([[1.0, 0.0]])
+Q_STD, R_STD = 0.1, 0.05
+
+
+def f64(v):
+    return jnp.asarray(v, jnp.float64)
+
+
+def linear(a=A, inputs=True, q_std=Q_STD):
+    """The model, with one input or none (strong float64 leaves: one program per shape)."""
+    return ceemx.systems.LinearSystem(
+        f64(a), f64(C), f64(B_IN) if inputs else None, process_noise=f64(q_std),
+        obs_noise=f64(R_STD),
+    )  # fmt: skip
+
+
+def record(system, T, B=2, seed=0):
+    """(states, data) simulated from ``system``: a piecewise-constant input when it takes one."""
+    u = None
+    if system.input_dim:
+        steps = jax.random.normal(jax.random.PRNGKey(100 + seed), (B, T // 5 + 1, 1))
+        u = jnp.repeat(steps, 5, axis=1)[:, :T]
+    return ceemx.simulate(system, jax.random.PRNGKey(seed), jnp.zeros((B, 2)), T, u)
+
+
+# --------------------------------------------------------------------------------------------
+# FitResult.diagnostics()
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def no_input_fit():
+    """A JointLM fit of the model without inputs (A trainable), two trajectories."""
+    system = linear(inputs=False)
+    x, data = record(system, 40)
+    res = ceemx.fit(system, data, x, solver=ceemx.JointLM(), trainable=lambda s: s.A,
+                    max_epochs=2, diagnose=False)  # fmt: skip
+    return res, data
+
+
+def test_diagnostics_of_a_fit_without_inputs(no_input_fit):
+    """p = 0 used to fail: "cannot reshape array of size 0 into shape (0)"."""
+    res, _ = no_input_fit
+    diag = res.diagnostics(lags=5, estimate=False)
+    assert diag.cross_correlation.shape == (1, 0, 11) and diag.independent.shape == (1, 0)
+    assert np.isfinite(diag.nis).all() and diag.white[0] is not None
+    assert "input" not in diag.summary().split("one-step prediction errors")[1].split("\n")[1]
+
+
+def test_diagnostics_leave_out_failed_trajectories_and_refuse_when_all_failed(no_input_fit):
+    """Weights 0 mark trajectories a fit gave up on: left out; all of them: a clear error.
+
+    With every trajectory failed it used to fail with "need at least one array to stack".
+    """
+    res, data = no_input_fit
+    one = dataclasses.replace(res, weights=f64([0.0, 1.0]))
+    diag = one.diagnostics(lags=5, estimate=False)
+    alone = residual_diagnostics(res.system, data[1], res.states[1:], lags=5, estimate=False)
+    np.testing.assert_allclose(diag.nis, alone.nis, rtol=1e-12)
+    assert diag.counts[0] == 40
+    none = dataclasses.replace(res, weights=f64([0.0, 0.0]))
+    with pytest.raises(ValueError, match="no trajectory of this fit has a usable end point"):
+        none.diagnostics()
+
+
+@pytest.fixture(scope="module")
+def with_input():
+    """The model with one input, its records (T = 60), and a misspecified copy (A/2)."""
+    system = linear()
+    x, data = record(system, 60)
+    return system, x, data
+
+
+def test_records_of_different_lengths_leave_their_padding_out(with_input):
+    """Padding masked after a record's end adds nothing to the noise ratios.
+
+    Two records of 60 and 35 steps (the second padded to 60, its inputs held) under a process
+    noise assumed 10× too loose: the realised / assumed variance must be what the two records
+    give on their own (their residual moments pooled). The padded steps' posterior is the prior,
+    so each used to add exactly the assumed Q and pull the ratio towards 1 (on an unstable
+    model its spread overflowed, and the record was dropped).
+    """
+    truth, x, data = with_input
+    loose = linear(q_std=10 * Q_STD)
+    mask = np.ones((2, 60, 1), bool)
+    mask[1, 35:] = False
+    u = np.asarray(data.u).copy()
+    u[1, 35:] = u[1, 34]
+    padded = ceemx.Trajectories(np.asarray(data.y), u, mask)
+    diag = residual_diagnostics(loose, padded, x, lags=5, estimate=False)
+    parts = [residual_moments(loose, data[0], x[:1]), residual_moments(loose, data[1].head(35),
+             x[1:, :35])]  # fmt: skip
+    S_w = sum(np.asarray(p.moments["dyn"]) for p in parts)
+    S_w = S_w / sum(float(p.moments["dyn_count"]) for p in parts)
+    want = np.diagonal(S_w) / (10 * Q_STD) ** 2
+    np.testing.assert_allclose(diag.noise_ratios["process_noise"], want, rtol=1e-6)
+    assert want[0] < 0.2  # far below 1 (the observed state): what the padding hid
+    assert diag.counts[0] == 60 + 35
+
+
+def test_tests_not_run_are_none_not_true(with_input, tmp_path):
+    """Errors that are not white: the input and bias tests are not run, and say so.
+
+    ``independent`` and ``unbiased`` used to start True and stay True; the figure titled the
+    input panel "(independent)".
+    """
+    from ceemx.evaluation import plots
+
+    _, x, data = with_input
+    diag = residual_diagnostics(linear(a=0.3 * A), data, x, lags=5, estimate=False)
+    assert diag.white[0] is False and diag.nis_ok[0] is not None
+    assert diag.independent[0, 0] is None and diag.unbiased[0] is None
+    assert not diag.ok and "input and bias tests not run" in diag.summary()
+    fig = plots.plot_residual_diagnostics(diag)
+    titles = [ax.get_title(loc="left") for ax in fig.axes]
+    assert "output 1 and input 1 (not tested)" in titles
+    assert not any("(independent)" in t for t in titles)
+    good = residual_diagnostics(linear(), data, x, lags=5, estimate=False)
+    assert good.white[0] is True and good.independent[0, 0] is True and good.unbiased[0] is True
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "name",
+    ["linear", "linear_u", "lorenz", "coupled_lorenz", "neural", "neural_u", "hybrid", "tanks",
+     "silverbox", "drives"],
+)  # fmt: skip
+def test_diagnostics_on_every_built_in_system(name):
+    """``FitResult.diagnostics()`` after a one-epoch fit of each built-in system (p = 0 or 1)."""
+    system, x1, u = _built_in(name)
+    T = 30
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a one-epoch fit: not converged, noise check
+        x, data = ceemx.simulate(system, jax.random.PRNGKey(3), x1, T, u)
+        res = ceemx.fit(system, data, x, solver=ceemx.JointLM(), max_epochs=1)
+        diag = res.diagnostics(lags=5)
+    m, p = system.obs_dim, system.input_dim
+    assert diag.cross_correlation.shape == (m, p, 11) and diag.independent.shape == (m, p)
+    assert np.isfinite(diag.nis).all() and all(v is not None for v in diag.white)
+    assert diag.estimated_std is not None and "Residual diagnostics" in diag.summary()
+
+
+def _built_in(name):
+    """(system, x₁ (1, n), inputs (1, T, p) or None) of each built-in system, tiny."""
+    S = ceemx.systems
+    T = 30
+    u = jnp.sin(0.3 * jnp.arange(T, dtype=jnp.float64))[None, :, None]
+    key = jax.random.PRNGKey(0)
+    if name in ("linear", "linear_u"):
+        system = linear(inputs=name == "linear_u")
+        return system, jnp.ones((1, 2)), u if name == "linear_u" else None
+    if name == "lorenz":
+        system = S.CoupledLorenz([10.0], [28.0], [8 / 3], np.eye(3)[:2], process_noise=0.1,
+                                 obs_noise=0.5)  # fmt: skip
+        return system, system.default_state_mean()[None], None
+    if name == "coupled_lorenz":
+        system = S.CoupledLorenz([10.0, 10.0], [28.0, 28.0], [8 / 3, 8 / 3], np.eye(6)[::2],
+                                 H=0.01 * np.ones((6, 6)), process_noise=0.1, obs_noise=0.5)  # fmt: skip
+        return system, system.default_state_mean()[None], None
+    if name in ("neural", "neural_u"):
+        p = 1 if name == "neural_u" else 0
+        system = S.NeuralObservationSystem(0.9 * np.eye(2), np.ones((2, p)), np.eye(2)[:1],
+                                           np.zeros((1, p)), key=key, width=4, depth=1,
+                                           process_noise=0.1, obs_noise=0.1)  # fmt: skip
+        return system, jnp.ones((1, 2)), u if p else None
+    if name == "hybrid":
+        physics = linear()
+        _, data = ceemx.simulate(physics, key, jnp.ones((1, 2)), T, u)
+        system = ceemx.hybrid(physics, data, width=4, depth=1, lower=-10.0)
+        return system, jnp.ones((1, 2)), u
+    gray = {"tanks": S.CascadedTanks, "silverbox": S.Silverbox, "drives": S.CoupledDrives}[name]
+    system = gray.default()
+    scale = {"tanks": 5.0, "silverbox": 0.1, "drives": 1.0}[name]
+    return system, system.default_state_mean()[None], scale * (1.0 + u)
+
+
+@pytest.mark.slow
+def test_diagnostics_of_a_laplace_fit_whose_every_trajectory_failed():
+    """A state neither observed nor pinned: every E-step fails; diagnostics() says why."""
+    system = ceemx.systems.LinearSystem(f64(np.diag([0.9, 1.0])), f64(C), process_noise=f64(0.1),
+                                        obs_noise=f64(0.1))  # fmt: skip
+    x, data = ceemx.simulate(system, jax.random.PRNGKey(0), jnp.ones((2, 2)), 30)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = ceemx.fit(system, data, x, solver=ceemx.LaplaceEM(), trainable=lambda s: s.A,
+                        max_epochs=2)  # fmt: skip
+    assert not np.any(np.asarray(res.weights) > 0)
+    with pytest.raises(ValueError, match="not finite at the initial point"):
+        res.diagnostics()
