@@ -41,9 +41,12 @@ def f64(v):
 def linear(a=A, inputs=True, q_std=Q_STD):
     """The model, with one input or none (strong float64 leaves: one program per shape)."""
     return ceemx.systems.LinearSystem(
-        f64(a), f64(C), f64(B_IN) if inputs else None, process_noise=f64(q_std),
+        f64(a),
+        f64(C),
+        f64(B_IN) if inputs else None,
+        process_noise=f64(q_std),
         obs_noise=f64(R_STD),
-    )  # fmt: skip
+    )
 
 
 def record(system, T, B=2, seed=0):
@@ -65,8 +68,15 @@ def no_input_fit():
     """A JointLM fit of the model without inputs (A trainable), two trajectories."""
     system = linear(inputs=False)
     x, data = record(system, 40)
-    res = ceemx.fit(system, data, x, solver=ceemx.JointLM(), trainable=lambda s: s.A,
-                    max_epochs=2, diagnose=False)  # fmt: skip
+    res = ceemx.fit(
+        system,
+        data,
+        x,
+        solver=ceemx.JointLM(),
+        trainable=lambda s: s.A,
+        max_epochs=2,
+        diagnose=False,
+    )
     return res, data
 
 
@@ -120,8 +130,10 @@ def test_records_of_different_lengths_leave_their_padding_out(with_input):
     u[1, 35:] = u[1, 34]
     padded = ceemx.Trajectories(np.asarray(data.y), u, mask)
     diag = residual_diagnostics(loose, padded, x, lags=5, estimate=False)
-    parts = [residual_moments(loose, data[0], x[:1]), residual_moments(loose, data[1].head(35),
-             x[1:, :35])]  # fmt: skip
+    parts = [
+        residual_moments(loose, data[0], x[:1]),
+        residual_moments(loose, data[1].head(35), x[1:, :35]),
+    ]
     S_w = sum(np.asarray(p.moments["dyn"]) for p in parts)
     S_w = S_w / sum(float(p.moments["dyn_count"]) for p in parts)
     want = np.diagonal(S_w) / (10 * Q_STD) ** 2
@@ -154,9 +166,19 @@ def test_tests_not_run_are_none_not_true(with_input, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "name",
-    ["linear", "linear_u", "lorenz", "coupled_lorenz", "neural", "neural_u", "hybrid", "tanks",
-     "silverbox", "drives"],
-)  # fmt: skip
+    [
+        "linear",
+        "linear_u",
+        "lorenz",
+        "coupled_lorenz",
+        "neural",
+        "neural_u",
+        "hybrid",
+        "tanks",
+        "silverbox",
+        "drives",
+    ],
+)
 def test_diagnostics_on_every_built_in_system(name):
     """``FitResult.diagnostics()`` after a one-epoch fit of each built-in system (p = 0 or 1)."""
     system, x1, u = _built_in(name)
@@ -182,18 +204,35 @@ def _built_in(name):
         system = linear(inputs=name == "linear_u")
         return system, jnp.ones((1, 2)), u if name == "linear_u" else None
     if name == "lorenz":
-        system = S.CoupledLorenz([10.0], [28.0], [8 / 3], np.eye(3)[:2], process_noise=0.1,
-                                 obs_noise=0.5)  # fmt: skip
+        system = S.CoupledLorenz(
+            [10.0], [28.0], [8 / 3], np.eye(3)[:2], process_noise=0.1, obs_noise=0.5
+        )
         return system, system.default_state_mean()[None], None
     if name == "coupled_lorenz":
-        system = S.CoupledLorenz([10.0, 10.0], [28.0, 28.0], [8 / 3, 8 / 3], np.eye(6)[::2],
-                                 H=0.01 * np.ones((6, 6)), process_noise=0.1, obs_noise=0.5)  # fmt: skip
+        ones = np.ones(2)
+        system = S.CoupledLorenz(
+            10 * ones,
+            28 * ones,
+            8 / 3 * ones,
+            np.eye(6)[::2],
+            H=0.01 * np.ones((6, 6)),
+            process_noise=0.1,
+            obs_noise=0.5,
+        )
         return system, system.default_state_mean()[None], None
     if name in ("neural", "neural_u"):
         p = 1 if name == "neural_u" else 0
-        system = S.NeuralObservationSystem(0.9 * np.eye(2), np.ones((2, p)), np.eye(2)[:1],
-                                           np.zeros((1, p)), key=key, width=4, depth=1,
-                                           process_noise=0.1, obs_noise=0.1)  # fmt: skip
+        system = S.NeuralObservationSystem(
+            0.9 * np.eye(2),
+            np.ones((2, p)),
+            np.eye(2)[:1],
+            np.zeros((1, p)),
+            key=key,
+            width=4,
+            depth=1,
+            process_noise=0.1,
+            obs_noise=0.1,
+        )
         return system, jnp.ones((1, 2)), u if p else None
     if name == "hybrid":
         physics = linear()
@@ -209,13 +248,115 @@ def _built_in(name):
 @pytest.mark.slow
 def test_diagnostics_of_a_laplace_fit_whose_every_trajectory_failed():
     """A state neither observed nor pinned: every E-step fails; diagnostics() says why."""
-    system = ceemx.systems.LinearSystem(f64(np.diag([0.9, 1.0])), f64(C), process_noise=f64(0.1),
-                                        obs_noise=f64(0.1))  # fmt: skip
+    system = ceemx.systems.LinearSystem(
+        f64(np.diag([0.9, 1.0])), f64(C), process_noise=f64(0.1), obs_noise=f64(0.1)
+    )
     x, data = ceemx.simulate(system, jax.random.PRNGKey(0), jnp.ones((2, 2)), 30)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = ceemx.fit(system, data, x, solver=ceemx.LaplaceEM(), trainable=lambda s: s.A,
-                        max_epochs=2)  # fmt: skip
+        res = ceemx.fit(
+            system, data, x, solver=ceemx.LaplaceEM(), trainable=lambda s: s.A, max_epochs=2
+        )
     assert not np.any(np.asarray(res.weights) > 0)
     with pytest.raises(ValueError, match="not finite at the initial point"):
         res.diagnostics()
+
+
+# --------------------------------------------------------------------------------------------
+# free_run and simulate check the model's outputs as fit and smooth do
+# --------------------------------------------------------------------------------------------
+
+
+class Plant(ceemx.AbstractSystem):
+    """x⁺ = a·x + u, y = x₁: the base of the faulty models below."""
+
+    a: jax.Array
+
+    @property
+    def state_dim(self):
+        return 2
+
+    @property
+    def obs_dim(self):
+        return 1
+
+    @property
+    def input_dim(self):
+        return 1
+
+    def dynamics(self, x, u, t):
+        return self.a * x + u[0]
+
+    def observe(self, x, u, t):
+        return x[:1]
+
+
+FAULTS = {  # method: (what it returns instead, the words of the message)
+    "observe, wrong shape": ("observe", lambda s, x: x, "must return shape"),
+    "observe, a scalar": ("observe", lambda s, x: x[0], "must return shape"),
+    "observe, rank 2": ("observe", lambda s, x: x[None, :1], "must return shape"),
+    "observe, complex": ("observe", lambda s, x: x[:1] * (1 + 0j), "dtype"),
+    "observe, a list": ("observe", lambda s, x: [x[0]], "one array"),
+    "observe, a tuple": ("observe", lambda s, x: (x[:1], x[:1]), "one array"),
+    "observe, None": ("observe", lambda s, x: None, "one array"),
+    "observe, float32": ("observe", lambda s, x: x[:1].astype(jnp.float32), "dtype"),
+    "observe, integer": ("observe", lambda s, x: x[:1].astype(jnp.int32), "dtype"),
+    "observe, raises": ("observe", lambda s, x: x[5:7] @ x, "failed when called"),
+    "dynamics, wrong shape": ("dynamics", lambda s, x: x[:1], "must return shape"),
+    "dynamics, rank 2": ("dynamics", lambda s, x: x[None], "must return shape"),
+    "dynamics, complex": ("dynamics", lambda s, x: s.a * x * (1 + 0j), "dtype"),
+    "dynamics, a list": ("dynamics", lambda s, x: [x[0], x[1]], "one array"),
+    "dynamics, float32": ("dynamics", lambda s, x: x.astype(jnp.float32), "dtype"),
+}
+
+
+def faulty(method, returns):
+    """A Plant whose ``method`` returns ``returns(self, x)``."""
+    cls = type("Faulty", (Plant,), {method: lambda self, x, u, t: returns(self, x)})
+    return cls(f64(0.5), process_noise=f64(0.1), obs_noise=f64(0.1))
+
+
+@pytest.mark.parametrize("entry", ["free_run", "simulate"])
+@pytest.mark.parametrize("fault", list(FAULTS))
+def test_free_run_and_simulate_name_a_faulty_model_method(fault, entry):
+    """The shape and dtype checks of fit and smooth, before any compute.
+
+    free_run used to return a wrong-shaped observe as is, cast a complex dynamics silently and
+    fail with an AttributeError on a list; simulate failed inside its scan.
+    """
+    method, returns, words = FAULTS[fault]
+    model = faulty(method, returns)
+    x1, u = jnp.ones((1, 2)), jnp.ones((1, 6, 1))
+    with pytest.raises(ValueError, match=rf"`system\.{method}`.*{words}"):
+        if entry == "free_run":
+            ceemx.free_run(model, x1, u)
+        else:
+            ceemx.simulate(model, jax.random.PRNGKey(0), x1, 6, u)
+
+
+@pytest.mark.parametrize("method", ["observe", "dynamics"])
+def test_a_run_that_turns_nan_names_the_method(method):
+    """NaN from the model: free_run warns (the run is returned), simulate refuses; both name it."""
+    nan_from = {
+        "observe": lambda s, x: jnp.log(x[:1] - 1.5),
+        "dynamics": lambda s, x: jnp.sqrt(x - 0.8),
+    }
+    model = faulty(method, nan_from[method])
+    x1, u = jnp.ones((1, 2)), jnp.zeros((1, 6, 1))
+    with pytest.warns(UserWarning, match=rf"free_run: the run is not finite: `system\.{method}`"):
+        xs, ys = ceemx.free_run(model, x1, u)
+    assert not np.isfinite(np.asarray(ys)).all()
+    with pytest.raises(ValueError, match=rf"simulation is not finite: `system\.{method}`.*step"):
+        ceemx.simulate(model, jax.random.PRNGKey(0), x1, 6, u, process_noise=False)
+
+
+def test_simulate_casts_the_start_to_the_systems_dtype():
+    """float32 or integer start states of a float64 system used to fail inside the scan."""
+    system = linear(inputs=False)
+    for x0 in (jnp.ones((1, 2), jnp.float32), np.ones((1, 2), int)):
+        x, data = ceemx.simulate(system, jax.random.PRNGKey(0), x0, 5)
+        assert x.dtype == jnp.float64 and data.y.dtype == jnp.float64
+    with pytest.raises(ValueError, match=r"`x0` must have shape \(B, n\) with n = 2"):
+        ceemx.simulate(system, jax.random.PRNGKey(0), jnp.ones((1, 3)), 5)
+    with pytest.raises(ValueError, match="`x0` has a non-finite value"):
+        ceemx.simulate(system, jax.random.PRNGKey(0), jnp.array([[1.0, np.nan]]), 5)

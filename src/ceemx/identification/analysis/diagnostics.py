@@ -464,7 +464,7 @@ class _ErrorTests:
 
     @classmethod
     def untested(cls, m: int, p: int) -> _ErrorTests:
-        """No test run yet (every verdict ``None``, no Box–Pierce statistic): m outputs, p inputs."""
+        """No test run yet: every verdict ``None``, no Box–Pierce statistic; m outputs, p inputs."""
         none = lambda *shape: np.full(shape, None, dtype=object)  # noqa: E731
         nan = np.full(m, np.nan)
         return cls(none(m), none(m), none(m), none(m, p), nan, nan.copy(), [])
