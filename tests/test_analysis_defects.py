@@ -360,3 +360,28 @@ def test_simulate_casts_the_start_to_the_systems_dtype():
         ceemx.simulate(system, jax.random.PRNGKey(0), jnp.ones((1, 3)), 5)
     with pytest.raises(ValueError, match="`x0` has a non-finite value"):
         ceemx.simulate(system, jax.random.PRNGKey(0), jnp.array([[1.0, np.nan]]), 5)
+
+
+# --------------------------------------------------------------------------------------------
+# benchmark_score on a constant output
+# --------------------------------------------------------------------------------------------
+
+
+def test_benchmark_score_of_a_constant_output_is_nan_with_its_status():
+    """NRMSE and fit % of an output with no spread: NaN, warned, status constant_output.
+
+    They used to read NRMSE = inf and fit % = −inf under status "converged".
+    """
+    system = ceemx.systems.LinearSystem(f64([[0.5]]), f64([[1.0], [1.0]]), f64([[1.0]]))
+    T = 30
+    u = np.sin(0.4 * np.arange(T))[None, :, None]
+    _, y = ceemx.free_run(system, f64([[1.0]]), u)
+    y = np.asarray(y).copy()
+    y[0, :, 1] = 0.1  # the second output constant
+    with pytest.warns(UserWarning, match="constant.*record 0 output 2.*NaN"):
+        s = ceemx.benchmark_score(system, ceemx.Trajectories(y, u), 5, x1=f64([[1.0]]))
+    assert np.isnan(s.nrmse[0, 1]) and np.isnan(s.fit_percent[0, 1])
+    assert np.isnan(s.nrmse_overall[0]) and np.isnan(s.fit_percent_overall[0])
+    assert s.nrmse[0, 0] == 0.0 and s.fit_percent[0, 0] == 100.0  # the exact output: a score
+    np.testing.assert_allclose(s.rmse[0, 1], np.sqrt(np.mean((y[0, 5:, 0] - 0.1) ** 2)))
+    assert bool(s.status == ceemx.RESULTS.constant_output)

@@ -35,6 +35,10 @@ class RESULTS(eqx.Enumeration):
         "the free-run simulation is not finite: the model diverges (or overflows) from its "
         "initial state under these inputs"
     )
+    constant_output = (
+        "a scored test output is constant (one value): its NRMSE and fit % (relative to the "
+        "output's spread) are undefined, NaN; the RMSE stands"
+    )
 
 
 def codes(status: RESULTS) -> np.ndarray:
@@ -81,4 +85,5 @@ _ITEMS = (
     RESULTS.particle_failure,
     RESULTS.outlier,
     RESULTS.diverged,
+    RESULTS.constant_output,
 )
