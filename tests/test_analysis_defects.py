@@ -385,3 +385,83 @@ def test_benchmark_score_of_a_constant_output_is_nan_with_its_status():
     assert s.nrmse[0, 0] == 0.0 and s.fit_percent[0, 0] == 100.0  # the exact output: a score
     np.testing.assert_allclose(s.rmse[0, 1], np.sqrt(np.mean((y[0, 5:, 0] - 0.1) ** 2)))
     assert bool(s.status == ceemx.RESULTS.constant_output)
+
+
+# --------------------------------------------------------------------------------------------
+# Identifiability: negative parameters, bounded messages
+# --------------------------------------------------------------------------------------------
+
+
+class Product(ceemx.AbstractSystem):
+    """x⁺ = 0.9·x + a·b·u, y = x: only a·b is determined, whatever the signs."""
+
+    a: jax.Array
+    b: jax.Array
+
+    state_dim = 1
+    obs_dim = 1
+    input_dim = 1
+
+    def dynamics(self, x, u, t):
+        return 0.9 * x + self.a * self.b * u
+
+    def observe(self, x, u, t):
+        return x
+
+
+@pytest.mark.parametrize("a, b", [(1.5, 2.0), (1.5, -2.0), (-1.5, -2.0), (-1.5, 2.0)])
+def test_identifiability_names_the_product_whatever_the_signs(a, b):
+    """S = c·g gᵀ with g = ∇(a·b) = (b, a): the data determine a·b alone.
+
+    With b = −2 it used to read "only a/b is determined": the relative scale used |θ|, so a
+    unit of a negative parameter's coordinate divided it by e instead of multiplying.
+    """
+    from ceemx.identification.analysis.identifiability import analyse
+    from ceemx.identification.problem import FitProblem
+
+    system = Product(f64(a), f64(b), process_noise=f64(0.1), obs_noise=f64(0.1))
+    data = ceemx.Trajectories(np.zeros((1, 3, 1)), np.zeros((1, 3, 1)))
+    problem, theta = FitProblem.create(system, data)
+    g = np.array([b, a])
+    found = analyse(problem, theta, 1e4 * np.outer(g, g))
+    assert found is not None and found.determined == ("a·b",), found
+    assert found.exponents == ((("a", 1), ("b", 1)),)
+
+
+@pytest.mark.slow
+def test_identifiability_of_a_fit_with_a_negative_parameter():
+    """The fit's own analysis (JointLM, check_identifiability) on the product with b = −2."""
+    system = Product(f64(1.5), f64(-2.0), process_noise=f64(0.01), obs_noise=f64(0.01))
+    u = jax.random.normal(jax.random.PRNGKey(1), (1, 40, 1))
+    x, data = ceemx.simulate(system, jax.random.PRNGKey(0), jnp.zeros((1, 1)), 40, u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = ceemx.fit(system, data, x, solver=ceemx.JointLM(), max_epochs=3)
+    found = res.check_identifiability()
+    assert found is not None and found.determined == ("a·b",), found
+
+
+def test_identifiability_message_of_many_weights_is_bounded():
+    """A learned term's weights: the few most involved named, the rest counted.
+
+    A hybrid with 370 parameters used to put every weight and a coefficient per weight and
+    direction into one message (12 MB).
+    """
+    from ceemx.lib.nullspace import MAX_NAMED, describe_null_space
+
+    P, k = 353, 300
+    rng = np.random.default_rng(0)
+    basis, _ = np.linalg.qr(rng.normal(size=(P, k)))
+    names = [f"w[{i}]" for i in range(P)]
+    out = describe_null_space(basis, names, np.ones(P, bool), np.ones(P))
+    assert len(out.text) < 600, len(out.text)
+    assert out.text.startswith(f"{k} directions among {P} parameters (w[")
+    assert f"and {P - MAX_NAMED} more) are not determined by the data" in out.text
+    assert len(out.undetermined) == P  # the structured record keeps every name
+    # Many separate groups: a few sentences, the rest counted.
+    blocks = np.zeros((2 * 40, 40))
+    for i in range(40):
+        blocks[2 * i : 2 * i + 2, i] = [1.0, -1.1]  # not an integer direction: coefficients
+    blocks /= np.linalg.norm(blocks, axis=0)
+    out = describe_null_space(blocks, [f"p{i}" for i in range(80)], np.ones(80, bool), np.ones(80))
+    assert out.text.count("; ") == 5 and "35 more groups of parameters" in out.text
