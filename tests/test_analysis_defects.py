@@ -465,3 +465,46 @@ def test_identifiability_message_of_many_weights_is_bounded():
     blocks /= np.linalg.norm(blocks, axis=0)
     out = describe_null_space(blocks, [f"p{i}" for i in range(80)], np.ones(80, bool), np.ones(80))
     assert out.text.count("; ") == 5 and "35 more groups of parameters" in out.text
+
+
+# --------------------------------------------------------------------------------------------
+# EarlyStopping: one fit at a time, its own result only
+# --------------------------------------------------------------------------------------------
+
+
+def test_early_stopping_restores_only_the_fit_it_watched(with_input):
+    """``restore`` refuses another fit's result; reused in a second fit, it starts over.
+
+    It used to put the first fit's best model into any result, and, reused, return the first
+    fit's model for the second fit.
+    """
+    from ceemx.evaluation.early_stopping import EarlyStopping
+    from ceemx.identification.fitting.result import EpochInfo
+
+    truth, x, data = with_input
+    worse = linear(a=0.7 * A)
+    stop = EarlyStopping(data, n_init=5, patience=3, score_options={"x1": x[:, 0]})
+
+    def fit_by_hand(*systems):
+        """The callback's view of a fit whose epochs end at ``systems``; its result."""
+        history = []
+        for k, system in enumerate(systems, start=1):
+            record = {"epoch": k, "J": 0.0}
+            stop(EpochInfo(k, system, x, record))
+            history.append(record)
+        return ceemx.FitResult(systems[-1], x, ceemx.RESULTS.successful, history, False,
+                               ceemx.JointLM(), 0.0)  # fmt: skip
+
+    with pytest.raises(ValueError, match="watched no epoch"):
+        stop.restore(ceemx.FitResult(worse, x, ceemx.RESULTS.successful, [], False,
+                                     ceemx.JointLM(), 0.0))  # fmt: skip
+    first = fit_by_hand(worse, truth, worse)
+    other = dataclasses.replace(first, history=[{"epoch": k, "J": 0.0} for k in (1, 2, 3)])
+    with pytest.raises(ValueError, match="not the fit this EarlyStopping watched"):
+        stop.restore(other)
+    assert stop.restore(first).system is truth and stop.best_epoch == 2
+    second = fit_by_hand(worse, worse)  # a second fit: epochs start again
+    assert stop.best_epoch == 1 and [e for e, _ in stop.scores] == [1, 2]
+    assert stop.restore(second).system is worse
+    with pytest.raises(ValueError, match="not the fit this EarlyStopping watched"):
+        stop.restore(first)
