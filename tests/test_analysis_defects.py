@@ -508,3 +508,28 @@ def test_early_stopping_restores_only_the_fit_it_watched(with_input):
     assert stop.restore(second).system is worse
     with pytest.raises(ValueError, match="not the fit this EarlyStopping watched"):
         stop.restore(first)
+
+
+# --------------------------------------------------------------------------------------------
+# Initial states outside a hybrid model's bounds
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow  # the initial-state smoother's compile (≈ 2.5 s)
+def test_initial_state_outside_a_hybrids_bounds_is_warned():
+    """A hidden state bounded below by 0, data from a start at −2: x̂₁ below the bound, warned.
+
+    It used to be returned without a word (a hidden tank level of −1.04 V on the tanks).
+    """
+    from ceemx.systems.hybrid import Hybrid
+
+    physics = ceemx.systems.LinearSystem(
+        f64([[0.9, 0.3], [0.0, 0.95]]), f64(C), f64(B_IN), process_noise=f64(0.01),
+        obs_noise=f64(0.01),
+    )  # fmt: skip
+    u = jnp.zeros((1, 20, 1))
+    _, data = ceemx.simulate(physics, jax.random.PRNGKey(0), f64([[0.0, -2.0]]), 20, u)
+    model = Hybrid(physics, lower=f64([-np.inf, 0.0]))  # bounds, no learned term
+    with pytest.warns(UserWarning, match=r"outside the model's state bounds.*state 2 of traj"):
+        x1 = ceemx.estimate_initial_state(model, data, 10, refine=False, warm_process_noise=None)
+    assert float(x1[0, 1]) < 0.0
