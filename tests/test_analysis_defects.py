@@ -107,10 +107,16 @@ def test_diagnostics_leave_out_failed_trajectories_and_refuse_when_all_failed(no
 
 @pytest.fixture(scope="module")
 def with_input():
-    """The model with one input, its records (T = 60), and a misspecified copy (A/2)."""
+    """The model with one input, (states, data) of two records of 60 steps, and the same with
+    the second record cut to 35 steps (padded to 60, the padding masked, its inputs held)."""
     system = linear()
     x, data = record(system, 60)
-    return system, x, data
+    mask = np.ones((2, 60, 1), bool)
+    mask[1, 35:] = False
+    u = np.asarray(data.u).copy()
+    u[1, 35:] = u[1, 34]
+    padded = ceemx.Trajectories(np.asarray(data.y), u, mask)
+    return system, x, data, padded
 
 
 def test_records_of_different_lengths_leave_their_padding_out(with_input):
@@ -122,13 +128,8 @@ def test_records_of_different_lengths_leave_their_padding_out(with_input):
     so each used to add exactly the assumed Q and pull the ratio towards 1 (on an unstable
     model its spread overflowed, and the record was dropped).
     """
-    truth, x, data = with_input
+    _, x, data, padded = with_input
     loose = linear(q_std=10 * Q_STD)
-    mask = np.ones((2, 60, 1), bool)
-    mask[1, 35:] = False
-    u = np.asarray(data.u).copy()
-    u[1, 35:] = u[1, 34]
-    padded = ceemx.Trajectories(np.asarray(data.y), u, mask)
     diag = residual_diagnostics(loose, padded, x, lags=5, estimate=False)
     parts = [
         residual_moments(loose, data[0], x[:1]),
@@ -150,7 +151,7 @@ def test_tests_not_run_are_none_not_true(with_input, tmp_path):
     """
     from ceemx.evaluation import plots
 
-    _, x, data = with_input
+    _, x, _, data = with_input  # the padded records: the programs of the test above
     diag = residual_diagnostics(linear(a=0.3 * A), data, x, lags=5, estimate=False)
     assert diag.white[0] is False and diag.nis_ok[0] is not None
     assert diag.independent[0, 0] is None and diag.unbiased[0] is None
@@ -449,7 +450,7 @@ def test_identifiability_message_of_many_weights_is_bounded():
     """
     from ceemx.lib.nullspace import MAX_NAMED, describe_null_space
 
-    P, k = 353, 300
+    P, k = 60, 50
     rng = np.random.default_rng(0)
     basis, _ = np.linalg.qr(rng.normal(size=(P, k)))
     names = [f"w[{i}]" for i in range(P)]
@@ -481,7 +482,7 @@ def test_early_stopping_restores_only_the_fit_it_watched(with_input):
     from ceemx.evaluation.early_stopping import EarlyStopping
     from ceemx.identification.fitting.result import EpochInfo
 
-    truth, x, data = with_input
+    truth, x, data, _ = with_input
     worse = linear(a=0.7 * A)
     stop = EarlyStopping(data, n_init=5, patience=3, score_options={"x1": x[:, 0]})
 

@@ -410,7 +410,12 @@ def _flag_diverged(start, rmse_overall, status: RESULTS) -> RESULTS:
     return select(as_jax(~bad), status, RESULTS.diverged)
 
 
-def _flag_constant(test: Trajectories, n_init: int, metrics: tuple, status: RESULTS):
+_Scores = tuple[Array, Array, Array, Array, Array, Array]
+
+
+def _flag_constant(
+    test: Trajectories, n_init: int, metrics: _Scores, status: RESULTS
+) -> tuple[_Scores, RESULTS]:
     """NaN NRMSE and fit % (and a warning, status ``constant_output``) for constant outputs.
 
     A scored output that takes one value has no spread: NRMSE = RMSE / 0 is not a score (it read

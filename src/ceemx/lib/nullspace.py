@@ -202,7 +202,7 @@ def _most_involved(U: np.ndarray, names: Sequence[str]) -> str:
     """The :data:`MAX_NAMED` variables most involved in the directions U; the rest counted."""
     order = np.argsort(-np.sum(U**2, axis=1), kind="stable")[:MAX_NAMED]
     rest = len(names) - len(order)
-    return ", ".join(names[i] for i in order) + f" and {rest} more"
+    return ", ".join(names[int(i)] for i in order) + f" and {rest} more"
 
 
 def _number(v: float) -> str:

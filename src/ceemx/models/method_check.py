@@ -125,7 +125,8 @@ def nonfinite_run(states, outputs) -> str | None:
     """
     xs, ys = np.asarray(states), np.asarray(outputs)
     T = xs.shape[1]
-    bad_x, bad_y = ~np.isfinite(xs).all(axis=-1), ~np.isfinite(ys).all(axis=-1)
+    bad_x = np.asarray(~np.isfinite(xs).all(axis=-1))  # (B, T)
+    bad_y = np.asarray(~np.isfinite(ys).all(axis=-1))
     if not (bad_x.any() or bad_y.any()):
         return None
     first_x = np.where(bad_x.any(axis=1), bad_x.argmax(axis=1), T)

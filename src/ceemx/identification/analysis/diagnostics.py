@@ -356,7 +356,7 @@ def _noise_reading(system: AbstractSystem, inputs, estimate: bool) -> _NoiseRead
         states[idx, : part_states.shape[1]] = part_states
         ok[idx], log_ev[idx] = np.asarray(nm.ok), np.asarray(nm.log_evidence)
     moments = {
-        key: sum(np.asarray(nm.moments[key]) for _, (nm, _) in parts)
+        key: as_jax(np.sum([np.asarray(nm.moments[key]) for _, (nm, _) in parts], axis=0))
         for key in parts[0][1][0].moments
     }
     nm = NoiseMoments(moments, as_jax(states), as_jax(log_ev), as_jax(ok))
@@ -380,7 +380,7 @@ def _noise_reading(system: AbstractSystem, inputs, estimate: bool) -> _NoiseRead
 
 def _record_lengths(data: Trajectories) -> np.ndarray:
     """(B,) the steps of each record up to its last observed sample (at least 2; T if none)."""
-    seen = np.asarray(data.mask).any(axis=-1)
+    seen = np.asarray(np.asarray(data.mask).any(axis=-1))
     T = seen.shape[1]
     end = T - np.argmax(seen[:, ::-1], axis=1)
     return np.where(seen.any(axis=1), np.maximum(end, 2), T)
