@@ -23,8 +23,9 @@ from ceemx.lib.typing import (
     Trajectory,
     no_type_check,
 )
+from ceemx.models.method_check import check_methods, nonfinite_run
 from ceemx.models.noise import AbstractNoise
-from ceemx.models.system import AbstractSystem
+from ceemx.models.system import AbstractSystem, float_dtype
 
 __all__ = ["Trajectories", "foh_inputs", "rollout_one", "simulate"]
 
@@ -422,18 +423,55 @@ def simulate(
         obs_noise: likewise for the observation noise (``False``: exact observations).
 
     Returns:
-        The true states (B, T, n) and the observations as :class:`Trajectories`.
+        The true states (B, T, n) and the observations as :class:`Trajectories`, in the dtype
+        of the system's parameters (``x0`` and ``u`` are cast to it).
+
+    Raises:
+        TypeError: a complex or non-numeric ``x0`` or ``u``.
+        ValueError: ``x0`` not (B, n) or not finite, ``u`` not (B, T, p); a ``dynamics``,
+            ``vector_field`` or ``observe`` that returns another shape or dtype than the
+            system's, or not one array (:func:`ceemx.models.method_check.check_methods`, as
+            :func:`ceemx.fit` and :func:`ceemx.smooth` check); a simulation that is not finite,
+            naming the trajectory, the step and the method that returned NaN or inf.
     """
-    x0 = as_jax(x0)
+    check_methods(system)
+    dtype = jnp.dtype(float_dtype(system))
+    x0 = _start_states(x0, system.state_dim, dtype)
     B, _ = x0.shape
     T = _num_steps(num_steps, u)
-    u = jnp.zeros((B, T, 0), x0.dtype) if u is None else jnp.asarray(u, x0.dtype)
+    if u is None:
+        u = jnp.zeros((B, T, 0), dtype)
+    else:
+        if isinstance(u, Tracer):
+            u = u.astype(dtype)
+        else:
+            u = jnp.asarray(cast_checked("u", _as_numeric("u", u), dtype), dtype)
+        if u.shape != (B, T, system.input_dim):
+            raise ValueError(
+                f"`u` must have shape (B, T, p) = {(B, T, system.input_dim)}; got {u.shape}."
+            )
     pn = _resolve_noise("process_noise", process_noise, system.process_noise)
     on = _resolve_noise("obs_noise", obs_noise, system.obs_noise)
     xs, y = _simulate(system, key, x0, u, pn, on)
-    # Built outside the compiled program, so that concrete observations are validated (a
-    # simulation that diverged to inf or NaN is refused here, naming the index).
+    if _is_concrete(xs):
+        where = nonfinite_run(xs, y)
+        if where is not None:
+            raise ValueError(f"simulate: the simulation is not finite: {where}")
+    # Built outside the compiled program, so that concrete observations are validated.
     return xs, Trajectories(y, u if u.shape[-1] else None)
+
+
+def _start_states(x0, n: int, dtype) -> Array:
+    """``x0`` as finite (B, n) states in ``dtype`` (a traced one is only cast), or raise."""
+    if isinstance(x0, Tracer):
+        return x0.astype(dtype)
+    a = cast_checked("x0", _as_numeric("x0", x0), dtype)
+    if a.ndim != 2 or a.shape[1] != n:
+        raise ValueError(f"`x0` must have shape (B, n) with n = {n}; got {a.shape}.")
+    if not np.all(np.isfinite(a)):
+        bad = list(_first_bad(~np.isfinite(a)))
+        raise ValueError(f"`x0` has a non-finite value at index {bad}.")
+    return as_jax(a)
 
 
 @program(runs=Runs.ONCE)  # data generation: once per data set, cheap to run beside its compile

@@ -68,9 +68,14 @@ class EarlyStopping:
             score (e.g. ``{"warm_process_noise": (1.0, None)}``: several initial-state starts).
 
     After the fit, :attr:`best_system`, :attr:`best_epoch` and :attr:`best_rmse` hold the best
-    model; :meth:`restore` returns the fit's result with it (and notes the restore in its
-    messages). A non-finite score (the model diverges on the validation record) never counts as
-    the best.
+    model; :meth:`restore` returns the fit's result with it. A non-finite score (the model
+    diverges on the validation record) never counts as the best.
+
+    One instance watches one fit: passed to a second fit (its epochs start again), it starts
+    over — the best model, the scores and the patience of the first fit are dropped (the
+    ``start`` model and its score are kept) — so each round of ``fit(..., noise="learn")`` is
+    watched on its own and :meth:`restore` reads the last. :meth:`restore` refuses a result
+    whose history does not hold the validation scores of the fit it watched.
     """
 
     def __init__(
@@ -116,13 +121,21 @@ class EarlyStopping:
         self.patience = patience
         self.min_delta = float(min_delta)
         self.every = every
+        self._start: tuple[AbstractSystem, float] | None = None
+        if start is not None:
+            self._start = (start, self.score(start))
+        self._start_over()
+
+    def _start_over(self) -> None:
+        """The state before a fit: no epoch watched, the start model the best (when finite)."""
         self.best_system: AbstractSystem | None = None
         self.best_epoch = 0
         self._progress_epoch = 0
         self.best_rmse = math.inf
         self.scores: list[tuple[int, float]] = []
-        if start is not None:
-            rmse = self.score(start)
+        self._last_epoch = 0  # the last epoch of the fit being watched (0: none yet)
+        if self._start is not None:
+            start, rmse = self._start
             self.scores.append((0, rmse))
             if np.isfinite(rmse):
                 self.best_system, self.best_rmse = start, rmse
@@ -134,6 +147,9 @@ class EarlyStopping:
 
     def __call__(self, info) -> dict | bool:
         """Score the epoch's model; ``False`` stops the fit."""
+        if info.epoch <= self._last_epoch:  # epochs start again: another fit (class notes)
+            self._start_over()
+        self._last_epoch = info.epoch
         if info.epoch % self.every:
             return {}
         rmse = self.score(info.system)
@@ -148,10 +164,38 @@ class EarlyStopping:
         return {}
 
     def restore(self, result):
-        """``result`` with the best validation model as its system (states are kept)."""
+        """``result`` with the best validation model as its system (states are kept).
+
+        Raises:
+            ValueError: no epoch was watched (the instance was not among the fit's
+                ``callbacks``), or ``result`` is not the fit this instance watched last: its
+                history does not hold the validation scores recorded in that fit.
+        """
+        watched = [(epoch, rmse) for epoch, rmse in self.scores if epoch > 0]
+        if not self._last_epoch:
+            raise ValueError(
+                "this EarlyStopping has watched no epoch of a fit: pass it to the fit "
+                "(fit(..., callbacks=[early_stopping])) before restoring its result."
+            )
+        recorded = {
+            (h.get("epoch"), _key(h["val_rmse"])) for h in result.history if "val_rmse" in h
+        }
+        if not all((epoch, _key(rmse)) in recorded for epoch, rmse in watched):
+            raise ValueError(
+                "`result` is not the fit this EarlyStopping watched: its history does not hold "
+                f"the validation scores recorded at epochs {[e for e, _ in watched]}. Restore the "
+                "result of the fit it was passed to (its last one: one instance watches one fit "
+                "at a time)."
+            )
         if self.best_system is None:
             return result
         theta = result.theta
         if result.problem is not None:
             theta = result.problem.theta_of(self.best_system)
         return dataclasses.replace(result, system=self.best_system, theta=theta)
+
+
+def _key(rmse: float) -> float | str:
+    """A validation score as a set member (NaN, which equals nothing, as a string)."""
+    value = float(rmse)
+    return "nan" if math.isnan(value) else value

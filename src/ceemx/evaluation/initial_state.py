@@ -39,6 +39,7 @@ from ceemx.lib.results import RESULTS, select
 from ceemx.lib.tree import as_jax, trace_numbers
 from ceemx.lib.typing import States, no_type_check
 from ceemx.models.system import AbstractSystem, with_noise
+from ceemx.systems.hybrid import Hybrid, HybridContinuous
 
 __all__ = ["estimate_initial_state", "initial_state_batch", "initial_state_prepared"]
 
@@ -226,6 +227,10 @@ def estimate_initial_state(
     Returns:
         (B, n) initial states in the system's dtype; ``(x1, status)`` with ``return_status``.
 
+    Warns:
+        UserWarning: x̂₁ of a hybrid model lies outside its state bounds (``lower``, ``upper``;
+            the model reads it through its projection into them).
+
     Raises:
         TypeError: ``system`` or ``data`` of the wrong type, or a non-integer ``n_init``.
         ValueError: ``n_init`` outside [1, T], mismatched dimensions, a float16 system,
@@ -238,7 +243,7 @@ def estimate_initial_state(
     check_system(system)
     inputs = prepare(system, data)
     check_finite_data(inputs.data)
-    return initial_state_prepared(
+    out = initial_state_prepared(
         inputs.system,
         inputs.data,
         n_init,
@@ -247,6 +252,34 @@ def estimate_initial_state(
         x_init=x_init,
         warm_process_noise=warm_process_noise,
         return_status=return_status,
+    )
+    _warn_outside_bounds(inputs.system, out[0] if return_status else out)
+    return out
+
+
+def _warn_outside_bounds(system: AbstractSystem, x1) -> None:
+    """A warning when x̂₁ lies outside a hybrid model's state bounds (``lower``, ``upper``).
+
+    The model reads every state through its smooth projection into the bounds
+    (:meth:`ceemx.systems.hybrid.Hybrid.project`), where it is flat far outside: the window's
+    simulation error does not pull x̂₁ back in, and a state such as a tank level of −1 V is
+    returned although the free run starts from its projection.
+    """
+    if not isinstance(system, Hybrid | HybridContinuous):
+        return
+    x = np.asarray(x1, np.float64)
+    lower, upper = np.asarray(system.lower), np.asarray(system.upper)
+    outside = np.isfinite(x) & ((x < lower) | (x > upper))
+    if not outside.any():
+        return
+    b, i = (int(v) for v in np.argwhere(outside)[0])
+    projected = np.asarray(system.project(jnp.asarray(x[b], jnp.asarray(x1).dtype)))[i]
+    warn(
+        f"estimate_initial_state: x̂₁ lies outside the model's state bounds in "
+        f"{int(outside.sum())} entr{'ies' if outside.sum() > 1 else 'y'}, e.g. state {i + 1} "
+        f"of trajectory {b}: {x[b, i]:.4g} outside [{lower[i]:.4g}, {upper[i]:.4g}]. The model "
+        f"reads it through its projection into the bounds ({projected:.4g}); the estimate "
+        "itself is not a state of the bounded model (its window fit is flat out there)."
     )
 
 

@@ -199,7 +199,8 @@ class BenchmarkScore(NamedTuple):
     Attributes:
         rmse: (B, m) sqrt(Σ e² / N).
         nrmse: (B, m) RMSE / std(y), the standard deviation (ddof 0, scaled) of the scored
-            outputs; ``inf`` for a constant output.
+            outputs; NaN for a constant output (one value: no spread to compare with; warned,
+            status ``constant_output``).
         fit_percent: (B, m) 100·(1 − ‖y − ŷ‖ / ‖y − ȳ‖) = 100·(1 − NRMSE).
         rmse_overall: (B,) RMSE over all scored entries of the trajectory (every output).
         nrmse_overall: (B,) mean over outputs of ``nrmse``.
@@ -209,7 +210,9 @@ class BenchmarkScore(NamedTuple):
         x1: (B, n) initial states of the simulations.
         status: (B,) :class:`ceemx.RESULTS` of the initial-state estimation (``successful``
             where ``x1`` was given; ``nonfinite`` where x̂₁ is not finite), or ``diverged`` where
-            the free run from a finite x̂₁ is not finite (its scores are NaN or inf; warned).
+            the free run from a finite x̂₁ is not finite (its scores are NaN or inf; warned), or
+            ``constant_output`` where a scored output of the record is constant (its NRMSE and
+            fit % are NaN; warned).
         n_init: outputs used for the initial state (not scored).
     """
 
@@ -339,6 +342,7 @@ def benchmark_score(
     scale_arr = jnp.asarray(np.broadcast_to(s, (system.obs_dim,)), test.y.dtype)
     metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
     status = _flag_diverged(start, metrics[3], status)
+    metrics, status = _flag_constant(test, n_init, metrics, status)
     return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init)
 
 
@@ -408,6 +412,44 @@ def _flag_diverged(start, rmse_overall, status: RESULTS) -> RESULTS:
         "RESULTS.diverged (BenchmarkScore.status)."
     )
     return select(as_jax(~bad), status, RESULTS.diverged)
+
+
+_Scores = tuple[Array, Array, Array, Array, Array, Array]
+
+
+def _flag_constant(
+    test: Trajectories, n_init: int, metrics: _Scores, status: RESULTS
+) -> tuple[_Scores, RESULTS]:
+    """NaN NRMSE and fit % (and a warning, status ``constant_output``) for constant outputs.
+
+    A scored output that takes one value has no spread: NRMSE = RMSE / 0 is not a score (it read
+    inf, or ~1e16 where the mean rounds off the value, and fit % −inf).
+    """
+    y, mask = np.asarray(test.y)[:, n_init:], np.asarray(test.mask)[:, n_init:]
+    high = np.where(mask, y, -np.inf).max(axis=1)
+    low = np.where(mask, y, np.inf).min(axis=1)
+    constant = high == low  # (B, m); every trajectory has a scored entry (_check_record)
+    if not constant.any():
+        return metrics, status
+    rmse, nrmse, fit, overall = (np.asarray(a) for a in metrics[:4])
+    nrmse = np.where(constant, np.nan, nrmse)
+    fit = np.where(constant, np.nan, fit)
+    which = ", ".join(f"record {b} output {j + 1}" for b, j in np.argwhere(constant))
+    warn(
+        f"benchmark_score: the scored test output is constant ({which}: one value from n_init "
+        "on), so NRMSE = RMSE / std(y) and fit % are undefined and returned as NaN; the RMSE "
+        "stands. Their status is RESULTS.constant_output (BenchmarkScore.status)."
+    )
+    row = constant.any(axis=1)
+    out = (
+        as_jax(rmse),
+        as_jax(nrmse),
+        as_jax(fit),
+        as_jax(overall),
+        as_jax(nrmse.mean(axis=1)),
+        as_jax(fit.mean(axis=1)),
+    )
+    return out, select(as_jax(~row), status, RESULTS.constant_output)
 
 
 # --------------------------------------------------------------------------------------------

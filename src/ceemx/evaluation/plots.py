@@ -398,6 +398,13 @@ def plot_resid(
     return fig
 
 
+def _verdict(value, passed: str, failed: str) -> str:
+    """A test's verdict for a panel title: passed, failed, or not tested (``None``)."""
+    if value is None:
+        return "not tested"
+    return passed if value else failed
+
+
 def plot_residual_diagnostics(diag, path: str | os.PathLike | None = None):
     """The figure of a :class:`~ceemx.identification.analysis.diagnostics.ResidualDiagnostics`.
 
@@ -427,14 +434,14 @@ def plot_residual_diagnostics(diag, path: str | os.PathLike | None = None):
         grid = fig.add_gridspec(m + 1, 1 + p)
         for i in range(m):
             ax = fig.add_subplot(grid[i, 0])
-            verdict = "white" if diag.white[i] else "NOT white"
+            verdict = _verdict(diag.white[i], "white", "NOT white")
             _correlation_axis(ax, np.arange(1, M + 1), acf[i, 1:], band[i, 1:],
                               f"output {i + 1}: autocorrelation ({verdict}; NIS {diag.nis[i]:.3g})",
                               "lag k", legend=i == 0)  # fmt: skip
             for j in range(p):
                 ax = fig.add_subplot(grid[i, 1 + j])
                 xb = BAND_Z / math.sqrt(max(float(diag.counts[i]), 1.0))
-                ok = "independent" if diag.independent[i, j] else "CORRELATED"
+                ok = _verdict(diag.independent[i, j], "independent", "CORRELATED")
                 _correlation_axis(ax, np.arange(-M, M + 1), xcf[i, j], xb,
                                   f"output {i + 1} and input {j + 1} ({ok})",
                                   "lag k (error at t, input at t − k)")  # fmt: skip

@@ -28,7 +28,9 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.inference.ekf import ekf_prepared
 from ceemx.infra.compilation import jit
 from ceemx.infra.options import INT32_MAX
+from ceemx.infra.warn import warn
 from ceemx.lib.typing import Inputs, Observations, States, no_type_check
+from ceemx.models.method_check import check_methods, nonfinite_run
 from ceemx.models.system import AbstractSystem, GaussianPrior
 
 __all__ = [
@@ -150,7 +152,14 @@ def free_run(
         TypeError: ``system`` is not a :class:`ceemx.AbstractSystem`; a complex or non-numeric
             ``x1`` or ``u``.
         ValueError: mismatched shapes, non-finite ``x1`` or ``u`` (or a value that overflows
-            the cast), a float16 system, or a missing ``num_steps``.
+            the cast), a float16 system, or a missing ``num_steps``; a ``dynamics``,
+            ``vector_field`` or ``observe`` that returns another shape or dtype than the
+            system's, or not one array (:func:`ceemx.models.method_check.check_methods`, as
+            :func:`ceemx.fit` and :func:`ceemx.smooth` check).
+
+    Warns:
+        UserWarning: the run is not finite — naming the trajectory, the step and the method
+            that returned NaN or inf (the arrays are returned as computed).
 
     ``lax.scan`` over time and ``vmap`` over the batch; compiled once per system structure and
     (B, T, p).
@@ -162,6 +171,7 @@ def free_run(
         [2.0, 1.0, 0.5]
     """
     check_system(system)
+    check_methods(system)  # the shapes and dtypes its methods return, as fit and smooth check
     x = promote_array("x1", x1, system)  # the system's dtype (x1's used to win)
     single = x.ndim == 1
     xb = x[None] if single else x
@@ -186,6 +196,9 @@ def free_run(
         _finite("u", np.asarray(ub))
     _finite("x1", np.asarray(xb))
     xs, ys = free_run_batch(strongly_typed(system), xb, ub, jnp.zeros((), jnp.int32))
+    where = nonfinite_run(xs, ys)
+    if where is not None:
+        warn(f"free_run: the run is not finite: {where}")
     return (xs[0], ys[0]) if single else (xs, ys)
 
 

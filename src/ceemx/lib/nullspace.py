@@ -48,6 +48,10 @@ MAX_EXPONENT = 2
 MAX_INTEGER_SIZE = 8
 #: a null direction is "carried by one variable" when its largest entry is this many times the next
 DOMINANT = 10.0
+#: a sentence names at most this many variables (the most involved), and counts the rest
+MAX_NAMED = 8
+#: the text has at most this many sentences (groups); the others are counted
+MAX_SENTENCES = 6
 
 _SUPERSCRIPT = str.maketrans("0123456789-", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻")
 
@@ -59,7 +63,8 @@ def near_null_space(
 
     Args:
         S: (P, P) symmetric curvature (a Gauss–Newton matrix or Schur complement).
-        scale: (P,) positive scale of each variable (the relative coordinates r = θ / scale).
+        scale: (P,) nonzero scale of each variable (the relative coordinates r = θ / scale;
+            negative for a log coordinate of a negative parameter).
         floor: absolute eigenvalue threshold in relative coordinates (1: a unit move of r changes
             the log-likelihood by less than ½ nat).
         rcond: relative threshold: eigenvalues ≤ ``rcond``·λ_max are zero to rounding.
@@ -193,6 +198,13 @@ def _listing(items: Sequence[str]) -> str:
     return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
+def _most_involved(U: np.ndarray, names: Sequence[str]) -> str:
+    """The :data:`MAX_NAMED` variables most involved in the directions U; the rest counted."""
+    order = np.argsort(-np.sum(U**2, axis=1), kind="stable")[:MAX_NAMED]
+    rest = len(names) - len(order)
+    return ", ".join(names[int(i)] for i in order) + f" and {rest} more"
+
+
 def _number(v: float) -> str:
     return f"{v:.2g}"
 
@@ -218,7 +230,10 @@ def describe_null_space(
         A :class:`NullSpaceNames`; its ``text`` reads, per group, "only a·b and a·c are
         determined by the data (a, b, c individually are not)", "parameter `x` is not
         determined by the data", or "the data do not determine a and b along
-        Δa : Δb = 1 : −0.5 (natural units)".
+        Δa : Δb = 1 : −0.5 (natural units)"; a group of more than :data:`MAX_NAMED` variables
+        (a learned term's weights) names its most involved few and counts the rest, and beyond
+        :data:`MAX_SENTENCES` groups the others are counted: the text stays a few lines
+        whatever the number of parameters (``undetermined`` lists them all).
     """
     sentences: list[str] = []
     determined: list[str] = []
@@ -238,6 +253,14 @@ def describe_null_space(
                 sentences.append(f"parameter `{top}` is not determined by the data")
                 continue
         undetermined += gnames
+        if len(group) > MAX_NAMED:  # a learned term's weights: name the few, count the rest
+            k = U.shape[1]
+            sentences.append(
+                f"{k} direction{'s' if k > 1 else ''} among {len(group)} parameters "
+                f"({_most_involved(U, gnames)}) {'are' if k > 1 else 'is'} not determined by "
+                "the data"
+            )
+            continue
         if U.shape[1] == len(group):
             sentences.append(f"{_listing(gnames)} are not determined by the data")
             continue
@@ -262,6 +285,12 @@ def describe_null_space(
                 f"the data do not determine {_listing(gnames)} along {deltas} = {ratio} "
                 "(natural units)"
             )
+    if len(sentences) > MAX_SENTENCES:
+        rest = len(sentences) - MAX_SENTENCES + 1
+        sentences = sentences[: MAX_SENTENCES - 1] + [
+            f"{rest} more groups of parameters are not determined by the data (the analysis's "
+            "`undetermined` lists every parameter)"
+        ]
     return NullSpaceNames(
         "; ".join(sentences), tuple(determined), tuple(exponents), tuple(undetermined)
     )

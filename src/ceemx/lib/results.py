@@ -45,6 +45,10 @@ class RESULTS(eqx.Enumeration):
         "not converged: the objective (J, or the method's own) or its derivatives became "
         "non-finite during the fit, from a finite start"
     )
+    constant_output = (
+        "a scored test output is constant (one value): its NRMSE and fit % (relative to the "
+        "output's spread) are undefined, NaN; the RMSE stands"
+    )
 
 
 def codes(status: RESULTS) -> np.ndarray:
@@ -93,4 +97,5 @@ _ITEMS = (
     RESULTS.diverged,
     RESULTS.never_moved,
     RESULTS.nonfinite_objective,
+    RESULTS.constant_output,
 )

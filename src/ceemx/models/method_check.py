@@ -5,9 +5,13 @@ used to fail deep inside a compiled program ("Cannot stack arrays with different
 dimensions", "add got incompatible shapes (2,), (3,)"). :func:`check_methods` evaluates each
 method abstractly (``jax.eval_shape``: a trace, no compilation and no arithmetic) on a state of
 shape (n,), an input (p,) and a time step, and names the method, the shape and dtype expected and
-those returned. Every entry point runs it through ``ceemx.data.checks.check_inputs``; the
-answer depends only on the system's structure and its leaves' shapes and dtypes, so it is
-remembered for those and each model is traced once.
+those returned. Every entry point runs it — through ``ceemx.data.checks.check_inputs``, or
+directly where there are no data (:func:`ceemx.simulate`, :func:`ceemx.free_run`); the answer
+depends only on the system's structure and its leaves' shapes and dtypes, so it is remembered for
+those and each model is traced once.
+
+:func:`nonfinite_run` reads a noise-free or simulated run after the fact: where it first stops
+being finite, and which method made it so.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from jax.core import Tracer
 
 from ceemx.models.system import AbstractContinuousSystem, AbstractSystem, float_dtype
 
-__all__ = ["check_methods"]
+__all__ = ["check_methods", "nonfinite_run"]
 
 _CHECKED: dict[Any, bool] = {}
 _MAX_REMEMBERED = 256
@@ -105,3 +109,41 @@ def _check_one(system: AbstractSystem, name: str, args: tuple, shape: tuple, dty
             f"`{where}` must return the dtype of the system's parameters, {dtype}; it returned "
             f"{out.dtype} (a constant or array of another precision inside the method?)."
         )
+
+
+def nonfinite_run(states, outputs) -> str | None:
+    """Where a run of a model first stops being finite, and which method did it (else ``None``).
+
+    Args:
+        states: (B, T, n) the run's states, ``states[:, 0]`` the given (finite) initial states.
+        outputs: (B, T, m) its outputs (``observe`` at each state).
+
+    Returns:
+        ``None`` when everything is finite; otherwise one sentence naming the trajectory, the
+        step, the method (``system.dynamics`` for the first non-finite state, ``system.observe``
+        for a non-finite output at a finite state) and the value.
+    """
+    xs, ys = np.asarray(states), np.asarray(outputs)
+    T = xs.shape[1]
+    bad_x = np.asarray(~np.isfinite(xs).all(axis=-1))  # (B, T)
+    bad_y = np.asarray(~np.isfinite(ys).all(axis=-1))
+    if not (bad_x.any() or bad_y.any()):
+        return None
+    first_x = np.where(bad_x.any(axis=1), bad_x.argmax(axis=1), T)
+    first_y = np.where(bad_y.any(axis=1), bad_y.argmax(axis=1), T)
+    b = int(np.argmin(np.minimum(first_x, first_y)))
+    if first_x[b] <= first_y[b]:
+        t = int(first_x[b])
+        value = xs[b, t][~np.isfinite(xs[b, t])][0]
+        return (
+            f"`system.dynamics` returned a non-finite state ({value} at step {t}) from the finite "
+            f"state at step {t - 1} of trajectory {b}: the model returns NaN or inf there, or "
+            "the run diverges until it overflows."
+        )
+    t = int(first_y[b])
+    value = ys[b, t][~np.isfinite(ys[b, t])][0]
+    return (
+        f"`system.observe` returned a non-finite output ({value}) at the finite state of step "
+        f"{t} of trajectory {b}: the model returns NaN or inf there (e.g. a log or a square root "
+        "outside its domain)."
+    )

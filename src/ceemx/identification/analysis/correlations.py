@@ -72,14 +72,20 @@ def _as_btc(values: ArrayLike, name: str) -> np.ndarray:
     raise ValueError(f"`{name}` must be (T,), (T, c) or (B, T, c); got shape {a.shape}.")
 
 
-def correlation_statistics(z: np.ndarray, u: np.ndarray, M: int) -> tuple[Correlations, np.ndarray]:
+def correlation_statistics(
+    z: np.ndarray, u: np.ndarray, M: int, inside: np.ndarray | None = None
+) -> tuple[Correlations, np.ndarray]:
     """The :class:`Correlations` of (B, T, m) residuals z with (B, T, p) inputs, and mean z².
 
     NaN in ``z`` marks a missing sample; pairs are never formed across a trajectory's end. The
-    mean square is the NIS when ``z`` are standardised prediction errors.
+    mean square is the NIS when ``z`` are standardised prediction errors. ``inside``: (B, T)
+    booleans, the steps that belong to a record (``None``: all); the padding of records of
+    different lengths is left out of the inputs' mean, spread and pairs. p = 0 (no input) is
+    allowed: the cross-correlations are then empty.
     """
     B, T, m = z.shape
     p = u.shape[-1]
+    inside = np.ones((B, T), bool) if inside is None else np.asarray(inside, bool)
     acf = np.zeros((m, M + 1))
     pairs = np.zeros((m, M + 1))
     xcf = np.full((m, p, 2 * M + 1), np.nan)
@@ -87,8 +93,10 @@ def correlation_statistics(z: np.ndarray, u: np.ndarray, M: int) -> tuple[Correl
     counts = np.zeros(m)
     mean = np.zeros(m)
     nis = np.zeros(m)
-    us = u - u.reshape(-1, p).mean(axis=0)
-    u_sd = us.reshape(-1, p).std(axis=0)
+    recorded = u[inside]  # (N, p): the inputs of the records, padding left out
+    u_mean = recorded.mean(axis=0) if len(recorded) else np.zeros(p)
+    us = np.where(inside[..., None], u - u_mean, 0.0)
+    u_sd = np.sqrt(np.sum(us**2, axis=(0, 1)) / max(len(recorded), 1))
     for i in range(m):
         present = np.isfinite(z[..., i])
         counts[i] = present.sum()
@@ -111,9 +119,11 @@ def correlation_statistics(z: np.ndarray, u: np.ndarray, M: int) -> tuple[Correl
             for idx, k in enumerate(range(-M, M + 1)):
                 # ẽ_t against u_{t−k}
                 if k >= 0:
-                    zz, uu, pr = c[:, k:], us[:, : T - k, j], present[:, k:]
+                    zz, uu = c[:, k:], us[:, : T - k, j]
+                    pr = present[:, k:] & inside[:, : T - k]
                 else:
-                    zz, uu, pr = c[:, : T + k], us[:, -k:, j], present[:, : T + k]
+                    zz, uu = c[:, : T + k], us[:, -k:, j]
+                    pr = present[:, : T + k] & inside[:, -k:]
                 xpairs[i, j, idx] = pr.sum()
                 if xpairs[i, j, idx] > 0:
                     xcf[i, j, idx] = np.sum(zz * uu) / xpairs[i, j, idx] / np.sqrt(var) / u_sd[j]
@@ -163,10 +173,5 @@ def residual_correlations(
     if isinstance(lags, bool) or not isinstance(lags, int | np.integer) or lags < 1:
         raise ValueError(f"`lags` must be an integer ≥ 1; got {lags!r}.")
     M = int(min(lags, T - 1))
-    p = u.shape[-1]
-    if p == 0:  # a constant stand-in (no correlations computed), dropped below
-        u = np.zeros((B, T, 1))
     c, _ = correlation_statistics(e, u, M)
-    return c._replace(
-        cross_correlation=c.cross_correlation[:, :p], cross_pair_counts=c.cross_pair_counts[:, :p]
-    )
+    return c

@@ -58,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from ceemx.data.checks import prepare, promote_tree
+from ceemx.data.checks import Prepared, prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.analysis.correlations import (
     BAND_Z,
@@ -70,6 +70,7 @@ from ceemx.identification.analysis.end_point import end_point
 from ceemx.identification.analysis.noise_check import FACTOR, LOWER, NoiseCheck, chi2_band
 from ceemx.identification.analysis.noise_estimate import (
     NOISE_FIELDS,
+    NoiseMoments,
     estimate_noise_prepared,
     moments_prepared,
     noise_ratios,
@@ -77,6 +78,7 @@ from ceemx.identification.analysis.noise_estimate import (
 )
 from ceemx.inference.ekf import ekf_prepared
 from ceemx.infra.options import check_bool, check_real
+from ceemx.lib.results import messages
 from ceemx.lib.tree import as_jax
 from ceemx.models.system import AbstractSystem, GaussianPrior
 
@@ -103,11 +105,13 @@ class ResidualDiagnostics:
         counts: (m,) N, the present samples per output.
         pair_counts: (m, M + 1) N_k, the pairs at each autocorrelation lag.
         box_pierce: (m,) Σ_k N_k r(k)² over k = 1…M, and ``box_pierce_p`` its χ²_M p-value.
-        white: (m,) the whiteness test passed; ``independent`` (m, p) the input test passed;
-            ``unbiased`` (m,) the bias test passed (both ``True`` where not run: they need white
-            errors); ``nis_ok`` (m,) the NIS is inside its band; ``ratio_ok`` per field: the
-            noise is consistent — (estimated / assumed std)² inside [1/F, F] when estimated,
-            else the E-step ratio.
+        white: (m,) the whiteness test's verdict; ``independent`` (m, p) the input test's;
+            ``unbiased`` (m,) the bias test's; ``nis_ok`` (m,) whether the NIS is inside its
+            band. Each is an object array of ``True`` (passed), ``False`` (failed) or ``None``
+            (not tested: the input and bias tests need white errors, so they are ``None`` where
+            ``white`` is ``False``; every test needs two present samples; the input test a
+            varying input). ``ratio_ok`` per field: the noise is consistent — (estimated /
+            assumed std)² inside [1/F, F] when estimated, else the E-step ratio.
         lags: M.
         factor: F of the per-component noise-ratio bands [1/F, F].
         noise_check: the end-of-fit check (``None`` when there was none).
@@ -168,15 +172,7 @@ class ResidualDiagnostics:
                 lines.append(text + ("" if self.ratio_ok[name][i] else "  <-- inconsistent"))
         lines.append(f"one-step prediction errors (EKF), lags 1..{self.lags}:")
         for i in range(len(self.nis)):
-            tests = (
-                [
-                    "white",
-                    "independent of inputs" if self.independent[i].all() else "input-correlated",
-                    "unbiased" if self.unbiased[i] else "biased",
-                ]
-                if self.white[i]
-                else ["NOT white (input and bias tests skipped: they need white errors)"]
-            )
+            tests = self._verdicts(i)
             lines.append(
                 f"  output {i + 1}: NIS {self.nis[i]:.3g}, mean {self.bias[i]:+.3g}, "
                 f"Box-Pierce {self.box_pierce[i]:.3g} (p = {self.box_pierce_p[i]:.2g}); "
@@ -188,6 +184,21 @@ class ResidualDiagnostics:
         else:
             lines.append("no problem found")
         return "\n".join(lines)
+
+    def _verdicts(self, i: int) -> list[str]:
+        """Output i's prediction-error verdicts in words (``None``: not tested, said so)."""
+        if self.white[i] is None:
+            return ["not tested (fewer than two present samples)"]
+        if not self.white[i]:
+            return ["NOT white (input and bias tests not run: they need white errors)"]
+        inputs = [v for v in self.independent[i] if v is not None]
+        words = ["white"]
+        if inputs:
+            words.append("independent of inputs" if all(inputs) else "input-correlated")
+        elif len(self.independent[i]):
+            words.append("input test not run (constant inputs)")
+        words.append("unbiased" if self.unbiased[i] else "biased")
+        return words
 
     def __repr__(self) -> str:
         return (
@@ -273,7 +284,8 @@ def residual_diagnostics(
         x1 = np.where(np.isfinite(x1), x1, np.asarray(states)[:, 0])
     prior = system.initial_prior if initial is None else initial
     z = _innovations(inputs.system, inputs.data, x1, prior)
-    c, nis = correlation_statistics(z, np.asarray(data.u), M)
+    inside = np.arange(data.num_steps)[None, :] < _record_lengths(inputs.data)[:, None]
+    c, nis = correlation_statistics(z, np.asarray(inputs.data.u), M, inside)
     tests = _prediction_error_tests(c, nis)
     return ResidualDiagnostics(
         noise_ratios=noise.ratios,
@@ -325,16 +337,38 @@ class _NoiseReading(NamedTuple):
 
 
 def _noise_reading(system: AbstractSystem, inputs, estimate: bool) -> _NoiseReading:
-    """The Laplace E-step's noise ratios and, with ``estimate``, the noise the data say."""
-    nm = moments_prepared(inputs.system, inputs.data, start_states(inputs))
-    ok = np.asarray(nm.ok)
+    """The Laplace E-step's noise ratios and, with ``estimate``, the noise the data say.
+
+    Records of different lengths (padded to one T, the padding masked) are read up to their
+    last observed sample: the states after it follow the dynamics alone, carry no information
+    about the noise and would add the assumed process noise to the realised one (or overflow:
+    the posterior spread of an unobserved unstable state grows without bound). Each length is
+    one batch; their residual moments add up, and the noise estimate is each batch's pooled
+    (variances weighted by their residual counts).
+    """
+    data, B = inputs.data, inputs.data.batch_size
+    lengths = _record_lengths(data)
+    parts = []
+    for L in np.unique(lengths):
+        idx = np.flatnonzero(lengths == L)
+        parts.append((idx, _length_reading(system, inputs, int(L), idx, estimate)))
+    states = np.full((B, data.num_steps, system.state_dim), np.nan)
+    ok, log_ev = np.zeros(B, bool), np.full(B, np.nan)
+    for idx, (nm, _) in parts:
+        part_states = np.asarray(nm.states)
+        states[idx, : part_states.shape[1]] = part_states
+        ok[idx], log_ev[idx] = np.asarray(nm.ok), np.asarray(nm.log_evidence)
+    moments = {
+        key: as_jax(np.sum([np.asarray(nm.moments[key]) for _, (nm, _) in parts], axis=0))
+        for key in parts[0][1][0].moments
+    }
+    nm = NoiseMoments(moments, as_jax(states), as_jax(log_ev), as_jax(ok))
     assumed = {name: _std(getattr(system, name)) for name in NOISE_FIELDS}
     estimated = None
     if ok.any():
         ratios = noise_ratios(system, nm)
         if estimate:
-            fitted, _, _ = estimate_noise_prepared(system, inputs.data, nm.states)
-            estimated = {name: _std(getattr(fitted, name)) for name in NOISE_FIELDS}
+            estimated = _pooled_estimate([part for _, part in parts])
     else:
         ratios = {name: np.full(len(assumed[name]), np.nan) for name in NOISE_FIELDS}
     problems = []
@@ -344,7 +378,50 @@ def _noise_reading(system: AbstractSystem, inputs, estimate: bool) -> _NoiseRead
             " (a state neither observed nor pinned by a prior on x₁ makes the Gauss–Newton "
             "matrix singular): they are left out of the noise ratios."
         )
-    return _NoiseReading(ratios, assumed, estimated, nm.states, problems)
+    return _NoiseReading(ratios, assumed, estimated, states, problems)
+
+
+def _record_lengths(data: Trajectories) -> np.ndarray:
+    """(B,) the steps of each record up to its last observed sample (at least 2; T if none)."""
+    seen = np.asarray(np.asarray(data.mask).any(axis=-1))
+    T = seen.shape[1]
+    end = T - np.argmax(seen[:, ::-1], axis=1)
+    return np.where(seen.any(axis=1), np.maximum(end, 2), T)
+
+
+def _length_reading(system: AbstractSystem, inputs, L: int, idx: np.ndarray, estimate: bool):
+    """(moments, estimated system or None) of the records ``idx``, read up to step ``L``."""
+    data, states = inputs.data, inputs.states
+    if L < data.num_steps or idx.size < data.batch_size:
+        data = data[as_jax(idx)].head(L) if L < data.num_steps else data[as_jax(idx)]
+        states = None if states is None else jnp.asarray(states)[as_jax(idx), :L]
+    part = Prepared(inputs.system, data, states)
+    nm = moments_prepared(part.system, part.data, start_states(part))
+    fitted = None
+    if estimate and np.asarray(nm.ok).any():
+        fitted, _, _ = estimate_noise_prepared(system, part.data, nm.states)
+    return nm, fitted
+
+
+def _pooled_estimate(parts: list) -> dict | None:
+    """Per field, the estimated standard deviations of each batch, their variances pooled."""
+    parts = [(nm, fitted) for nm, fitted in parts if fitted is not None]
+    if not parts:
+        return None
+    out = {}
+    for name in NOISE_FIELDS:
+        total, weight = 0.0, 0.0
+        for nm, fitted in parts:
+            if name == "process_noise":
+                w = float(nm.moments["dyn_count"])
+            elif getattr(fitted, name).full_covariance:
+                w = float(nm.moments["obs_full_count"])
+            else:
+                w = np.asarray(nm.moments["obs_count"], np.float64)
+            total = total + w * _std(getattr(fitted, name)) ** 2
+            weight = weight + w
+        out[name] = np.sqrt(total / np.maximum(weight, 1e-300))
+    return out
 
 
 def _noise_verdicts(noise: _NoiseReading, factor: float) -> tuple[dict, list[str]]:
@@ -375,7 +452,10 @@ def _noise_verdicts(noise: _NoiseReading, factor: float) -> tuple[dict, list[str
 
 @dataclass
 class _ErrorTests:
-    """The one-step prediction-error tests per output (module notes, item 2); all pass at first."""
+    """The one-step prediction-error tests per output (module notes, item 2).
+
+    Verdicts are object arrays of ``True``/``False``, ``None`` until a test has run.
+    """
 
     nis_ok: np.ndarray
     white: np.ndarray
@@ -386,43 +466,46 @@ class _ErrorTests:
     problems: list[str]
 
     @classmethod
-    def passed(cls, m: int, p: int) -> _ErrorTests:
-        """Every test passed (and no Box–Pierce statistic) for m outputs and p inputs."""
-        ones = np.ones(m, bool)
+    def untested(cls, m: int, p: int) -> _ErrorTests:
+        """No test run yet: every verdict ``None``, no Box–Pierce statistic; m outputs, p inputs."""
+        none = lambda *shape: np.full(shape, None, dtype=object)  # noqa: E731
         nan = np.full(m, np.nan)
-        return cls(ones, ones.copy(), ones.copy(), np.ones((m, p), bool), nan, nan.copy(), [])
+        return cls(none(m), none(m), none(m), none(m, p), nan, nan.copy(), [])
 
 
 def _prediction_error_tests(c: Correlations, nis: np.ndarray) -> _ErrorTests:
     """NIS, whiteness, then (for white errors only: their bands assume it) bias and inputs."""
     M = c.lags
-    tests = _ErrorTests.passed(len(nis), c.cross_correlation.shape[1])
+    tests = _ErrorTests.untested(len(nis), c.cross_correlation.shape[1])
     z_bonf = NormalDist().inv_cdf(1.0 - 0.005 / (2 * M + 1))
     z_bias = NormalDist().inv_cdf(1.0 - 0.0005)
     for i in range(len(nis)):
         N = c.counts[i]
         if N < 2:
+            tests.problems.append(
+                f"output {i + 1}: {int(N)} present prediction error(s): no test could be run."
+            )
             continue
         message = _nis_test(i, nis[i], N)
+        tests.nis_ok[i] = message is None
         if message:
-            tests.nis_ok[i] = False
             tests.problems.append(message)
         tests.box_pierce[i] = float(np.sum(c.pair_counts[i, 1:] * c.autocorrelation[i, 1:] ** 2))
         tests.box_pierce_p[i] = _chi2_sf(tests.box_pierce[i], M)
-        if tests.box_pierce_p[i] < 0.01:
-            tests.white[i] = False
+        tests.white[i] = not tests.box_pierce_p[i] < 0.01
+        if not tests.white[i]:
             tests.problems.append(_correlated_message(i, c, tests.box_pierce_p[i]))
-            continue  # the bias and input tests assume white errors (their bands do)
-        if abs(c.mean[i]) * np.sqrt(N) > z_bias:
-            tests.unbiased[i] = False
+            continue  # the bias and input tests assume white errors (their bands do): not run
+        tests.unbiased[i] = not abs(c.mean[i]) * np.sqrt(N) > z_bias
+        if not tests.unbiased[i]:
             tests.problems.append(
                 f"output {i + 1}: the one-step prediction errors have mean {c.mean[i]:+.3g} "
                 "(in predicted standard deviations): the model misses an offset."
             )
         for j in range(c.cross_correlation.shape[1]):
-            message = _input_test(i, j, c, z_bonf)
+            verdict, message = _input_test(i, j, c, z_bonf)
+            tests.independent[i, j] = verdict
             if message:
-                tests.independent[i, j] = False
                 tests.problems.append(message)
     return tests
 
@@ -453,15 +536,19 @@ def _correlated_message(i: int, c: Correlations, p_value: float) -> str:
     )
 
 
-def _input_test(i: int, j: int, c: Correlations, z_bonf: float) -> str | None:
-    """The message when output i's errors correlate with input j beyond the Bonferroni bound."""
+def _input_test(i: int, j: int, c: Correlations, z_bonf: float) -> tuple[bool | None, str | None]:
+    """(verdict, message): output i's errors against input j and the Bonferroni bound.
+
+    ``(None, None)`` when not testable (a constant input), ``(True, None)`` when they do not
+    correlate, ``(False, message)`` when they do.
+    """
     M = c.lags
     row, xpairs = c.cross_correlation[i, j], c.cross_pair_counts[i, j]
     if not np.isfinite(row).any():
-        return None
+        return None, None
     scaled = np.abs(row) * np.sqrt(np.maximum(xpairs, 1))
     if not np.nanmax(scaled) > z_bonf:
-        return None
+        return True, None
     ks = np.arange(-M, M + 1)
     band = BAND_Z / np.sqrt(np.maximum(xpairs, 1))
     out = ks[np.abs(row) > band]
@@ -476,7 +563,7 @@ def _input_test(i: int, j: int, c: Correlations, z_bonf: float) -> str | None:
     if neg:
         text += f"{';' if pos else ''} at lags {lag_ranges(neg)} (error before input): feedback"
         text += " in the data"
-    return text + "."
+    return False, text + "."
 
 
 def _std(noise) -> np.ndarray:
@@ -484,9 +571,22 @@ def _std(noise) -> np.ndarray:
 
 
 def fit_diagnostics(result: Any, **options) -> ResidualDiagnostics:
-    """:meth:`ceemx.FitResult.diagnostics`: :func:`residual_diagnostics` at the fit's end point."""
+    """:meth:`ceemx.FitResult.diagnostics`: :func:`residual_diagnostics` at the fit's end point.
+
+    The trajectories the fit left out (failed or excluded) are left out here too.
+
+    Raises:
+        ValueError: no trajectory took part in the fit to its end (every one failed).
+    """
     problem, _, states, weights = end_point(result)
     keep = np.flatnonzero(np.asarray(weights) > 0)
+    if keep.size == 0:
+        raise ValueError(
+            "no trajectory of this fit has a usable end point (every one failed or was "
+            f"excluded; status: {'; '.join(sorted(set(messages(result.status))))}): there are no "
+            "residuals to diagnose. residual_diagnostics(system, data) reads a model on data "
+            "without a fit."
+        )
     data = problem.data[keep] if keep.size < states.shape[0] else problem.data
     states = states[as_jax(keep)] if keep.size < states.shape[0] else states
     return residual_diagnostics(

@@ -133,8 +133,10 @@ def relative_scale(problem: FitProblem, theta: Theta) -> tuple[np.ndarray, np.nd
 
     ``loggable``: the natural value is nonzero and finite with a nonzero forward derivative, and
     either its constraint keeps it off zero (:meth:`FitProblem.sign_definite`) or |θ_nat| ≥ 1, so
-    a unit of r is a unit of log|θ_nat| (scale = |θ_nat| / |θ_nat'(z)|); otherwise scale =
-    max(|z|, 1). ``natural_per_unit``: the change of the natural value per unit of r.
+    a unit of r is a unit of log|θ_nat| (scale = θ_nat / θ_nat'(z): signed, so that a unit of r
+    multiplies a negative parameter by e as it does a positive one — with |θ_nat| it divided it,
+    and a symmetry a·b → (a·s)·(b/s) with b < 0 read as a/b); otherwise scale = max(|z|, 1).
+    ``natural_per_unit``: the change of the natural value per unit of r (θ_nat where loggable).
     """
     z = np.asarray(theta, dtype=np.float64)
     nat = np.asarray(problem.natural(theta), dtype=np.float64)
@@ -145,9 +147,7 @@ def relative_scale(problem: FitProblem, theta: Theta) -> tuple[np.ndarray, np.nd
     # fitted at 0.001 whose truth is 0 is determined to ±0.01, yet a factor e on it changes
     # nothing — in log units it would read "not determined". Below 1 it gets the unit scale.
     loggable &= problem.sign_definite(theta) | (np.abs(nat) >= 1.0)
-    scale = np.where(
-        loggable, np.abs(nat) / np.where(loggable, np.abs(slope), 1.0), np.maximum(np.abs(z), 1.0)
-    )
+    scale = np.where(loggable, nat / np.where(loggable, slope, 1.0), np.maximum(np.abs(z), 1.0))
     return scale, loggable, slope * scale
 
 
