@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from ceemx.identification.analysis.profile import summary_intervals
 from ceemx.lib.results import RESULTS, codes
 from ceemx.models.constraints import Unconstrained
 from ceemx.models.noise import AbstractNoise
@@ -48,6 +49,7 @@ from ceemx.models.noise import AbstractNoise
 __all__ = ["ParameterRow", "Summary", "fit_summary", "parameter_rows", "short_repr"]
 
 Format = Literal["text", "markdown"]
+Intervals = Literal["auto", "wald", "profile"]
 
 
 class Summary(str):
@@ -67,14 +69,21 @@ class Summary(str):
 
 
 class ParameterRow(tuple):
-    """One trainable scalar: ``(name, estimate, se, lower, upper, constraint)``, natural units."""
+    """One trainable scalar: ``(name, estimate, se, lower, upper, constraint, interval)``.
+
+    Natural units; ``interval`` is the interval's kind: ``"Wald"``, ``"profile"`` (profile
+    likelihood, :mod:`ceemx.identification.analysis.profile`; ``"profile, to bound"`` when it
+    reaches the constraint's bound, ``"profile, open"`` when it does not close within the
+    search) or ``""`` (none computed).
+    """
 
     __slots__ = ()
 
-    def __new__(cls, name: str, estimate, se, lower, upper, constraint: str):
+    def __new__(cls, name: str, estimate, se, lower, upper, constraint: str, interval: str = ""):
         """One row; the numbers as Python floats (NaN where not available)."""
         return super().__new__(
-            cls, (name, float(estimate), float(se), float(lower), float(upper), constraint)
+            cls,
+            (name, float(estimate), float(se), float(lower), float(upper), constraint, interval),
         )
 
     name = property(lambda self: self[0], doc="The parameter's name as written, e.g. ``H[2,3]``.")
@@ -83,6 +92,7 @@ class ParameterRow(tuple):
     lower = property(lambda self: self[3], doc="The interval's lower end.")
     upper = property(lambda self: self[4], doc="The interval's upper end.")
     constraint = property(lambda self: self[5], doc="The constraint in words.")
+    interval = property(lambda self: self[6], doc="The interval's kind (``Wald``, ``profile``).")
 
 
 def _constraint_words(problem) -> list[str]:
@@ -96,7 +106,12 @@ def _constraint_words(problem) -> list[str]:
 
 
 def parameter_rows(
-    result, *, level: float = 0.95, uncertainty: bool = True
+    result,
+    *,
+    level: float = 0.95,
+    uncertainty: bool = True,
+    intervals: Intervals = "auto",
+    max_profiles: int = 3,
 ) -> tuple[list[ParameterRow], list[str]]:
     """The parameter table of a fit and the notes that go with it.
 
@@ -104,6 +119,11 @@ def parameter_rows(
         result: a :class:`ceemx.FitResult` with its ``problem`` (any fit's).
         level: the interval's coverage, in (0, 1).
         uncertainty: compute the Laplace covariance (``False``: estimates only, NaN elsewhere).
+        intervals: ``"wald"``, ``"profile"`` (every parameter's profile-likelihood interval: a
+            few refits each) or ``"auto"`` (the profile interval for the parameters the rule of
+            :func:`~ceemx.identification.analysis.profile.summary_intervals` flags — near a
+            bound, or a skewed objective — at most ``max_profiles``; Wald for the others).
+        max_profiles: with ``"auto"``, the most parameters profiled.
 
     Returns:
         ``(rows, notes)``: one :class:`ParameterRow` per entry of θ, in θ order; ``notes`` holds
@@ -111,6 +131,8 @@ def parameter_rows(
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"`level` must be in (0, 1); got {level}.")
+    if intervals not in ("auto", "wald", "profile"):
+        raise ValueError(f"`intervals` must be 'auto', 'wald' or 'profile'; got {intervals!r}.")
     problem, theta = result.problem, result.theta
     names = problem.parameter_names()
     estimate = np.asarray(problem.natural(theta), np.float64)
@@ -133,12 +155,41 @@ def parameter_rows(
         ]
         lower = np.where(np.isfinite(sd), np.minimum(*ends), np.nan)
         upper = np.where(np.isfinite(sd), np.maximum(*ends), np.nan)
+        kinds = ["Wald" if np.isfinite(v) else "" for v in sd]
+        if intervals != "wald":
+            lower, upper, more = _profiled(
+                result, cov, level, intervals, max_profiles, (lower, upper, kinds)
+            )
+            notes += more
+    else:
+        kinds = [""] * len(names)
     words = _constraint_words(problem)
     rows = [
         ParameterRow(*fields)
-        for fields in zip(names, estimate, se, lower, upper, words, strict=True)
+        for fields in zip(names, estimate, se, lower, upper, words, kinds, strict=True)
     ]
     return rows, notes
+
+
+def _profiled(result, cov, level, mode, max_profiles, wald):
+    """``(lower, upper, notes)``: the Wald ``(lower, upper, kinds)``, the rule's profiles put in.
+
+    ``kinds`` is updated in place.
+    """
+    lower, upper, kinds = np.array(wald[0], np.float64), np.array(wald[1], np.float64), wald[2]
+    profiles, notes = summary_intervals(
+        result, cov, level=level, mode=mode, max_profiles=max_profiles
+    )
+    for j, p in profiles.items():
+        if not (np.isfinite(p.lower) and np.isfinite(p.upper)):
+            notes.append(f"The profile of {p.name} failed on one side: its Wald interval is shown.")
+            continue
+        lower[j], upper[j] = p.lower, p.upper
+        ends = {p.lower_end, p.upper_end}
+        kinds[j] = "profile" + (
+            ", to bound" if "bound" in ends else ", open" if "limit" in ends else ""
+        )
+    return lower, upper, notes
 
 
 # --------------------------------------------------------------------------------------------
@@ -280,7 +331,9 @@ def _cells(rows: Sequence[ParameterRow]) -> list[list[str]]:
             r.name,
             _num(r.estimate),
             _num(r.se, 3),
-            "—" if not np.isfinite(r.lower) else f"[{_num(r.lower)}, {_num(r.upper)}]",
+            "—"
+            if not np.isfinite(r.lower)
+            else f"[{_num(r.lower)}, {_num(r.upper)}] {r.interval}".rstrip(),
             r.constraint,
         ]
         for r in rows
@@ -326,6 +379,7 @@ def fit_summary(
     diagnostics: bool = False,
     uncertainty: bool = True,
     max_rows: int | None = 40,
+    intervals: Intervals = "auto",
 ) -> Summary:
     """The summary of a fit (module notes); :meth:`ceemx.FitResult.summary` calls it.
 
@@ -337,6 +391,10 @@ def fit_summary(
             compiled on first use) and append its report.
         uncertainty: compute standard errors and intervals (one Schur complement).
         max_rows: show at most this many parameters (the first ones; ``None``: all).
+        intervals: ``"auto"`` (default: profile-likelihood intervals for at most 3 parameters
+            the rule flags — near a bound, or a skewed objective — Wald for the others; a message
+            says which), ``"wald"`` (no refit) or ``"profile"`` (every parameter profiled: a few
+            refits each); the kind is printed beside each interval.
 
     Returns:
         A :class:`Summary` (a ``str``).
@@ -352,7 +410,9 @@ def fit_summary(
     if result.problem is None:
         out.append("(no fit problem held: the parameter table needs a result of `fit`)")
     else:
-        rows, notes = parameter_rows(result, level=level, uncertainty=uncertainty)
+        rows, notes = parameter_rows(
+            result, level=level, uncertainty=uncertainty, intervals=intervals
+        )
         shown = rows if max_rows is None else rows[:max_rows]
         head = [h.format(pct=f"{100 * level:g} %") for h in _HEAD]
         table = (_md_table if md else _text_table)(head, _cells(shown), {1, 2})
