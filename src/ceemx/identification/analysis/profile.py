@@ -622,7 +622,7 @@ def summary_intervals(
         return profilers[j]
 
     reasons: dict[int, str] = {}
-    checked = 0
+    checked = unchecked = 0
     if mode == "profile":
         reasons = {j: "asked" for j in has}
     else:
@@ -635,6 +635,7 @@ def summary_intervals(
             (j for j in has if j not in reasons),
             key=lambda j: -se[j] / max(abs(nat[j]), 1e-300),
         )
+        unchecked = max(len(rest) - max_checks, 0)
         for j in rest[:max_checks]:
             checked += 1
             try:
@@ -642,8 +643,10 @@ def summary_intervals(
             except ValueError:
                 continue
             if any(not np.isfinite(r) or abs(r - 1.0) > SKEW for r in ratios):
-                reasons[j] = "skewed profile: √(2·drop)/q at the Wald ends " + ", ".join(
-                    f"{r:.3g}" for r in ratios
+                reasons[j] = (
+                    "skewed: √(2·drop)/q = "
+                    + " and ".join(f"{r:.3g}" for r in ratios)
+                    + " at the Wald ends, not 1"
                 )
         order = sorted(reasons, key=lambda j: (reasons[j] != "near its bound", j))
         reasons = {j: reasons[j] for j in order[:max_profiles]}
@@ -655,20 +658,24 @@ def summary_intervals(
             continue
     notes = []
     if mode == "auto":
-        text = "Intervals: Wald (the quadratic model at the estimate)"
+        text = "Intervals: Wald (the quadratic model of the objective at the estimate)"
         if out:
-            text += "; profile likelihood for " + ", ".join(
+            text += ", except the profile likelihood for " + ", ".join(
                 f"{names[j]} ({reasons[j]})" for j in out
             )
-        skipped = len([j for j in has if j not in reasons]) - checked
+        some = f"{checked} of {len(has)}, the most uncertain" if unchecked else "all"
         text += (
-            f". Checked: every parameter's distance to its bound, the skewness of {checked} "
-            f"of {len(has)}"
-            + (" (the most uncertain)" if skipped > 0 else "")
-            + f"; at most {max_profiles} profiled. summary(intervals='profile') profiles every "
-            "parameter, FitResult.profile(name) one."
+            f". Profiled when a bound lies within {NEAR_BOUND:g} Wald half-widths or "
+            f"√(2·drop)/q at a Wald end is off 1 by more than {100 * SKEW:g} % (skewness checked "
+            f"on {some}), at most {max_profiles} parameters; summary(intervals='profile') "
+            "profiles every one, FitResult.profile(name) one."
         )
         notes.append(text)
+    elif out:
+        notes.append(
+            "Intervals: profile likelihood, "
+            + ", ".join(f"{p.name} {p.evaluations} refits" for p in out.values())
+        )
     return out, notes
 
 
