@@ -137,7 +137,7 @@ def test_quadratic_objective_profile_is_the_wald_interval():
         res.summary(intervals="likelihood")  # type: ignore[arg-type]
 
 
-def test_positive_parameter_near_its_bound_reaches_the_bound():
+def test_positive_parameter_near_its_bound_reaches_the_bound(tmp_path):
     res, exact = _offset(0.03, 5)
     b, se = exact["b"]
     assert 0.0 < b < Q95 * se  # the data put b within its error bar of the bound 0
@@ -149,6 +149,16 @@ def test_positive_parameter_near_its_bound_reaches_the_bound():
     assert p.wald[0] > 0.0 and p.wald[1] > 2 * p.upper  # the Wald interval of z = softplus⁻¹(b)
     rows = {line.split()[0]: line for line in str(res.summary()).splitlines() if line}
     assert "profile, to bound" in rows["b"] and "Wald" in rows["d"]
+    assert "0 (the bound)" in str(p)
+    # the figure: the points computed, the threshold, the interval
+    from ceemx.evaluation.plots import plot_profile
+
+    fig = plot_profile(p)
+    ax = fig.axes[0]
+    np.testing.assert_allclose(np.asarray(ax.lines[0].get_xydata()), np.asarray(p.points))
+    assert ax.lines[1].get_ydata()[0] == pytest.approx(Q95**2)
+    assert "(bound)" in " ".join(t.get_text() for t in ax.get_legend().get_texts())
+    assert plot_profile(p, tmp_path / "b.png").stat().st_size > 1000
 
 
 # --------------------------------------------------------------------------------------------

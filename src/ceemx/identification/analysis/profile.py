@@ -204,8 +204,7 @@ class _Profiler:
         self.maximum = value
         if not np.isfinite(value):
             raise ValueError(f"the objective is not finite at the fit's end point ({value}).")
-        if not (result.converged and same) and self._free():
-            self._polish(theta, states)
+        self.polish = not (result.converged and same) and self._free()
 
     # ---- coordinates -------------------------------------------------------------------------
 
@@ -443,9 +442,24 @@ class _Profiler:
             return (math.nan, math.nan)
         return (ends[0], ends[1])
 
-    def run(self, max_steps: int, xtol: float) -> Profile:
+    def run(self, max_steps: int, xtol: float, grid: int = 0) -> Profile:
+        """Both ends, after the polishing refit where the fit is not the refits' maximum.
+
+        ``grid`` more points, evenly spaced in natural units over the interval and a quarter of
+        its width beyond each end found (inside the bounds), for a figure.
+        """
+        if self.polish:
+            self.polish = False
+            self._polish(self.points[0].theta, self.points[0].states)
         lower, lower_end = self.side(-1, max_steps, xtol)
         upper, upper_end = self.side(+1, max_steps, xtol)
+        if grid > 0 and np.isfinite(lower) and np.isfinite(upper):
+            pad = 0.25 * (upper - lower)
+            lo = lower - pad * (lower_end == "found")
+            hi = upper + pad * (upper_end == "found")
+            for x in np.linspace(lo, hi, grid + 2)[1:-1]:
+                if self.bounds[0] < x < self.bounds[1]:
+                    self.value_at(self.unconstrained(float(x)))
         pts = sorted(
             (self.natural(p.z), self.drop(p.value) if np.isfinite(p.value) else math.nan)
             for p in self.points
@@ -559,6 +573,7 @@ def fit_profile(
     max_steps: int = 5,
     xtol: float = 1e-3,
     solver: AbstractFitSolver | None = None,
+    grid: int = 0,
     covariance=None,
 ) -> Profile:
     """:meth:`ceemx.FitResult.profile`: the profile-likelihood interval of ``name``.
@@ -572,6 +587,8 @@ def fit_profile(
         max_steps: points stepped out on each side before a side is reported ``"limit"``.
         xtol: the crossing's tolerance, as a fraction of the bracket that holds it.
         solver: the refits' solver (default: module notes).
+        grid: this many more points, evenly spaced over the interval and a quarter of its width
+            beyond (for :func:`ceemx.evaluation.plots.plot_profile`; a refit each).
         covariance: θ's covariance, when already computed (default: ``result.covariance``).
 
     Returns:
@@ -589,7 +606,7 @@ def fit_profile(
     _, sigma, notes = _covariance(result, covariance)
     profiler = _Profiler(result, j, float(sigma[j]), level, max_epochs, solver)
     profiler.notes += notes
-    return profiler.run(max_steps, xtol)
+    return profiler.run(max_steps, xtol, grid)
 
 
 def summary_intervals(

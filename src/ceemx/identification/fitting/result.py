@@ -203,7 +203,8 @@ class FitResult(eqx.Module):
         parameters with ``name`` held at each value; the ``level`` interval is where
         2·(max − profile) ≤ χ²₁(level) (3.841 at 95 %), beside the Wald interval. ``name`` as the
         summary names it (``k``, ``A[0,1]``); ``options``: ``max_epochs`` (of each refit),
-        ``max_steps``, ``xtol``, ``solver``
+        ``max_steps``, ``xtol``, ``solver``, ``grid`` (more points, for a figure:
+        :func:`ceemx.evaluation.plots.plot_profile`)
         (:func:`~ceemx.identification.analysis.profile.fit_profile`). Each point is a refit.
 
         Example:
