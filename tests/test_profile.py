@@ -5,9 +5,9 @@ the file compiles the refits' programs only:
 
 - a linear-Gaussian model under Laplace EM (exact EM there): the profile interval of A equals
   the brute-force profile of the exact Kalman log-likelihood, C maximised;
-- a model whose J is quadratic in (x, θ) jointly: the profile interval of its unconstrained
-  offset is the Wald interval; of its positive gain, estimate ± q·SE in natural units, which the
-  summary's rule prints (the Wald interval of z = softplus⁻¹(b) is skewed);
+- a model whose J is quadratic in (x, θ) jointly: the profile interval of an entry of its
+  unconstrained offsets is the Wald interval; of its positive gain, estimate ± q·SE in natural
+  units, which the summary's rule prints (the Wald interval of z = softplus⁻¹(b) is skewed);
 - that gain within its standard error of 0: the profile reaches the bound, the interval stays
   inside it, its upper end is estimate + q·SE (the Wald interval's is far out).
 """
@@ -46,14 +46,14 @@ def _result(system, data, states, solver, trainable) -> ceemx.FitResult:
 
 
 # --------------------------------------------------------------------------------------------
-# J quadratic in (x, b, d): x_{t+1} = 0.8 x_t + b u_t + w, y_t = x_t + d + v
+# J quadratic in (x, b, d): x_{t+1} = 0.8 x_t + b u_t + w, y_t = x_t + d + v (two outputs)
 # --------------------------------------------------------------------------------------------
 
 SW, SV, T = 0.1, 0.3, 40
 
 
-class Offset(ceemx.AbstractSystem):
-    """x_{t+1} = 0.8 x_t + b u_t + w,  y_t = x_t + d + v: J is quadratic in (x, b, d) jointly."""
+class Offsets(ceemx.AbstractSystem):
+    """x_{t+1} = 0.8 x_t + b u_t + w,  y_t = (x_t + d₀, x_t + d₁) + v: J quadratic in (x, b, d)."""
 
     b: Array = ceemx.param(positive=True)
     d: Array
@@ -64,7 +64,7 @@ class Offset(ceemx.AbstractSystem):
 
     @property
     def obs_dim(self):
-        return 1
+        return 2
 
     @property
     def input_dim(self):
@@ -77,43 +77,48 @@ class Offset(ceemx.AbstractSystem):
         return x + self.d
 
 
-def _offset(b: float, seed: int):
-    """The JointLM result at the maximum of J, and (b̂, d̂) with their standard errors.
+def _offsets(b: float, seed: int):
+    """The JointLM result at the maximum of J, and the exact (estimate, SE) of each parameter.
 
     J's maximiser is the least-squares solution of the whitened residuals, linear in
     (x_1..x_T, b, d); its covariance is that solution's.
     """
-    true = Offset(jnp.asarray(b), jnp.asarray(0.5), process_noise=SW, obs_noise=SV)
+    d = jnp.asarray([0.5, -0.3])
+    true = Offsets(jnp.asarray(b), d, process_noise=SW, obs_noise=SV)
     k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
     u = jax.random.normal(k1, (1, T, 1))
     _, data = ceemx.simulate(true, k2, jnp.zeros((1, 1)), T, u)
-    y, uu = np.asarray(data.y)[0, :, 0], np.asarray(u)[0, :, 0]
+    y, uu, m = np.asarray(data.y)[0], np.asarray(u)[0, :, 0], true.obs_dim
     rows, rhs = [], []
     for t in range(T - 1):  # (x_{t+1} − 0.8 x_t − b u_t) / σ_w
-        r = np.zeros(T + 2)
+        r = np.zeros(T + 1 + m)
         r[t + 1], r[t], r[T] = 1.0, -0.8, -uu[t]
         rows.append(r / SW)
         rhs.append(0.0)
     for t in range(T):  # (y_t − x_t − d) / σ_v
-        r = np.zeros(T + 2)
-        r[t], r[T + 1] = 1.0, 1.0
-        rows.append(r / SV)
-        rhs.append(y[t] / SV)
+        for i in range(m):
+            r = np.zeros(T + 1 + m)
+            r[t], r[T + 1 + i] = 1.0, 1.0
+            rows.append(r / SV)
+            rhs.append(y[t, i] / SV)
     A = np.asarray(rows)
     v = np.linalg.lstsq(A, np.asarray(rhs), rcond=None)[0]
     se = np.sqrt(np.diagonal(np.linalg.inv(A.T @ A))[T:])
-    fitted = Offset(jnp.asarray(v[T]), jnp.asarray(v[T + 1]), process_noise=SW, obs_noise=SV)
+    fitted = Offsets(jnp.asarray(v[T]), jnp.asarray(v[T + 1 :]), process_noise=SW, obs_noise=SV)
     states = jnp.asarray(v[:T].reshape(1, T, 1))
     res = _result(fitted, data, states, ceemx.JointLM(), lambda s: (s.b, s.d))
-    return res, {"b": (v[T], se[0]), "d": (v[T + 1], se[1])}
+    names = ["b", *(f"d[{i}]" for i in range(m))]
+    return res, {n: (v[T + i], se[i]) for i, n in enumerate(names)}
 
 
 def test_quadratic_objective_profile_is_the_wald_interval():
-    """d enters J quadratically: profile = Wald. b too, in natural units, where the Wald interval
-    (of z = softplus⁻¹(b)) is skewed: the summary's rule flags it and prints b̂ ± q·SE."""
-    res, exact = _offset(0.4, 0)
-    d, se = exact["d"]
-    p = res.profile("d")
+    """d enters J quadratically: the profile of ``d[1]`` (an entry of an array, held in θ without
+    a gradient while ``d[0]`` learns) is its Wald interval. b too, in natural units, where the
+    Wald interval (of z = softplus⁻¹(b)) is skewed: the summary's rule flags it and prints
+    b̂ ± q·SE (b leaves θ: the ``trainable`` path)."""
+    res, exact = _offsets(0.3, 5)
+    d, se = exact["d[1]"]
+    p = res.profile("d[1]")
     assert (p.lower_end, p.upper_end) == ("found", "found")
     assert p.estimate == pytest.approx(d, rel=1e-12)
     np.testing.assert_allclose(p.wald, (d - Q95 * se, d + Q95 * se), rtol=1e-8)
@@ -121,24 +126,25 @@ def test_quadratic_objective_profile_is_the_wald_interval():
     for value, drop in p.points:  # every point computed lies on the parabola ((d − d̂)/SE)²
         assert drop == pytest.approx(((value - d) / se) ** 2, rel=1e-4, abs=1e-8)
     assert "profile interval" in str(p) and "Wald interval" in str(p)
-    # the summary: b's profile interval (the rule: skewed at the Wald ends), d's Wald interval
+    # the summary: b's profile interval (the rule: skewed at the Wald ends), d's Wald intervals
     rows, notes = parameter_rows(res)
     b, se_b = exact["b"]
-    assert (rows[0].name, rows[0].interval, rows[1].interval) == ("b", "profile", "Wald")
+    assert [(r.name, r.interval) for r in rows] == [("b", "profile"), ("d[0]", "Wald"),
+                                                    ("d[1]", "Wald")]  # fmt: skip
     np.testing.assert_allclose((rows[0].lower, rows[0].upper), (b - Q95 * se_b, b + Q95 * se_b),
                                rtol=1e-4)  # fmt: skip
     assert "profile likelihood for b (skewed" in notes[-1]
     wald, _ = parameter_rows(res, intervals="wald")
-    assert [r.interval for r in wald] == ["Wald", "Wald"] and wald[1] == rows[1]
+    assert [r.interval for r in wald] == ["Wald"] * 3 and wald[1:] == rows[1:]
     assert rows[0].lower < wald[0].lower and rows[0].upper < wald[0].upper  # the Wald is too high
-    with pytest.raises(KeyError, match="no trainable parameter named 'e'; .* b, d"):
+    with pytest.raises(KeyError, match=r"no trainable parameter named 'e'; .* b, d\[0\], d\[1\]"):
         res.profile("e")
     with pytest.raises(ValueError, match="`intervals` must be"):
         res.summary(intervals="likelihood")  # type: ignore[arg-type]
 
 
 def test_positive_parameter_near_its_bound_reaches_the_bound(tmp_path):
-    res, exact = _offset(0.03, 5)
+    res, exact = _offsets(0.03, 3)
     b, se = exact["b"]
     assert 0.0 < b < Q95 * se  # the data put b within its error bar of the bound 0
     p = res.profile("b")
@@ -148,7 +154,7 @@ def test_positive_parameter_near_its_bound_reaches_the_bound(tmp_path):
     assert min(p.points)[1] == pytest.approx((b / se) ** 2, rel=1e-3)  # the drop next to 0
     assert p.wald[0] > 0.0 and p.wald[1] > 2 * p.upper  # the Wald interval of z = softplus⁻¹(b)
     rows = {line.split()[0]: line for line in str(res.summary()).splitlines() if line}
-    assert "profile, to bound" in rows["b"] and "Wald" in rows["d"]
+    assert "profile, to bound" in rows["b"] and "Wald" in rows["d[0]"]
     assert "0 (the bound)" in str(p)
     # the figure: the points computed, the threshold, the interval
     from ceemx.evaluation.plots import plot_profile

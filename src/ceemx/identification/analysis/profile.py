@@ -15,7 +15,9 @@ Wald interval (a quadratic model of the objective at the estimate), it follows t
 where the quadratic is poor: a skewed likelihood, a parameter near its bound.
 
 How each point is computed: the fit problem with ψ held fixed (a ``trainable`` filter without its
-leaf; an entry of a larger array is held by a stiff quadratic penalty instead, see below) is
+leaf; an entry of a larger array, which cannot leave θ on its own, stays in θ with no effect on
+the objective: its constraint's transform reads it through ``stop_gradient``, so its gradient and
+curvature are zero and no solver moves it — Marquardt's damping keeps such a direction still) is
 refitted from the nearest point already computed — its θ and states — by the library's solver
 interface (``init``/``step``/``terminate``/``postprocess``, at most ``max_epochs`` epochs, the
 solver's tolerances): the fit's own solver for Laplace EM (without its coarse start), and
@@ -39,16 +41,24 @@ has not crossed after the last step reports ``"limit"`` (the end is the last poi
 the interval is at least that wide). A crossing is then located by Brent's method on the signed
 root √(2·drop) − q in natural units (nearly linear in ψ when the objective is nearly quadratic).
 
-An entry of an array parameter (``A[0,1]``) cannot be left out of θ on its own: it is held by a
-quadratic penalty κ/2·(ψ − ψ₀)² on log p(θ) with κ = 10⁸/SE² (its value then differs from ψ₀ by
-about 10⁻⁸ of the distance to the estimate, the objective by about 10⁻⁸ of the drop), each value
-one more compilation of the solver's programs.
-
 :func:`summary_intervals` is the rule :meth:`ceemx.FitResult.summary` applies by default
-(``intervals="auto"``): a parameter whose linear interval estimate ± 1.5·q·SE reaches its bound,
-or whose profile at the two Wald ends departs from the quadratic's by more than 10 % in the signed
-root (two evaluations), gets its profile interval — at most ``max_profiles`` parameters, the
-skewness checked on at most ``max_checks`` (the most uncertain relative to their values).
+(``intervals="auto"``). A parameter gets its profile interval when
+
+* its bound is near: the linear interval estimate ± 1.5·q·SE reaches it (no computation); or
+* the objective is skewed: at a Wald end ẑ ± q·σ_z it has fallen by less than the quadratic
+  model says — √(2·drop)/q < 0.9, the Wald interval is short on that side. The check costs two
+  evaluations of the objective and no refit: the other parameters move along the covariance's
+  regression line θ̂ + Σ_{·j}/Σ_jj·(z − ẑ) (the quadratic model's conditional maximiser), the
+  states are smoothed there (the warm start's compiled smoother) or the evidence evaluated (the
+  E-step's). That value is exact for a quadratic objective and a lower bound of the profile
+  otherwise, so a small fall is the profile's own, while a large one may be the path's: a Wald
+  end beyond the profile's (√(2·drop)/q > 1) is not flagged, and such an interval errs on the
+  safe side.
+
+At most ``max_profiles`` (3) parameters are profiled (those near a bound first); the skewness is
+checked on at most ``max_checks`` (6), the most uncertain relative to their values. Each profile
+costs its refits and, once per parameter, the compilation of the solver's programs for the
+problem with that parameter held.
 """
 
 from __future__ import annotations
@@ -77,7 +87,7 @@ from ceemx.inference.smoother import LMSmoother, smooth_prepared
 from ceemx.infra.policy import Runs
 from ceemx.lib.results import RESULTS
 from ceemx.lib.tree import trace_numbers
-from ceemx.models.constraints import Unconstrained
+from ceemx.models.constraints import AbstractConstraint, Unconstrained
 
 __all__ = ["Profile", "fit_profile", "summary_intervals"]
 
@@ -85,14 +95,12 @@ End = Literal["found", "bound", "limit", "failed"]
 
 #: the bound rule: the linear interval estimate ± NEAR_BOUND·q·SE reaches the bound
 NEAR_BOUND = 1.5
-#: the skewness rule: √(2·drop)/q at a Wald end departs from 1 by more than this
+#: the skewness rule: √(2·drop)/q at a Wald end below 1 − SKEW (the Wald interval is short there)
 SKEW = 0.1
 #: a point next to a bound: this fraction of the way from the bound to the estimate
 BOUND_GAP = 1e-6
 #: a rise of the objective above the fit's end point (in 2·Δ, the drop's units) worth a note
 NOTED_RISE = 0.01
-#: the stiffness of the penalty holding an entry of an array parameter, in 1/SE²
-PIN_STIFFNESS = 1e8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,6 +190,7 @@ class _Profiler:
         self.evidence = result.solver.uncertainty == "evidence"
         self.objective = "Laplace evidence" if self.evidence else "certainty-equivalent J"
         self.solver, same = _refit_solver(result.solver, solver, theta.dtype)
+        self.polisher = result.solver if same else self.solver  # its programs are compiled
         own = getattr(result.solver, "smoother", None)
         if self.evidence:  # the fit's E-step program
             own = LMSmoother(rtol=1e-14) if own is None else own
@@ -251,9 +260,9 @@ class _Profiler:
             return 0.0
         return -float(self.problem.neg_log_prior(theta))
 
-    def _refit(self, problem: FitProblem, theta, states):
+    def _refit(self, problem: FitProblem, theta, states, solver=None):
         """The solver's epochs on ``problem`` from (θ, x): its last state."""
-        solver = self.solver
+        solver = self.solver if solver is None else solver
         solver.check_problem(problem, theta)
         state = solver.init(problem, theta, states, jax.random.PRNGKey(0))
         for _ in range(self.max_epochs):
@@ -273,12 +282,13 @@ class _Profiler:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                state = self._refit(self.problem, theta, states)
+                state = self._refit(self.problem, theta, states, self.polisher)
                 value, states = self._objective(state.theta, state.states, smooth=False)
         except _Failed:
             return
         if np.isfinite(value) and value > self.maximum:
             self.maximum = value
+        if np.isfinite(value) and 2.0 * (value - self.points[0].value) > NOTED_RISE:
             self.notes.append(
                 f"the fit's end point was not the maximum of the objective: a refit with every "
                 f"parameter free raised it by {value - self.points[0].value:.3g}; the profile "
@@ -317,10 +327,14 @@ class _Profiler:
         z_in = float(self.unconstrained(x))
         if not self._free():
             return jnp.asarray(np.asarray(start.theta).copy()).at[self.j].set(z_in), start.states
-        if self.mask is None:  # an entry of an array: a stiff penalty holds it
-            held = _pinned_problem(problem, self.j, self.position, self.offset, x, self.kappa)
-            theta = jnp.asarray(start.theta).at[self.j].set(z_in)
-            state = self._refit(held, theta, start.states)
+        if self.mask is None:  # an entry of an array: in θ, its transform without a gradient
+            constraints = list(problem.constraints or [Unconstrained()] * (self.leaf + 1))
+            constraints[self.leaf] = _HeldEntry(constraints[self.leaf], self.offset)
+            held = FitProblem(
+                problem.template, problem.static, problem.data, problem.log_prior,
+                tuple(constraints),
+            )  # fmt: skip
+            state = self._refit(held, jnp.asarray(start.theta).at[self.j].set(z_in), start.states)
             theta = state.theta
         else:
             system = problem.build(start.theta)
@@ -340,14 +354,6 @@ class _Profiler:
         if not bool(jnp.all(jnp.isfinite(theta))):
             raise _Failed("a refit returned a non-finite θ")
         return theta, state.states
-
-    @property
-    def kappa(self) -> float:
-        slope = float(self.problem.natural_jacobian(self.points[0].theta)[self.j])
-        se = abs(slope) * self.sigma_z
-        if not (np.isfinite(se) and se > 0):
-            se = 0.1 * max(abs(self.estimate), 1e-3)
-        return PIN_STIFFNESS / se**2
 
     def drop(self, value: float) -> float:
         return 2.0 * (self.maximum - value)
@@ -486,7 +492,11 @@ class _Profiler:
 
 
 def _refit_solver(fitted: AbstractFitSolver, given, dtype) -> tuple[AbstractFitSolver, bool]:
-    """(the refits' solver, whether it is the fit's method): ``given``, else module notes."""
+    """(the refits' solver, whether it is the fit's method): ``given``, else module notes.
+
+    A JointLM's identifiability check is off in the refits: an entry held by :class:`_HeldEntry`
+    is a direction the data do not determine by construction.
+    """
     same = given is None
     if given is not None:
         solver = given
@@ -498,6 +508,8 @@ def _refit_solver(fitted: AbstractFitSolver, given, dtype) -> tuple[AbstractFitS
         solver = fitted
     else:
         solver, same = JointLM(), False
+    if isinstance(solver, JointLM) and solver.check_identifiability:
+        solver = dataclasses.replace(solver, check_identifiability=False)
     return trace_numbers(solver, dtype), same
 
 
@@ -509,7 +521,7 @@ def _locate(problem: FitProblem, j: int) -> tuple[int, int, int, list[bool] | No
     """(template leaf, offset in it, position among the system's leaves, the trainable flags).
 
     The flags (over the system's leaves) are ``None`` when the leaf holds more than one entry
-    (the entry is then held by a penalty, not left out of θ).
+    (the entry is then held by :class:`_HeldEntry`, not left out of θ).
     """
     leaves = jtu.tree_leaves(problem.template)
     sizes = np.cumsum([int(np.size(a)) for a in leaves])
@@ -525,19 +537,35 @@ def _locate(problem: FitProblem, j: int) -> tuple[int, int, int, list[bool] | No
     return leaf, offset, positions[leaf], ([bool(f) for f in flags] if whole else None)
 
 
-def _pinned_problem(problem: FitProblem, j, position, offset, x, kappa) -> FitProblem:
-    """``problem`` with entry ``offset`` of the system's leaf ``position`` held near ``x``."""
-    base = problem.log_prior
-    x, kappa = float(x), float(kappa)
+class _HeldEntry(AbstractConstraint):
+    """``base`` with entry ``index`` (flat) read through ``stop_gradient``: held where it is."""
 
-    def log_prior(system):
-        entry = jnp.ravel(jtu.tree_leaves(system, is_leaf=_none)[position])[offset]
-        penalty = -0.5 * kappa * (entry - x) ** 2
-        return penalty if base is None else base(system) + penalty
+    base: AbstractConstraint
+    index: int = eqx.field(static=True)
 
-    del j
-    p = problem
-    return FitProblem(p.template, p.static, p.data, log_prior, p.constraints)
+    def forward(self, z):
+        """``base.forward`` of z with entry ``index`` cut from the gradient."""
+        flat = jnp.ravel(z)
+        flat = flat.at[self.index].set(jax.lax.stop_gradient(flat[self.index]))
+        return self.base.forward(flat.reshape(jnp.shape(z)))
+
+    def inverse(self, x):
+        """``base.inverse``."""
+        return self.base.inverse(x)
+
+    def contains(self, x):
+        """``base.contains``."""
+        return self.base.contains(x)
+
+    @property
+    def description(self) -> str:
+        """``base``'s."""
+        return self.base.description
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """``base``'s."""
+        return self.base.bounds
 
 
 def _index(problem: FitProblem, name: str) -> int:
@@ -659,7 +687,7 @@ def summary_intervals(
                 ratios = profiler(j).screen(cov)
             except ValueError:
                 continue
-            if any(not np.isfinite(r) or abs(r - 1.0) > SKEW for r in ratios):
+            if any(not np.isfinite(r) or r < 1.0 - SKEW for r in ratios):
                 reasons[j] = (
                     "skewed: √(2·drop)/q = "
                     + " and ".join(f"{r:.3g}" for r in ratios)
@@ -683,7 +711,7 @@ def summary_intervals(
         some = f"{checked} of {len(has)}, the most uncertain" if unchecked else "all"
         text += (
             f". Profiled when a bound lies within {NEAR_BOUND:g} Wald half-widths or "
-            f"√(2·drop)/q at a Wald end is off 1 by more than {100 * SKEW:g} % (skewness checked "
+            f"√(2·drop)/q at a Wald end is below {1 - SKEW:g} (skewness checked "
             f"on {some}), at most {max_profiles} parameters; summary(intervals='profile') "
             "profiles every one, FitResult.profile(name) one."
         )
