@@ -162,8 +162,9 @@ def test_positive_parameter_near_its_bound_reaches_the_bound(tmp_path):
     fig = plot_profile(p)
     ax = fig.axes[0]
     np.testing.assert_allclose(np.asarray(ax.lines[0].get_xydata()), np.asarray(p.points))
-    assert ax.lines[1].get_ydata()[0] == pytest.approx(Q95**2)
-    assert "(bound)" in " ".join(t.get_text() for t in ax.get_legend().get_texts())
+    assert np.asarray(ax.lines[1].get_ydata())[0] == pytest.approx(Q95**2)
+    legend = ax.get_legend()
+    assert legend is not None and "(bound)" in " ".join(t.get_text() for t in legend.get_texts())
     assert plot_profile(p, tmp_path / "b.png").stat().st_size > 1000
 
 

@@ -439,7 +439,7 @@ def plot_residual_diagnostics(diag, path: str | os.PathLike | None = None):
     return save_figure(fig, Path(path))
 
 
-def plot_profile(profile, path: str | os.PathLike | None = None, *, ax: Any = None):
+def plot_profile(profile, path: str | os.PathLike | None = None, *, ax: Any = None) -> Any:
     """The figure of a :class:`~ceemx.identification.analysis.profile.Profile`.
 
     The drop 2·(max − profile) at every point computed (joined in order of the parameter: the
