@@ -211,7 +211,7 @@ def _kalman_profile_interval(y, a_hat, c_hat):
 def test_laplace_em_profile_is_the_kalman_likelihood_profile():
     """Linear-Gaussian, A and C learned by Laplace EM (exact EM): the profile interval of A is
     the brute-force profile of the exact (Kalman) log-likelihood over C, to 0.1 % of its
-    half-width (it is 3·10⁻⁵ off; the Wald interval's ends are 5 % off)."""
+    half-width (it is 3·10⁻⁵ off; the Wald ends are 5–6 % off)."""
     prior = ceemx.GaussianPrior(
         jnp.asarray([LG["mu0"]]), ceemx.CholeskyGaussian(cov=jnp.asarray([[LG["P0"]]]))
     )
