@@ -14,6 +14,7 @@ the file compiles the refits' programs only:
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import jax
@@ -156,6 +157,9 @@ def test_positive_parameter_near_its_bound_reaches_the_bound(tmp_path):
     rows = {line.split()[0]: line for line in str(res.summary()).splitlines() if line}
     assert "profile, to bound" in rows["b"] and "Wald" in rows["d[0]"]
     assert "0 (the bound)" in str(p)
+    # a fit that did not converge: no profile in the summary (no maximum to fall from)
+    rows_nc, notes = parameter_rows(dataclasses.replace(res, converged=False))
+    assert [r.interval for r in rows_nc] == ["Wald"] * 3 and "did not converge" in notes[-1]
     # the figure: the points computed, the threshold, the interval
     from ceemx.evaluation.plots import plot_profile
 

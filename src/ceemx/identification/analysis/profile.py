@@ -650,10 +650,18 @@ def summary_intervals(
 
     ``mode="profile"``: every parameter with a Wald interval. ``"auto"``: the rule of the module
     notes (a bound within 1.5 Wald half-widths; a profile skewed at the Wald ends), at most
-    ``max_profiles`` parameters, the skewness checked on at most ``max_checks``.
+    ``max_profiles`` parameters, the skewness checked on at most ``max_checks``; nothing for a
+    fit that did not converge (its end point is not the maximum the profile falls from: each
+    profile would first finish the fit — :meth:`ceemx.FitResult.profile` does).
     """
     problem, theta, _, _ = end_point(result)
     names = problem.parameter_names()
+    if mode == "auto" and not result.converged:
+        return {}, [
+            "Intervals: Wald; no profile-likelihood interval, since the fit did not converge (a "
+            "profile falls from the objective's maximum; FitResult.profile(name) refits to it "
+            "first)."
+        ]
     cov, sigma, _ = _covariance(result, covariance)
     nat = np.asarray(problem.natural(theta), np.float64)
     se = np.abs(np.asarray(problem.natural_jacobian(theta), np.float64)) * sigma
