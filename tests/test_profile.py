@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -157,6 +158,9 @@ def test_positive_parameter_near_its_bound_reaches_the_bound(tmp_path):
     rows = {line.split()[0]: line for line in str(res.summary()).splitlines() if line}
     assert "profile, to bound" in rows["b"] and "Wald" in rows["d[0]"]
     assert "0 (the bound)" in str(p)
+    # after Algorithm 1 (refits by JointLM, J the same): one more refit, at b̂, the same interval
+    q = dataclasses.replace(res, solver=ceemx.Alternating()).profile("b")
+    assert q.interval == pytest.approx(p.interval, rel=1e-6) and q.evaluations > p.evaluations
     # a fit that did not converge: no profile in the summary (no maximum to fall from)
     rows_nc, notes = parameter_rows(dataclasses.replace(res, converged=False))
     assert [r.interval for r in rows_nc] == ["Wald"] * 3 and "did not converge" in notes[-1]
@@ -245,3 +249,18 @@ def test_laplace_em_profile_is_the_kalman_likelihood_profile():
     half = 0.5 * (hi - lo)
     assert abs(p.lower - lo) < 1e-3 * half and abs(p.upper - hi) < 1e-3 * half
     assert abs(p.wald[0] - lo) > 0.02 * half  # the quadratic model is visibly off
+
+
+@pytest.mark.slow  # compiles the JointLM iteration of the whole problem (≈ 3 s)
+def test_profile_of_a_fit_stopped_short_falls_from_the_maximum():
+    """A fit that stopped away from the maximum (b 30 % off, not converged): the profile refits to
+    the maximum first, and its interval is the one at the maximum (b̂ + q·SE above)."""
+    res, exact = _offsets(0.03, 3)
+    b, se = exact["b"]
+    moved = eqx.tree_at(lambda s: s.b, res.system, jnp.asarray(1.3 * b))
+    early = dataclasses.replace(res, system=moved, theta=res.problem.theta_of(moved),
+                                converged=False)  # fmt: skip
+    p = early.profile("b")
+    assert p.estimate == pytest.approx(1.3 * b)
+    assert p.upper == pytest.approx(b + Q95 * se, rel=1e-3) and p.lower_end == "bound"
+    assert "was not the maximum" in " ".join(p.notes)

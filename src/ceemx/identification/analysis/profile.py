@@ -27,9 +27,14 @@ then evaluated at the refit's end point exactly as at the fit's: J from the stat
 log-evidence from a MAP smoothing and the log-determinant of its Gauss–Newton matrix (with the
 smoother of the fit's solver, as
 :func:`~ceemx.identification.analysis.uncertainty.evidence_covariance` does).
-The maximum is the objective at the fit's end point, after a polishing refit with nothing held
-when the fit did not converge or the refits use another solver; a point above it raises it (a
-note says so).
+(The epochs run as :func:`ceemx.fit` runs them, without its per-call checks, warm start,
+health test and end-of-fit check: the inputs were checked by the fit, and
+:mod:`ceemx.identification.fitting` builds :class:`~ceemx.FitResult` on this module, so it
+cannot be called from here.) The maximum is the objective at the fit's end point; after
+Algorithm 1 (refits by another method) the larger of it and a refit with ψ held at its estimate;
+after a fit that did not converge, the larger of it and a refit with nothing held (the fit
+continued by the refits' solver). A point above the maximum raises it (a note says so when by
+more than 0.01 in 2·Δ).
 
 The search, on each side: from the Wald end ẑ ± q·σ_z of the unconstrained coordinate z (q² =
 χ²₁(α); σ_z from :meth:`ceemx.FitResult.covariance`) step out, doubling the step, until the
@@ -190,7 +195,6 @@ class _Profiler:
         self.evidence = result.solver.uncertainty == "evidence"
         self.objective = "Laplace evidence" if self.evidence else "certainty-equivalent J"
         self.solver, same = _refit_solver(result.solver, solver, theta.dtype)
-        self.polisher = result.solver if same else self.solver  # its programs are compiled
         own = getattr(result.solver, "smoother", None)
         if self.evidence:  # the fit's E-step program
             own = LMSmoother(rtol=1e-14) if own is None else own
@@ -213,7 +217,12 @@ class _Profiler:
         self.maximum = value
         if not np.isfinite(value):
             raise ValueError(f"the objective is not finite at the fit's end point ({value}).")
-        self.polish = not (result.converged and same) and self._free()
+        # the maximum: a converged fit of the refits' method is at it; one of another method
+        # (Algorithm 1) is refitted with ψ held at its estimate (the refits' own program); one
+        # that did not converge is refitted with nothing held
+        self.polish = "" if not self._free() or (result.converged and same) else "held"
+        if not result.converged and self._free():
+            self.polish = "free"
 
     # ---- coordinates -------------------------------------------------------------------------
 
@@ -260,9 +269,9 @@ class _Profiler:
             return 0.0
         return -float(self.problem.neg_log_prior(theta))
 
-    def _refit(self, problem: FitProblem, theta, states, solver=None):
+    def _refit(self, problem: FitProblem, theta, states):
         """The solver's epochs on ``problem`` from (θ, x): its last state."""
-        solver = self.solver if solver is None else solver
+        solver = self.solver
         solver.check_problem(problem, theta)
         state = solver.init(problem, theta, states, jax.random.PRNGKey(0))
         for _ in range(self.max_epochs):
@@ -276,23 +285,27 @@ class _Profiler:
             raise _Failed("a trajectory failed in a refit")
         return state
 
-    def _polish(self, theta, states) -> None:
-        """A refit with nothing held: the maximum the profile falls from."""
+    def _polish(self) -> None:
+        """The maximum the profile falls from, refitted from the fit's end point (``polish``)."""
+        start = self.points[0]
         self.evaluations += 1
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                state = self._refit(self.problem, theta, states, self.polisher)
-                value, states = self._objective(state.theta, state.states, smooth=False)
-        except _Failed:
+                if self.polish == "held":
+                    theta, states = self._held(start, self.z_hat, self.estimate)
+                else:
+                    state = self._refit(self.problem, start.theta, start.states)
+                    theta, states = state.theta, state.states
+                value, _ = self._objective(theta, states, smooth=False)
+        except (_Failed, ValueError, FloatingPointError):
             return
         if np.isfinite(value) and value > self.maximum:
             self.maximum = value
-        if np.isfinite(value) and 2.0 * (value - self.points[0].value) > NOTED_RISE:
+        if np.isfinite(value) and 2.0 * (value - start.value) > NOTED_RISE:
             self.notes.append(
-                f"the fit's end point was not the maximum of the objective: a refit with every "
-                f"parameter free raised it by {value - self.points[0].value:.3g}; the profile "
-                "falls from there"
+                f"the fit's end point was not the maximum of the objective: a refit raised it by "
+                f"{value - start.value:.3g}; the profile falls from there"
             )
 
     def value_at(self, z: float) -> float:
@@ -455,8 +468,8 @@ class _Profiler:
         its width beyond each end found (inside the bounds), for a figure.
         """
         if self.polish:
-            self.polish = False
-            self._polish(self.points[0].theta, self.points[0].states)
+            self._polish()
+            self.polish = ""
         lower, lower_end = self.side(-1, max_steps, xtol)
         upper, upper_end = self.side(+1, max_steps, xtol)
         if grid > 0 and np.isfinite(lower) and np.isfinite(upper):
