@@ -22,10 +22,13 @@ parameter's interval never reaches 0) and is ``estimate ± q·SE`` for unconstra
 (q = 1.96 for 95 %). The standard error is the delta-method one, ``forward'(ẑ)·σ_z``. When the
 data do not determine some parameters, those are held at their estimates and the others' errors
 are conditional on them (``FitResult.covariance(hold_weak=True)``; a message says so), rather than
-NaN for every parameter.
+NaN for every parameter. Where a bound is near or the objective is skewed, the profile-likelihood
+interval replaces the Wald one (``intervals="auto"``, the rule of
+:mod:`ceemx.identification.analysis.profile_rule`); each interval says its kind.
 
 Nothing here computes on the device except the covariance (one compiled Schur complement per
-problem shape, as :meth:`FitResult.covariance`); ``uncertainty=False`` skips it.
+problem shape, as :meth:`FitResult.covariance`) and, for the few parameters the rule picks, the
+profiles' refits; ``uncertainty=False`` skips both, ``intervals="wald"`` the refits.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
-from ceemx.identification.analysis.profile import summary_intervals
+from ceemx.identification.analysis.profile_rule import summary_intervals
 from ceemx.lib.results import RESULTS, codes
 from ceemx.models.constraints import Unconstrained
 from ceemx.models.noise import AbstractNoise
@@ -391,17 +394,14 @@ def fit_summary(
             compiled on first use) and append its report.
         uncertainty: compute standard errors and intervals (one Schur complement).
         max_rows: show at most this many parameters (the first ones; ``None``: all).
-        intervals: ``"auto"`` (default: profile-likelihood intervals for at most 3 parameters
-            the rule flags — near a bound, or a skewed objective — Wald for the others; a message
-            says which), ``"wald"`` (no refit) or ``"profile"`` (every parameter profiled: a few
-            refits each); the kind is printed beside each interval.
+        intervals: ``"auto"``, ``"wald"`` or ``"profile"``, as :func:`parameter_rows`.
 
     Returns:
         A :class:`Summary` (a ``str``).
     """
     if format not in ("text", "markdown"):
         raise ValueError(f"`format` must be 'text' or 'markdown'; got {format!r}.")
-    md = format == "markdown"
+    md, options = format == "markdown", {"level": level, "intervals": intervals}
     notes: list[str] = []
     out = [f"**{_title(result)}**" if md else _title(result)]
     rule = "=" * _WIDTH
@@ -410,9 +410,7 @@ def fit_summary(
     if result.problem is None:
         out.append("(no fit problem held: the parameter table needs a result of `fit`)")
     else:
-        rows, notes = parameter_rows(
-            result, level=level, uncertainty=uncertainty, intervals=intervals
-        )
+        rows, notes = parameter_rows(result, **options, uncertainty=uncertainty)
         shown = rows if max_rows is None else rows[:max_rows]
         head = [h.format(pct=f"{100 * level:g} %") for h in _HEAD]
         table = (_md_table if md else _text_table)(head, _cells(shown), {1, 2})
