@@ -196,8 +196,10 @@ def test_summary_names_estimates_intervals_and_constraints(decay):
     assert isinstance(text, str) and repr(text) == str(text)  # shows as it reads at the prompt
     lines = text.splitlines()
     assert lines[0] == "Fit summary: JointLM, not converged after 30 epochs"
-    rows, notes = parameter_rows(res)
+    rows, notes = parameter_rows(res, intervals="wald")
     assert [r.name for r in rows] == ["a", "g"] and notes == []
+    assert [r.interval for r in rows] == ["Wald", "Wald"]
+    assert "did not converge" in parameter_rows(res)[1][-1]  # no profile without a maximum
     est = res.parameter_estimates()
     cov = np.asarray(res.covariance())
     z = np.asarray(res.theta)

@@ -11,6 +11,8 @@
   input, with the pointwise 99 % band ±2.58/√N, as MATLAB's ``resid`` draws them (the numbers:
   :func:`ceemx.identification.analysis.correlations.residual_correlations`).
 - :func:`plot_residual_diagnostics` — the figure of :meth:`ceemx.FitResult.diagnostics`.
+- :func:`plot_profile` — the figure of :meth:`ceemx.FitResult.profile`: the profile's drop
+  2·(max − profile) against the parameter, the threshold, the profile and Wald intervals.
 
 Each returns a Matplotlib ``Figure`` (Agg backend; :func:`ceemx.evaluation.report.save_figure`
 writes it atomically) or draws into the ``fig`` given — a ``SubFigure`` too, so that several
@@ -48,7 +50,7 @@ from ceemx.evaluation.trace_panels import (
 )
 from ceemx.identification.analysis.correlations import BAND_Z, residual_correlations
 
-__all__ = ["FONTS", "plot_benchmark", "plot_resid", "plot_residual_diagnostics"]
+__all__ = ["FONTS", "plot_benchmark", "plot_profile", "plot_resid", "plot_residual_diagnostics"]
 
 #: Matplotlib settings of every figure here: text readable at the saved size (≈ 11 in wide).
 FONTS: dict[Any, Any] = {
@@ -469,4 +471,51 @@ def plot_residual_diagnostics(diag, path: str | os.PathLike | None = None):
         ax.legend(loc="upper right")
     if path is None:
         return fig
+    return save_figure(fig, Path(path))
+
+
+def plot_profile(profile, path: str | os.PathLike | None = None, *, ax: Any = None) -> Any:
+    """The figure of a :class:`~ceemx.identification.analysis.profile.Profile`.
+
+    The drop 2·(max − profile) at every point computed (joined in order of the parameter: the
+    search's few points, or a curve with ``FitResult.profile(name, grid=20)``), the threshold
+    χ²₁(level) (dashed), the profile interval (shaded; an end at the bound or the search limit
+    says so) and the Wald interval (a bar on the threshold line).
+
+    Args:
+        profile: the profile (:meth:`ceemx.FitResult.profile`).
+        path: the figure file (its suffix picks the format), written atomically; ``None``: return
+            the figure instead.
+        ax: draw into these axes instead of a new figure (``path`` is then ignored).
+
+    Returns:
+        The path written, or the figure when ``path`` is ``None``.
+    """
+    pts = np.asarray(profile.points, np.float64).reshape(-1, 2)
+    ok = np.isfinite(pts[:, 1])
+    pyplot = plt()
+    with pyplot.rc_context(FONTS):
+        fig = None
+        if ax is None:
+            fig = pyplot.figure(figsize=(5.5, 3.6), layout="constrained")
+            ax = fig.add_subplot()
+        ax.plot(pts[ok, 0], pts[ok, 1], "o-", color="C0", ms=4, label="profile (refits)")
+        level = f"{100 * profile.level:g} %"
+        ax.axhline(profile.threshold, color="k", ls="--", lw=0.8, label=f"χ²₁({level})")
+        ends = {"bound": " (bound)", "limit": " (search limit)"}
+        lo, hi = profile.lower, profile.upper
+        if np.isfinite(lo) and np.isfinite(hi):
+            words = ends.get(profile.lower_end, "") + ends.get(profile.upper_end, "")
+            ax.axvspan(lo, hi, color=_BAND, zorder=0, label=f"profile interval{words}")
+        if np.all(np.isfinite(profile.wald)):
+            ax.plot(profile.wald, [profile.threshold] * 2, "|-", color=_OUT, lw=2,
+                    ms=12, label="Wald interval")  # fmt: skip
+        ax.axvline(profile.estimate, color="0.4", lw=0.8)
+        ax.set_xlabel(profile.name)
+        ax.set_ylabel("2·(max − profile)")
+        ax.set_title(f"profile of {profile.name} ({profile.objective})", loc="left")
+        ax.set_ylim(bottom=0.0, top=max(2.5 * profile.threshold, 1.0))
+        ax.legend(loc="best")
+    if fig is None or path is None:
+        return fig if fig is not None else ax.figure
     return save_figure(fig, Path(path))

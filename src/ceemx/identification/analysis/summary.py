@@ -22,10 +22,13 @@ parameter's interval never reaches 0) and is ``estimate ± q·SE`` for unconstra
 (q = 1.96 for 95 %). The standard error is the delta-method one, ``forward'(ẑ)·σ_z``. When the
 data do not determine some parameters, those are held at their estimates and the others' errors
 are conditional on them (``FitResult.covariance(hold_weak=True)``; a message says so), rather than
-NaN for every parameter.
+NaN for every parameter. Where a bound is near or the objective is skewed, the profile-likelihood
+interval replaces the Wald one (``intervals="auto"``, the rule of
+:mod:`ceemx.identification.analysis.profile_rule`); each interval says its kind.
 
 Nothing here computes on the device except the covariance (one compiled Schur complement per
-problem shape, as :meth:`FitResult.covariance`); ``uncertainty=False`` skips it.
+problem shape, as :meth:`FitResult.covariance`) and, for the few parameters the rule picks, the
+profiles' refits; ``uncertainty=False`` skips both, ``intervals="wald"`` the refits.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from ceemx.identification.analysis.profile_rule import summary_intervals
 from ceemx.lib.results import RESULTS, codes
 from ceemx.models.constraints import Unconstrained
 from ceemx.models.noise import AbstractNoise
@@ -55,6 +59,7 @@ __all__ = [
 ]
 
 Format = Literal["text", "markdown"]
+Intervals = Literal["auto", "wald", "profile"]
 
 
 class Summary(str):
@@ -74,14 +79,21 @@ class Summary(str):
 
 
 class ParameterRow(tuple):
-    """One trainable scalar: ``(name, estimate, se, lower, upper, constraint)``, natural units."""
+    """One trainable scalar: ``(name, estimate, se, lower, upper, constraint, interval)``.
+
+    Natural units; ``interval`` is the interval's kind: ``"Wald"``, ``"profile"`` (profile
+    likelihood, :mod:`ceemx.identification.analysis.profile`; ``"profile, to bound"`` when it
+    reaches the constraint's bound, ``"profile, open"`` when it does not close within the
+    search) or ``""`` (none computed).
+    """
 
     __slots__ = ()
 
-    def __new__(cls, name: str, estimate, se, lower, upper, constraint: str):
+    def __new__(cls, name: str, estimate, se, lower, upper, constraint: str, interval: str = ""):
         """One row; the numbers as Python floats (NaN where not available)."""
         return super().__new__(
-            cls, (name, float(estimate), float(se), float(lower), float(upper), constraint)
+            cls,
+            (name, float(estimate), float(se), float(lower), float(upper), constraint, interval),
         )
 
     name = property(lambda self: self[0], doc="The parameter's name as written, e.g. ``H[2,3]``.")
@@ -90,6 +102,7 @@ class ParameterRow(tuple):
     lower = property(lambda self: self[3], doc="The interval's lower end.")
     upper = property(lambda self: self[4], doc="The interval's upper end.")
     constraint = property(lambda self: self[5], doc="The constraint in words.")
+    interval = property(lambda self: self[6], doc="The interval's kind (``Wald``, ``profile``).")
 
 
 def _constraint_words(problem) -> list[str]:
@@ -103,7 +116,12 @@ def _constraint_words(problem) -> list[str]:
 
 
 def parameter_rows(
-    result, *, level: float = 0.95, uncertainty: bool = True
+    result,
+    *,
+    level: float = 0.95,
+    uncertainty: bool = True,
+    intervals: Intervals = "auto",
+    max_profiles: int = 3,
 ) -> tuple[list[ParameterRow], list[str]]:
     """The parameter table of a fit and the notes that go with it.
 
@@ -111,6 +129,11 @@ def parameter_rows(
         result: a :class:`ceemx.FitResult` with its ``problem`` (any fit's).
         level: the interval's coverage, in (0, 1).
         uncertainty: compute the Laplace covariance (``False``: estimates only, NaN elsewhere).
+        intervals: ``"wald"``, ``"profile"`` (every parameter's profile-likelihood interval: a
+            few refits each) or ``"auto"`` (the profile interval for the parameters the rule of
+            :func:`~ceemx.identification.analysis.profile.summary_intervals` flags — near a
+            bound, or a skewed objective — at most ``max_profiles``; Wald for the others).
+        max_profiles: with ``"auto"``, the most parameters profiled.
 
     Returns:
         ``(rows, notes)``: one :class:`ParameterRow` per entry of θ, in θ order; ``notes`` holds
@@ -118,6 +141,8 @@ def parameter_rows(
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"`level` must be in (0, 1); got {level}.")
+    if intervals not in ("auto", "wald", "profile"):
+        raise ValueError(f"`intervals` must be 'auto', 'wald' or 'profile'; got {intervals!r}.")
     problem, theta = result.problem, result.theta
     names = problem.parameter_names()
     estimate = np.asarray(problem.natural(theta), np.float64)
@@ -140,12 +165,41 @@ def parameter_rows(
         ]
         lower = np.where(np.isfinite(sd), np.minimum(*ends), np.nan)
         upper = np.where(np.isfinite(sd), np.maximum(*ends), np.nan)
+        kinds = ["Wald" if np.isfinite(v) else "" for v in sd]
+        if intervals != "wald":
+            lower, upper, more = _profiled(
+                result, cov, level, intervals, max_profiles, (lower, upper, kinds)
+            )
+            notes += more
+    else:
+        kinds = [""] * len(names)
     words = _constraint_words(problem)
     rows = [
         ParameterRow(*fields)
-        for fields in zip(names, estimate, se, lower, upper, words, strict=True)
+        for fields in zip(names, estimate, se, lower, upper, words, kinds, strict=True)
     ]
     return rows, notes
+
+
+def _profiled(result, cov, level, mode, max_profiles, wald):
+    """``(lower, upper, notes)``: the Wald ``(lower, upper, kinds)``, the rule's profiles put in.
+
+    ``kinds`` is updated in place.
+    """
+    lower, upper, kinds = np.array(wald[0], np.float64), np.array(wald[1], np.float64), wald[2]
+    profiles, notes = summary_intervals(
+        result, cov, level=level, mode=mode, max_profiles=max_profiles
+    )
+    for j, p in profiles.items():
+        if not (np.isfinite(p.lower) and np.isfinite(p.upper)):
+            notes.append(f"The profile of {p.name} failed on one side: its Wald interval is shown.")
+            continue
+        lower[j], upper[j] = p.lower, p.upper
+        ends = {p.lower_end, p.upper_end}
+        kinds[j] = "profile" + (
+            ", to bound" if "bound" in ends else ", open" if "limit" in ends else ""
+        )
+    return lower, upper, notes
 
 
 # --------------------------------------------------------------------------------------------
@@ -320,7 +374,9 @@ def _cells(rows: Sequence[ParameterRow]) -> list[list[str]]:
             r.name,
             _num(r.estimate),
             _num(r.se, 3),
-            "—" if not np.isfinite(r.lower) else f"[{_num(r.lower)}, {_num(r.upper)}]",
+            "—"
+            if not np.isfinite(r.lower)
+            else f"[{_num(r.lower)}, {_num(r.upper)}] {r.interval}".rstrip(),
             r.constraint,
         ]
         for r in rows
@@ -366,6 +422,7 @@ def fit_summary(
     diagnostics: bool = False,
     uncertainty: bool = True,
     max_rows: int | None = 40,
+    intervals: Intervals = "auto",
 ) -> Summary:
     """The summary of a fit (module notes); :meth:`ceemx.FitResult.summary` calls it.
 
@@ -377,13 +434,14 @@ def fit_summary(
             compiled on first use) and append its report.
         uncertainty: compute standard errors and intervals (one Schur complement).
         max_rows: show at most this many parameters (the first ones; ``None``: all).
+        intervals: ``"auto"``, ``"wald"`` or ``"profile"``, as :func:`parameter_rows`.
 
     Returns:
         A :class:`Summary` (a ``str``).
     """
     if format not in ("text", "markdown"):
         raise ValueError(f"`format` must be 'text' or 'markdown'; got {format!r}.")
-    md = format == "markdown"
+    md, options = format == "markdown", {"level": level, "intervals": intervals}
     notes: list[str] = []
     out = [f"**{_title(result)}**" if md else _title(result)]
     rule = "=" * _WIDTH
@@ -392,7 +450,7 @@ def fit_summary(
     if result.problem is None:
         out.append("(no fit problem held: the parameter table needs a result of `fit`)")
     else:
-        rows, notes = parameter_rows(result, level=level, uncertainty=uncertainty)
+        rows, notes = parameter_rows(result, **options, uncertainty=uncertainty)
         shown = rows if max_rows is None else rows[:max_rows]
         head = [h.format(pct=f"{100 * level:g} %") for h in _HEAD]
         table = (_md_table if md else _text_table)(head, _cells(shown), {1, 2})

@@ -15,6 +15,7 @@ import numpy as np
 from ceemx.identification.analysis.diagnostics import fit_diagnostics
 from ceemx.identification.analysis.identifiability import Identifiability, fit_identifiability
 from ceemx.identification.analysis.noise_check import NoiseCheck
+from ceemx.identification.analysis.profile import Profile, fit_profile
 from ceemx.identification.analysis.summary import fit_summary, noise_round_messages, short_repr
 from ceemx.identification.analysis.uncertainty import (
     fit_covariance,
@@ -200,6 +201,23 @@ class FitResult(eqx.Module):
         """
         return fit_parameter_estimates(self)
 
+    def profile(self, name: str, *, level: float = 0.95, **options) -> Profile:
+        """The profile-likelihood interval of one parameter (``analysis.profile``).
+
+        The objective the fit maximised (J for the certainty-equivalent methods, the Laplace
+        evidence for :class:`ceemx.LaplaceEM`), maximised again over the states and the other
+        parameters with ``name`` held at each value; the ``level`` interval is where
+        2·(max − profile) ≤ χ²₁(level) (3.841 at 95 %), beside the Wald interval. ``name`` as the
+        summary names it (``k``, ``A[0,1]``); ``options``: ``max_epochs`` (of each refit),
+        ``max_steps``, ``xtol``, ``solver``, ``grid`` (more points, for a figure:
+        :func:`ceemx.evaluation.plots.plot_profile`)
+        (:func:`~ceemx.identification.analysis.profile.fit_profile`). Each point is a refit.
+
+        Example:
+            >>> print(result.profile("c"))  # doctest: +SKIP
+        """
+        return fit_profile(self, name, level=level, **options)
+
     def summary(
         self,
         format: Literal["text", "markdown"] = "text",
@@ -208,6 +226,7 @@ class FitResult(eqx.Module):
         diagnostics: bool = False,
         uncertainty: bool = True,
         max_rows: int | None = 40,
+        intervals: Literal["auto", "wald", "profile"] = "auto",
     ) -> str:
         """What the fit found, for a person (:mod:`ceemx.identification.analysis.summary`).
 
@@ -216,6 +235,10 @@ class FitResult(eqx.Module):
         noise check and identifiability records, and the messages; ``diagnostics=True`` adds
         :meth:`diagnostics` (an EKF pass and a Laplace E-step, not run by default);
         ``uncertainty=False`` skips the covariance. ``format``: ``"text"`` or ``"markdown"``.
+        ``intervals``: ``"auto"`` (default) prints profile-likelihood intervals (:meth:`profile`)
+        for the few parameters near a bound or with a skewed objective (at most 3; the rule in
+        :mod:`ceemx.identification.analysis.profile`), Wald for the others; ``"wald"`` computes
+        no profile; ``"profile"`` profiles every parameter. Each interval says its kind.
 
         Example:
             >>> print(result.summary())  # doctest: +SKIP
@@ -227,6 +250,7 @@ class FitResult(eqx.Module):
             diagnostics=diagnostics,
             uncertainty=uncertainty,
             max_rows=max_rows,
+            intervals=intervals,
         )
 
     def __repr__(self) -> str:

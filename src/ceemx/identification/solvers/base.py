@@ -177,6 +177,11 @@ class AbstractFitSolver(eqx.Module):
     #: 1): the warm start then smooths :attr:`~ceemx.infra.policy.Runs.EVERY_EPOCH`, one program
     #: for both; otherwise (the joint method, Laplace EM) :attr:`~ceemx.infra.policy.Runs.ONCE`.
     smooths_each_epoch: ClassVar[bool] = False
+    #: Whether a certainty-equivalent fit warm-started next to its answer settles in a few epochs
+    #: (the joint method): :meth:`ceemx.FitResult.profile` refits with it; one without it
+    #: (Algorithm 1) is profiled by :class:`ceemx.JointLM` refits, the same J (Laplace EM's
+    #: profile, of the evidence, refits with Laplace EM).
+    warm_refits: ClassVar[bool] = False
 
     def __check_init__(self):
         # Equinox runs every class's __check_init__: each solver's own checks come on top.
