@@ -38,6 +38,9 @@ from . import (
 from . import (
     systems as systems,
 )
+from .data.info import (
+    DataInfo as DataInfo,
+)
 from .data.trajectories import (
     Trajectories as Trajectories,
 )

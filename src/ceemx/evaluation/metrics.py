@@ -211,6 +211,8 @@ class BenchmarkScore(NamedTuple):
             where ``x1`` was given; ``nonfinite`` where x̂₁ is not finite), or ``diverged`` where
             the free run from a finite x̂₁ is not finite (its scores are NaN or inf; warned).
         n_init: outputs used for the initial state (not scored).
+        outputs: the outputs' labels from the test data's ``info`` (``name [unit]``; the unit
+            only when the errors are not scaled), which the table prints; ``None``: ``y1``, ….
     """
 
     rmse: Float[Array, "B m"]
@@ -224,6 +226,7 @@ class BenchmarkScore(NamedTuple):
     x1: Float[Array, "B n"]
     status: RESULTS
     n_init: int
+    outputs: tuple[str, ...] | None = None
 
     def table(
         self,
@@ -339,7 +342,19 @@ def benchmark_score(
     scale_arr = jnp.asarray(np.broadcast_to(s, (system.obs_dim,)), test.y.dtype)
     metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
     status = _flag_diverged(start, metrics[3], status)
-    return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init)
+    return BenchmarkScore(
+        *metrics, y_sim, x_sim, start, status, n_init, _output_labels(test, scale)
+    )
+
+
+def _output_labels(test: Trajectories, scale) -> tuple[str, ...] | None:
+    """The outputs' names (and units, where the errors are in them) from ``test.info``."""
+    info = test.info
+    if info is None or (info.output_names is None and info.output_units is None):
+        return None
+    if scale is not None:  # scaled errors are not in the data's units: names only
+        info = info.replace(output_units=None)
+    return info.output_labels(test.obs_dim)
 
 
 def _check_record(test: Trajectories, n_init) -> int:
