@@ -35,7 +35,16 @@ import numpy as np
 from ceemx.infra.folder_lock import folder_lock
 from ceemx.lib.tree import as_jax
 
-__all__ = ["CheckpointError", "check_folder", "fingerprint", "load", "lock", "save"]
+__all__ = [
+    "CheckpointError",
+    "atomic_write",
+    "check_folder",
+    "fingerprint",
+    "load",
+    "load_leaf",
+    "lock",
+    "save",
+]
 
 _LATEST = "latest.json"
 _FORMAT = 2
@@ -132,6 +141,25 @@ def _atomic_write(path: str, write) -> None:
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
+
+
+def atomic_write(path: str, write) -> None:
+    """Write ``path`` by ``write(f)`` on a temporary file beside it, then ``os.replace`` it there.
+
+    A reader sees the previous file or the whole new one, never a torn one (``os.replace`` is
+    atomic on POSIX); the temporary is removed when ``write`` fails. As the checkpoints are
+    written; :func:`ceemx.save` writes a model by it.
+    """
+    _atomic_write(path, write)
+
+
+def load_leaf(f, x: Any) -> Any:
+    """Equinox's default deserialisation of one leaf, a JAX leaf read by a transfer (no compile).
+
+    The ``filter_spec`` of ``eqx.tree_deserialise_leaves`` that the checkpoints and
+    :func:`ceemx.load` use.
+    """
+    return _load_leaf(f, x)
 
 
 def _sha256_file(path: str) -> str:
