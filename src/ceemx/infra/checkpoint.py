@@ -148,9 +148,17 @@ def atomic_write(path: str, write) -> None:
 
     A reader sees the previous file or the whole new one, never a torn one (``os.replace`` is
     atomic on POSIX); the temporary is removed when ``write`` fails. As the checkpoints are
-    written; :func:`ceemx.save` writes a model by it.
+    written, but with the permissions ``open`` gives a new file (0o666 less the umask) where a
+    checkpoint keeps the temporary's 0o600; :func:`ceemx.save` writes a model by it.
     """
-    _atomic_write(path, write)
+    umask = os.umask(0)
+    os.umask(umask)
+
+    def write_readable(f):
+        write(f)
+        os.fchmod(f.fileno(), 0o666 & ~umask)
+
+    _atomic_write(path, write_readable)
 
 
 def load_leaf(f, x: Any) -> Any:
