@@ -248,3 +248,36 @@ def test_export_step_and_exported_simulation_reproduce_the_free_run(tmp_path):
     assert fixed.in_avals[1].shape == (2, 40, 0)
     with pytest.raises(ValueError, match="`num_steps` must be a positive integer"):
         ceemx.export_simulate(model, num_steps=0)
+
+
+class ScriptModel(ceemx.AbstractSystem):
+    """A model as a script defines it (moved into ``__main__`` by the test below)."""
+
+    a: jax.Array
+
+    @property
+    def state_dim(self):
+        return 1
+
+    @property
+    def obs_dim(self):
+        return 1
+
+    def dynamics(self, x, u, t):
+        return self.a * x
+
+    def observe(self, x, u, t):
+        return x
+
+
+def test_a_class_of_a_script_saves_with_a_warning_and_loads_where_main_has_it(
+    tmp_path, monkeypatch
+):
+    monkeypatch.setattr(ScriptModel, "__module__", "__main__")
+    monkeypatch.setattr(sys.modules["__main__"], "ScriptModel", ScriptModel, raising=False)
+    with pytest.warns(UserWarning, match=r"defined in a script or notebook \(__main__\)"):
+        path = ceemx.save(tmp_path / "s.ceemx", ScriptModel(jnp.array([0.5])))
+    assert float(ceemx.load(path).a[0]) == 0.5
+    monkeypatch.delattr(sys.modules["__main__"], "ScriptModel")
+    with pytest.raises(ImportError, match=r"defined in a script or notebook \(__main__\)"):
+        ceemx.load(path)
