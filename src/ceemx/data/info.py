@@ -92,9 +92,12 @@ class DataInfo:
                     f"{value!r}."
                 )
 
-    def output_labels(self, m: int) -> tuple[str, ...]:
-        """``m`` labels of the outputs: ``name [unit]``; ``y1``, ``y2``, … where unnamed."""
-        return _labels(self.output_names, self.output_units, m, "y")
+    def output_labels(self, m: int, *, units: bool = True) -> tuple[str, ...]:
+        """``m`` labels of the outputs: ``name [unit]``; ``y1``, ``y2``, … where unnamed.
+
+        ``units=False``: the names alone (for errors not in the data's units).
+        """
+        return _labels(self.output_names, self.output_units if units else None, m, "y")
 
     def input_labels(self, p: int) -> tuple[str, ...]:
         """``p`` labels of the inputs: ``name [unit]``; ``u1``, ``u2``, … where unnamed."""

@@ -342,19 +342,9 @@ def benchmark_score(
     scale_arr = jnp.asarray(np.broadcast_to(s, (system.obs_dim,)), test.y.dtype)
     metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
     status = _flag_diverged(start, metrics[3], status)
-    return BenchmarkScore(
-        *metrics, y_sim, x_sim, start, status, n_init, _output_labels(test, scale)
-    )
-
-
-def _output_labels(test: Trajectories, scale) -> tuple[str, ...] | None:
-    """The outputs' names (and units, where the errors are in them) from ``test.info``."""
-    info = test.info
-    if info is None or (info.output_names is None and info.output_units is None):
-        return None
-    if scale is not None:  # scaled errors are not in the data's units: names only
-        info = info.replace(output_units=None)
-    return info.output_labels(test.obs_dim)
+    info = test.info  # the outputs' names, with their units where the errors are in them
+    labels = None if info is None else info.output_labels(test.obs_dim, units=scale is None)
+    return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init, labels)
 
 
 def _check_record(test: Trajectories, n_init) -> int:

@@ -148,6 +148,31 @@ def _warn_main(spec: Any) -> None:
         )
 
 
+def _model_info(model: Any, system: AbstractSystem, model_class: str, data) -> ModelInfo:
+    """The :class:`ModelInfo` of ``system`` (saved from ``model``, a system or a fit result)."""
+    return ModelInfo(
+        model=model_class,
+        ceemx_version=_version("ceemx"),
+        versions={
+            "jax": jax.__version__,
+            "equinox": _version("equinox"),
+            "numpy": np.__version__,
+            "python": platform.python_version(),
+        },
+        dtype=np.dtype(float_dtype(system)).name,
+        state_dim=int(system.state_dim),
+        obs_dim=int(system.obs_dim),
+        input_dim=int(system.input_dim),
+        noise={
+            "process_noise": _describe_noise(system.process_noise),
+            "obs_noise": _describe_noise(system.obs_noise),
+        },
+        data=_data_info(model, data),
+        fit=repr(model) if _is_fit_result(model) else None,
+        saved_at=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    )
+
+
 def save(
     path: str | os.PathLike,
     model: Any,
@@ -198,27 +223,7 @@ def save(
     buffer = io.BytesIO()
     eqx.tree_serialise_leaves(buffer, system)
     leaves = buffer.getvalue()
-    info = ModelInfo(
-        model=spec["$module"],
-        ceemx_version=_version("ceemx"),
-        versions={
-            "jax": jax.__version__,
-            "equinox": _version("equinox"),
-            "numpy": np.__version__,
-            "python": platform.python_version(),
-        },
-        dtype=np.dtype(float_dtype(system)).name,
-        state_dim=int(system.state_dim),
-        obs_dim=int(system.obs_dim),
-        input_dim=int(system.input_dim),
-        noise={
-            "process_noise": _describe_noise(system.process_noise),
-            "obs_noise": _describe_noise(system.obs_noise),
-        },
-        data=_data_info(model, data),
-        fit=repr(model) if _is_fit_result(model) else None,
-        saved_at=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-    )
+    info = _model_info(model, system, spec["$module"], data)
     info_json = dataclasses.asdict(info)
     info_json["data"] = None if info.data is None else info.data.to_dict()
     meta = {
