@@ -6,6 +6,7 @@ for bad values, the first offending index. No test here compiles the smoother.
 
 import re
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -268,3 +269,147 @@ def test_smooth_data_not_trajectories():
     system, data, x = good_inputs()
     with pytest.raises(TypeError, match=re.escape("`data` must be a ceemx.Trajectories")):
         ceemx.smooth(system, data.y, x)
+
+
+# --------------------------------------------------------------------------------------------------
+# A user's records: lists of different lengths, NaN as missing, metadata (DataInfo)
+# --------------------------------------------------------------------------------------------------
+
+
+def two_records():
+    """Two records (40 and 25 samples) of a one-input, two-output linear system, with noise."""
+    rng = np.random.default_rng(7)
+    lengths = (40, 25)
+    us = [rng.standard_normal((n, 1)) for n in lengths]
+    ys = [
+        np.cumsum(u, axis=0) * 0.1 + rng.standard_normal((n, 2))
+        for u, n in zip(us, lengths, strict=True)
+    ]
+    model = LinearSystem(
+        0.9 * jnp.eye(2), jnp.eye(2), B=jnp.array([[0.1], [0.05]]), D=jnp.zeros((2, 1))
+    )
+    return ys, us, model
+
+
+def test_records_of_different_lengths_pad_and_mask_and_score_like_each_alone():
+    ys, us, model = two_records()
+    data = ceemx.Trajectories.from_arrays(ys, us)
+    assert data.y.shape == (2, 40, 2) and data.u.shape == (2, 40, 1)
+    mask = np.asarray(data.mask)
+    assert mask[0].all() and mask[1, :25].all() and not mask[1, 25:].any()
+    np.testing.assert_array_equal(np.asarray(data.u)[1, 25:, 0], us[1][-1, 0])  # input held
+    alone = [ceemx.Trajectories.from_arrays(y, u) for y, u in zip(ys, us, strict=True)]
+    x1 = jnp.asarray([[0.3, -0.2], [0.1, 0.4]])
+
+    from ceemx.evaluation.metrics import simulation_rmse
+
+    both = simulation_rmse(model, data, x1)
+    each = [simulation_rmse(model, d, x1[b : b + 1]) for b, d in enumerate(alone)]
+    np.testing.assert_allclose(both.per_trajectory, [float(e.overall) for e in each], rtol=1e-12)
+    counts = np.array([40 * 2, 25 * 2])  # the real samples only, not the padding
+    combined = np.sqrt(
+        sum(c * float(e.overall) ** 2 for c, e in zip(counts, each, strict=True)) / counts.sum()
+    )
+    np.testing.assert_allclose(float(both.overall), combined, rtol=1e-12)
+
+    score = ceemx.benchmark_score(model, data, 5, x1=x1)
+    for b, d in enumerate(alone):
+        one = ceemx.benchmark_score(model, d, 5, x1=x1[b : b + 1])
+        for field in ("rmse", "nrmse", "fit_percent", "rmse_overall"):
+            np.testing.assert_allclose(getattr(score, field)[b], getattr(one, field)[0], rtol=1e-12)
+
+
+def test_record_lists_refuse_mismatches():
+    with raises("2 records of `y` but 1 of `u`"):
+        ceemx.Trajectories.from_arrays([np.ones(5), np.ones(3)], [np.ones(5)])
+    with raises("the records have different numbers of outputs: [1, 2]"):
+        ceemx.Trajectories.from_arrays([np.ones(5), np.ones((3, 2))])
+    with raises("record 1: `u` has 4 samples, `y` 3"):
+        ceemx.Trajectories.from_arrays([np.ones(5), np.ones(3)], [np.ones(5), np.ones(4)])
+    with raises("`y` must have T >= 2 time steps"):  # every record is validated as a batch
+        ceemx.Trajectories.from_arrays([np.ones(1)])
+
+
+def test_nan_outputs_are_missing_and_nan_inputs_are_refused():
+    y = np.arange(12.0).reshape(6, 2)
+    y[2, 1] = y[4, :] = np.nan
+    data = ceemx.Trajectories.from_arrays(y, np.ones(6))
+    mask = np.asarray(data.mask)[0]
+    assert mask.sum() == 12 - 3 and not mask[2, 1] and not mask[4].any() and mask[2, 0]
+    assert np.all(np.isfinite(data.y)) and float(data.y[0, 4, 0]) == 0.0
+    given = np.ones((6, 2), bool)
+    given[0, 0] = False  # a given mask is kept, the NaN added to it
+    assert np.asarray(ceemx.Trajectories.from_arrays(y, mask=given).mask)[0].sum() == 12 - 4
+    u = np.ones(6)
+    u[3] = np.nan
+    with raises("`u` is NaN at record 0, step 3, input 0"):
+        ceemx.Trajectories.from_arrays(np.ones(6), u)
+    y[1, 0] = np.inf  # an infinite output is an error, not a gap
+    with raises("`y` has a non-finite value inf at unmasked index [0, 1, 0]"):
+        ceemx.Trajectories.from_arrays(y)
+    with raises("`y` has a non-finite value nan"):  # the constructor itself stays strict
+        ceemx.Trajectories(np.full((1, 3, 1), np.nan))
+
+
+def test_data_info_travels_with_the_data_and_does_not_retrace_jit():
+    from ceemx import DataInfo
+    from ceemx.baselines.sid import with_constant_input
+
+    ys, us, _ = two_records()
+    data = ceemx.Trajectories.from_arrays(
+        ys, us, dt=0.5, output_names=["h1", "h2"], output_units=["V", "V"], input_names="pump"
+    )
+    info = data.info
+    assert info == DataInfo(0.5, "s", ("h1", "h2"), ("V", "V"), ("pump",), None)
+    assert info.output_labels(2) == ("h1 [V]", "h2 [V]") and info.input_labels(1) == ("pump",)
+    for derived in (data[1], data[:1], data.windows(10, 5), data.head(8)):
+        assert derived.info is info
+    assert data.with_info(dt=0.25).info.output_names == ("h1", "h2")
+    foh = ceemx.foh_inputs(data).info
+    assert foh.input_names == ("pump", "pump (next)") and foh.dt == 0.5
+    assert with_constant_input(data).info.input_names == ("pump", "constant")
+    assert jax.jit(lambda d: d)(data).info == info  # a static field: through jit unchanged
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def total(d):
+        return jnp.sum(d.y)
+
+    total(data)
+    total(ceemx.Trajectories.from_arrays([y + 1.0 for y in ys], us, **_kwargs(info)))
+    with raises("`output_names` has 1 entries but the data have 2 outputs"):
+        data.with_info(output_names="h")
+    with raises("`dt` must be a positive finite sample time"):
+        DataInfo(dt=0.0)
+    assert DataInfo.from_dict(info.to_dict()) == info
+
+
+def _kwargs(info):
+    return dict(
+        dt=info.dt,
+        output_names=info.output_names,
+        output_units=info.output_units,
+        input_names=info.input_names,
+    )
+
+
+def test_benchmark_score_prints_the_output_names_and_units():
+    ys, us, model = two_records()
+    data = ceemx.Trajectories.from_arrays(
+        ys, us, output_names=["h1", "h2"], output_units=["V", "V"]
+    )
+    x1 = jnp.zeros((2, 2))
+    text = str(ceemx.benchmark_score(model, data, 5, x1=x1))
+    assert "h1 [V]" in text and "h2 [V]" in text and "y1" not in text
+    scaled = str(ceemx.benchmark_score(model, data, 5, x1=x1, scale=1000.0))
+    assert "h1 " in scaled and "[V]" not in scaled  # scaled errors: not in the data's unit
+
+
+def test_data_docstring_examples_run():
+    import doctest
+
+    from ceemx.data import info, trajectories
+
+    for module in (info, trajectories):
+        failed, attempted = doctest.testmod(module, verbose=False)
+        assert attempted >= 1 and failed == 0, module.__name__

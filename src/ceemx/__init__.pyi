@@ -38,6 +38,9 @@ from . import (
 from . import (
     systems as systems,
 )
+from .data.info import (
+    DataInfo as DataInfo,
+)
 from .data.trajectories import (
     Trajectories as Trajectories,
 )
@@ -49,6 +52,12 @@ from .data.trajectories import (
 )
 from .evaluation.early_stopping import (
     EarlyStopping as EarlyStopping,
+)
+from .evaluation.export import (
+    export_simulate as export_simulate,
+)
+from .evaluation.export import (
+    export_step as export_step,
 )
 from .evaluation.initial_state import (
     estimate_initial_state as estimate_initial_state,
@@ -148,6 +157,15 @@ from .identification.learning import (
 )
 from .identification.problem import (
     FitProblem as FitProblem,
+)
+from .identification.saving import (
+    ModelInfo as ModelInfo,
+)
+from .identification.saving import (
+    load as load,
+)
+from .identification.saving import (
+    save as save,
 )
 from .identification.solvers import (
     AbstractFitSolver as AbstractFitSolver,

@@ -273,7 +273,8 @@ def with_constant_input(data: Trajectories) -> Trajectories:
     if not isinstance(data, Trajectories):
         raise TypeError(f"`data` must be a ceemx.Trajectories; got {type(data).__name__}.")
     ones = jnp.ones(data.u.shape[:2] + (1,), data.u.dtype)
-    return Trajectories(data.y, jnp.concatenate([data.u, ones], axis=-1), data.mask)
+    info = None if data.info is None else data.info.with_more_inputs(["constant"], [""])
+    return Trajectories(data.y, jnp.concatenate([data.u, ones], axis=-1), data.mask, info=info)
 
 
 def fit_affine_sid(

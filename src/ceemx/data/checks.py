@@ -24,7 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
-from ceemx.data.trajectories import Trajectories, cast_checked
+from ceemx.data.arrays import cast_checked
+from ceemx.data.trajectories import Trajectories
 from ceemx.infra.warn import warn
 from ceemx.lib.tree import is_weak
 from ceemx.lib.typing import no_type_check

@@ -7,9 +7,11 @@ users can pass their data straight to :func:`ceemx.fit` and :func:`ceemx.benchma
 package is not a dependency: any object with ``u`` and ``y`` arrays is accepted (duck typing).
 
 Records of different lengths are padded to the longest at the end and the padding masked (the
-mask is what :func:`ceemx.benchmark_score` and :func:`ceemx.fit` read); ``with_info=True`` also
-returns the sample period and the initialisation window ``n_init`` the package attached to its
-test records (its ``state_initialization_window_length``).
+mask is what :func:`ceemx.benchmark_score` and :func:`ceemx.fit` read), by
+:meth:`ceemx.Trajectories.from_arrays` — the one implementation — which also takes NaN outputs as
+missing samples and records the sample period in ``data.info``; ``with_info=True`` also returns
+the sample period and the initialisation window ``n_init`` the package attached to its test
+records (its ``state_initialization_window_length``).
 """
 
 from __future__ import annotations
@@ -41,15 +43,6 @@ class RecordInfo(NamedTuple):
     lengths: tuple[int, ...]
 
 
-def _column(a: Any, what: str, i: int) -> np.ndarray:
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim == 1:
-        arr = arr[:, None]
-    if arr.ndim != 2:
-        raise ValueError(f"record {i}: `{what}` must be (N,) or (N, k); got shape {arr.shape}.")
-    return arr
-
-
 def _common(values: list, what: str):
     given = [v for v in values if v is not None]
     if not given:
@@ -73,13 +66,14 @@ def from_nonlinear_benchmarks(
 
     Returns:
         :class:`~ceemx.data.trajectories.Trajectories` (B records, padded to the longest and the
-        padding masked; float64 host arrays), or ``(trajectories, info)`` with ``with_info``.
+        padding masked; NaN outputs masked; the sample period in ``info.dt``), or
+        ``(trajectories, info)`` with ``with_info``.
 
     Raises:
         TypeError: a record without ``u`` or ``y``.
         ValueError: ``u`` and ``y`` of different lengths, arrays of rank > 2, records with
-            different numbers of inputs or outputs, or disagreeing ``sampling_time`` or
-            ``state_initialization_window_length``.
+            different numbers of inputs or outputs, a NaN input, or disagreeing
+            ``sampling_time`` or ``state_initialization_window_length``.
 
     Example:
         >>> train, test = nonlinear_benchmarks.Cascaded_Tanks()  # doctest: +SKIP
@@ -90,43 +84,27 @@ def from_nonlinear_benchmarks(
     records: list[Any] = list(data) if isinstance(data, list | tuple) else [data]
     if not records:
         raise ValueError("no records given.")
-    us, ys = [], []
     for i, r in enumerate(records):
         if not (hasattr(r, "u") and hasattr(r, "y")):
             raise TypeError(
                 f"record {i} ({type(r).__name__}) has no `u` and `y`: expected a "
                 "nonlinear_benchmarks Input_output_data or an object with `u` and `y` arrays."
             )
-        u, y = _column(r.u, "u", i), _column(r.y, "y", i)
-        if u.shape[0] != y.shape[0]:
-            raise ValueError(f"record {i}: `u` has {u.shape[0]} samples, `y` {y.shape[0]}.")
-        us.append(u)
-        ys.append(y)
-    for what, arrays in (("inputs", us), ("outputs", ys)):
-        if len({a.shape[1] for a in arrays}) > 1:
-            raise ValueError(f"the records have different numbers of {what}.")
-    lengths = [y.shape[0] for y in ys]
-    T, B = max(lengths), len(records)
-    y = np.zeros((B, T, ys[0].shape[1]))
-    u = np.zeros((B, T, us[0].shape[1]))
-    mask = np.zeros(y.shape, bool)
-    for b, (ub, yb) in enumerate(zip(us, ys, strict=True)):
-        n = yb.shape[0]
-        y[b, :n], u[b, :n], mask[b, :n] = yb, ub, True
-        if n < T:  # inputs of the padding: the last one held (never scored: masked)
-            u[b, n:] = ub[-1]
-    out = Trajectories(y, u, None if mask.all() else mask)
+    ys = [np.asarray(r.y, np.float64) for r in records]
+    us = [np.asarray(r.u, np.float64) for r in records]
+    dt = _common([getattr(r, "sampling_time", None) for r in records], "sampling_time")
+    dt = None if dt is None else float(dt)
+    out = Trajectories.from_arrays(ys, us, dt=dt)  # padded and masked (data.records)
     if not with_info:
         return out
-    dt = _common([getattr(r, "sampling_time", None) for r in records], "sampling_time")
     n_init = _common(
         [getattr(r, "state_initialization_window_length", None) for r in records],
         "state_initialization_window_length",
     )
     info = RecordInfo(
-        None if dt is None else float(dt),
+        dt,
         None if n_init is None else int(n_init),
         tuple(getattr(r, "name", None) for r in records),
-        tuple(lengths),
+        tuple(len(y) for y in ys),
     )
     return out, info

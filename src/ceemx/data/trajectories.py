@@ -11,6 +11,18 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from ceemx.data.arrays import (
+    as_array,
+    as_numeric,
+    back_like,
+    cast_checked,
+    first_bad,
+    host_index,
+    is_concrete,
+    on_host,
+)
+from ceemx.data.info import DataInfo
+from ceemx.data.records import is_record_list, missing_as_masked, one_or_batch, pad_records
 from ceemx.infra.options import check_int
 from ceemx.infra.policy import Runs, program
 from ceemx.lib.tree import as_jax
@@ -30,106 +42,6 @@ from ceemx.models.system import AbstractSystem, float_dtype
 __all__ = ["Trajectories", "foh_inputs", "rollout_one", "simulate"]
 
 
-def _is_concrete(a) -> bool:
-    return not isinstance(a, Tracer)
-
-
-def _on_host(tree) -> bool:
-    """Whether every array leaf of ``tree`` may be indexed by NumPy instead of JAX.
-
-    Eager JAX indexing compiles a small program per new shape (≈ 20 ms each); a NumPy view of a
-    concrete array held on one CPU device gives the same values at no compile. Traced, sharded,
-    accelerator-held (a round trip through the host) and weakly typed leaves (whose type a round
-    trip through NumPy would not keep) stay with JAX.
-    """
-    for a in jax.tree_util.tree_leaves(tree):
-        if isinstance(a, np.ndarray):
-            continue
-        if (
-            not isinstance(a, jax.Array)
-            or isinstance(a, Tracer)
-            or a.weak_type
-            or len(a.sharding.device_set) != 1
-            or next(iter(a.sharding.device_set)).platform != "cpu"
-        ):
-            return False
-    return True
-
-
-def _host_index(idx):
-    """``idx`` for NumPy, or ``None`` where JAX indexes (traced, a list or tuple).
-
-    An int, slice or NumPy array is kept, a concrete JAX array becomes a NumPy one; lists and
-    tuples stay with JAX, which reads them its own way (a list is refused).
-    """
-    if isinstance(idx, Tracer):
-        return None
-    if isinstance(idx, jax.Array):
-        return np.asarray(idx)
-    if isinstance(idx, (slice, np.ndarray, int, np.integer)):
-        return idx
-    return None
-
-
-def _back_like(out: np.ndarray, like) -> jax.Array | np.ndarray:
-    """NumPy's result ``out`` as a JAX array placed as ``like`` is (a transfer, no program)."""
-    if isinstance(like, np.ndarray):
-        return out
-    if isinstance(like, jax.Array) and like.committed:
-        return jax.device_put(out, like.sharding)
-    return as_jax(out)
-
-
-def _first_bad(bad: np.ndarray) -> tuple[int, ...]:
-    return tuple(int(i) for i in np.argwhere(bad)[0])
-
-
-def _as_array(name: str, value) -> np.ndarray:
-    """``np.asarray(value)``, with a ragged nesting reported as a ``ValueError`` naming ``name``."""
-    try:
-        return np.asarray(value)
-    except ValueError as err:  # NumPy refuses ragged nested sequences
-        raise ValueError(
-            f"`{name}` must be a rectangular array; got a ragged sequence ({err})."
-        ) from None
-
-
-def _as_numeric(name: str, value) -> np.ndarray:
-    """``value`` as a real numeric NumPy array (bool, integer or floating), else ``TypeError``."""
-    a = _as_array(name, value)
-    if np.issubdtype(a.dtype, np.complexfloating):
-        raise TypeError(f"`{name}` must be real; got complex dtype {a.dtype}.")
-    if not (np.issubdtype(a.dtype, np.number) or a.dtype == np.bool_):
-        raise TypeError(f"`{name}` must be a numeric array; got dtype {a.dtype}.")
-    return a
-
-
-def cast_checked(name: str, a: np.ndarray, dtype, where: np.ndarray | None = None) -> np.ndarray:
-    """``a`` cast to ``dtype``, raising ``ValueError`` where a finite value overflows the cast.
-
-    Args:
-        name: the argument, for the message.
-        a: a real NumPy array.
-        dtype: the target floating-point dtype.
-        where: optional booleans broadcastable to ``a``; only these entries are checked.
-    """
-    dtype = np.dtype(dtype)
-    if a.dtype == dtype:
-        return a
-    with np.errstate(over="ignore", invalid="ignore"):
-        out = a.astype(dtype)
-    overflow = np.isfinite(a) & ~np.isfinite(out)
-    if where is not None:
-        overflow = overflow & where
-    if overflow.any():
-        idx = tuple(int(i) for i in np.argwhere(overflow)[0])
-        raise ValueError(
-            f"`{name}` has the value {a[idx]} at index {list(idx)}, which overflows {dtype} "
-            f"(largest finite value {np.finfo(dtype).max})."
-        )
-    return out
-
-
 class Trajectories(eqx.Module):
     """A batch of B trajectories of T steps: observations y, inputs u and an observation mask.
 
@@ -139,30 +51,42 @@ class Trajectories(eqx.Module):
         mask: ``None`` (everything observed), (B, T) booleans (whole steps observed or not) or
             (B, T, m) booleans (per dimension). Trajectories of different lengths are padded to a
             common T and their padding masked: states past the last observation then follow the
-            dynamics and add nothing to the objective at its optimum.
+            dynamics and add nothing to the objective at its optimum
+            (:meth:`from_arrays` does it from a list of records).
+        info: optional :class:`~ceemx.data.info.DataInfo` (sample time, channel names and
+            units), a static field: kept by slicing, :meth:`windows` and :meth:`with_info`, and
+            read by the score tables and :func:`ceemx.save`.
 
     Raises:
         ValueError: naming the argument and the first offending index, for wrong ranks,
             mismatched B or T, NaN/inf in unmasked ``y`` or anywhere in ``u`` (checked after the
             cast to the stored dtype: a finite value that overflows it is refused), an empty
             batch, T < 2, no observed component (m = 0), a ragged nested sequence, a
-            non-floating ``y``, or a mask of the wrong shape or dtype.
-        TypeError: for a complex or non-numeric (e.g. string) ``y`` or ``u``.
+            non-floating ``y``, a mask of the wrong shape or dtype, or an ``info`` whose names
+            or units do not match m or p.
+        TypeError: for a complex or non-numeric (e.g. string) ``y`` or ``u``, or an ``info``
+            that is not a :class:`~ceemx.data.info.DataInfo`.
 
     ``y`` and ``u`` are stored in ``y``'s floating dtype as JAX stores it (float64 becomes
     float32 without ``jax_enable_x64``); integer or boolean ``u`` is converted.
 
     The stored ``y`` has masked entries replaced by zeros and ``mask`` is always (B, T, m) bool.
+    NaN outputs are refused here; :meth:`from_arrays`, the constructor for a user's arrays,
+    takes them as missing samples.
     """
 
     y: Observations
     u: Inputs
     mask: ObservationMask
+    info: DataInfo | None = eqx.field(static=True, default=None)
 
-    def __init__(self, y, u=None, mask=None):
-        concrete = _is_concrete(y) and _is_concrete(u) and _is_concrete(mask)
+    def __init__(self, y, u=None, mask=None, *, info: DataInfo | None = None):
+        if info is not None and not isinstance(info, DataInfo):
+            raise TypeError(f"`info` must be a ceemx.data.DataInfo or None; got {info!r}.")
+        self.info = info
+        concrete = is_concrete(y) and is_concrete(u) and is_concrete(mask)
         if concrete:
-            y_np = _as_numeric("y", y)
+            y_np = as_numeric("y", y)
             if y_np.ndim != 3:
                 raise ValueError(
                     f"`y` must have shape (B, T, m); got rank {y_np.ndim} {y_np.shape}."
@@ -185,7 +109,7 @@ class Trajectories(eqx.Module):
             if mask is None:
                 mask_np = np.ones((B, T, m), bool)
             else:
-                mask_np = _as_array("mask", mask)
+                mask_np = as_array("mask", mask)
                 if mask_np.dtype != np.bool_:
                     raise ValueError(f"`mask` must be boolean; got dtype {mask_np.dtype}.")
                 if mask_np.shape == (B, T):
@@ -198,7 +122,7 @@ class Trajectories(eqx.Module):
             y_np = cast_checked("y", y_np, dtype, mask_np)
             bad = mask_np & ~np.isfinite(y_np)
             if bad.any():
-                b, t, j = _first_bad(bad)
+                b, t, j = first_bad(bad)
                 raise ValueError(
                     f"`y` has a non-finite value {y_np[b, t, j]} at unmasked index "
                     f"[{b}, {t}, {j}]; mask it or fix it."
@@ -206,7 +130,7 @@ class Trajectories(eqx.Module):
             if u is None:
                 u_np = np.zeros((B, T, 0), dtype)
             else:
-                u_np = _as_numeric("u", u)
+                u_np = as_numeric("u", u)
                 if u_np.ndim != 3:
                     raise ValueError(
                         f"`u` must have shape (B, T, p); got rank {u_np.ndim} {u_np.shape}."
@@ -217,7 +141,7 @@ class Trajectories(eqx.Module):
                     raise ValueError(f"`u` has {u_np.shape[1]} time steps but `y` has T = {T}.")
                 u_np = cast_checked("u", u_np, dtype)
                 if not np.all(np.isfinite(u_np)):
-                    b, t, j = _first_bad(~np.isfinite(u_np))
+                    b, t, j = first_bad(~np.isfinite(u_np))
                     raise ValueError(
                         f"`u` has a non-finite value {u_np[b, t, j]} at index [{b}, {t}, {j}]."
                     )
@@ -234,6 +158,8 @@ class Trajectories(eqx.Module):
                 mask = jnp.broadcast_to(mask[:, :, None], (B, T, m))
             self.mask = mask
             self.y = jnp.where(mask, y, 0.0)
+        if info is not None:
+            info.check(self.y.shape[2], self.u.shape[2])
 
     @property
     def batch_size(self) -> int:
@@ -259,11 +185,11 @@ class Trajectories(eqx.Module):
         """Select trajectories along the batch axis (the result keeps a batch axis)."""
         if isinstance(idx, (int, np.integer)):
             idx = slice(idx, idx + 1) if idx != -1 else slice(-1, None)
-        host_idx = _host_index(idx)
-        if host_idx is not None and _on_host(self):
-            try:  # NumPy indexes exactly as JAX does; no program per shape (see _on_host)
+        host_idx = host_index(idx)
+        if host_idx is not None and on_host(self):
+            try:  # NumPy indexes exactly as JAX does; no program per shape (see on_host)
                 return jax.tree_util.tree_map(
-                    lambda a: _back_like(np.asarray(a)[host_idx], a) if np.ndim(a) else a, self
+                    lambda a: back_like(np.asarray(a)[host_idx], a) if np.ndim(a) else a, self
                 )
             except (IndexError, TypeError):  # NumPy refuses what JAX clamps: JAX decides
                 pass
@@ -271,36 +197,91 @@ class Trajectories(eqx.Module):
 
     @classmethod
     @no_type_check  # validates its arguments
-    def from_arrays(cls, y, u=None, mask=None) -> Trajectories:
-        """Trajectories from arrays of one record or of a batch.
+    def from_arrays(
+        cls,
+        y,
+        u=None,
+        mask=None,
+        *,
+        dt: float | None = None,
+        output_names=None,
+        output_units=None,
+        input_names=None,
+        input_units=None,
+        time_unit: str = "s",
+    ) -> Trajectories:
+        """Trajectories from a user's arrays: one record, a batch, or a list of records.
 
         Args:
-            y: (T,) one record of a scalar output, (T, m) one record, or (B, T, m) a batch.
-            u: ``None``, or the inputs with the same leading axes: (T,) / (T, p) for one record
-                (y of rank 1 or 2), (B, T, p) for a batch.
-            mask: ``None``, or booleans shaped like ``y`` (or (T,) / (B, T): whole steps).
+            y: (T,) one record of a scalar output, (T, m) one record, (B, T, m) a batch, or a
+                list (or tuple) of NumPy/JAX arrays, one record each, (T_b,) or (T_b, m) of any
+                lengths T_b: padded at the end to the longest and the padding masked
+                (:func:`~ceemx.data.records.pad_records`; every score counts real samples only).
+                NaN outputs are missing samples: masked (``mask`` records them).
+            u: ``None``, or the inputs with the same leading axes (a list with a list of ``y``).
+                NaN inputs are refused: a model needs every input sample.
+            mask: ``None``, or booleans shaped like ``y`` (or (T,) / (B, T): whole steps; a list
+                with a list of ``y``).
+            dt: the sample time (in ``time_unit``), stored in ``info``
+                (:class:`~ceemx.data.info.DataInfo`; this and the following are optional).
+            output_names: one name per output (a string: one output).
+            output_units: one unit per output.
+            input_names: one name per input.
+            input_units: one unit per input.
+            time_unit: the unit of ``dt``.
 
         Returns:
             :class:`Trajectories` with a batch axis (B = 1 for one record), validated as the
-            constructor does.
+            constructor does, with ``info`` when any metadata was given.
+
+        Raises:
+            ValueError: as the constructor; a NaN input (naming record, step and input); records
+                with different numbers of channels; names or units not one per channel.
+
+        Example:
+            >>> data = Trajectories.from_arrays(
+            ...     [np.ones(5), np.ones(3)], [np.zeros(5), np.zeros(3)], dt=0.1, output_names="h"
+            ... )
+            >>> data.y.shape, data.mask[1, :, 0].tolist(), data.info.dt
+            ((2, 5, 1), [True, True, True, False, False], 0.1)
         """
-        y = _as_array("y", y) if _is_concrete(y) else y
-        if y.ndim == 3:
-            return cls(y, u, mask)
-        if y.ndim not in (1, 2):
-            raise ValueError(f"`y` must have shape (T,), (T, m) or (B, T, m); got {y.shape}.")
+        meta = (dt, output_names, output_units, input_names, input_units)
+        info = None
+        if any(v is not None for v in meta) or time_unit != "s":
+            info = DataInfo(dt, time_unit, output_names, output_units, input_names, input_units)
+        if is_record_list(y):
+            y, u, mask = pad_records(y, u, mask)
+        else:
+            y, u, mask = one_or_batch(y, u, mask)
+        if isinstance(y, np.ndarray) and all(
+            isinstance(a, np.ndarray) or a is None for a in (u, mask)
+        ):
+            B, T, m = y.shape
+            full = np.ones((B, T, m), bool) if mask is None else np.asarray(mask)
+            if full.dtype == np.bool_ and full.shape in ((B, T), (B, T, m)):
+                full = np.broadcast_to(full[:, :, None] if full.ndim == 2 else full, (B, T, m))
+                y, missing = missing_as_masked(y, u, full)
+                mask = mask if missing is full else missing
+        return cls(y, u, mask, info=info)
 
-        def one(a, name):
-            if a is None:
-                return None
-            a = _as_array(name, a) if _is_concrete(a) else a
-            if a.ndim not in (1, 2):
-                raise ValueError(
-                    f"`{name}` of one record must have shape (T,) or (T, k); got {a.shape}."
-                )
-            return (a[:, None] if a.ndim == 1 and name != "mask" else a)[None]
+    def with_info(self, info: DataInfo | None = None, **changes) -> Trajectories:
+        """The same data with ``info`` (replaced), or with ``changes`` to the current one.
 
-        return cls(one(y, "y"), one(u, "u"), one(mask, "mask"))
+        ``data.with_info(dt=0.1, output_units=("V",))`` keeps the other fields of ``data.info``
+        (a fresh :class:`~ceemx.data.info.DataInfo` when there is none).
+
+        Raises:
+            ValueError, TypeError: as :class:`~ceemx.data.info.DataInfo`, or names and units not
+                one per channel.
+        """
+        if info is None:
+            info = (self.info or DataInfo()).replace(**changes)
+        elif changes:
+            info = info.replace(**changes)
+        if not isinstance(info, DataInfo):
+            raise TypeError(f"`info` must be a ceemx.data.DataInfo; got {info!r}.")
+        info.check(self.obs_dim, self.input_dim)
+        return Trajectories(self.y, self.u, self.mask, info=info)
 
     @no_type_check  # validates its arguments
     def head(self, steps: int) -> Trajectories:
@@ -341,17 +322,17 @@ class Trajectories(eqx.Module):
             raise ValueError(f"`step` must be an integer >= 1; got {step!r}.")
         starts = np.arange(0, T - length + 1, step)
         idx = starts[:, None] + np.arange(length)
-        host = _on_host(self)
+        host = on_host(self)
         if not host:
             idx = as_jax(idx)
 
         def cut(a):
             shape = (a.shape[0] * len(starts), length) + a.shape[2:]
-            if host:  # NumPy's gather: no program per shape (see _on_host)
-                return _back_like(np.asarray(a)[:, idx].reshape(shape), a)
+            if host:  # NumPy's gather: no program per shape (see on_host)
+                return back_like(np.asarray(a)[:, idx].reshape(shape), a)
             return a[:, idx].reshape(shape)
 
-        return Trajectories(cut(self.y), cut(self.u), cut(self.mask))
+        return Trajectories(cut(self.y), cut(self.u), cut(self.mask), info=self.info)
 
 
 def _resolve_noise(name: str, flag, default: AbstractNoise) -> AbstractNoise | None:
@@ -445,7 +426,7 @@ def simulate(
         if isinstance(u, Tracer):
             u = u.astype(dtype)
         else:
-            u = jnp.asarray(cast_checked("u", _as_numeric("u", u), dtype), dtype)
+            u = jnp.asarray(cast_checked("u", as_numeric("u", u), dtype), dtype)
         if u.shape != (B, T, system.input_dim):
             raise ValueError(
                 f"`u` must have shape (B, T, p) = {(B, T, system.input_dim)}; got {u.shape}."
@@ -453,7 +434,7 @@ def simulate(
     pn = _resolve_noise("process_noise", process_noise, system.process_noise)
     on = _resolve_noise("obs_noise", obs_noise, system.obs_noise)
     xs, y = _simulate(system, key, x0, u, pn, on)
-    if _is_concrete(xs):
+    if is_concrete(xs):
         where = nonfinite_run(xs, y)
         if where is not None:
             raise ValueError(f"simulate: the simulation is not finite: {where}")
@@ -465,11 +446,11 @@ def _start_states(x0, n: int, dtype) -> Array:
     """``x0`` as finite (B, n) states in ``dtype`` (a traced one is only cast), or raise."""
     if isinstance(x0, Tracer):
         return x0.astype(dtype)
-    a = cast_checked("x0", _as_numeric("x0", x0), dtype)
+    a = cast_checked("x0", as_numeric("x0", x0), dtype)
     if a.ndim != 2 or a.shape[1] != n:
         raise ValueError(f"`x0` must have shape (B, n) with n = {n}; got {a.shape}.")
     if not np.all(np.isfinite(a)):
-        bad = list(_first_bad(~np.isfinite(a)))
+        bad = list(first_bad(~np.isfinite(a)))
         raise ValueError(f"`x0` has a non-finite value at index {bad}.")
     return as_jax(a)
 
@@ -520,7 +501,11 @@ def foh_inputs(data: Trajectories | ArrayLike):
         The same kind with inputs (…, T, 2p): entries [:p] are u_t, [p:] are u_{t+1}.
     """
     if isinstance(data, Trajectories):
-        return eqx.tree_at(lambda d: d.u, data, foh_inputs(data.u))
+        out = eqx.tree_at(lambda d: d.u, data, foh_inputs(data.u))
+        if data.info is None:
+            return out
+        names = [f"{n} (next)" for n in data.info.input_names or ()]
+        return out.with_info(data.info.with_more_inputs(names, data.info.input_units or ()))
     u = as_jax(data)
     if u.ndim < 2:
         raise ValueError(f"inputs must have shape (..., T, p); got {u.shape}.")

@@ -214,6 +214,8 @@ class BenchmarkScore(NamedTuple):
             ``constant_output`` where a scored output of the record is constant (its NRMSE and
             fit % are NaN; warned).
         n_init: outputs used for the initial state (not scored).
+        outputs: the outputs' labels from the test data's ``info`` (``name [unit]``; the unit
+            only when the errors are not scaled), which the table prints; ``None``: ``y1``, ….
     """
 
     rmse: Float[Array, "B m"]
@@ -227,6 +229,7 @@ class BenchmarkScore(NamedTuple):
     x1: Float[Array, "B n"]
     status: RESULTS
     n_init: int
+    outputs: tuple[str, ...] | None = None
 
     def table(
         self,
@@ -343,7 +346,9 @@ def benchmark_score(
     metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
     status = _flag_diverged(start, metrics[3], status)
     metrics, status = _flag_constant(test, n_init, metrics, status)
-    return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init)
+    info = test.info  # the outputs' names, with their units where the errors are in them
+    labels = None if info is None else info.output_labels(test.obs_dim, units=scale is None)
+    return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init, labels)
 
 
 def _check_record(test: Trajectories, n_init) -> int:

@@ -196,7 +196,8 @@ def score_table(
 
     Args:
         score: the score.
-        output_names: one name per output (default ``y1``, ``y2``, …).
+        output_names: one name per output (default: the score's ``outputs``, from the test
+            data's names and units, else ``y1``, ``y2``, …).
         unit: the RMSE's unit, e.g. ``"mV"`` (in the RMSE column's heading).
         format: ``"text"`` (aligned columns) or ``"markdown"``.
         arrays: append ``x1``, ``y_sim`` and ``x_sim``.
@@ -208,6 +209,7 @@ def score_table(
         raise ValueError(f"`format` must be 'text' or 'markdown'; got {format!r}.")
     rmse, nrmse, fit = (np.atleast_2d(np.asarray(a, np.float64)) for a in score[:3])
     B, m = rmse.shape
+    output_names = getattr(score, "outputs", None) if output_names is None else output_names
     names = [f"y{j + 1}" for j in range(m)] if output_names is None else list(output_names)
     if len(names) != m:
         raise ValueError(f"`output_names` needs {m} names; got {len(names)}.")

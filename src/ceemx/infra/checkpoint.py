@@ -37,7 +37,16 @@ import numpy as np
 from ceemx.infra.folder_lock import folder_lock
 from ceemx.lib.tree import as_jax
 
-__all__ = ["CheckpointError", "check_folder", "fingerprint", "load", "lock", "save"]
+__all__ = [
+    "CheckpointError",
+    "atomic_write",
+    "check_folder",
+    "fingerprint",
+    "load",
+    "load_leaf",
+    "lock",
+    "save",
+]
 
 _LATEST = "latest.json"
 _FORMAT = 2
@@ -127,8 +136,10 @@ def lock(folder: str | None) -> Iterator[None]:
 _WRITE_CHUNK = 1 << 30
 
 
-def _atomic_write(path: str, data: bytes) -> None:
+def _atomic_write(path: str, data: bytes, mode: int | None = None) -> None:
     """``data`` into ``path`` atomically: a temporary in the folder, fsync, ``os.replace``.
+
+    ``mode``: the file's permissions (``None``: the temporary's 0o600, as a checkpoint keeps).
 
     Any failure — a short or failed write, fsync, close — removes the temporary and raises an
     ``OSError`` with its errno; ``path`` is untouched.
@@ -138,6 +149,8 @@ def _atomic_write(path: str, data: bytes) -> None:
     try:
         try:
             _write_all(fd, data, tmp)
+            if mode is not None:
+                os.fchmod(fd, mode)
             os.fsync(fd)
         finally:
             os.close(fd)
@@ -173,6 +186,30 @@ def _write_all(fd: int, data: bytes, name: str) -> None:
                 "written, and a retry wrote no more than part of the rest)",
                 name,
             )
+
+
+def atomic_write(path: str, write) -> None:
+    """Write ``path`` by ``write(f)`` on a temporary file beside it, then ``os.replace`` it there.
+
+    A reader sees the previous file or the whole new one, never a torn one (``os.replace`` is
+    atomic on POSIX); the temporary is removed when ``write`` fails. As the checkpoints are
+    written, but with the permissions ``open`` gives a new file (0o666 less the umask) where a
+    checkpoint keeps the temporary's 0o600; :func:`ceemx.save` writes a model by it.
+    """
+    umask = os.umask(0)
+    os.umask(umask)
+    buffer = io.BytesIO()
+    write(buffer)
+    _atomic_write(path, buffer.getvalue(), mode=0o666 & ~umask)
+
+
+def load_leaf(f, x: Any) -> Any:
+    """Equinox's default deserialisation of one leaf, a JAX leaf read by a transfer (no compile).
+
+    The ``filter_spec`` of ``eqx.tree_deserialise_leaves`` that the checkpoints and
+    :func:`ceemx.load` use.
+    """
+    return _load_leaf(f, x)
 
 
 def _sha256_file(path: str) -> str:

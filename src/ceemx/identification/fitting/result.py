@@ -23,6 +23,7 @@ from ceemx.identification.analysis.uncertainty import (
     fit_standard_errors,
 )
 from ceemx.identification.problem import FitProblem
+from ceemx.identification.saving import save
 from ceemx.identification.solvers.base import AbstractFitSolver
 from ceemx.lib.results import RESULTS, codes, messages
 from ceemx.lib.typing import States
@@ -252,6 +253,14 @@ class FitResult(eqx.Module):
             max_rows=max_rows,
             intervals=intervals,
         )
+
+    def save(self, path, *, data=None):
+        """Save the learned system with this fit's summary line and data metadata.
+
+        :func:`ceemx.save` of this result (``ceemx.load(path)`` gives the system back, in this
+        process or another). Returns the path written.
+        """
+        return save(path, self, data=data)
 
     def __repr__(self) -> str:
         """A few lines: solver, convergence, J and the first estimates (nothing computed)."""
