@@ -159,6 +159,23 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
+@pytest.fixture
+def no_compute():
+    """Fails the test if compute started before the refusal it expects (tests/refusals.py).
+
+    The only trace of a counting model's methods allowed is the one-time check of their output
+    shapes (``ceemx.models.method_check``: abstract evaluation, nothing compiled or computed); a
+    fit, smoothing or health test traces them many times.
+    """
+    from refusals import TRACES
+
+    TRACES.clear()
+    yield
+    assert TRACES.count("dynamics") <= 1 and TRACES.count("observe") <= 1, (
+        f"compute started before the refusal: {TRACES[:6]}"
+    )
+
+
 @pytest.hookimpl(trylast=True)
 def pytest_unconfigure(config):
     """An xdist worker leaves at once when its session is over: its results are sent, and the

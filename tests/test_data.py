@@ -268,3 +268,9 @@ def test_smooth_data_not_trajectories():
     system, data, x = good_inputs()
     with pytest.raises(TypeError, match=re.escape("`data` must be a ceemx.Trajectories")):
         ceemx.smooth(system, data.y, x)
+
+
+def test_observation_free_data_is_refused():
+    """y of shape (B, T, 0) was accepted: no observation to fit."""
+    with raises("`y` has shape (2, 5, 0): no observed components (m = 0)"):
+        ceemx.Trajectories(np.zeros((2, 5, 0)))
