@@ -117,6 +117,7 @@ def pytest_configure(config):
 # (longest processing time first); files not listed follow in collection order. A stale order
 # costs balance, never correctness.
 _HEAVY_FIRST = (
+    "test_solver_table.py",
     "test_particle.py",
     "test_fit.py",
     "test_joint.py",
@@ -128,7 +129,6 @@ _HEAVY_FIRST = (
     "test_baselines.py",
     "test_evaluate_real.py",
     "test_gray_box.py",
-    "test_reliability.py",
     "test_hybrid.py",
     "test_linalg.py",
     "test_validation.py",

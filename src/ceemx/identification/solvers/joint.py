@@ -149,6 +149,7 @@ class JointLM(AbstractFitSolver):
 
     multi_process = True
     noise_rounds = True
+    monotone = "J"
     history_keys = {
         "trials": "LM trials in this iteration (accepted and rejected)",
         "accepted": "whether a step was accepted",
