@@ -2,8 +2,8 @@
 
 A row is a fit solver (how to build it for a problem, and its known answer on the
 linear-Gaussian problems); a column is a small identification problem. ``run`` fits a pair
-once — an uninterrupted fit whose checkpoint after epoch ``RESUME_AT`` is copied aside, then a fit
-resumed from that copy — and tests/test_solver_table.py checks what each solver promises on each
+once — an uninterrupted fit whose checkpoints are copied aside, then a fit resumed from one of
+them (``resume_epoch``) — and tests/test_solver_table.py checks what each solver promises on each
 problem: its monotone history entry (``AbstractFitSolver.monotone``), a known answer on the
 linear-Gaussian problems, valid statuses, resume = uninterrupted run, and no retrace across
 epochs. A new solver is tested by adding one row to ``ROWS``.
@@ -16,6 +16,7 @@ the observed components (the joint Gaussian of all observations).
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import functools
 import json
@@ -34,9 +35,12 @@ import stiff_model
 import ceemx
 from ceemx.systems import CoupledLorenz, LinearSystem
 
-#: Epochs of a fit that is not run to its optimum, and the epoch whose checkpoint is resumed.
+#: Epochs of a fit that is not run to its optimum.
 EPOCHS = 5
+#: The resumed fit starts from the checkpoint of epoch ``resume_epoch``: at least RESUME_AT
+#: (a resume runs what the first epochs compiled), at most RESUMED epochs before the end.
 RESUME_AT = 2
+RESUMED = 3
 #: The bound on epochs of a fit run to its optimum (a certainty-equivalent method on a
 #: linear-Gaussian problem, whose optimum is known).
 MAX_EPOCHS = 200
@@ -409,7 +413,9 @@ class Run:
 
     Attributes:
         result: the uninterrupted fit.
-        resumed: the fit resumed from the uninterrupted fit's checkpoint after ``RESUME_AT``.
+        resumed: the fit resumed from the uninterrupted fit's checkpoint of epoch
+            ``resumed_at``.
+        resumed_at: ``resume_epoch(result.epochs)``.
         systems: the model after each epoch of the uninterrupted fit (its callbacks).
         traces: the names of the functions JAX traced (its monitoring events) in the
             uninterrupted fit, between one epoch's callbacks and the next: ``traces[0]`` the
@@ -422,12 +428,28 @@ class Run:
 
     result: ceemx.FitResult
     resumed: ceemx.FitResult
+    resumed_at: int
     systems: list
     traces: list[list[str]]
     resumed_traces: list[list[str]]
     resumed_from: tuple[list[str], dict]
     left: tuple[list[str], list[str]]
     warnings: list[str]
+
+
+@functools.cache
+def ceemx_functions() -> frozenset[str]:
+    """The names of the functions ceemx defines: its compiled entry points among them.
+
+    JAX also traces its own small programs for eager operations, once per new signature; one
+    first met in a later epoch is no retrace of an epoch program.
+    """
+    names = set()
+    for path in pathlib.Path(ceemx.__file__).parent.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                names.add(node.name)
+    return frozenset(names)
 
 
 class _TraceLog:
@@ -453,6 +475,11 @@ class _TraceLog:
         jax.monitoring.unregister_event_duration_listener(self)
 
 
+def resume_epoch(epochs: int) -> int:
+    """The epoch whose checkpoint a pair's fit of ``epochs`` epochs is resumed from."""
+    return max(RESUME_AT, epochs - RESUMED)
+
+
 def run(row: Row, problem: Problem, folder: pathlib.Path) -> Run:
     """``row``'s solver on ``problem``: uninterrupted (with a checkpoint), then resumed."""
     solver = row.make(problem)
@@ -460,16 +487,16 @@ def run(row: Row, problem: Problem, folder: pathlib.Path) -> Run:
     if solver.learns_noise and problem.noise_trainable is not None:
         trainable = problem.noise_trainable
     max_epochs = MAX_EPOCHS if row.answer == "optimum" and problem.linear_gaussian else EPOCHS
-    full, resume = folder / "full", folder / "resume"
-    systems, copied = [], ([], {})
+    full = folder / "full"
+    systems = []
 
     def keep(info):
-        nonlocal copied
         systems.append(info.system)
-        if info.epoch == RESUME_AT + 1:  # the checkpoint of RESUME_AT is on disk, not this one's
-            shutil.copytree(full, resume, ignore=shutil.ignore_patterns(".lock"))
-            meta = json.loads((resume / "latest.json").read_text())
-            copied = (sorted(os.listdir(resume)), meta)
+        if info.epoch > RESUME_AT:  # the checkpoint of the epoch before is on disk, not this one's
+            copy = folder / f"epoch-{info.epoch - 1}"
+            shutil.copytree(full, copy, ignore=shutil.ignore_patterns(".lock"))
+            for old in range(RESUME_AT, resume_epoch(info.epoch)):  # can no longer be resumed
+                shutil.rmtree(folder / f"epoch-{old}", ignore_errors=True)
 
     kwargs = dict(
         solver=solver,
@@ -487,13 +514,16 @@ def run(row: Row, problem: Problem, folder: pathlib.Path) -> Run:
                 problem.start, problem.data, problem.x_init, checkpoint=str(full),
                 callbacks=[keep, log.next_epoch], **kwargs,
             )  # fmt: skip
+        assert result.epochs > RESUME_AT, f"{row.name} on {problem.name} stopped too early"
+        at = resume_epoch(result.epochs)
+        resume = folder / f"epoch-{at}"
+        copied = (sorted(os.listdir(resume)), json.loads((resume / "latest.json").read_text()))
         with _TraceLog() as resumed_log:
             resumed = ceemx.fit(
                 problem.start, problem.data, problem.x_init, checkpoint=str(resume),
                 callbacks=[resumed_log.next_epoch], **kwargs,
             )  # fmt: skip
-    assert result.epochs > RESUME_AT, f"{row.name} on {problem.name} stopped before the resume"
     return Run(
-        result, resumed, systems, log.epochs, resumed_log.epochs, copied,
+        result, resumed, at, systems, log.epochs, resumed_log.epochs, copied,
         (sorted(os.listdir(full)), sorted(os.listdir(resume))), [str(w.message) for w in caught],
     )  # fmt: skip
