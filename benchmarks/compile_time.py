@@ -20,10 +20,10 @@ per compiled program, the seconds of tracing, lowering and XLA compilation (with
 persistent cache the retrieval); ``VERBOSE=1`` prints them per program, ``PROF=FILE`` writes a
 cProfile of the first fit; with ``CACHE_DIR`` the persistent cache is on. ``SOLVER=alternating``
 fits with ``ceemx.Alternating()`` instead; ``BACKGROUND=1`` / ``0`` forces the background
-compilation of the epoch programs on / off (``fit`` decides by ``has_idle_core()`` otherwise).
+compilation of the epoch programs on / off (``fit`` decides by ``compiles_ahead()`` otherwise).
 
 ``one-shot``: each case compiled twice in one process — optimised (``jit``) and one-shot
-(``jit(one_shot=True)``: LLVM -O0, one code-generation module) — then called alternately
+(``one_shot_jit``: LLVM -O0, one code-generation module) — then called alternately
 ``--calls`` times each: compile time (``lower(...).compile()``), run time (median) and the
 break-even number of calls (compile saved / run time added). Cases: the initial-state estimate
 of a score, the demo's data simulation, the smoother on the single-Lorenz, Figure-3, one-record
@@ -171,10 +171,10 @@ def phases(argv: list[str]) -> None:
 
     import ceemx
     from ceemx.experiments import common
-    from ceemx.identification.fitting import start as driver
+    from ceemx.identification.fitting import start
 
-    if os.environ.get("BACKGROUND") in ("0", "1"):
-        driver.has_idle_core = lambda: os.environ["BACKGROUND"] == "1"
+    if os.environ.get("BACKGROUND") in ("0", "1"):  # the name the fit's start calls
+        start.compiles_ahead = lambda: os.environ["BACKGROUND"] == "1"
     if argv and argv[0] != "-":
         ceemx.enable_compilation_cache(argv[0])
     t_import = time.perf_counter() - t00
@@ -265,6 +265,7 @@ def _one_shot_cases() -> dict:
 
     import ceemx
     from ceemx.experiments import common
+    from ceemx.identification import schur
     from ceemx.identification.problem import FitProblem, per_trajectory_nll
     from ceemx.identification.solvers import joint
     from ceemx.inference import smoother as sm
@@ -292,7 +293,7 @@ def _one_shot_cases() -> dict:
         problem, theta = FitProblem.create(system, data)
         weights = jnp.ones((B,), states.dtype)
         if fn == "schur":
-            return joint.schur_complement.__wrapped__, (problem, theta, states, weights)
+            return schur.schur_complement.__wrapped__, (problem, theta, states, weights)
         if fn == "nll":
             return per_trajectory_nll.__wrapped__, (problem, theta, states)
         opts = trace_numbers(ceemx.JointLM(), states.dtype)
@@ -300,13 +301,20 @@ def _one_shot_cases() -> dict:
         return joint._iteration.__wrapped__, (opts, problem, weights, theta, states, lam)
 
     def initial_state_case(K, B, T):
-        from ceemx.evaluation import simulation
+        from ceemx.evaluation import initial_state, simulation
 
         system, data, states = lorenz(K, B, T, False)
         solver = trace_numbers(ceemx.LMSmoother(), states.dtype)
         weak = ceemx.models.system.with_noise(system, process_noise=jnp.asarray(1.0, states.dtype))
         system, weak = simulation.strongly_typed((system, weak))
-        return simulation.initial_state_batch.__wrapped__, (solver, system, weak, data, None, True)
+        return initial_state.initial_state_batch.__wrapped__, (
+            solver,
+            system,
+            weak,
+            data,
+            None,
+            True,
+        )
 
     def simulate_case(K, B, T):
         from ceemx.data import trajectories
@@ -342,7 +350,7 @@ def one_shot(argv: list[str]) -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from ceemx.infra.compilation import jit
+    from ceemx.infra.compilation import jit, one_shot_jit
 
     out = {"load_before": os.getloadavg()[0], "cases": {}}
     for name, make in _one_shot_cases().items():
@@ -351,7 +359,7 @@ def one_shot(argv: list[str]) -> None:
         fn, fargs = make()
         compiled, compile_s = {}, {}
         for variant in ("optimised", "one_shot"):
-            f = jit(fn, one_shot=variant == "one_shot")
+            f = one_shot_jit(fn) if variant == "one_shot" else jit(fn)
             t = time.perf_counter()
             compiled[variant] = f.lower(*fargs).compile()
             compile_s[variant] = time.perf_counter() - t
@@ -508,6 +516,7 @@ def joint_parts(argv: list[str]) -> None:
 
     import ceemx
     from ceemx.experiments import common
+    from ceemx.identification import schur
     from ceemx.identification.initialize import warm_start
     from ceemx.identification.problem import FitProblem
     from ceemx.identification.solvers import joint
@@ -544,12 +553,12 @@ def joint_parts(argv: list[str]) -> None:
         f"compile {t2 - t1:.2f} s (cpu {c2 - c1:.2f})"
     )
     t = time.perf_counter()
-    jax.block_until_ready(joint.schur_complement(problem, theta, x, w))
+    jax.block_until_ready(schur.schur_complement(problem, theta, x, w))
     print(f"schur_complement first call (compile + run) {time.perf_counter() - t:.2f} s")
-    timeit("linearize_joint", lambda: joint.linearize_joint(problem, w, theta, x))
-    timeit("schur_complement", lambda: joint.schur_complement(problem, theta, x, w))
+    timeit("linearize_joint", lambda: schur.linearize_joint(problem, w, theta, x))
+    timeit("schur_complement", lambda: schur.schur_complement(problem, theta, x, w))
     timeit("iteration", lambda: joint._iteration(solver, problem, w, theta, x, lam))
-    _, lin = joint.linearize_joint(problem, w, theta, x)
+    _, lin = schur.linearize_joint(problem, w, theta, x)
     chol = jax.jit(jax.vmap(cholesky))
     timeit("block Cholesky", lambda: chol(lin.A))
     L = chol(lin.A)

@@ -65,10 +65,26 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx import datasets  # noqa: E402
-from ceemx.experiments import benchmarks as bm  # noqa: E402
+from ceemx.datasets import REGISTRY  # noqa: E402
+from ceemx.experiments import real_data  # noqa: E402
+from ceemx.experiments import real_data_fits as fits  # noqa: E402
+from ceemx.experiments.real_data_fits import Plan, Settings  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 RESULTS_DRIVES = HERE / "results" / "real_data_ablations_drives.json"
+
+
+def _plan(name: str, settings: Settings | None = None, **chosen) -> Plan:
+    """The experiment's plan of dataset ``name``, its hand-chosen settings changed by ``chosen``."""
+    plan = fits.make_plan(name, Settings() if settings is None else settings)
+    return dataclasses.replace(plan, chosen=dataclasses.replace(plan.chosen, **chosen))
+
+
+def _guess(plan: Plan, **fields):
+    """The dataset's gray-box model at its physical guess, as the experiment builds it."""
+    model = plan.entry.model
+    fields = {**model.options, "process_noise": plan.chosen.process_noise, **fields}
+    return model.factory(dtype=jnp.float64, **fields)
 
 
 def _scores(system, ds, guess) -> dict[str, float]:
@@ -76,7 +92,7 @@ def _scores(system, ds, guess) -> dict[str, float]:
         k: round(
             float(
                 ceemx.benchmark_score(
-                    system, bm._inputs_for(guess, v), ds.n_init, scale=ds.score_scale
+                    system, fits.inputs_for(guess, v), ds.n_init, scale=ds.score_scale
                 ).rmse[0, 0]
             ),
             4,
@@ -87,10 +103,10 @@ def _scores(system, ds, guess) -> dict[str, float]:
 
 def noise(name: str) -> None:
     """Physics fits at the experiment's fixed noise and with the noise learned."""
-    ds = getattr(datasets, name)()
-    train = bm._training_data(name, ds, bm.Settings())
-    guess = bm._model(name)(dtype=jnp.float64, **bm.MODEL_OPTIONS[name])
-    data = bm._inputs_for(guess, train)
+    plan = _plan(name)
+    ds = plan.data
+    guess = _guess(plan)
+    data = fits.inputs_for(guess, fits.training_data(plan))
     for mode in ("fixed", "learn"):
         t0 = time.perf_counter()
         res = ceemx.fit(guess, data, solver=ceemx.JointLM(), max_epochs=200, noise=mode)
@@ -99,16 +115,19 @@ def noise(name: str) -> None:
 
 def process(name: str, scale: float) -> None:
     """The experiment's row for one dataset with the process noise set to ``scale``."""
-    bm.MODEL_OPTIONS[name] = {**bm.MODEL_OPTIONS[name], "process_noise": scale}
-    result = bm.run_dataset(name, settings=bm.Settings(), method="joint", verbose=True)
+    entry = REGISTRY[name]
+    chosen = dataclasses.replace(entry.chosen, process_noise=scale)
+    REGISTRY[name] = dataclasses.replace(entry, chosen=chosen)  # what the experiment reads
+    result = real_data.run_dataset(name, settings=Settings(), method="joint", verbose=True)
     for row in result["rows"]:
         print(row[:6])
 
 
 def bounded_tanks(scale: float) -> None:
     """The tanks' physics with its levels ≥ 0 from the start of the fit."""
-    ds = datasets.cascaded_tanks()
-    guess = bm._model("cascaded_tanks")(dtype=jnp.float64, process_noise=scale)
+    plan = _plan("cascaded_tanks")
+    ds = plan.data
+    guess = _guess(plan, process_noise=scale)
     model = ceemx.hybrid(guess, ds.train, dynamics=False, lower=0.0)
     res = ceemx.fit(
         model,
@@ -203,30 +222,29 @@ def drives(rows: list[str]) -> None:
 def hybrid(argv: list[str]) -> None:
     """``hybrid DATASET [TARGETS] [WIDTH] [DEPTH] [PRIOR_STD] [--observation] [--patience N]``."""
     p = argparse.ArgumentParser(prog="real_data_ablations.py hybrid")
-    p.add_argument("dataset", choices=bm.DATASETS)
+    p.add_argument("dataset", choices=real_data.DATASETS)
     p.add_argument("targets", nargs="?", default="all")
     p.add_argument("width", nargs="?", type=int, default=16)
     p.add_argument("depth", nargs="?", type=int, default=1)
     p.add_argument("prior_std", nargs="?", type=float, default=1.0)
     p.add_argument("--observation", action="store_true")
-    p.add_argument("--patience", type=int, default=bm.Settings().patience)
+    p.add_argument("--patience", type=int, default=Settings().patience)
     a = p.parse_args(argv)
     special = {"all": True, "none": False}
     if a.targets in special:
-        bm.TARGETS[a.dataset] = special[a.targets]
+        targets = special[a.targets]
     else:
-        bm.TARGETS[a.dataset] = tuple(int(c) for c in a.targets.split(","))
-    settings = dataclasses.replace(
-        bm.Settings(), width=a.width, depth=a.depth, prior_std=a.prior_std, patience=a.patience
-    )
-    ds = getattr(datasets, a.dataset)()
-    train = bm._training_data(a.dataset, ds, settings)
+        targets = tuple(int(c) for c in a.targets.split(","))
+    settings = Settings(patience=a.patience)
+    plan = _plan(a.dataset, settings, width=a.width, depth=a.depth, prior_std=a.prior_std)
+    model = dataclasses.replace(plan.entry.model, targets=targets)
+    plan = dataclasses.replace(plan, entry=dataclasses.replace(plan.entry, model=model))
     physics = None
-    if a.dataset == "silverbox":  # its start is the full fit (its validation samples lie after it)
-        physics, _ = bm._fit_graybox(a.dataset, train, settings, "joint", jnp.float64)
-    start, _ = bm._learned_starts(a.dataset, ds, settings, "joint", physics, None)
-    _, info = bm._fit_learned(
-        a.dataset, start.system, start.states, ds, settings, neural=False, observation=a.observation
+    if plan.windowing is not None:  # its start is the full fit (its validation samples after it)
+        physics, _ = fits.fit_graybox(plan, fits.training_data(plan), "joint", jnp.float64)
+    start, _ = fits.learned_starts(plan, "joint", physics, None)
+    _, info = fits.fit_learned(
+        plan, start.system, start.states, neural=False, observation=a.observation
     )
     print(
         f"{a.dataset} targets {a.targets} {a.width}×{a.depth} σ {a.prior_std:g} observation "
@@ -244,45 +262,41 @@ def neural_start(args: list[str]) -> None:
     from ceemx.baselines import fit_affine_sid
 
     name = args[0] if len(args) > 0 else "cascaded_tanks"
-    sigma_w = float(args[1]) if len(args) > 1 else bm.LINEAR_NOISE[0]
-    settings = dataclasses.replace(
-        bm.Settings(),
-        hybrid_epochs=int(args[2]) if len(args) > 2 else bm.Settings().hybrid_epochs,
-        width=int(args[3]) if len(args) > 3 else bm.Settings().width,
-        depth=int(args[4]) if len(args) > 4 else bm.Settings().depth,
+    plan = _plan(name)
+    chosen = plan.chosen
+    sigma_w = float(args[1]) if len(args) > 1 else chosen.linear_noise[0]
+    plan = _plan(
+        name,
+        linear_noise=(sigma_w, chosen.linear_noise[1]),
+        hybrid_epochs=int(args[2]) if len(args) > 2 else chosen.hybrid_epochs,
+        width=int(args[3]) if len(args) > 3 else chosen.width,
+        depth=int(args[4]) if len(args) > 4 else chosen.depth,
     )
-    bm.LINEAR_NOISE = (sigma_w, bm.LINEAR_NOISE[1])
-    ds = getattr(datasets, name)()
-    train = bm._training_data(name, ds, settings)
-    tests = bm._test_records(ds, settings)
+    ds = plan.data
+    train = fits.training_data(plan)
+    tests = fits.test_records(plan)
+    options = dict(plan.chosen.score_options)
 
     def score(model) -> dict:
         return {
             t: round(
-                float(
-                    bm._score(model, test, ds.n_init, ds.score_scale, bm.SCORE_OPTIONS[name])[
-                        0
-                    ].rmse[0, 0]
-                ),
-                4,
+                float(fits.score(model, test, ds.n_init, ds.score_scale, options)[0].rmse[0, 0]), 4
             )
             for t, test in tests.items()
         }
 
     t0 = time.perf_counter()
-    n4sid = fit_affine_sid(train, state_dim=bm._model(name)().state_dim)
+    n4sid = fit_affine_sid(train, state_dim=_guess(plan).state_dim)
     print(f"N4SID {score(n4sid)} ({time.perf_counter() - t0:.1f} s)", flush=True)
-    refined, info = bm._refine_linear(n4sid, train, settings)
+    refined, info = fits.refine_linear(n4sid, train, plan)
     print(f"linear CE-EM (σ_w {sigma_w:g}·std y) {score(refined.system)} {info}", flush=True)
     # the neural model starts from the linear fit of the fit part (the validation tail unseen),
-    # as in the experiment's _learned_starts; Silverbox's validation samples lie after its fitted
-    # ones
-    if name != "silverbox":
-        part = bm._split(name, ds, settings)[0]
-        refined, _ = bm._refine_linear(
-            fit_affine_sid(part, state_dim=n4sid.state_dim), part, settings
-        )
-    neural, info = bm._fit_learned(name, refined.system, refined.states, ds, settings, neural=True)
+    # as in the experiment's learned_starts; a record fitted in windows has its validation samples
+    # after the fitted ones
+    if plan.windowing is None:
+        part = fits.split(plan)[0]
+        refined, _ = fits.refine_linear(fit_affine_sid(part, state_dim=n4sid.state_dim), part, plan)
+    neural, info = fits.fit_learned(plan, refined.system, refined.states, neural=True)
     print(f"neural state space {score(neural)} {info}", flush=True)
 
 

@@ -54,7 +54,9 @@ import numpy as np  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx import datasets  # noqa: E402
-from ceemx.experiments import benchmarks as bm  # noqa: E402
+from ceemx.datasets import REGISTRY  # noqa: E402
+from ceemx.experiments import real_data_fits as fits  # noqa: E402
+from ceemx.experiments.real_data_fits import Plan, Settings  # noqa: E402
 from ceemx.identification.problem import trainable_mask  # noqa: E402
 from ceemx.models.constraints import param  # noqa: E402
 from ceemx.systems.gray_box import (  # noqa: E402
@@ -128,8 +130,23 @@ TANK_VARIANTS: dict[str, tuple[float, dict, tuple[str, ...], tuple[str, ...]]] =
 }
 
 
+#: The cascaded tanks' registry entry: the experiment's model and its hand-chosen settings.
+TANKS = REGISTRY["cascaded_tanks"]
+
+
+def _plan(ds) -> Plan:
+    """The experiment's plan of the cascaded tanks on their records ``ds``."""
+    return fits.make_plan(TANKS.name, Settings(), ds)
+
+
+def _physics_guess():
+    """The experiment's physical guess (its options and hand-chosen process noise)."""
+    m = TANKS.model
+    return m.factory(dtype=jnp.float64, **m.options, process_noise=TANKS.chosen.process_noise)
+
+
 def _tanks_guess(scale, switches):
-    lib = bm._model("cascaded_tanks")(dtype=jnp.float64, process_noise=scale)
+    lib = TANKS.model.factory(dtype=jnp.float64, process_noise=scale)
     guess = _Tanks(
         **{k: getattr(lib, k) for k in _PARAMS},
         **switches,
@@ -148,7 +165,7 @@ def structure(names: list[str], test: bool, validation: bool = True) -> None:
     """``structure``: validation (fit part → held-out tail) and, with ``test``, test (whole record
     → test record) of each variant of :data:`TANK_VARIANTS`."""
     ds = datasets.cascaded_tanks()
-    fit_data, val = bm._split("cascaded_tanks", ds, bm.Settings())
+    fit_data, val = fits.split(_plan(ds))
     runs = [("validation", fit_data, val)] * validation
     runs += [("test", ds.train, ds.tests["test"])] * test
 
@@ -268,7 +285,7 @@ CONSTR = {  # for the OE refinement: name → (kind, lo, hi)
 def guess_for(name):
     """(guess, trainable mask, free fields) of a :data:`MORE_VARIANTS` entry."""
     cls, scale, sw, freed, frozen, init = MORE_VARIANTS[name]
-    lib = bm._model("cascaded_tanks")(dtype=jnp.float64, process_noise=scale)
+    lib = TANKS.model.factory(dtype=jnp.float64, process_noise=scale)
     vals = {k: getattr(lib, k) for k in BASE}
     g = cls(
         **vals,
@@ -390,7 +407,7 @@ def report(name, part, system, record, n_init, t0, free):
 def variants(names, oe, test, val=True):
     """``variants``: each of :data:`MORE_VARIANTS` on validation and, with ``test``, on test."""
     ds = datasets.cascaded_tanks()
-    fit_data, vrec = bm._split("cascaded_tanks", ds, bm.Settings())
+    fit_data, vrec = fits.split(_plan(ds))
     runs = [("validation", fit_data, vrec)] * val + [("test", ds.train, ds.tests["test"])] * test
     for name in names:
         g, mask, free = guess_for(name)
@@ -461,7 +478,7 @@ def jumps(y: np.ndarray) -> np.ndarray:
 
 
 def physics_fit(data):
-    guess = bm._model("cascaded_tanks")(dtype=jnp.float64, **bm.MODEL_OPTIONS["cascaded_tanks"])
+    guess = _physics_guess()
     return ceemx.fit(guess, data, solver=ceemx.JointLM(), max_epochs=200)
 
 
@@ -514,7 +531,7 @@ def fit_variant(name: str, data, record, n_init: int):
 
 
 def part2(ds) -> None:
-    fit_part, validation = bm._split("cascaded_tanks", ds, bm.Settings())
+    fit_part, validation = fits.split(_plan(ds))
     runs = (("validation", fit_part, validation), ("test", ds.train, ds.tests["test"]))
     for part, data, record in runs:
         t0 = time.perf_counter()
@@ -574,7 +591,7 @@ def delayed(data, d: int):
 
 
 def part4(ds) -> None:
-    fit_part, validation = bm._split("cascaded_tanks", ds, bm.Settings())
+    fit_part, validation = fits.split(_plan(ds))
     cut = ds.train.num_steps - validation.num_steps + ds.n_init
     for d in (1, 2):  # delay the whole records, then cut (the validation's window sees u_{t-d})
         train = delayed(ds.train, d)
@@ -588,7 +605,7 @@ def part4(ds) -> None:
         ]
         print(f"input delayed {d}: validation {scores[0]:.4f} V, test {scores[1]:.4f} V")
     for scale in (0.02, 0.1):
-        guess = bm._model("cascaded_tanks")(
+        guess = TANKS.model.factory(
             dtype=jnp.float64, process_noise=NOISE, obs_noise=ceemx.StudentT(scale, 2.0, 1)
         )
         scores = [
@@ -605,18 +622,19 @@ def part4(ds) -> None:
 
 
 def part5(ds) -> None:
-    name, settings, test = "cascaded_tanks", bm.Settings(), ds.tests["test"]
+    plan, test = _plan(ds), ds.tests["test"]
+    chosen = plan.chosen
     phys = physics_fit(ds.train)
-    start, _ = bm._learned_starts(name, ds, settings, "joint", phys, None)
-    model, info = bm._fit_learned(name, start.system, start.states, ds, settings, neural=False)
+    start, _ = fits.learned_starts(plan, "joint", phys, None)
+    model, info = fits.fit_learned(plan, start.system, start.states, neural=False)
     k = info["best_epoch"]
     s = ceemx.benchmark_score(model, test, ds.n_init)
     print(f"hybrid on the fit part: best epoch {k}, test {float(s.rmse[0, 0]):.4f} V")
     for epochs in (k, round(1.25 * k)):
         h = ceemx.hybrid(
-            phys.system, ds.train, states=phys.states, dynamics=bm.TARGETS[name],
-            width=settings.width, depth=settings.depth, prior_std=settings.prior_std,
-            **bm.BOUNDS[name],
+            phys.system, ds.train, states=phys.states, dynamics=TANKS.model.targets,
+            width=chosen.width, depth=chosen.depth, prior_std=chosen.prior_std,
+            **TANKS.model.bounds,
         )  # fmt: skip
         res = ceemx.fit(
             h, ds.train, phys.states, solver=ceemx.JointLM(), trainable=h.trainable("both"),

@@ -109,46 +109,44 @@ def pytest_configure(config):
         jax.config.update(name.lower(), value)
 
 
-# The suite's files by their measured test seconds, heaviest first (sums of --durations over a
-# full run, 2026-11-27: 21, 17, 14, 12, 11, 11, 9, 8, 8, 7, 6, 6, 6, 5, 5, 5, 5, 5, 5, 4, 4, 3,
-# 3, 3, 3, 3, 3, 3, 2, 2, 2; the 12 files not listed take 13 s together). Run in this order
-# (pyproject's ``--no-loadscope-reorder``; xdist otherwise orders files by their number of
-# tests), the two workers get the long files first and finish within seconds of each other
-# (longest processing time first); files not listed follow in collection order. A stale order
-# costs balance, never correctness.
+# The suite's files by the seconds their tests take in a full run, heaviest first (subprocesses
+# included). Run in this order (pyproject's ``--no-loadscope-reorder``; xdist otherwise orders
+# files by their number of tests), the two workers get the long files first and finish within
+# seconds of each other (longest processing time first); files not listed follow in collection
+# order. A stale order costs balance, never correctness.
 _HEAVY_FIRST = (
-    "test_particle.py",
-    "test_fit.py",
-    "test_joint.py",
-    "test_smoother.py",
-    "test_learners.py",
-    "test_laplace_em.py",
-    "test_noise_diagnostics.py",
-    "test_benchmark_systems.py",
-    "test_baselines.py",
-    "test_evaluate_real.py",
-    "test_gray_box.py",
-    "test_reliability.py",
-    "test_hybrid.py",
-    "test_linalg.py",
+    "test_solver_table.py",
     "test_validation.py",
-    "test_noise_learning.py",
-    "test_identifiability.py",
-    "test_uncertainty.py",
-    "test_checkpoint_safety.py",
-    "test_filtering.py",
+    "test_particle.py",
+    "test_smoother.py",
+    "test_joint.py",
+    "test_evaluate_real.py",
+    "test_fit.py",
+    "test_learners.py",
+    "test_linalg.py",
+    "test_laplace_noise.py",
     "test_subspace.py",
-    "test_datasets.py",
-    "test_compilation.py",
-    "test_runtime.py",
+    "test_gray_box.py",
+    "test_noise_diagnostics.py",
+    "test_baselines.py",
+    "test_uncertainty.py",
+    "test_hybrid.py",
+    "test_noise_learning.py",
+    "test_filtering.py",
+    "test_checkpoint_safety.py",
+    "test_identifiability.py",
+    "test_learning_gauss_newton.py",
     "test_evaluate.py",
-    "test_lapack_safety.py",
-    "test_initialize.py",
+    "test_datasets.py",
+    "test_health.py",
     "test_fuzz.py",
+    "test_lapack_safety.py",
     "test_data.py",
-    "test_report.py",
     "test_prediction.py",
+    "test_runtime.py",
+    "test_report.py",
     "test_constraints.py",
+    "test_custom_system.py",
 )
 
 
@@ -157,6 +155,23 @@ def pytest_collection_modifyitems(config, items):
     del config
     rank = {name: i for i, name in enumerate(_HEAVY_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
+@pytest.fixture
+def no_compute():
+    """Fails the test if compute started before the refusal it expects (tests/refusals.py).
+
+    The only trace of a counting model's methods allowed is the one-time check of their output
+    shapes (``ceemx.models.method_check``: abstract evaluation, nothing compiled or computed); a
+    fit, smoothing or health test traces them many times.
+    """
+    from refusals import TRACES
+
+    TRACES.clear()
+    yield
+    assert TRACES.count("dynamics") <= 1 and TRACES.count("observe") <= 1, (
+        f"compute started before the refusal: {TRACES[:6]}"
+    )
 
 
 @pytest.hookimpl(trylast=True)

@@ -4,10 +4,13 @@ A peer or the reference implementation whose environment is absent is skipped by
 itself with a message (the reference: ``benchmarks/reference/setup.sh``).
 """
 
+import ast
+import importlib
 import json
 import pathlib
 import subprocess
 import sys
+import types
 
 import pytest
 
@@ -153,3 +156,90 @@ def test_speed_table_renders_every_row_from_the_committed_results():
                    "two processes", "parallel-in-time", "T = 10⁴…10⁵"):  # fmt: skip
         assert any(needle in r for r in rows), needle
     assert all(r.count("|") == 7 for r in rows)  # six cells each
+
+
+# --- every ceemx name a script uses exists (no script runs) ------------------------------------
+
+
+def _scopes(body):
+    """(statements of one scope, the functions defined in it) — a function is its own scope."""
+    nodes, functions, stack = [], [], list(body)
+    while stack:
+        node = stack.pop()
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
+            functions.append(node)
+            continue
+        nodes.append(node)
+        stack.extend(ast.iter_child_nodes(node))
+    return nodes, functions
+
+
+def _resolve(module, names: list[str]):
+    """The object at ``module.names[0].names[1]...`` (submodules imported); ``None``: missing.
+
+    Stops at the first object that is not a module (a class's attributes are not checked).
+    """
+    obj = module
+    for name in names:
+        if not isinstance(obj, types.ModuleType):
+            return obj
+        if hasattr(obj, name):
+            obj = getattr(obj, name)
+            continue
+        try:
+            obj = importlib.import_module(f"{obj.__name__}.{name}")
+        except ImportError:
+            return None
+    return obj
+
+
+def _missing_in_scope(body, arguments, aliases: dict, problems: list[str]) -> None:
+    """Check one scope's ceemx imports and the attributes read or set on imported modules."""
+    nodes, functions = _scopes(body)
+    aliases = {k: v for k, v in aliases.items() if k not in arguments}
+    for node in nodes:  # a name bound here to something else hides a module of an outer scope
+        if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            aliases.pop(node.id, None)
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split(".")[0] != "ceemx":
+                    continue
+                module = _resolve(importlib.import_module("ceemx"), a.name.split(".")[1:])
+                if module is None:
+                    problems.append(f"line {node.lineno}: import {a.name}")
+                else:
+                    aliases[a.asname or "ceemx"] = module if a.asname else sys.modules["ceemx"]
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "ceemx":
+            module = _resolve(importlib.import_module("ceemx"), node.module.split(".")[1:])
+            for a in node.names:
+                obj = None if module is None else _resolve(module, [a.name])
+                if obj is None:
+                    problems.append(f"line {node.lineno}: from {node.module} import {a.name}")
+                elif isinstance(obj, types.ModuleType):
+                    aliases[a.asname or a.name] = obj
+    for node in nodes:
+        chain, base = [], node
+        while isinstance(base, ast.Attribute):
+            chain.append(base.attr)
+            base = base.value
+        if chain and isinstance(base, ast.Name) and base.id in aliases:
+            if _resolve(aliases[base.id], chain[::-1]) is None:
+                problems.append(f"line {node.lineno}: {base.id}.{'.'.join(chain[::-1])}")
+    for fn in functions:
+        args = {a.arg for a in ast.walk(fn.args) if isinstance(a, ast.arg)}
+        body = fn.body if isinstance(fn.body, list) else [fn.body]
+        _missing_in_scope(body, args, aliases, problems)
+
+
+@pytest.mark.parametrize(
+    "script", sorted(p.name for p in (ROOT / "benchmarks").glob("*.py")), ids=lambda s: s[:-3]
+)
+def test_script_uses_only_ceemx_names_that_exist(script):
+    """Every ``ceemx`` module and name a benchmark script imports, and every attribute it reads or
+    patches on an imported ceemx module, exists (``ast`` + ``importlib``; no script runs): a name
+    renamed or moved in the library fails here, not in the script's next run."""
+    problems: list[str] = []
+    tree = ast.parse((ROOT / "benchmarks" / script).read_text())
+    _missing_in_scope(tree.body, set(), {}, problems)
+    assert not problems, problems

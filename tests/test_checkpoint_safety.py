@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from refusals import DATA, X0, decay, raises
 
 import ceemx
 from ceemx.identification.solvers import FitState
@@ -390,3 +391,102 @@ def test_nan_of_an_excluded_trajectory_is_resumed(tmp_path):
     ckpt.save(str(tmp_path), state, [{"epoch": 1}], FP)
     tree, _ = ckpt.load(str(tmp_path), small_state(), fingerprint=FP)
     assert np.isnan(np.asarray(tree.solver_state[1])[0])
+
+
+# --- checkpoints on full disks; what a resume trusts --------------------------------------------
+
+
+def fit_state(weights=(1.0, 1.0), lam=1e-3):
+    return FitState(
+        theta=jnp.zeros(3),
+        states=jnp.zeros((2, 4, 1)),
+        J=jnp.zeros(2),
+        weights=jnp.asarray(weights),
+        status=select(jnp.zeros(2, bool), RESULTS.nonfinite, RESULTS.successful),
+        solver_state=jnp.asarray(lam),
+    )
+
+
+# A fingerprint for the checkpoints written here (one without would be resumed with a warning,
+# as from an older ceemx: test_old_format_checkpoint_resumes_with_a_warning).
+FINGERPRINT = {"method": "a test's fit state"}
+
+
+@pytest.mark.parametrize(
+    "state, what",
+    [
+        (fit_state(weights=(np.nan, 1.0)), "weights"),
+        (fit_state(lam=np.nan), "solver_state"),
+    ],
+    ids=["nan-weights", "nan-damping"],
+)
+def test_resume_refuses_nonfinite_weights_and_solver_scalars(tmp_path, state, what):
+    """NaN weights used to resume (J then read 0), as did a NaN damping λ."""
+    ckpt.save(str(tmp_path), state, [{"epoch": 1}], FINGERPRINT)
+    with raises(ckpt.CheckpointError, f"non-finite values (NaN or inf) in {what}"):
+        ckpt.load(str(tmp_path), fit_state(), fingerprint=FINGERPRINT)
+
+
+def test_resume_refuses_a_history_that_does_not_match_its_epoch(tmp_path):
+    """An emptied history resumed as converged=True with the wrong epoch count."""
+    ckpt.save(str(tmp_path), fit_state(), [{"epoch": 1}, {"epoch": 2}], FINGERPRINT)
+    path = tmp_path / "latest.json"
+    meta = json.loads(path.read_text())
+    path.write_text(json.dumps({**meta, "history": []}))
+    with raises(ckpt.CheckpointError, "epoch 2 does not match the 0 epochs of its history"):
+        ckpt.load(str(tmp_path), fit_state())
+
+
+# --- one writer per checkpoint folder -----------------------------------------------------------
+
+_HOLDER = """
+import sys
+from ceemx.infra.folder_lock import folder_lock
+with folder_lock(sys.argv[1], RuntimeError):
+    print("held", flush=True)
+    sys.stdin.read()
+"""
+
+
+def hold_in_another_process(folder):
+    """A process holding ``folder``'s lock until its stdin closes (imports nothing heavy)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, str(folder)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stdout.readline() == "held\n"
+    return proc
+
+
+def test_a_second_writer_is_refused_naming_the_first(tmp_path):
+    """Two fits on one folder used to remove each other's temporaries and crash
+    (FileNotFoundError … .tmp-… -> state-8.eqx); the second is now refused at once."""
+    proc = hold_in_another_process(tmp_path)
+    try:
+        with raises(ckpt.CheckpointError, f"is in use by another fit (pid {proc.pid} on host"):
+            with ckpt.lock(str(tmp_path)):
+                pass
+    finally:
+        proc.communicate("")
+    with ckpt.lock(str(tmp_path)):  # free once the first has finished
+        assert os.listdir(tmp_path) == [".lock"]
+    assert os.listdir(tmp_path) == []  # removed on release
+
+
+def test_the_lock_of_a_killed_writer_is_taken_over(tmp_path):
+    proc = hold_in_another_process(tmp_path)
+    proc.kill()
+    proc.communicate()  # waits, and closes its pipes
+    assert os.listdir(tmp_path) == [".lock"]  # left behind, but no longer held
+    with ckpt.lock(str(tmp_path)):
+        assert f"pid {os.getpid()} on host" in (tmp_path / ".lock").read_text()
+
+
+def test_fit_on_a_folder_in_use_is_refused_before_compute(no_compute, tmp_path):
+    """Also within one process: the lock is per open file, and held for the fit's lifetime."""
+    with ckpt.lock(str(tmp_path)):
+        with raises(ckpt.CheckpointError, "is in use by another fit"):
+            ceemx.fit(decay(), DATA, X0, checkpoint=str(tmp_path))
+    assert os.listdir(tmp_path) == []

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jaxtyping import Array
+from refusals import DATA, X0, decay, raises
 
 import ceemx
 from ceemx.identification.problem import FitProblem, trainable_mask
@@ -293,3 +294,36 @@ def test_particle_em_learns_unconstrained():
     assert 0.0 < float(s.a) < 1.0 and float(s.gain.g) > 0.0
     assert float(s.c) == 1.05
     assert float(s.a) > 0.3 and float(s.gain.g) > 0.02  # it moved towards (0.8, 0.5)
+
+
+# --- a fit refuses a start on a bound (θ = ±∞ in unconstrained units) before any compute ----------
+
+
+@pytest.mark.parametrize(
+    "kwargs, where, value",
+    [
+        (dict(c=1e-320), "system.c", "1e-320"),  # θ = −inf (subnormal flushed to zero)
+        (dict(d=-2 - 4e-16), "system.d", "-2.0000000000000004"),  # LessThan(−2), one ulp off
+        (dict(a=-1 + 1e-15), "system.a", "-0.999999999999999"),  # sigmoid saturated
+        (dict(a=1 - 1e-15), "system.a", "0.999999999999999"),
+    ],
+    ids=["positive-subnormal", "upper-one-ulp", "interval-lower", "interval-upper"],
+)
+def test_start_on_a_bound_is_refused(no_compute, kwargs, where, value):
+    system = decay(**kwargs)
+    with raises(ValueError, f"`{where}` = {value}"):
+        ceemx.fit(system, DATA, X0)
+    with raises(ValueError, "is within rounding of its bound"):
+        ceemx.fit(system, DATA, X0, solver=ceemx.JointLM())
+
+
+def test_start_near_but_clear_of_a_bound_is_accepted():
+    # just clear of the scale check's limits (1e-100 from 0; 1e-10 of the interval's width or |b|)
+    problem, theta = ceemx.FitProblem.create(decay(c=1e-90, a=-1 + 1e-9, d=-2 - 1e-9), DATA)
+    assert np.all(np.isfinite(np.asarray(theta)))
+
+
+def test_fixed_parameter_on_a_bound_is_not_checked():
+    # Only trainable leaves must be able to move.
+    problem, _ = ceemx.FitProblem.create(decay(d=-2 - 4e-16), DATA, trainable=lambda s: s.a)
+    assert problem is not None

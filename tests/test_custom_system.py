@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 import scipy.linalg
 from jaxtyping import Array
+from refusals import DATA, TRACES, B, T, raises
 
 import ceemx
+from ceemx.data.checks import check_inputs
 from ceemx.data.trajectories import foh_inputs
 from ceemx.models import constraints as cons
 from ceemx.models.system import rk4_step
@@ -332,3 +334,117 @@ def test_documented_example_runs():
     np.testing.assert_allclose(float(result.system.k), float(true.k), rtol=0.02)
     np.testing.assert_allclose(float(result.system.c), float(true.c), rtol=0.05)
     assert float(result.system.m) == 1.0  # fixed
+
+
+# --- user model bugs named at the first trace ---------------------------------------------------
+
+
+def buggy_class(bug):
+    """A 2-state model with one bug in one method (a new class per call: nothing remembered)."""
+
+    class Buggy(ceemx.AbstractSystem):
+        a: Array = ceemx.param()
+
+        @property
+        def state_dim(self):
+            return 2
+
+        @property
+        def obs_dim(self):
+            return 1
+
+        def dynamics(self, x, u, t):
+            TRACES.append("dynamics")
+            if bug == "dynamics-shape":
+                return jnp.concatenate([x, x[:1]])
+            if bug == "dynamics-scalar":
+                return jnp.sum(self.a * x)
+            if bug == "dynamics-dtype":
+                return (self.a * x).astype(jnp.float32)
+            if bug == "dynamics-tuple":
+                return x, x
+            if bug == "dynamics-raises":
+                return x + jnp.ones(3)
+            return self.a * x
+
+        def observe(self, x, u, t):
+            TRACES.append("observe")
+            return x if bug == "observe-shape" else x[:1]
+
+    return Buggy
+
+
+class WrongField(ceemx.AbstractContinuousSystem):
+    a: Array = ceemx.param()
+
+    @property
+    def state_dim(self):
+        return 2
+
+    @property
+    def obs_dim(self):
+        return 1
+
+    def vector_field(self, x, u, t):
+        return self.a * jnp.concatenate([x, x[:1]])
+
+    def observe(self, x, u, t):
+        return x[:1]
+
+
+X2 = np.zeros((B, T, 2))
+
+
+@pytest.mark.parametrize(
+    "bug, message",
+    [
+        (
+            "dynamics-shape",
+            "`system.dynamics` must return shape (2,) (n = 2, m = 1); it returned "
+            "shape (3,) when called with x: (2,) float64, u: (0,) float64, t: ()",
+        ),
+        (
+            "dynamics-scalar",
+            "`system.dynamics` must return shape (2,) (n = 2, m = 1); it returned shape ()",
+        ),
+        (
+            "dynamics-dtype",
+            "`system.dynamics` must return the dtype of the system's parameters, "
+            "float64; it returned float32",
+        ),
+        (
+            "dynamics-tuple",
+            "`system.dynamics` must return one array of shape (2,); it returned a tuple",
+        ),
+        ("dynamics-raises", "`system.dynamics` failed when called with x: (2,) float64"),
+        (
+            "observe-shape",
+            "`system.observe` must return shape (1,) (n = 2, m = 1); it returned shape (2,)",
+        ),
+    ],
+)
+def test_model_method_bugs_are_named(bug, message):
+    """Each used to fail inside XLA ("add got incompatible shapes (2,), (3,)", ...)."""
+    Buggy = buggy_class(bug)
+    for call in (
+        lambda: ceemx.fit(Buggy(a=0.5), DATA, X2),
+        lambda: ceemx.smooth(Buggy(a=0.5), DATA, X2),
+        lambda: ceemx.ekf(Buggy(a=0.5), DATA),
+    ):
+        TRACES.clear()
+        with raises(ValueError, message):
+            call()
+        assert TRACES.count("dynamics") <= 1 and TRACES.count("observe") <= 1  # traced once
+
+
+def test_vector_field_bug_is_named():
+    with raises(ValueError, "`system.vector_field` must return shape (2,)"):
+        ceemx.fit(WrongField(a=0.5, dt=0.1), DATA, X2, solver=ceemx.JointLM())
+
+
+def test_model_methods_traced_once_per_structure():
+    Good = buggy_class(None)
+    TRACES.clear()
+    for _ in range(3):
+        check_inputs(Good(a=0.5), DATA, X2)
+    assert TRACES == ["dynamics", "observe"]

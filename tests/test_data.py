@@ -413,3 +413,9 @@ def test_data_docstring_examples_run():
     for module in (info, trajectories):
         failed, attempted = doctest.testmod(module, verbose=False)
         assert attempted >= 1 and failed == 0, module.__name__
+
+
+def test_observation_free_data_is_refused():
+    """y of shape (B, T, 0) was accepted: no observation to fit."""
+    with raises("`y` has shape (2, 5, 0): no observed components (m = 0)"):
+        ceemx.Trajectories(np.zeros((2, 5, 0)))

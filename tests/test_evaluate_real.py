@@ -19,6 +19,7 @@ from ceemx.evaluation import initial_state as init
 from ceemx.evaluation import metrics as ev
 from ceemx.evaluation import simulation as sim
 from ceemx.inference.ekf import ekf
+from ceemx.lib.results import RESULTS, codes, messages
 from ceemx.models import DiagonalGaussian
 from ceemx.systems import LinearSystem
 
@@ -462,3 +463,35 @@ def test_several_warm_starts_keep_the_better_window_fit():
     assert window_rmse(plain) < 0.5 * window_rmse(one)
     np.testing.assert_allclose(np.asarray(both), np.asarray(plain), rtol=1e-12, atol=1e-12)
     assert window_rmse(plain) < 0.05
+
+
+# ---------------------------------------------------------------- no quiet NaN
+
+
+def linear(a, obs_noise=0.1, b=1.0):
+    one = np.ones((1, 1))
+    return LinearSystem(a * one, one, b * one, 0 * one, process_noise=0.1, obs_noise=obs_noise)
+
+
+RECORD = ceemx.Trajectories(
+    np.random.default_rng(1).standard_normal((2, 40, 1)),
+    np.random.default_rng(2).standard_normal((2, 40, 1)),
+)
+
+
+def test_initial_state_nan_warns_and_carries_a_status():
+    """obs_noise = 1e-300: whitening overflows; x̂₁ was NaN with no warning."""
+    with pytest.warns(UserWarning, match=r"x̂₁ is not finite \(NaN or inf\) for trajectories 0, 1"):
+        x1, status = init.estimate_initial_state(linear(0.9, 1e-300), RECORD, 4, return_status=True)
+    assert np.all(np.isnan(np.asarray(x1)))
+    assert codes(status).tolist() == [codes(RESULTS.nonfinite)] * 2
+
+
+def test_diverging_benchmark_score_warns_and_carries_a_status():
+    """x_{t+1} = 1e10·x: the free run overflows; RMSE and fit % were inf/NaN with no warning."""
+    start = np.array([[1.0], [0.0]])  # no input: trajectory 1 stays at 0
+    with pytest.warns(UserWarning, match="free-run simulation of trajectory 0 is not finite"):
+        score = ev.benchmark_score(linear(1e10, b=0.0), RECORD, 5, x1=start)
+    assert not np.isfinite(float(score.rmse_overall[0]))
+    assert np.isfinite(float(score.rmse_overall[1]))
+    assert messages(score.status) == [RESULTS[RESULTS.diverged], RESULTS[RESULTS.successful]]

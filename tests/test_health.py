@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from refusals import DATA, X0, decay, raises
 
 import ceemx
 from ceemx.experiments import common
@@ -118,3 +119,17 @@ def test_messages_follow_converged(lorenz):
     assert done.converged and done.messages() == ["converged", "converged"]
     with pytest.raises(ValueError, match="outliers"):
         ceemx.fit(guess, data, x0, trainable=WHERE, outliers="drop")
+
+
+# --- no converged=True from a start too far from the data ---------------------------------------
+
+
+def test_absurd_start_is_refused():
+    """Every start at 1e10: J ≈ −1e21 here (−2.55e67 on Lorenz), which 'converged' in 2 epochs."""
+    with raises(ValueError, "the start is too far from the data to fit: trajectories 0 (r = "):
+        ceemx.fit(decay(), DATA, np.full(X0.shape, 1e10))
+
+
+def test_nonfinite_start_is_refused_with_outliers_kept():
+    with raises(ValueError, "no trajectory has a finite objective at the start"):
+        ceemx.fit(decay(), DATA, np.full(X0.shape, 1e200), outliers="keep")

@@ -24,7 +24,6 @@ from ceemx import lib as linalg
 from ceemx.identification.learning import make_problem
 from ceemx.inference.objective import linearize
 from ceemx.lib import marquardt_scale
-from ceemx.lib.results import codes
 from ceemx.systems import CoupledLorenz, initial_states, random_coupling
 
 simulate = eqx.filter_jit(ceemx.simulate)  # eager simulation costs seconds
@@ -296,37 +295,6 @@ def test_matrix_free_cg_matches_dense_schur(lz, joint):
     assert cg.converged
     np.testing.assert_allclose(theta_of(cg.system), theta_of(joint.system), rtol=1e-6)
     np.testing.assert_allclose(cg.states, joint.states, atol=1e-6)
-
-
-@pytest.mark.slow
-def test_joint_excludes_nonfinite_trajectory_with_status(lz):
-    x0 = lz["x3"].at[1].set(1e200)
-    with pytest.warns(UserWarning, match="excluded"):
-        res = ceemx.fit(
-            lz["guess"],
-            lz["data3"],
-            x0,
-            solver=ceemx.JointLM(),
-            trainable=where_theta,
-            max_epochs=30,
-        )
-    status = codes(res.status)
-    assert status[1] == codes(ceemx.RESULTS.nonfinite)
-    assert np.all(status[[0, 2]] == codes(ceemx.RESULTS.successful))
-    assert np.all(np.isfinite(np.asarray(res.system.sigma)))
-    np.testing.assert_array_equal(res.states[1], x0[1])
-    good = np.array([0, 2])
-    ref = ceemx.fit(
-        lz["guess"],
-        lz["data3"][good],
-        lz["x3"][good],
-        solver=ceemx.JointLM(),
-        trainable=where_theta,
-        max_epochs=30,
-    )
-    assert res.epochs == ref.epochs
-    np.testing.assert_allclose(theta_of(res.system), theta_of(ref.system), rtol=1e-8)
-    np.testing.assert_allclose(res.states[good], ref.states, rtol=1e-8, atol=1e-8)
 
 
 def test_joint_nonfinite_everywhere_is_an_error(lz):

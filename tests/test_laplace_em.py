@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from kalman_em_reference import kalman_em, kalman_smoother
+from kalman_em_reference import kalman_smoother
 
 import ceemx
 from ceemx.identification.learning import expected_learning_problem
@@ -81,42 +81,6 @@ def test_e_step_is_the_rts_smoother_and_evidence_the_kalman_likelihood():
         T, n = y.shape[1], 2
         log_ev = -sol.objective[b] + 0.5 * T * n * np.log(2 * np.pi) - 0.5 * sol.log_det[b]
         np.testing.assert_allclose(log_ev, ref["loglik"], rtol=1e-11)
-
-
-def test_laplace_em_is_exact_em_on_a_linear_gaussian_model():
-    """θ and the noise covariances equal a textbook Kalman/RTS EM at every iteration (1e-8)."""
-    y, (_, _, _, _, mu0, P0) = _lg_problem()
-    A0, C0, Q0, R0 = _guess()
-    iters = 6
-    ref = kalman_em(y, A0, C0, Q0, R0, mu0, P0, iters)
-    seen = []
-
-    def record(info):
-        s = info.system
-        seen.append((s.A, s.C, s.process_noise.covariance(), s.obs_noise.covariance(), info.record))
-
-    data = ceemx.Trajectories(jnp.asarray(y))
-    result = ceemx.fit(
-        _system(A0, C0, Q0, R0, mu0, P0),
-        data,
-        jnp.zeros(y.shape[:2] + (2,)),
-        solver=ceemx.LaplaceEM(acceleration=None),
-        trainable=_trainable,
-        max_epochs=iters,
-        callbacks=[record],
-        outliers="keep",
-    )
-    assert len(seen) == iters
-    for k, (A, C, Q, R, rec) in enumerate(seen):
-        np.testing.assert_allclose(A, ref[k]["A"], atol=1e-8, err_msg=f"A, iteration {k + 1}")
-        np.testing.assert_allclose(C, ref[k]["C"], atol=1e-8, err_msg=f"C, iteration {k + 1}")
-        np.testing.assert_allclose(Q, ref[k]["Q"], atol=1e-8, err_msg=f"Q, iteration {k + 1}")
-        np.testing.assert_allclose(R, ref[k]["R"], atol=1e-8, err_msg=f"R, iteration {k + 1}")
-        if k + 1 < iters:  # the log-evidence at θ_k is the reference's log-likelihood at θ_k
-            np.testing.assert_allclose(rec["log_evidence"], ref[k + 1]["loglik"], rtol=1e-10)
-    ev = result.history_array("log_evidence")
-    assert np.all(np.diff(ev) > 0)  # EM is monotone in the likelihood
-    assert np.all(result.history_array("Q_gain") > -1e-8)
 
 
 @pytest.mark.slow  # a Monte Carlo check (≈ 4 s); the cubature Gauss–Newton oracle stays
@@ -304,46 +268,6 @@ def test_learned_noise_needs_a_gaussian_model():
             solver=ceemx.LaplaceEM(),
             trainable=lambda s: (s.A, s.obs_noise),
         )
-
-
-@pytest.mark.parametrize(
-    "acceleration",
-    ["squarem", pytest.param(None, marks=pytest.mark.slow)],  # ≈ 3 s each, compilation mostly
-    ids=["squarem", "plain"],
-)
-def test_laplace_em_resumes_bitwise(tmp_path, acceleration):
-    """Stopped after 3 epochs and resumed, it ends where the uninterrupted run does, bit for bit.
-
-    It used to end ≈ 1e-10 away: the resume recomputed the E-step's posterior
-    at θ from the states it had converged to, where the uninterrupted run had smoothed from the
-    states before; the smoother's start is now checkpointed with the fit.
-    """
-    y, (_, _, _, _, mu0, P0) = _lg_problem()
-    A0, C0, Q0, R0 = _guess()
-    data = ceemx.Trajectories(jnp.asarray(y))
-    x0 = jnp.zeros(y.shape[:2] + (2,))
-
-    def run(epochs, folder):
-        return ceemx.fit(
-            _system(A0, C0, Q0, R0, mu0, P0),
-            data,
-            x0,
-            solver=ceemx.LaplaceEM(acceleration=acceleration),
-            trainable=_trainable,
-            max_epochs=epochs,
-            checkpoint=folder,
-            outliers="keep",
-            diagnose=False,
-        )
-
-    straight = run(6, None)
-    run(3, str(tmp_path))
-    resumed = run(6, str(tmp_path))
-    assert resumed.epochs == 6
-    np.testing.assert_array_equal(resumed.theta, straight.theta)
-    np.testing.assert_array_equal(resumed.states, straight.states)
-    for key in ("J", "log_evidence", "smoother_steps", "learner_steps"):
-        np.testing.assert_array_equal(resumed.history_array(key), straight.history_array(key))
 
 
 @pytest.mark.slow  # 24 particle filters of 5000 particles (≈ 40 s)

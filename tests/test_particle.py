@@ -668,7 +668,6 @@ DRIVER_KEYS = {
     "epoch", "time", "J", "J_before", "J_per_trajectory", "dtheta_norm", "dx_norm",
     "failed_trajectories", "converged", "stop",
 }  # fmt: skip
-TIMINGS = {"time", "e_step_time", "m_step_time"}
 
 
 def run_pem(problem, max_epochs, **kw):
@@ -740,42 +739,3 @@ def test_particle_em_history(pem_run):
     rate = result.history_array("resampling_rate")
     assert np.all((rate >= 0) & (rate <= 1))
     assert all(h["failed_trajectories"] == [] for h in result.history)
-
-
-@pytest.mark.slow
-def test_particle_em_resume_is_bitwise(problem, pem_run, tmp_path):
-    """3 epochs with a checkpoint, then a second call with max_epochs = 6 on the same folder, give
-    the very θ, states and history of an uninterrupted run (the first 6 epochs of ``pem_run``)."""
-    _, thetas, states = pem_run
-    full = pem_run[0]
-    first, _, _ = run_pem(problem, 3, checkpoint=str(tmp_path))
-    assert first.epochs == 3
-    resumed, resumed_thetas, _ = run_pem(problem, 6, checkpoint=str(tmp_path))
-    assert [h["epoch"] for h in resumed.history] == list(range(1, 7))
-    assert len(resumed_thetas) == 3  # only epochs 4–6 ran
-    np.testing.assert_array_equal(resumed.system.A, thetas[5])
-    np.testing.assert_array_equal(resumed.states, states[5])
-    for got, want in zip(resumed.history, full.history[:6], strict=True):
-        for name in set(want) - TIMINGS:
-            np.testing.assert_array_equal(got[name], want[name], err_msg=name)
-
-
-def test_particle_em_leaves_out_failed_trajectory(problem):
-    """A trajectory whose filter fails (observations of 1e200) is reported, left out of the M-step
-    and of the summed likelihood estimate; the others keep learning."""
-    y = np.asarray(problem["data"]["observed"].y).copy()
-    y[1] = 1e200
-    with pytest.warns(UserWarning, match=r"trajectories \[1\]"):
-        result = ceemx.particle_em(
-            make_system(A_START), ceemx.Trajectories(jnp.asarray(y)), jnp.zeros((B, T, NX)),
-            trainable=lambda s: s.A, max_epochs=2, progress=False, **PEM,
-        )  # fmt: skip
-    np.testing.assert_array_equal(
-        np.asarray(result.status == RESULTS.successful), [True, False, True]
-    )
-    for h in result.history:
-        assert h["failed_trajectories"] == [1]
-        per = np.asarray(h["pf_log_likelihood_per_trajectory"])
-        np.testing.assert_allclose(h["pf_log_likelihood"], per[0] + per[2], rtol=1e-12)
-    A = np.asarray(result.system.A)
-    assert np.all(np.isfinite(A)) and not np.array_equal(A, A_START)

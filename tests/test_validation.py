@@ -13,6 +13,8 @@ import pytest
 
 import ceemx
 from ceemx.data.checks import check_inputs, promote_inputs
+from ceemx.evaluation.initial_state import estimate_initial_state
+from ceemx.evaluation.metrics import benchmark_score
 from ceemx.models.noise import CholeskyGaussian, DiagonalGaussian
 from ceemx.systems import LinearSystem
 from ceemx.systems.lorenz import CoupledLorenz
@@ -327,3 +329,64 @@ def test_entry_points_validate_once(counted):
     ceemx.learn(system(), x, data)
     ceemx.warm_start(system(), data)
     assert counted["validate"] == 3
+
+
+# --- one dtype rule for every entry point -----------------------------------------------------
+
+
+def linear(a, b=1.0):
+    one = np.ones((1, 1))
+    return LinearSystem(a * one, one, b * one, 0 * one, process_noise=0.1, obs_noise=0.1)
+
+
+RECORD = ceemx.Trajectories(
+    np.random.default_rng(1).standard_normal((2, 40, 1)),
+    np.random.default_rng(2).standard_normal((2, 40, 1)),
+)
+F32 = ceemx.Trajectories(np.asarray(RECORD.y, np.float32), np.asarray(RECORD.u, np.float32))
+
+
+def prior32():
+    return ceemx.GaussianPrior(
+        jnp.zeros(1, jnp.float32), ceemx.DiagonalGaussian(jnp.ones((), jnp.float32), 1)
+    )
+
+
+@pytest.mark.parametrize(
+    "entry",
+    [
+        lambda s, d: ceemx.inference.ekf.ekf(s, d, initial=prior32()).predicted_obs,
+        lambda s, d: ceemx.particle_filter(s, d, n_particles=8, initial=prior32()).log_likelihood,
+        lambda s, d: estimate_initial_state(s, d, 4),
+        lambda s, d: benchmark_score(s, d, 4).rmse,
+        lambda s, d: benchmark_score(s, d, 4, x1=np.zeros((2, 1), np.float32)).y_sim,
+        lambda s, d: ceemx.evaluation.simulation.predict_k_step(s, d, 2),
+    ],
+    ids=[
+        "ekf",
+        "particle_filter",
+        "estimate_initial_state",
+        "benchmark_score",
+        "score-x1",
+        "k-step",
+    ],
+)
+def test_every_entry_point_promotes_as_fit_and_smooth(entry):
+    """float32 data (and prior, x1) with a float64 system: these refused what fit and smooth
+    promote ("the system's parameters are float64 but `data.y` is float32"); now the data are
+    cast to the system's dtype, and the answer is the one of float64 data, in float64."""
+    system = linear(0.9)
+    out = entry(system, F32)
+    assert out.dtype == jnp.float64
+    same = entry(system, ceemx.Trajectories(np.asarray(F32.y, np.float64), np.asarray(F32.u)))
+    np.testing.assert_array_equal(np.asarray(out), np.asarray(same))
+
+
+def test_free_run_returns_the_systems_dtype():
+    """It returned x1's dtype: float32 states from a float64 system (and the reverse)."""
+    xs, ys = ceemx.free_run(linear(0.9), np.ones((2, 1), np.float32), np.ones((2, 5, 1)))
+    assert xs.dtype == ys.dtype == jnp.float64
+    one = np.ones((1, 1), np.float32)
+    system32 = LinearSystem(0.5 * one, one, one, 0 * one, process_noise=0.1, obs_noise=0.1)
+    xs, ys = ceemx.free_run(system32, np.ones((1,)), np.ones((5, 1)))
+    assert xs.dtype == ys.dtype == jnp.float32

@@ -72,6 +72,7 @@ class Alternating(AbstractFitSolver):
     smooths_each_epoch = True  # the E-step is the warm start's program: compiled optimised once
     multi_process = True
     noise_rounds = True
+    monotone = "J"
     history_keys = {
         "smooth_time": "seconds in the smoothing step",
         "learn_time": "seconds in the learning step",

@@ -182,6 +182,12 @@ class AbstractFitSolver(eqx.Module):
     #: (Algorithm 1) is profiled by :class:`ceemx.JointLM` refits, the same J (Laplace EM's
     #: profile, of the evidence, refits with Laplace EM).
     warm_refits: ClassVar[bool] = False
+    #: The history entry no epoch lowers (up to round-off), or ``None`` where none is promised:
+    #: ``"J"`` for a method that keeps only steps that raise J (Algorithm 1's coordinate ascent,
+    #: the joint LM); ``"log_evidence"`` for Laplace EM (EM's ascent property, exact on models
+    #: linear-Gaussian in the state, kept by its accelerations' safeguards); ``None`` for a
+    #: stochastic method (particle EM).
+    monotone: ClassVar[str | None] = None
 
     def __check_init__(self):
         # Equinox runs every class's __check_init__: each solver's own checks come on top.

@@ -152,6 +152,7 @@ class JointLM(AbstractFitSolver):
     multi_process = True
     noise_rounds = True
     warm_refits = True
+    monotone = "J"
     history_keys = {
         "trials": "LM trials in this iteration (accepted and rejected)",
         "accepted": "whether a step was accepted",

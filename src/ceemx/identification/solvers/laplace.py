@@ -158,6 +158,7 @@ class LaplaceEM(AbstractFitSolver):
 
     learns_noise: ClassVar[bool] = True
     uncertainty = "evidence"
+    monotone = "log_evidence"
     history_keys = {
         "log_evidence": "Laplace approximation of Σ_b log p(y_b | θ) at the epoch's θ",
         "Q_gain": "increase of Q(θ) = E_q[log p(x, y | θ)] in the M-step (≥ 0 up to round-off)",
