@@ -19,7 +19,8 @@ from ceemx.infra.options import check_key
 __all__ = ["NOISE_OPTIONS", "FitOptions", "fit_options"]
 
 #: ``fit(..., noise=...)``: fit at the system's noise, or learn its two factors from the data
-NOISE_OPTIONS = ("fixed", "learn")
+#: (``None``: learned on the path the library chooses without a solver, else fixed)
+NOISE_OPTIONS = (None, "fixed", "learn")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,7 +60,7 @@ def fit_options(
         ValueError, TypeError: naming the option, before any compute.
     """
     if noise not in NOISE_OPTIONS:
-        raise ValueError(f"`noise` must be 'fixed' or 'learn'; got {noise!r}.")
+        raise ValueError(f"`noise` must be None, 'fixed' or 'learn'; got {noise!r}.")
     if noise == "learn":
         _check_noise_rounds(solver, checkpoint)
     if outliers not in OUTLIER_OPTIONS:
