@@ -222,7 +222,10 @@ def test_no_retrace_across_epochs_or_new_data(prob, traces):
     # New data of the same shape, started from the result: no new trace.
     x1 = initial_states(prob.keys[4], B, 1)
     states2, data2 = simulate(prob.true, prob.keys[4], x1, T)
-    res2 = ceemx.fit(res.system, data2, states2 + 0.1, trainable=where_theta, max_epochs=3)
+    res2 = ceemx.fit(
+        res.system, data2, states2 + 0.1, trainable=where_theta, max_epochs=3,
+        solver=ceemx.Alternating(),
+    )  # fmt: skip
     assert res2.epochs >= 1
     assert len(traces) == counts[0]
 
@@ -263,7 +266,7 @@ def test_callbacks_merge_records_and_stop(prob):
         before = _blas_threads()
         res = ceemx.fit(
             prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=50,
-            callbacks=[record, nothing, stop_at_3],
+            callbacks=[record, nothing, stop_at_3], solver=ceemx.Alternating(),
         )  # fmt: skip
         after = _blas_threads()
     assert res.epochs == 3

@@ -265,7 +265,7 @@ _NOISE = ("process_noise", "obs_noise")
 
 
 def _noise_origin(result, field: str) -> str:
-    """ " (learned)" — in θ, or by noise rounds (``noise_rounds``) — else " (given)"."""
+    """The noise's origin: learned (in θ, or by noise rounds) or given."""
     return " (learned)" if _learned(result, field) or result.noise_rounds else " (given)"
 
 

@@ -41,7 +41,9 @@ from typing import Literal
 import numpy as np
 
 from ceemx.data.checks import Prepared, promote_tree
+from ceemx.identification.analysis.noise_estimate import start_states
 from ceemx.identification.fitting.fit_options import FitOptions
+from ceemx.identification.fitting.health import check_start
 from ceemx.identification.fitting.noise_rounds import learn_noise
 from ceemx.identification.fitting.result import FitResult
 from ceemx.identification.fitting.run import run_fit
@@ -290,6 +292,8 @@ def fit_default(
     done: list[Stage] = []
     results: list[FitResult] = []
     current = system
+    stop = _CallbackStop()
+    callbacks = tuple(stop.wrap(cb) for cb in options.callbacks)
     for k, stage in enumerate(choice.stages):
         last = k == len(choice.stages) - 1
         opts = dataclasses.replace(
@@ -297,6 +301,7 @@ def fit_default(
             solver=stage.solver,
             diagnose=options.diagnose and last,
             checkpoint=_stage_folder(options.checkpoint, k, stage, len(choice.stages)),
+            callbacks=callbacks,
         )
         data, start = inputs.data, inputs.states
         if stage.part is not None:
@@ -306,6 +311,9 @@ def fit_default(
         if k and stage.part == choice.stages[k - 1].part:  # the same data: its states
             start = results[-1].states
         prepared = Prepared(promote_tree(current, current), data, start)
+        if stage.noise == "learn":
+            # the start judged at the given noise, before the noise estimate adapts to it
+            prepared = _checked_start(current, prepared, opts)
         t0 = time.perf_counter()
         with warnings.catch_warnings(record=not last) as caught:
             if not last:
@@ -327,7 +335,42 @@ def fit_default(
             )
         )
         current = result.system
-    return _merged(results, dataclasses.replace(choice, stages=tuple(done)), t_start)
+        if stop.stopped:  # a callback stopped the fit: no later stage
+            break
+    ran = dataclasses.replace(choice, stages=tuple(done))
+    return _merged(results, ran, t_start)
+
+
+class _CallbackStop:
+    """The user's callbacks, wrapped: once one returns ``False``, every later stage stops."""
+
+    def __init__(self):
+        self.stopped = False
+
+    def wrap(self, callback):
+        def run(info):
+            if self.stopped:  # a later noise round or stage: stop at its first epoch
+                return False
+            out = callback(info)
+            self.stopped = out is False
+            return out
+
+        return run
+
+
+def _checked_start(system: AbstractSystem, inputs: Prepared, options: FitOptions) -> Prepared:
+    """The inputs with their start states, checked at the given noise.
+
+    Refused as :func:`~.run.run_fit` refuses a start
+    (:func:`~ceemx.identification.fitting.health.check_start`), before the noise estimate adapts
+    the noise to it.
+    """
+    states = start_states(inputs)
+    problem, theta = FitProblem.create(
+        inputs.system, inputs.data, trainable=options.trainable, log_prior=options.log_prior
+    )
+    check_start(problem, theta, states)
+    return Prepared(inputs.system, inputs.data, states)
 
 
 def _stage_folder(folder: str | None, k: int, stage: Stage, n: int) -> str | None:
