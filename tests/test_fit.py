@@ -499,7 +499,9 @@ def test_rollout_equals_noise_free_simulation(prob):
 
 @pytest.mark.slow
 def test_fit_without_initial_states(prob):
-    res = ceemx.fit(prob.start, prob.data, trainable=where_theta, max_epochs=3)
+    res = ceemx.fit(
+        prob.start, prob.data, trainable=where_theta, max_epochs=3, solver=ceemx.Alternating()
+    )
     x0 = ceemx.identification.initialize.warm_start(prob.start, prob.data)  # the default start
     assert res.epochs == 3
     np.testing.assert_allclose(
