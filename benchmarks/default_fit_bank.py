@@ -488,7 +488,7 @@ def _stage(result) -> dict:
         "log_evidence": hist.get("log_evidence"),
         "last_relative_change": change,  # of the log-evidence (Laplace EM) or J, last epoch
         "noise": _noise_std(result.system),
-        "path": path,
+        "chosen": path,  # the library's stages (``auto``), else None
     }
 
 
