@@ -1,6 +1,6 @@
 """``fit`` without a solver: the rule that chooses the method, and what the chosen path returns.
 
-The rule (:func:`ceemx.identification.fitting.default_path.choose`) on problem sizes, without
+The rule (:func:`ceemx.identification.fitting.choice.choose`) on problem sizes, without
 compute; the path on a linear-Gaussian model, where the Laplace evidence is the exact (Kalman)
 likelihood: its estimate must be the maximum-likelihood estimate and its standard error the
 inverse observed information of that likelihood — the interval the summary prints is then the
@@ -18,7 +18,7 @@ from kalman_em_reference import kalman_smoother
 from scipy.optimize import minimize_scalar
 
 import ceemx
-from ceemx.identification.fitting.default_path import (
+from ceemx.identification.fitting.choice import (
     LONG_STEPS,
     MAX_JOINT_PARAMETERS,
     choose,

@@ -466,12 +466,9 @@ def fit_summary(
 
 def short_repr(result) -> str:
     """One or two lines: solver, convergence, J, the first parameters; nothing computed."""
-    conv = "converged" if result.converged else "not converged"
     J = result.history[-1]["J"] if result.history else result.initial_J
-    name = type(result.solver).__name__
-    head = (
-        f"FitResult({name}, {conv} after {_count(result.epochs, 'epoch')}, J = {_num(float(J), 6)}"
-    )
+    title = _title(result).removeprefix("Fit summary: ")
+    head = f"FitResult({title}, J = {_num(float(J), 6)}"
     if result.problem is not None and result.theta is not None:
         names = result.problem.parameter_names()
         values = np.asarray(result.problem.natural(result.theta), np.float64)

@@ -19,17 +19,13 @@ from jaxtyping import ArrayLike, PRNGKeyArray
 
 from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
-from ceemx.identification.fitting.default_path import (
-    check_checkpoint,
-    choose,
-    fit_default,
-    problem_facts,
-    user_choice,
-)
+from ceemx.identification.fitting.choice import choose, problem_facts
+from ceemx.identification.fitting.default_path import check_checkpoint, fit_default, user_choice
 from ceemx.identification.fitting.fit_options import fit_options
 from ceemx.identification.fitting.noise_rounds import learn_noise
 from ceemx.identification.fitting.result import EpochInfo, FitResult
 from ceemx.identification.fitting.run import run_fit
+from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.base import AbstractFitSolver
 from ceemx.infra.policy import entry_point
 from ceemx.lib.typing import no_type_check
@@ -104,7 +100,7 @@ def fit(
             :class:`ceemx.JointLM`). ``None`` (default): ``"fixed"`` with a named solver; without
             one, learned wherever the default path can learn it.
 
-    The default path (``solver=None``; :func:`~ceemx.identification.fitting.default_path.choose`,
+    The default path (``solver=None``; :func:`~ceemx.identification.fitting.choice.choose`,
     measured in ``docs/decisions.md``): with at most 200 parameters in θ and Gaussian noise
     models, :class:`ceemx.JointLM` with the noise learned (``noise="fixed"``: as given), then
     :class:`ceemx.LaplaceEM` in θ alone at that noise from the joint fit's θ and states — the
@@ -135,7 +131,10 @@ def fit(
     t0 = time.perf_counter()
     inputs = prepare(system, data, x_init, identify=True)
     if solver is None:
-        choice = choose(noise=noise, **problem_facts(system, inputs, options))
+        problem, theta = FitProblem.create(
+            system, inputs.data, trainable=trainable, log_prior=log_prior
+        )
+        choice = choose(noise=noise, **problem_facts(problem, theta, system, options.spread))
         check_checkpoint(choice, options)
         return fit_default(system, inputs, options, choice)
     result = (

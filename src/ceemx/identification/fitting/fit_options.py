@@ -28,7 +28,8 @@ class FitOptions:
     """Everything :func:`ceemx.fit` was asked besides the system and the data (see its docs).
 
     Attributes:
-        solver: the fit solver (the default :class:`ceemx.Alternating` filled in).
+        solver: the fit solver (``fit`` without one: :class:`ceemx.Alternating` for the checks
+            here; the default path puts each stage's solver in its place).
         mesh: the devices the batch is split over (``None``: no placement).
     """
 
