@@ -60,6 +60,7 @@ def test_long_data_learn_the_noise_on_a_part_and_finish_by_quasi_newton():
     assert choose(parameters=2, steps=(20, 2000)).stages[0].part == (2, 1250)
     assert choose(parameters=2, steps=(1, LONG_STEPS - 1)).stages[0].part is None
     # the noise fixed: nothing to learn on a part, the finish still quasi-Newton
+    assert choose(parameters=2, steps=(4, 25_000), placed=True).stages[0].part is None
     fixed = choose(parameters=2, steps=(1, 100_000), noise="fixed")
     assert fixed.stages[0].part is None and fixed.stages[1].solver.acceleration == "quasi_newton"
 

@@ -152,6 +152,7 @@ def choose(
     gaussian: bool = True,
     trains_noise: bool = False,
     spread: bool = False,
+    placed: bool = False,
 ) -> Choice:
     """The method ``fit`` runs without a solver, from the problem (the rule: module notes).
 
@@ -163,6 +164,8 @@ def choose(
         gaussian: whether both noise models have a closed-form update (can be learned).
         trains_noise: whether ``trainable`` selects a noise model.
         spread: whether the data are spread over several processes.
+        placed: whether the data are placed on several devices (``fit(devices=...)``): the
+            noise is then learned on all of them (a part need not divide among the devices).
 
     Returns:
         The :class:`Choice`.
@@ -208,7 +211,7 @@ def choose(
         )
     learn = noise != "fixed"
     long = B * T >= LONG_STEPS
-    part = coarse_shape(B, T, NOISE_PART_STEPS) if (learn and long) else None
+    part = coarse_shape(B, T, NOISE_PART_STEPS) if (learn and long and not placed) else None
     finish = LaplaceEM(acceleration="quasi_newton") if long else LaplaceEM()
     noise_words = "the noise learned from the data" if learn else "the noise as given"
     reason = (
@@ -225,7 +228,11 @@ def choose(
 
 
 def problem_facts(
-    problem: FitProblem, theta: Theta, system: AbstractSystem, spread: bool = False
+    problem: FitProblem,
+    theta: Theta,
+    system: AbstractSystem,
+    spread: bool = False,
+    placed: bool = False,
 ) -> dict:
     """The keyword arguments of :func:`choose` that come from the problem (all but ``noise``)."""
     noise_models = [getattr(system, f, None) for f in NOISE_FIELDS]
@@ -238,4 +245,5 @@ def problem_facts(
         ),
         "trains_noise": any(problem.trains(f) for f in NOISE_FIELDS),
         "spread": spread,
+        "placed": placed,
     }

@@ -134,7 +134,8 @@ def fit(
         problem, theta = FitProblem.create(
             system, inputs.data, trainable=trainable, log_prior=log_prior
         )
-        choice = choose(noise=noise, **problem_facts(problem, theta, system, options.spread))
+        facts = problem_facts(problem, theta, system, options.spread, options.mesh is not None)
+        choice = choose(noise=noise, **facts)
         check_checkpoint(choice, options)
         return fit_default(system, inputs, options, choice)
     result = (
