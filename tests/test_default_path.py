@@ -233,3 +233,42 @@ def test_a_callback_that_stops_ends_the_whole_path(records):
     )
     assert calls == [1, 2] and not res.converged
     assert _names(res.choice) == [("JointLM", "fixed")]  # the finish never ran
+
+
+class _Unused(ceemx.AbstractSystem):
+    """x⁺ = a·x, y = x, and a parameter b the model never reads: no data determine it."""
+
+    a: jax.Array = ceemx.param()
+    b: jax.Array = ceemx.param()
+
+    @property
+    def state_dim(self) -> int:
+        return 1
+
+    @property
+    def obs_dim(self) -> int:
+        return 1
+
+    def dynamics(self, x, u, t):
+        return self.a * x + 0.0 * self.b
+
+    def observe(self, x, u, t):
+        return x
+
+
+def test_finish_skipped_where_the_joint_covariance_is_not_positive_definite(records):
+    """The Laplace finish cannot judge a direction the data do not determine either: skipped,
+    and the summary says so (the joint fit's estimate and intervals stand)."""
+    start = _Unused(a=jnp.asarray(0.9), b=jnp.asarray(1.0), process_noise=0.3, obs_noise=0.2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the covariance and identifiability name b
+        res = ceemx.fit(start, ceemx.Trajectories(jnp.asarray(records)), noise="fixed")
+        text = " ".join(str(res.summary()).split())
+    finish = res.choice.stages[1]
+    assert finish.skipped is not None and "not positive definite" in finish.skipped
+    assert type(res.solver).__name__ == "JointLM" and res.noise_check is not None
+    assert res.history and {h["stage"] for h in res.history} == {1}
+    assert "LaplaceEM skipped" in text and "intervals certainty-equivalent" in text
+    assert text.splitlines()[0].startswith("Fit summary: JointLM, ") or text.startswith(
+        "Fit summary: JointLM, "
+    )

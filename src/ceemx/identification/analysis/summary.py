@@ -227,7 +227,9 @@ def _choice_facts(result) -> list[tuple[str, str]]:
         facts = [("solver chosen", f"{choice.describe()}, because {choice.reason}")]
     if len(choice.stages) > 1:
         parts = [
-            f"{type(s.solver).__name__} {_count(s.epochs or 0, 'epoch')}, "
+            f"{type(s.solver).__name__} skipped"
+            if getattr(s, "skipped", None)
+            else f"{type(s.solver).__name__} {_count(s.epochs or 0, 'epoch')}, "
             + ("converged" if s.converged else "NOT converged")
             + (f", {s.seconds:.3g} s" if s.seconds is not None else "")
             for s in choice.stages
@@ -236,13 +238,19 @@ def _choice_facts(result) -> list[tuple[str, str]]:
     return facts
 
 
+def _ran(choice) -> list:
+    """The stages of a path that ran (not skipped)."""
+    return [s for s in choice.stages if not getattr(s, "skipped", None)]
+
+
 def _epochs_fact(result) -> str:
     """Epochs, convergence and time: of every stage of a path (its stages' records)."""
     conv = "converged" if result.converged else "NOT converged"
     choice = getattr(result, "choice", None)
     if choice is not None and len(choice.stages) > 1:
-        epochs = sum(s.epochs or 0 for s in choice.stages)
-        text = f"{epochs} in {len(choice.stages)} stages, {conv}"
+        ran = _ran(choice)
+        epochs = sum(s.epochs or 0 for s in ran)
+        text = f"{epochs} in {_count(len(ran), 'stage')}, {conv}"
         return text + (f"; {choice.seconds:.3g} s in all" if choice.seconds is not None else "")
     return f"{result.epochs}, {conv}; {_timing(result)}"
 
@@ -378,9 +386,9 @@ def _md_table(head: Sequence[str], body: Sequence[Sequence[str]], right: set[int
 def _title(result) -> str:
     name, epochs = type(result.solver).__name__, result.epochs
     choice = getattr(result, "choice", None)
-    if choice is not None and len(choice.stages) > 1:  # a path: every stage, every epoch
-        name = " → ".join(type(s.solver).__name__ for s in choice.stages)
-        epochs = sum(s.epochs or 0 for s in choice.stages)
+    if choice is not None and len(choice.stages) > 1:  # a path: every stage run, every epoch
+        name = " → ".join(type(s.solver).__name__ for s in _ran(choice))
+        epochs = sum(s.epochs or 0 for s in _ran(choice))
     conv = "converged" if result.converged else "not converged"
     return f"Fit summary: {name}, {conv} after {_count(epochs, 'epoch')}"
 

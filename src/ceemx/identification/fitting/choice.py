@@ -24,6 +24,10 @@ path"; the measurements behind it in ``docs/decisions.md``):
    noise scales are two numbers, which a part determines to a percent or so; learning them on
    every step costs ten joint fits), and the finish takes quasi-Newton steps
    (``acceleration="quasi_newton"``, after its own coarse start on the first 10 000 steps).
+   The finish is skipped, and says why, when the joint fit's covariance is not positive definite
+   (:func:`~ceemx.identification.fitting.default_path.fit_default`): a noise learned degenerate —
+   a process noise → 0 on data without any — where Laplace EM creeps for its whole epoch budget
+   and its evidence covariance is not finite either.
 
 A solver the user names runs as named; the noise is then the given one unless ``noise="learn"``.
 :class:`Choice` records what was chosen and why (``FitResult.choice``, the summary's "solver"
@@ -90,6 +94,7 @@ class Stage:
             ``None``: all of them.
         epochs, converged, seconds: filled in once the stage has run (epochs of every noise
             round together; seconds of wall time).
+        skipped: why the stage did not run (``None``: it ran, or has not yet).
     """
 
     solver: AbstractFitSolver
@@ -98,6 +103,7 @@ class Stage:
     epochs: int | None = None
     converged: bool | None = None
     seconds: float | None = None
+    skipped: str | None = None
 
     def describe(self, first: bool = True) -> str:
         """E.g. ``"JointLM (noise learned on the first 2500 steps)"``."""
@@ -141,7 +147,10 @@ class Choice:
 
     def describe(self) -> str:
         """The path in words, e.g. "JointLM (noise learned), then LaplaceEM in θ at that noise"."""
-        return ", then ".join(s.describe(i == 0) for i, s in enumerate(self.stages))
+        return ", then ".join(
+            s.describe(i == 0) + (f" — skipped: {s.skipped}" if s.skipped else "")
+            for i, s in enumerate(self.stages)
+        )
 
 
 def choose(

@@ -13,7 +13,10 @@ import os
 import time
 import warnings
 
+import numpy as np
+
 from ceemx.data.checks import Prepared, promote_tree
+from ceemx.identification.analysis.noise_check import NoiseCheckWarning, noise_check
 from ceemx.identification.analysis.noise_estimate import start_states
 from ceemx.identification.fitting.choice import Choice, Noise, Stage, StageNoise
 from ceemx.identification.fitting.fit_options import FitOptions
@@ -24,6 +27,7 @@ from ceemx.identification.fitting.run import run_fit
 from ceemx.identification.noise_moments import NOISE_FIELDS
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.base import AbstractFitSolver
+from ceemx.infra.warn import warn
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["check_checkpoint", "fit_default", "user_choice"]
@@ -113,8 +117,54 @@ def fit_default(
         current = result.system
         if stop.stopped:  # a callback stopped the fit: no later stage
             break
+        why = None if last else _finish_pointless(result)
+        if why is not None:
+            done += [dataclasses.replace(s, skipped=why) for s in choice.stages[k + 1 :]]
+            if options.diagnose:  # this stage's result is the answer: its noise check
+                results[-1] = _with_noise_check(result)
+            break
     ran = dataclasses.replace(choice, stages=tuple(done))
     return _merged(results, ran, t_start)
+
+
+def _finish_pointless(result: FitResult) -> str | None:
+    """Why the Laplace finish would not help after ``result`` (``None``: run it).
+
+    When the joint fit's covariance is not positive definite at the noise it learned, that noise
+    is degenerate for this model and data (a process noise learned → 0 on a record without any):
+    Laplace EM then creeps through its whole epoch budget without converging, and its evidence
+    covariance is not finite either; the joint fit's estimate is the answer, said to be so.
+    """
+    if result.problem is None or result.theta is None or not result.history:
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # its own warning names the directions; the summary too
+        cov = np.asarray(result.covariance(), np.float64)
+    if cov.size and not np.all(np.isfinite(cov)):
+        return (
+            "the joint fit's covariance is not positive definite at the learned noise (a "
+            "degenerate noise, e.g. a process noise → 0), where Laplace EM creeps without "
+            "converging"
+        )
+    return None
+
+
+def _with_noise_check(result: FitResult) -> FitResult:
+    """The result with its end-of-fit noise check (as a last stage makes it; warns likewise)."""
+    problem = result.problem
+    assert problem is not None
+    keep = np.setdiff1d(np.arange(result.states.shape[0]), np.asarray(result.excluded, int))
+    check = noise_check(
+        problem.build(result.theta),
+        problem.data,
+        result.states[keep],
+        weights=result.weights,
+        n_params=int(np.size(result.theta)),
+        converged=bool(result.converged),
+    )
+    if check is not None and check.message:
+        warn(check.message, NoiseCheckWarning)
+    return dataclasses.replace(result, noise_check=check)
 
 
 class _CallbackStop:
