@@ -106,7 +106,8 @@ def fit(
     :class:`ceemx.LaplaceEM` in θ alone at that noise from the joint fit's θ and states — the
     estimate at the maximum of the Laplace evidence, free of the certainty-equivalent bias, and
     intervals of the evidence; on long data (B·T ≥ 40 000) the noise is learned on the first
-    2 500 steps and the finish takes quasi-Newton steps. More than 200 parameters:
+    2 500 steps and the finish takes quasi-Newton steps; the finish is skipped (and the summary
+    says why) where the joint fit's covariance is not positive definite. More than 200 parameters:
     :class:`ceemx.Alternating` at the given noise. ``trainable`` selecting noise models:
     :class:`ceemx.LaplaceEM`. Data over several processes, or noise models that are not
     Gaussian: :class:`ceemx.JointLM` at the given noise. A multi-stage path returns one result
