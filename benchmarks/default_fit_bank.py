@@ -31,8 +31,12 @@ multiplied by 100 on even seeds and by 1/100 on odd seeds (``--noise-factor alte
 default; a number fixes the factor, e.g. 1 for the true noise, and the results go to a file of
 their own). Every fit records the factor, so the two directions are reported apart and together.
 
-Paths (``--path``): ``default`` is ``ceemx.fit(model, data)`` — no solver, noise or tolerance
-option, ``max_epochs`` at the library default; ``jointlm``: ``solver=ceemx.JointLM()``;
+Paths (``--path``): ``auto`` is ``ceemx.fit(model, data)`` — no solver, noise or tolerance
+option, ``max_epochs`` at the library default: the path the library chooses
+(``identification/fitting/default_path.py``; the stages' epochs, flags and times are recorded);
+``default`` is the default before that choice existed, the paper's Algorithm 1 at the given noise
+(``solver=ceemx.Alternating()``, what ``ceemx.fit(model, data)`` ran then); ``jointlm``:
+``solver=ceemx.JointLM()``;
 ``jointlm-learn``: the same with ``noise="learn"``; ``laplace-learn``: ``solver=ceemx.LaplaceEM()``
 with ``trainable`` the model's parameters plus ``process_noise`` and ``obs_noise``;
 ``laplace-learn-500``: the same with ``max_epochs=500`` (is 100 enough?); ``laplace-qn-learn``:
@@ -63,8 +67,9 @@ time per fit (steady state) and the first (compiling) fit's time.
 
 Usage::
 
-    nice -n 10 python benchmarks/default_fit_bank.py --path default --seeds 0-99
-    python benchmarks/default_fit_bank.py --table --path default [--markdown]
+    nice -n 10 python benchmarks/default_fit_bank.py --path auto --seeds 0-99 --jobs 2
+    python benchmarks/default_fit_bank.py --table --path auto [--markdown]
+    python benchmarks/default_fit_bank.py --compare default,auto
 
 Backs: issue 40's test bank ("Must show": the table before and after the new default).
 """
@@ -364,7 +369,8 @@ def _two_stage(first: Callable, laplace: Callable = _laplace):
 
 
 PATHS: dict[str, Callable] = {
-    "default": lambda cfg, s, d: (ceemx.fit(s, d), []),
+    "auto": lambda cfg, s, d: (ceemx.fit(s, d), []),
+    "default": lambda cfg, s, d: (ceemx.fit(s, d, solver=ceemx.Alternating()), []),
     "jointlm": lambda cfg, s, d: (ceemx.fit(s, d, solver=ceemx.JointLM()), []),
     "jointlm-learn": lambda cfg, s, d: (
         ceemx.fit(s, d, solver=ceemx.JointLM(), noise="learn"),
@@ -446,6 +452,24 @@ def _stage(result) -> dict:
     """What one fit (one stage) says: flag, status, epochs, J, its summary's first line."""
     rounds = result.noise_rounds or ()
     epochs = sum(int(r.get("epochs") or 0) for r in rounds) if rounds else result.epochs
+    choice = getattr(result, "choice", None)
+    path = None
+    if choice is not None and len(choice.stages) > 1:  # the library's path: every stage
+        epochs = sum(int(s.epochs or 0) for s in choice.stages)
+        path = {
+            "reason": choice.reason,
+            "stages": [
+                {
+                    "solver": type(s.solver).__name__,
+                    "noise": s.noise,
+                    "part": s.part,
+                    "epochs": s.epochs,
+                    "converged": s.converged,
+                    "seconds": s.seconds,
+                }
+                for s in choice.stages
+            ],
+        }
     hist = result.history[-1] if result.history else {}
     key = "log_evidence" if "log_evidence" in hist else "J"
     trail = [h.get(key) for h in result.history[-2:]]
@@ -464,6 +488,7 @@ def _stage(result) -> dict:
         "log_evidence": hist.get("log_evidence"),
         "last_relative_change": change,  # of the log-evidence (Laplace EM) or J, last epoch
         "noise": _noise_std(result.system),
+        "chosen": path,  # the library's stages (``auto``), else None
     }
 
 
@@ -849,7 +874,7 @@ def compare(files: list[str]) -> None:
 def main() -> None:
     """Run the bank (or print its table)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--path", default="default", choices=sorted(PATHS))
+    ap.add_argument("--path", default="auto", choices=sorted(PATHS))
     ap.add_argument("--models", default=",".join(CONFIGS), help="comma-separated")
     ap.add_argument("--seeds", default="10", help="N (0..N-1), A-B, or a comma list")
     ap.add_argument("--noise-factor", default="alternate", help="'alternate' or a number")

@@ -488,5 +488,5 @@ def test_fit_on_a_folder_in_use_is_refused_before_compute(no_compute, tmp_path):
     """Also within one process: the lock is per open file, and held for the fit's lifetime."""
     with ckpt.lock(str(tmp_path)):
         with raises(ckpt.CheckpointError, "is in use by another fit"):
-            ceemx.fit(decay(), DATA, X0, checkpoint=str(tmp_path))
+            ceemx.fit(decay(), DATA, X0, checkpoint=str(tmp_path), solver=ceemx.Alternating())
     assert os.listdir(tmp_path) == []

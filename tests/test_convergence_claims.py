@@ -121,7 +121,10 @@ def test_data_without_observation_is_refused(solver):
         (lambda: ceemx.JointLM(damping=0.0), "`damping` must be finite and > 0"),
         (lambda: ceemx.LMSmoother(damping=0.0), "`damping` must be finite and > 0"),
         (lambda: ceemx.JointLM(max_trials=2**31), "`max_trials` must be an integer <= 2147483647"),
-        (lambda: ceemx.LMLearner(max_steps=2**32 + 5), "`max_steps` must be an integer <= 2147483647"),
+        (
+            lambda: ceemx.LMLearner(max_steps=2**32 + 5),
+            "`max_steps` must be an integer <= 2147483647",
+        ),
     ],
     ids=["rtol", "rtol-1", "damping-huge", "damping-0", "smoother-damping-0", "int32", "wrap"],
 )

@@ -229,7 +229,7 @@ def test_callbacks_merge_records_and_stop(prob):
         before = _blas_threads()
         res = ceemx.fit(
             prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=50,
-            callbacks=[record, nothing, stop_at_3],
+            callbacks=[record, nothing, stop_at_3], solver=ceemx.Alternating(),
         )  # fmt: skip
         after = _blas_threads()
     assert res.epochs == 3
@@ -402,7 +402,9 @@ def test_rollout_equals_noise_free_simulation(prob):
 
 @pytest.mark.slow
 def test_fit_without_initial_states(prob):
-    res = ceemx.fit(prob.start, prob.data, trainable=where_theta, max_epochs=3)
+    res = ceemx.fit(
+        prob.start, prob.data, trainable=where_theta, max_epochs=3, solver=ceemx.Alternating()
+    )
     x0 = ceemx.identification.initialize.warm_start(prob.start, prob.data)  # the default start
     assert res.epochs == 3
     np.testing.assert_allclose(

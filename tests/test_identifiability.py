@@ -131,7 +131,15 @@ def test_alternating_end_point_names_the_products(records):
     and the end-point analysis names what the data determine."""
     x, data = records
     # Stopped before convergence, the residuals are not yet those of the noise: no noise check.
-    res = ceemx.fit(make(START), data, x, max_epochs=20, progress=False, diagnose=False)
+    res = ceemx.fit(
+        make(START),
+        data,
+        x,
+        max_epochs=20,
+        progress=False,
+        diagnose=False,
+        solver=ceemx.Alternating(),
+    )
     assert not res.converged
     found = res.identifiability
     assert found is not None and not found.stopped and found.determined == ("a·b", "a·c")

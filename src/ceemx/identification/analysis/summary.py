@@ -3,12 +3,16 @@
 :func:`fit_summary` writes, in plain text or Markdown (like statsmodels' ``summary()`` or MATLAB's
 ``present``):
 
-1. one line: the solver, whether it converged and in how many epochs;
+1. one line: the solver (each stage's, for a path of several), whether it converged and in how
+   many epochs;
 2. the trainable parameters, named as written in the system (``M``, ``H[2,3]``,
    ``process_noise.scale``), in natural units: estimate, standard error, the 95 % interval and
    the constraint;
-3. the noise models, J at the start and the end, the data, epochs and time, the trajectories'
-   status;
+3. which solver ran and why (:attr:`FitResult.choice`: the library's rule when ``fit`` was given
+   none — "chosen: …, because …" — or "named by the user"), what the intervals are (the
+   method's :attr:`~ceemx.AbstractFitSolver.uncertainty`: certainty-equivalent or Laplace
+   evidence), the noise models, J at the start and the end, the data, epochs and time, the
+   trajectories' status;
 4. the end-of-fit noise check (:attr:`FitResult.noise_check`) and the identifiability analysis
    (:attr:`FitResult.identifiability`) when the fit recorded them, and, on request
    (``diagnostics=True``), the residual diagnostics of :meth:`FitResult.diagnostics` (an EKF pass
@@ -53,6 +57,7 @@ __all__ = [
     "ParameterRow",
     "Summary",
     "fit_summary",
+    "interval_kind",
     "noise_round_messages",
     "parameter_rows",
     "short_repr",
@@ -271,21 +276,82 @@ def _timing(result) -> str:
     return text
 
 
+def _choice_facts(result) -> list[tuple[str, str]]:
+    """The solver (chosen, and why; or named) and the stages run, from ``result.choice``."""
+    choice = getattr(result, "choice", None)
+    if choice is None:
+        return []
+    if choice.by == "user":
+        facts = [("solver", f"{choice.describe()}, named by the user")]
+    else:
+        facts = [("solver chosen", f"{choice.describe()}, because {choice.reason}")]
+    if len(choice.stages) > 1:
+        parts = [
+            f"{type(s.solver).__name__} skipped"
+            if getattr(s, "skipped", None)
+            else f"{type(s.solver).__name__} {_count(s.epochs or 0, 'epoch')}, "
+            + ("converged" if s.converged else "NOT converged")
+            + (f", {s.seconds:.3g} s" if s.seconds is not None else "")
+            for s in choice.stages
+        ]
+        facts.append(("stages", "; ".join(parts)))
+    return facts
+
+
+def _ran(choice) -> list:
+    """The stages of a path that ran (not skipped)."""
+    return [s for s in choice.stages if not getattr(s, "skipped", None)]
+
+
+def _epochs_fact(result) -> str:
+    """Epochs, convergence and time: of every stage of a path (its stages' records)."""
+    conv = "converged" if result.converged else "NOT converged"
+    choice = getattr(result, "choice", None)
+    if choice is not None and len(choice.stages) > 1:
+        ran = _ran(choice)
+        epochs = sum(s.epochs or 0 for s in ran)
+        text = f"{epochs} in {_count(len(ran), 'stage')}, {conv}"
+        return text + (f"; {choice.seconds:.3g} s in all" if choice.seconds is not None else "")
+    return f"{result.epochs}, {conv}; {_timing(result)}"
+
+
+def interval_kind(result) -> str:
+    """What the parameter table's intervals are, from the solver that made the estimate.
+
+    ``AbstractFitSolver.uncertainty``: ``"evidence"`` (Laplace EM) — the inverse observed
+    information of the Laplace log-evidence, the states integrated out (the noise held at its
+    value unless it is learned in θ); else certainty-equivalent — the Laplace approximation of
+    the joint posterior p(x, θ | y) at the end point.
+    """
+    if getattr(result.solver, "uncertainty", None) == "evidence":
+        held = "" if any(_learned(result, f) for f in _NOISE) else ", the noise held at its value"
+        return f"Laplace evidence (the states integrated out{held})"
+    return "certainty-equivalent (Laplace approximation of p(x, θ | y) at the end point)"
+
+
+_NOISE = ("process_noise", "obs_noise")
+
+
+def _noise_origin(result, field: str) -> str:
+    """The noise's origin: learned (in θ, or by noise rounds) or given."""
+    return " (learned)" if _learned(result, field) or result.noise_rounds else " (given)"
+
+
 def _facts(result) -> list[tuple[str, str]]:
     """Label → value, after the parameter table."""
     system = result.system
     data = None if result.problem is None else result.problem.data
     J = result.history[-1]["J"] if result.history else result.initial_J
     facts = [
+        *_choice_facts(result),
+        ("intervals", interval_kind(result)),
         (
             "process noise",
-            describe_noise(system.process_noise)
-            + (" (learned)" if _learned(result, "process_noise") else " (given)"),
+            describe_noise(system.process_noise) + _noise_origin(result, "process_noise"),
         ),
         (
             "observation noise",
-            describe_noise(system.obs_noise)
-            + (" (learned)" if _learned(result, "obs_noise") else " (given)"),
+            describe_noise(system.obs_noise) + _noise_origin(result, "obs_noise"),
         ),
         ("J (log-likelihood, Eq. 9)", f"{_num(float(J), 8)} (start {_num(result.initial_J, 8)})"),
     ]
@@ -296,8 +362,7 @@ def _facts(result) -> list[tuple[str, str]]:
         if result.excluded:
             text += f"; excluded by the health test: {', '.join(map(str, result.excluded))}"
         facts.append(("data", text))
-    conv = "converged" if result.converged else "NOT converged"
-    facts.append(("epochs", f"{result.epochs}, {conv}; {_timing(result)}"))
+    facts.append(("epochs", _epochs_fact(result)))
     status, _ = _trajectory_lines(result)
     facts.append(("status", status))
     if result.noise_rounds:
@@ -409,9 +474,13 @@ def _md_table(head: Sequence[str], body: Sequence[Sequence[str]], right: set[int
 
 
 def _title(result) -> str:
-    name = type(result.solver).__name__
+    name, epochs = type(result.solver).__name__, result.epochs
+    choice = getattr(result, "choice", None)
+    if choice is not None and len(choice.stages) > 1:  # a path: every stage run, every epoch
+        name = " → ".join(type(s.solver).__name__ for s in _ran(choice))
+        epochs = sum(s.epochs or 0 for s in _ran(choice))
     conv = "converged" if result.converged else "not converged"
-    return f"Fit summary: {name}, {conv} after {_count(result.epochs, 'epoch')}"
+    return f"Fit summary: {name}, {conv} after {_count(epochs, 'epoch')}"
 
 
 def fit_summary(
@@ -497,12 +566,9 @@ def fit_summary(
 
 def short_repr(result) -> str:
     """One or two lines: solver, convergence, J, the first parameters; nothing computed."""
-    conv = "converged" if result.converged else "not converged"
     J = result.history[-1]["J"] if result.history else result.initial_J
-    name = type(result.solver).__name__
-    head = (
-        f"FitResult({name}, {conv} after {_count(result.epochs, 'epoch')}, J = {_num(float(J), 6)}"
-    )
+    title = _title(result).removeprefix("Fit summary: ")
+    head = f"FitResult({title}, J = {_num(float(J), 6)}"
     if result.problem is not None and result.theta is not None:
         names = result.problem.parameter_names()
         values = np.asarray(result.problem.natural(result.theta), np.float64)

@@ -12,8 +12,9 @@ postprocess`` (:mod:`ceemx.identification.solvers`):
   noise check, the :class:`~ceemx.identification.fitting.result.FitResult`.
 
 :mod:`~ceemx.identification.fitting.run` composes them; :mod:`~.noise_rounds` runs rounds of it
-with the noise the data show (``fit(..., noise="learn")``); :mod:`~.driver` holds the public
-:func:`~ceemx.identification.fitting.driver.fit`. The machinery asks the solvers what they can do
-(their class-level capabilities) and imports no concrete solver but the default,
-:class:`ceemx.Alternating`.
+with the noise the data show (``fit(..., noise="learn")``); :mod:`~.choice` chooses the method of
+a ``fit`` without a solver from the problem and :mod:`~.default_path` runs its stages as one
+result; :mod:`~.driver` holds the public :func:`~ceemx.identification.fitting.driver.fit`. The
+machinery asks the solvers what they can do (their class-level capabilities); only the rule in
+:mod:`~.choice` names concrete solvers.
 """

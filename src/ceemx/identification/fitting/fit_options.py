@@ -39,7 +39,8 @@ __all__ = [
 ]
 
 #: ``fit(..., noise=...)``: fit at the system's noise, or learn its two factors from the data
-NOISE_OPTIONS = ("fixed", "learn")
+#: (``None``: learned on the path the library chooses without a solver, else fixed)
+NOISE_OPTIONS = (None, "fixed", "learn")
 #: ``fit(..., checkpoint_mismatch=...)``: on a checkpoint that cannot be resumed
 CHECKPOINT_MISMATCH_OPTIONS = ("raise", "restart")
 
@@ -49,7 +50,8 @@ class FitOptions:
     """Everything :func:`ceemx.fit` was asked besides the system and the data (see its docs).
 
     Attributes:
-        solver: the fit solver (the default :class:`ceemx.Alternating` filled in).
+        solver: the fit solver (``fit`` without one: :class:`ceemx.Alternating` for the checks
+            here; the default path puts each stage's solver in its place).
         mesh: the devices the batch is split over (``None``: no placement).
     """
 
@@ -98,7 +100,7 @@ def fit_options(
     checkpoint = check_path("checkpoint", checkpoint, none=True)
     callbacks = _check_callbacks(callbacks)
     if noise not in NOISE_OPTIONS:
-        raise ValueError(f"`noise` must be 'fixed' or 'learn'; got {noise!r}.")
+        raise ValueError(f"`noise` must be None, 'fixed' or 'learn'; got {noise!r}.")
     if noise == "learn":
         _check_noise_rounds(solver, checkpoint)
     if outliers not in OUTLIER_OPTIONS:

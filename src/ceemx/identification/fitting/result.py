@@ -94,6 +94,10 @@ class FitResult(eqx.Module):
             the assumed noise? (``None`` with
             ``fit(..., diagnose=False)``, when no epoch ran, or for non-Gaussian noise.)
             :meth:`diagnostics` gives the full report.
+        choice: the method that ran and why
+            (:class:`~ceemx.identification.fitting.default_path.Choice`: its stages, each with
+            its epochs, convergence and time, and the reason — the library's rule when ``fit``
+            was given no solver, else "named by the user"); ``None`` for results built by hand.
 
     Parameter uncertainty (:mod:`ceemx.identification.analysis.uncertainty`): :meth:`covariance`,
     :meth:`standard_errors`, :meth:`parameter_estimates` — as the solver declares
@@ -118,6 +122,7 @@ class FitResult(eqx.Module):
     weights: Any = None
     noise_check: NoiseCheck | None = eqx.field(static=True, default=None)
     noise_rounds: tuple = eqx.field(static=True, default=())
+    choice: Any = eqx.field(static=True, default=None)
 
     @property
     def epochs(self) -> int:

@@ -22,6 +22,7 @@ from ceemx.data.checks import Prepared, check_states, prepare
 from ceemx.data.sharding import shard_batch
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.analysis.summary import describe_noise
+from ceemx.identification.fitting.choice import choose, problem_facts
 from ceemx.identification.fitting.fit_options import FitOptions, check_against_start
 from ceemx.identification.fitting.health import (
     Health,
@@ -31,7 +32,6 @@ from ceemx.identification.fitting.health import (
     trajectory_health,
 )
 from ceemx.identification.problem import FitProblem, Trainable
-from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver, FitState, total_J
 from ceemx.infra import checkpoint as ckpt
 from ceemx.infra.compilation import BackgroundCompile, compile_in_background
@@ -321,18 +321,21 @@ def precompile_fit(
     :func:`ceemx.fit` with the same ``system``, ``data`` shapes, ``solver``, ``trainable`` and
     ``log_prior``. ``x_init`` may be ``None`` (the programs depend only on the states' shape and
     dtype). Nothing is computed: only :meth:`AbstractFitSolver.precompile` (no-op for solvers
-    without one). Arguments are validated as by :func:`ceemx.fit`.
+    without one); ``solver=None``: the first stage of the default path
+    (:func:`~ceemx.identification.fitting.choice.choose`). Arguments are validated as by
+    :func:`ceemx.fit`.
 
     Returns:
         The started :class:`~ceemx.infra.compilation.BackgroundCompile`; its ``join()`` runs
         the jobs the worker has not started yet in the calling thread, then waits for the worker.
     """
-    solver = Alternating() if solver is None else solver
-    if not isinstance(solver, AbstractFitSolver):
+    if solver is not None and not isinstance(solver, AbstractFitSolver):
         raise TypeError(f"`solver` must be a fit solver; got {solver!r}.")
     inputs = prepare(system, data, x_init)
     problem, theta = FitProblem.create(
         system, inputs.data, trainable=trainable, log_prior=log_prior
     )
+    if solver is None:  # the default path's first stage on all the data
+        solver = choose(**problem_facts(problem, theta, system)).stages[0].solver
     traced = trace_numbers(solver, inputs.dtype)
     return compile_in_background(traced.precompile(problem, theta, _placeholder(inputs)))

@@ -1,0 +1,227 @@
+"""``fit`` without a solver: the stages :func:`~.choice.choose` picked, run as one result.
+
+:func:`fit_default` runs them one after the other, each from the previous one's θ, noise and
+(on the same data) states, and merges them into one :class:`FitResult`; :func:`user_choice` is
+the record of a fit whose solver the user named; :func:`check_checkpoint` refuses a checkpoint
+where a stage learns the noise (the rule and its reasons: :mod:`~.choice`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+import warnings
+
+import numpy as np
+
+from ceemx.data.checks import Prepared, promote_tree
+from ceemx.identification.analysis.noise_check import NoiseCheckWarning, noise_check
+from ceemx.identification.analysis.noise_estimate import start_states
+from ceemx.identification.fitting.choice import Choice, Noise, Stage, StageNoise
+from ceemx.identification.fitting.fit_options import FitOptions
+from ceemx.identification.fitting.health import check_start
+from ceemx.identification.fitting.noise_rounds import learn_noise
+from ceemx.identification.fitting.result import FitResult
+from ceemx.identification.fitting.run import run_fit
+from ceemx.identification.noise_moments import NOISE_FIELDS
+from ceemx.identification.problem import FitProblem
+from ceemx.identification.solvers.base import AbstractFitSolver
+from ceemx.infra.warn import warn
+from ceemx.models.system import AbstractSystem
+
+__all__ = ["check_checkpoint", "fit_default", "user_choice"]
+
+
+def user_choice(
+    result: FitResult, solver: AbstractFitSolver, noise: Noise | None, seconds: float
+) -> Choice:
+    """The :class:`Choice` of a fit whose solver the user named (run as named), once run."""
+    problem = result.problem
+    learned = problem is not None and any(problem.trains(f) for f in NOISE_FIELDS)
+    kind: StageNoise = "learn" if noise == "learn" else ("parameters" if learned else "fixed")
+    stage = Stage(solver, kind, None, _epochs(result), bool(result.converged), seconds)
+    return Choice((stage,), "named by the user", "user", seconds)
+
+
+def check_checkpoint(choice: Choice, options: FitOptions) -> None:
+    """Refuse ``checkpoint`` for a path that learns the noise (its rounds do not checkpoint)."""
+    if options.checkpoint is not None and choice.learns_noise:
+        raise ValueError(
+            "fit(checkpoint=...) without a solver: the default path learns the noise in rounds "
+            f"of fits, which do not checkpoint ({choice.describe()}). Pass noise='fixed' (each "
+            "stage is then checkpointed in a folder of its own under the checkpoint folder), "
+            "or name a solver, e.g. solver=ceemx.JointLM()."
+        )
+
+
+def fit_default(
+    system: AbstractSystem, inputs: Prepared, options: FitOptions, choice: Choice
+) -> FitResult:
+    """The stages of ``choice``, one after the other, as one :class:`FitResult`.
+
+    Each stage starts from the previous one's system (θ and noise) and, on the same data, its
+    states. The result is the last stage's (its estimate, states, uncertainty and noise check),
+    with every stage's epochs in ``history`` (each record's ``stage``: 1, 2, ...), the noise
+    rounds of the stage that learned the noise, the identifiability record of the last stage
+    that made one, and ``converged`` only when every stage converged. Warnings of an earlier
+    stage are issued when it ends; its own end-of-fit noise check is skipped (the last stage's
+    is the one that speaks for the result).
+    """
+    t_start = time.perf_counter()
+    done: list[Stage] = []
+    results: list[FitResult] = []
+    current = system
+    stop = _CallbackStop()
+    callbacks = tuple(stop.wrap(cb) for cb in options.callbacks)
+    for k, stage in enumerate(choice.stages):
+        last = k == len(choice.stages) - 1
+        opts = dataclasses.replace(
+            options,
+            solver=stage.solver,
+            diagnose=options.diagnose and last,
+            checkpoint=_stage_folder(options.checkpoint, k, stage, len(choice.stages)),
+            callbacks=callbacks,
+        )
+        data, start = inputs.data, inputs.states
+        if stage.part is not None:
+            b, t = stage.part
+            data = data[:b].head(t)
+            start = None if start is None else start[:b, :t]
+        if k and stage.part == choice.stages[k - 1].part:  # the same data: its states
+            start = results[-1].states
+        prepared = Prepared(promote_tree(current, current), data, start)
+        if stage.noise == "learn":
+            # the start judged at the given noise, before the noise estimate adapts to it
+            prepared = _checked_start(current, prepared, opts)
+        t0 = time.perf_counter()
+        with warnings.catch_warnings(record=not last) as caught:
+            if not last:
+                warnings.simplefilter("always")
+            result = (
+                learn_noise(current, prepared, opts)
+                if stage.noise == "learn"
+                else run_fit(current, prepared, opts)
+            )
+        for w in caught or ():
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        results.append(result)
+        done.append(
+            dataclasses.replace(
+                stage,
+                epochs=_epochs(result),
+                converged=bool(result.converged),
+                seconds=time.perf_counter() - t0,
+            )
+        )
+        current = result.system
+        if stop.stopped:  # a callback stopped the fit: no later stage
+            break
+        why = None if last else _finish_pointless(result)
+        if why is not None:
+            done += [dataclasses.replace(s, skipped=why) for s in choice.stages[k + 1 :]]
+            if options.diagnose:  # this stage's result is the answer: its noise check
+                results[-1] = _with_noise_check(result)
+            break
+    ran = dataclasses.replace(choice, stages=tuple(done))
+    return _merged(results, ran, t_start)
+
+
+def _finish_pointless(result: FitResult) -> str | None:
+    """Why the Laplace finish would not help after ``result`` (``None``: run it).
+
+    When the joint fit's covariance is not positive definite at the noise it learned, that noise
+    is degenerate for this model and data (a process noise learned → 0 on a record without any):
+    Laplace EM then creeps through its whole epoch budget without converging, and its evidence
+    covariance is not finite either; the joint fit's estimate is the answer, said to be so.
+    """
+    if result.problem is None or result.theta is None or not result.history:
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # its own warning names the directions; the summary too
+        cov = np.asarray(result.covariance(), np.float64)
+    if cov.size and not np.all(np.isfinite(cov)):
+        return (
+            "the joint fit's covariance is not positive definite at the learned noise (a "
+            "degenerate noise, e.g. a process noise → 0), where Laplace EM creeps without "
+            "converging"
+        )
+    return None
+
+
+def _with_noise_check(result: FitResult) -> FitResult:
+    """The result with its end-of-fit noise check (as a last stage makes it; warns likewise)."""
+    problem = result.problem
+    assert problem is not None
+    keep = np.setdiff1d(np.arange(result.states.shape[0]), np.asarray(result.excluded, int))
+    check = noise_check(
+        problem.build(result.theta),
+        problem.data,
+        result.states[keep],
+        weights=result.weights,
+        n_params=int(np.size(result.theta)),
+        converged=bool(result.converged),
+    )
+    if check is not None and check.message:
+        warn(check.message, NoiseCheckWarning)
+    return dataclasses.replace(result, noise_check=check)
+
+
+class _CallbackStop:
+    """The user's callbacks, wrapped: once one returns ``False``, every later stage stops."""
+
+    def __init__(self):
+        self.stopped = False
+
+    def wrap(self, callback):
+        def run(info):
+            if self.stopped:  # a later noise round or stage: stop at its first epoch
+                return False
+            out = callback(info)
+            self.stopped = out is False
+            return out
+
+        return run
+
+
+def _checked_start(system: AbstractSystem, inputs: Prepared, options: FitOptions) -> Prepared:
+    """The inputs with their start states, checked at the given noise.
+
+    Refused as :func:`~.run.run_fit` refuses a start
+    (:func:`~ceemx.identification.fitting.health.check_start`), before the noise estimate adapts
+    the noise to it.
+    """
+    states = start_states(inputs)
+    problem, theta = FitProblem.create(
+        inputs.system, inputs.data, trainable=options.trainable, log_prior=options.log_prior
+    )
+    check_start(problem, theta, states)
+    return Prepared(inputs.system, inputs.data, states)
+
+
+def _stage_folder(folder: str | None, k: int, stage: Stage, n: int) -> str | None:
+    if folder is None or n == 1:
+        return folder
+    return os.path.join(folder, f"stage-{k + 1}-{type(stage.solver).__name__}")
+
+
+def _epochs(result: FitResult) -> int:
+    """Epochs of a fit, every noise round's together."""
+    if result.noise_rounds:
+        return sum(int(r.get("epochs") or 0) for r in result.noise_rounds)
+    return result.epochs
+
+
+def _merged(results: list[FitResult], choice: Choice, t_start: float) -> FitResult:
+    last = results[-1]
+    history = [{**h, "stage": k + 1} for k, r in enumerate(results) for h in r.history]
+    rounds = next((r.noise_rounds for r in results if r.noise_rounds), ())
+    found = next((r.identifiability for r in reversed(results) if r.identifiability), None)
+    return dataclasses.replace(
+        last,
+        history=history,
+        converged=all(bool(r.converged) for r in results),
+        noise_rounds=rounds,
+        identifiability=found,
+        choice=dataclasses.replace(choice, seconds=time.perf_counter() - t_start),
+    )
