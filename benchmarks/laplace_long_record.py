@@ -338,6 +338,7 @@ def escape() -> None:
     sys.path.insert(0, str(ROOT / "tests"))
     import stiff_model as sm
 
+    import ceemx.identification.analysis.evidence_search as search
     import ceemx.identification.analysis.noise_estimate as noise
 
     _, data, _ = sm.simulate(jax.random.PRNGKey(0), B=2, T=1000)
@@ -351,7 +352,7 @@ def escape() -> None:
 
     for escapes in (3, 0, 3, 0):
         calls[0] = 0
-        noise._ESCAPES, noise.moments_prepared = escapes, counted
+        search._ESCAPES, noise.moments_prepared = escapes, counted
         t0 = time.perf_counter()
         r = ceemx.fit(guess, data, solver=ceemx.JointLM(), noise="learn", max_epochs=300)
         noise.moments_prepared = counting

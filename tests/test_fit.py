@@ -434,7 +434,9 @@ def _float32_problem(prob):
 def test_float32_fit_warns(prob):
     start, data, x_init = _float32_problem(prob)
     with pytest.warns(UserWarning, match="float32") as record:
-        res = ceemx.fit(start, data, x_init, trainable=where_theta, max_epochs=0)
+        res = ceemx.fit(
+            start, data, x_init, trainable=where_theta, max_epochs=0, solver=ceemx.Alternating()
+        )
     # The warning points at the caller, not into ceemx.
     assert any(w.filename == __file__ for w in record if "float32" in str(w.message)), [
         w.filename for w in record

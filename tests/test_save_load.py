@@ -154,7 +154,7 @@ def test_a_fit_result_saves_its_summary_and_data_metadata(tmp_path):
     _, sim = ceemx.simulate(truth, jax.random.PRNGKey(0), jnp.zeros((1, 1)), 20)
     data = sim.with_info(dt=0.5, output_names=("level",), output_units=("V",))
     guess = LinearSystem(jnp.array([[0.5]]), jnp.array([[1.0]]), process_noise=0.1, obs_noise=0.1)
-    result = ceemx.fit(guess, data, max_epochs=1)
+    result = ceemx.fit(guess, data, max_epochs=1, solver=ceemx.Alternating())
     result.save(tmp_path / "fit.ceemx")
     model, info = ceemx.load(tmp_path / "fit.ceemx", with_info=True)
     assert bool(eqx.tree_equal(model, result.system))

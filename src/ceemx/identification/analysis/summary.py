@@ -324,7 +324,9 @@ def interval_kind(result) -> str:
     the joint posterior p(x, θ | y) at the end point.
     """
     if getattr(result.solver, "uncertainty", None) == "evidence":
-        held = "" if any(_learned(result, f) for f in _NOISE) else ", the noise held at its value"
+        problem = result.problem
+        in_theta = problem is not None and any(problem.trains(f) for f in _NOISE)
+        held = "" if in_theta else ", the noise held at its value"
         return f"Laplace evidence (the states integrated out{held})"
     return "certainty-equivalent (Laplace approximation of p(x, θ | y) at the end point)"
 
@@ -334,7 +336,7 @@ _NOISE = ("process_noise", "obs_noise")
 
 def _noise_origin(result, field: str) -> str:
     """The noise's origin: learned (in θ, or by noise rounds) or given."""
-    return " (learned)" if _learned(result, field) or result.noise_rounds else " (given)"
+    return " (learned)" if _learned(result, field) else " (given)"
 
 
 def _facts(result) -> list[tuple[str, str]]:

@@ -108,7 +108,7 @@ class Stage:
     def describe(self, first: bool = True) -> str:
         """E.g. ``"JointLM (noise learned on the first 2500 steps)"``."""
         name = type(self.solver).__name__
-        if isinstance(self.solver, LaplaceEM) and self.solver.acceleration == "quasi_newton":
+        if getattr(self.solver, "acceleration", None) == "quasi_newton":
             name += " (quasi-Newton)"
         where = ""
         if self.part is not None:
@@ -228,11 +228,8 @@ def choose(
         "Laplace-EM finish in θ, which removes the certainty-equivalent bias"
     )
     if long:
-        reason += (
-            f"; long data (≥ {LONG_STEPS} steps): "
-            + ("the noise from their first part, " if part is not None else "")
-            + "quasi-Newton finish"
-        )
+        first = "the noise from their first part, " if part is not None else ""
+        reason += f"; long data (≥ {LONG_STEPS} steps): {first}quasi-Newton finish"
     return Choice((Stage(JointLM(), "learn" if learn else "fixed", part), Stage(finish)), reason)
 
 

@@ -18,7 +18,14 @@ import numpy as np
 from ceemx.data.checks import Prepared, promote_tree
 from ceemx.identification.analysis.noise_check import NoiseCheckWarning, noise_check
 from ceemx.identification.analysis.noise_estimate import start_states
-from ceemx.identification.fitting.choice import Choice, Noise, Stage, StageNoise
+from ceemx.identification.fitting.choice import (
+    Choice,
+    Noise,
+    Stage,
+    StageNoise,
+    choose,
+    problem_facts,
+)
 from ceemx.identification.fitting.fit_options import FitOptions
 from ceemx.identification.fitting.health import check_start
 from ceemx.identification.fitting.noise_rounds import learn_noise
@@ -30,7 +37,21 @@ from ceemx.identification.solvers.base import AbstractFitSolver
 from ceemx.infra.warn import warn
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["check_checkpoint", "fit_default", "user_choice"]
+__all__ = ["check_checkpoint", "fit_default", "fit_named", "run_stages", "user_choice"]
+
+
+def fit_named(
+    system: AbstractSystem, inputs: Prepared, options: FitOptions, noise: Noise | None
+) -> FitResult:
+    """``fit`` with the solver the user named (``options.solver``), run as named.
+
+    One fit at the system's noise, or noise rounds with ``noise="learn"``; the result records
+    the choice (:func:`user_choice`).
+    """
+    t0 = time.perf_counter()
+    result = (learn_noise if noise == "learn" else run_fit)(system, inputs, options)
+    choice = user_choice(result, options.solver, noise, time.perf_counter() - t0)
+    return dataclasses.replace(result, choice=choice)
 
 
 def user_choice(
@@ -56,6 +77,21 @@ def check_checkpoint(choice: Choice, options: FitOptions) -> None:
 
 
 def fit_default(
+    system: AbstractSystem, inputs: Prepared, options: FitOptions, noise: Noise | None
+) -> FitResult:
+    """``fit`` without a solver: the stages :func:`~.choice.choose` picks, as one result.
+
+    ``checkpoint`` is refused before any compute where a stage learns the noise
+    (:func:`check_checkpoint`). Then :func:`run_stages`.
+    """
+    problem, theta = FitProblem.create(system, inputs.data, trainable=options.trainable)
+    placed = options.mesh is not None
+    choice = choose(noise=noise, **problem_facts(problem, theta, system, options.spread, placed))
+    check_checkpoint(choice, options)
+    return run_stages(system, inputs, options, choice)
+
+
+def run_stages(
     system: AbstractSystem, inputs: Prepared, options: FitOptions, choice: Choice
 ) -> FitResult:
     """The stages of ``choice``, one after the other, as one :class:`FitResult`.

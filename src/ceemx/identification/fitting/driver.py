@@ -9,8 +9,6 @@ the library chooses from the problem (:mod:`~ceemx.identification.fitting.defaul
 
 from __future__ import annotations
 
-import dataclasses
-import time
 from collections.abc import Callable, Sequence
 from typing import Any, Literal
 
@@ -19,14 +17,10 @@ from jaxtyping import ArrayLike, PRNGKeyArray
 
 from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
-from ceemx.identification.fitting.choice import choose, problem_facts
-from ceemx.identification.fitting.default_path import check_checkpoint, fit_default, user_choice
+from ceemx.identification.fitting.default_path import fit_default, fit_named
 from ceemx.identification.fitting.fit_options import fit_options
-from ceemx.identification.fitting.noise_rounds import learn_noise
 from ceemx.identification.fitting.result import EpochInfo, FitResult
-from ceemx.identification.fitting.run import run_fit
 from ceemx.identification.fitting.start import require_observations
-from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers.base import AbstractFitSolver
 from ceemx.infra.policy import entry_point
 from ceemx.lib.typing import no_type_check
@@ -68,8 +62,9 @@ def fit(
         solver: the method — :class:`ceemx.Alternating` (the paper's Algorithm 1),
             :class:`ceemx.JointLM`, :class:`ceemx.LaplaceEM` (learns noise covariances) or
             :class:`ceemx.ParticleEM`; its tolerances decide convergence. ``None`` (default):
-            the library chooses from the problem (below, "The default path"), and
-            :attr:`FitResult.choice` and the summary say what and why.
+            chosen from the problem (:mod:`~ceemx.identification.fitting.choice`): up to 200
+            parameters, JointLM with the noise learned, then LaplaceEM in θ at that noise (the
+            evidence's estimate and intervals, free of the CE bias); beyond, Alternating.
         trainable: which leaves learn (``None``: all model arrays except noise and prior; a
             callable ``where(system)`` or a boolean filter pytree). Noise models only with a
             solver that learns noise (:class:`ceemx.LaplaceEM`).
@@ -94,29 +89,10 @@ def fit(
             agree with ``None`` to rounding (several processes: see ``docs/guarantees.md``).
         diagnose: the end-of-fit noise check (:attr:`FitResult.noise_check`; warns when the
             residuals and the assumed noise disagree by more than 2× in standard deviation).
-        noise: ``"fixed"`` fits at the system's noise models; ``"learn"`` learns one
-            factor on each from the data, CE fits alternated with the maximiser of the Laplace
-            log-evidence until they settle (``FitResult.noise_rounds``; ``max_epochs`` bounds
-            each round; not with ``checkpoint``; for :class:`ceemx.Alternating` and
-            :class:`ceemx.JointLM`); the observation noise has floors from the data and
-            never collapses (``docs/guarantees.md``, "Learned noise"). ``None`` (default):
-            ``"fixed"`` with a named solver; without one, learned wherever the default path can
-            learn it.
-
-    The default path (``solver=None``; :func:`~ceemx.identification.fitting.choice.choose`,
-    measured in ``docs/decisions.md``): with at most 200 parameters in θ and Gaussian noise
-    models, :class:`ceemx.JointLM` with the noise learned (``noise="fixed"``: as given), then
-    :class:`ceemx.LaplaceEM` in θ alone at that noise from the joint fit's θ and states — the
-    estimate at the maximum of the Laplace evidence, free of the certainty-equivalent bias, and
-    intervals of the evidence; on long data (B·T ≥ 40 000) the noise is learned on the first
-    2 500 steps and the finish takes quasi-Newton steps; the finish is skipped (and the summary
-    says why) where the joint fit's covariance is not positive definite. More than 200 parameters:
-    :class:`ceemx.Alternating` at the given noise. ``trainable`` selecting noise models:
-    :class:`ceemx.LaplaceEM`. Data over several processes, or noise models that are not
-    Gaussian: :class:`ceemx.JointLM` at the given noise. A multi-stage path returns one result
-    (the last stage's estimate; ``history`` of every stage; converged when every stage
-    converged); with ``checkpoint`` it needs ``noise="fixed"`` (each stage checkpoints in a
-    folder of its own) — the noise rounds do not checkpoint.
+        noise: ``"fixed"``: the system's noise models; ``"learn"``: one factor on each, CE fits
+            alternated with the Laplace-evidence estimate until they settle (``noise_rounds``;
+            ``max_epochs`` per round; no ``checkpoint``); ``None``: learned without a solver. The
+            observation noise has floors from the data (``docs/guarantees.md``, "Learned noise").
 
     Returns:
         A :class:`FitResult`.
@@ -132,21 +108,8 @@ def fit(
     """
     # every option, checked before any compute (the inputs are prepared next)
     options = fit_options(**{k: v for k, v in locals().items() if k not in _INPUTS})
-    t0 = time.perf_counter()
     inputs = prepare(system, data, x_init, identify=True)
     require_observations(inputs.data)  # every solver, every noise mode: before any compute
     if solver is None:
-        problem, theta = FitProblem.create(
-            system, inputs.data, trainable=trainable, log_prior=log_prior
-        )
-        facts = problem_facts(problem, theta, system, options.spread, options.mesh is not None)
-        choice = choose(noise=noise, **facts)
-        check_checkpoint(choice, options)
-        return fit_default(system, inputs, options, choice)
-    result = (
-        learn_noise(system, inputs, options)
-        if noise == "learn"
-        else run_fit(system, inputs, options)
-    )
-    choice = user_choice(result, solver, noise, time.perf_counter() - t0)
-    return dataclasses.replace(result, choice=choice)
+        return fit_default(system, inputs, options, noise)
+    return fit_named(system, inputs, options, noise)
