@@ -227,10 +227,7 @@ def test_callbacks_merge_records_and_stop(prob):
 
     with threadpool_limits(limits=2, user_api="blas"):  # as many as two cores give by default
         before = _blas_threads()
-        res = ceemx.fit(
-            prob.start, prob.data, prob.x_init, trainable=where_theta, max_epochs=50,
-            callbacks=[record, nothing, stop_at_3], solver=ceemx.Alternating(),
-        )  # fmt: skip
+        res = fit_a(prob, max_epochs=50, callbacks=[record, nothing, stop_at_3])
         after = _blas_threads()
     assert res.epochs == 3
     assert not res.converged
