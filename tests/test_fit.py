@@ -445,7 +445,10 @@ def test_float32_fit_warns(prob):
 def test_float32_fit_runs_in_float32(prob):
     start, data, x_init = _float32_problem(prob)
     with pytest.warns(UserWarning, match="float32"):
-        res = ceemx.fit(start, data, x_init, trainable=where_theta, max_epochs=1, **NO_NOISE_CHECK)
+        res = ceemx.fit(
+            start, data, x_init, trainable=where_theta, max_epochs=1,
+            solver=ceemx.Alternating(), **NO_NOISE_CHECK,
+        )  # fmt: skip
     assert res.epochs == 1
     assert res.states.dtype == jnp.float32
     assert res.system.sigma.dtype == jnp.float32
