@@ -100,6 +100,6 @@ class LaplaceNoise(AbstractNoise):
         var = 2.0 * np.broadcast_to(np.asarray(self.scale, float) ** 2, (self.dim,))
         return np.diagonal(second_moment) / var
 
-    def scale_parameters(self) -> Array:
-        """``scale`` (so :meth:`scaled` multiplies it)."""
+    def scale_parameters(self) -> Any:
+        """``scale`` (``Any``: ``eqx.tree_at`` calls it on placeholders)."""
         return self.scale

@@ -215,7 +215,7 @@ class AbstractNoise(eqx.Module):
             )
         return self.with_scale_parameters(s * c)
 
-    def scale_parameters(self) -> Array | None:
+    def scale_parameters(self) -> Any:
         """The leaf of per-component scales that parameterises the model, else ``None``.
 
         Scales in the sense of a location-scale family (standard deviations for a Gaussian),
@@ -393,8 +393,8 @@ class DiagonalGaussian(AbstractGaussianNoise):
                 scale = jnp.where(moments.present, scale, jnp.broadcast_to(old, scale.shape))
         return DiagonalGaussian(scale.astype(old.dtype).reshape(old.shape), self.dim)
 
-    def scale_parameters(self) -> Array:
-        """``scale``."""
+    def scale_parameters(self) -> Any:
+        """``scale`` (typed ``Any``: ``eqx.tree_at`` calls it on a tree of placeholders)."""
         return self.scale
 
 

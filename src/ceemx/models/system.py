@@ -38,6 +38,10 @@ class GaussianPrior(eqx.Module):
     mean: State
     noise: AbstractNoise
 
+    def __init__(self, mean: ArrayLike, noise: AbstractNoise):
+        self.mean = jnp.asarray(mean)
+        self.noise = noise
+
     def nll(self, x1: State) -> Scalar:
         """−log p(x₁)."""
         return self.noise.nll(x1 - self.mean)

@@ -20,6 +20,7 @@ from ceemx.data.sharding import resolve_devices
 from ceemx.identification.fitting.health import OUTLIER_OPTIONS
 from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver
+from ceemx.infra.distributed import to_host
 from ceemx.infra.options import (
     check_bool,
     check_callable,
@@ -217,7 +218,7 @@ def check_against_start(
         if rho is None or not misfit > 0:
             continue
         rho = float(rho)
-        values = np.asarray(held)
+        values = to_host(held)
         scale = max(1.0, float(np.max(np.abs(values)))) if values.size else 1.0
         rounding = float(np.finfo(values.dtype).eps) * scale
         with np.errstate(divide="ignore"):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
@@ -18,7 +18,7 @@ from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_key, check_nonnegative
 from ceemx.infra.policy import entry_point
 from ceemx.lib.tree import trace_numbers
-from ceemx.lib.typing import PerTrajectory, Theta
+from ceemx.lib.typing import Theta
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["learn", "run_learner"]
@@ -42,7 +42,7 @@ def learn(
     trainable=None,
     rho_theta: float = 0.0,
     log_prior: Callable[[AbstractSystem], Any] | None = None,
-    weights: PerTrajectory | None = None,
+    weights: ArrayLike | Sequence[float] | None = None,
     learner_state: Any = None,
     key: PRNGKeyArray | None = None,
 ) -> tuple[AbstractSystem, Any, LearnInfo]:
