@@ -276,21 +276,32 @@ def describe_null_space(
                 f"data ({', '.join(gnames)} individually are not)"
             )
             continue
-        for u in U.T:
-            d = u * natural[group]
-            d = d / d[np.argmax(np.abs(d))]
-            ratio = " : ".join(_number(v) for v in d)
-            deltas = " : ".join(f"Δ{n}" for n in gnames)
-            sentences.append(
-                f"the data do not determine {_listing(gnames)} along {deltas} = {ratio} "
-                "(natural units)"
-            )
-    if len(sentences) > MAX_SENTENCES:
-        rest = len(sentences) - MAX_SENTENCES + 1
-        sentences = sentences[: MAX_SENTENCES - 1] + [
-            f"{rest} more groups of parameters are not determined by the data (the analysis's "
-            "`undetermined` lists every parameter)"
-        ]
+        sentences += _direction_sentences(U, gnames, natural[group])
     return NullSpaceNames(
-        "; ".join(sentences), tuple(determined), tuple(exponents), tuple(undetermined)
+        "; ".join(_bounded(sentences)), tuple(determined), tuple(exponents), tuple(undetermined)
     )
+
+
+def _direction_sentences(U: np.ndarray, names: Sequence[str], natural: np.ndarray) -> list[str]:
+    """One sentence per null direction ``U[:, j]`` of a group, as a ratio in natural units."""
+    sentences = []
+    deltas = " : ".join(f"Δ{n}" for n in names)
+    for u in U.T:
+        d = u * natural
+        d = d / d[np.argmax(np.abs(d))]
+        ratio = " : ".join(_number(v) for v in d)
+        sentences.append(
+            f"the data do not determine {_listing(names)} along {deltas} = {ratio} (natural units)"
+        )
+    return sentences
+
+
+def _bounded(sentences: list[str]) -> list[str]:
+    """At most :data:`MAX_SENTENCES` sentences, the rest counted in the last."""
+    if len(sentences) <= MAX_SENTENCES:
+        return sentences
+    rest = len(sentences) - MAX_SENTENCES + 1
+    return sentences[: MAX_SENTENCES - 1] + [
+        f"{rest} more groups of parameters are not determined by the data (the analysis's "
+        "`undetermined` lists every parameter)"
+    ]

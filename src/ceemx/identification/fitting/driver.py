@@ -76,9 +76,8 @@ def fit(
         checkpoint: folder the state is written to atomically after every epoch, and resumed
             from when it holds a checkpoint of the same fit (``docs/guarantees.md``); held by
             this fit alone (a lock on its ``.lock`` file) until it returns.
-        checkpoint_mismatch: for a checkpoint of another fit, corrupt or not finite:
-            ``"raise"`` a :class:`ceemx.infra.checkpoint.CheckpointError` naming what differs, or
-            ``"restart"`` (warn, start afresh, overwrite it).
+        checkpoint_mismatch: for a checkpoint of another fit, corrupt or not finite: ``"raise"``
+            a ``CheckpointError`` naming what differs, or ``"restart"`` (warn, overwrite it).
         key: PRNG key for stochastic solvers and learners (default ``PRNGKey(0)``).
         outliers: the start-of-fit health test (:mod:`ceemx.identification.fitting.health`):
             ``"exclude"`` (default) fits without the trajectories whose residuals are far
@@ -103,8 +102,7 @@ def fit(
             ``checkpoint`` folder, or a checkpoint that cannot be resumed.
 
     Example:
-        >>> result = ceemx.fit(guess, data, solver=ceemx.JointLM(), trainable=lambda s: s.rho)
-        ... # doctest: +SKIP
+        >>> result = ceemx.fit(guess, data, trainable=lambda s: s.rho)  # doctest: +SKIP
     """
     # every option, checked before any compute (the inputs are prepared next)
     options = fit_options(**{k: v for k, v in locals().items() if k not in _INPUTS})
