@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -248,19 +249,28 @@ def _built_in(name):
 
 @pytest.mark.slow
 def test_diagnostics_of_a_laplace_fit_whose_every_trajectory_failed():
-    """A state neither observed nor pinned: every E-step fails; diagnostics() says why."""
-    system = ceemx.systems.LinearSystem(
+    """A state neither observed nor pinned: the fit is refused at its start; a fit whose every
+    trajectory failed later has no residuals, and diagnostics() says why."""
+    unobservable = ceemx.systems.LinearSystem(
         f64(np.diag([0.9, 1.0])), f64(C), process_noise=f64(0.1), obs_noise=f64(0.1)
     )
+    x, data = ceemx.simulate(unobservable, jax.random.PRNGKey(0), jnp.ones((2, 2)), 30)
+    with (
+        pytest.raises(ValueError, match="the fit cannot start: LaplaceEM"),
+        warnings.catch_warnings(),
+    ):
+        warnings.simplefilter("ignore")  # the failed E-step is also warned about
+        ceemx.fit(unobservable, data, x, solver=ceemx.LaplaceEM(), trainable=lambda s: s.A)
+    system = ceemx.systems.LinearSystem(
+        f64(np.diag([0.9, 0.8])), f64(np.eye(2)), process_noise=f64(0.1), obs_noise=f64(0.1)
+    )
     x, data = ceemx.simulate(system, jax.random.PRNGKey(0), jnp.ones((2, 2)), 30)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = ceemx.fit(
-            system, data, x, solver=ceemx.LaplaceEM(), trainable=lambda s: s.A, max_epochs=2
-        )
-    assert not np.any(np.asarray(res.weights) > 0)
-    with pytest.raises(ValueError, match="not finite at the initial point"):
-        res.diagnostics()
+    res = ceemx.fit(
+        system, data, x, solver=ceemx.LaplaceEM(), trainable=lambda s: s.A, max_epochs=1
+    )
+    failed = eqx.tree_at(lambda r: r.weights, res, jnp.zeros_like(res.weights))
+    with pytest.raises(ValueError, match="no trajectory of this fit has a usable end point"):
+        failed.diagnostics()
 
 
 # --------------------------------------------------------------------------------------------

@@ -100,9 +100,8 @@ def test_learned_noise_does_not_collapse_on_the_hysteretic_record():
 )
 def test_learned_noise_on_the_encoder_record_at_full_size(solver, max_epochs):
     # 2 048 samples, the position read by a 5e-8 m encoder. Whatever the solver, the learned σ_v
-    # is never below what the encoder can show, and a fit that says converged free-runs like one
-    # at the nominal noise (the default solver, Algorithm 1, before the floors: σ_v = 1.1e-10 m,
-    # "converged", free run 4.2e-5 m; now it does not converge at the noise given and says so).
+    # is never below what the encoder can show, and a fit that says converged free-runs within a
+    # few encoder steps (a collapsed σ_v = 1.1e-10 m "converged" and free-ran at 4.2e-5 m).
     bw, data, test = _records(2048)
     guess = bw.make(bw.perturbed(1))
     with warnings.catch_warnings():
@@ -110,8 +109,8 @@ def test_learned_noise_on_the_encoder_record_at_full_size(solver, max_epochs):
         warnings.simplefilter("ignore", ceemx.NoiseCheckWarning)
         r = ceemx.fit(guess, data, solver=solver, noise="learn", max_epochs=max_epochs)
     assert _obs_std(r.system) >= QUANTUM / np.sqrt(12) * (1 - 1e-9)
-    if r.converged:
-        assert _free_run_rmse(r.system, test) < 1e-7
+    if r.converged:  # collapsed: 4.2e-5 m; the estimates' last 0.1 % moves it by encoder steps
+        assert _free_run_rmse(r.system, test) < 3e-7
     if solver is not None:  # JointLM: σ_v at the encoder's quantum, in 2 rounds (before: 5,
         # three of them at the degenerate estimate)
         assert r.converged and len(r.noise_rounds) - 1 <= 3

@@ -18,7 +18,7 @@ from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_key, check_nonnegative
 from ceemx.infra.policy import entry_point
 from ceemx.lib.tree import trace_numbers
-from ceemx.lib.typing import Theta
+from ceemx.lib.typing import PerTrajectory, Theta
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["learn", "run_learner"]
@@ -95,7 +95,7 @@ def learn(
     return problem.build(theta_new), learner_state, info
 
 
-def _check_weights(weights, B: int):
+def _check_weights(weights, B: int) -> PerTrajectory | None:
     """``weights`` as (B,) finite non-negative floats (``None`` passes), or raise naming them."""
     if weights is None:
         return None
@@ -107,4 +107,4 @@ def _check_weights(weights, B: int):
         raise ValueError(
             f"`weights` must be (B,) = ({B},) finite numbers >= 0; got shape {w.shape}: {w!r:.80}."
         )
-    return weights
+    return jnp.asarray(weights)
