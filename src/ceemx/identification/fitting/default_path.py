@@ -118,6 +118,7 @@ def run_stages(
             diagnose=options.diagnose and last,
             checkpoint=_stage_folder(options.checkpoint, k, stage, len(choice.stages)),
             callbacks=callbacks,
+            progress_label=f"stage {k + 1}/{len(choice.stages)}" if len(choice.stages) > 1 else "",
         )
         data, start = inputs.data, inputs.states
         if stage.part is not None:

@@ -54,6 +54,8 @@ class FitOptions:
         solver: the fit solver (``fit`` without one: :class:`ceemx.Alternating` for the checks
             here; the default path puts each stage's solver in its place).
         mesh: the devices the batch is split over (``None``: no placement).
+        progress_label: which part of a longer fit this is, for the progress display
+            (``"stage 1/2, noise round 2"``; ``""``: the whole fit).
     """
 
     solver: AbstractFitSolver
@@ -68,6 +70,7 @@ class FitOptions:
     outliers: str = "exclude"
     mesh: Mesh | None = None
     diagnose: bool = True
+    progress_label: str = ""
 
     @property
     def spread(self) -> bool:

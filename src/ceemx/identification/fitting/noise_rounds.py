@@ -90,7 +90,9 @@ def learn_noise(
         clock = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:  # the last round's are re-issued
             warnings.simplefilter("always")
-            result = run_fit(system, Prepared(promote_tree(system, system), data, states), options)
+            label = ", ".join(s for s in (options.progress_label, f"noise round {k}") if s)
+            opts = dataclasses.replace(options, progress_label=label)
+            result = run_fit(system, Prepared(promote_tree(system, system), data, states), opts)
         last = list(caught)
         fitted = _with_noise_of(result.system, guess)
         new, new_nm, _ = estimate_noise_prepared(fitted, data, result.states)
