@@ -170,9 +170,7 @@ def test_model_refusals_are_one_line(capsys, folder):
     assert "building the model with c: make() got an unexpected keyword" in refused(capsys, args)
     args = fit_args(folder, "--dt", "4")
     args[args.index("--inputs") : args.index("--inputs") + 2] = []
-    assert "the fit refused: `data.u` has p = 0 but the system takes p = 1" in refused(
-        capsys, args
-    )
+    assert "the fit refused: `data.u` has p = 0 but the system takes p = 1" in refused(capsys, args)
 
 
 # ----------------------------------------------------------------------------------------------
