@@ -48,7 +48,10 @@ from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype
 
 __all__ = [
     "FitProblem",
+    "Overrides",
     "Trainable",
+    "leaf_constraints_with",
+    "leaf_names",
     "per_trajectory_nll",
     "per_trajectory_offset",
     "split_system",
@@ -57,10 +60,16 @@ __all__ = [
 
 Trainable = Callable[[AbstractSystem], Any] | PyTree | None
 """Which leaves of a system learn: see :func:`trainable_mask`."""
+Overrides = tuple[tuple[str, AbstractConstraint], ...]
+"""Per-fit constraints: ``(leaf name, constraint)`` pairs (:func:`leaf_constraints_with`)."""
 
 
 def trainable_mask(
-    system: AbstractSystem, trainable: Trainable = None, *, noise: bool = False
+    system: AbstractSystem,
+    trainable: Trainable = None,
+    *,
+    noise: bool = False,
+    overrides: Overrides = (),
 ) -> PyTree:
     """A boolean pytree over ``system`` marking the leaves that learn.
 
@@ -75,12 +84,14 @@ def trainable_mask(
             :class:`ceemx.LaplaceEM`, which learns noise covariances:
             ``fit(model, data, solver=ceemx.LaplaceEM(), trainable=trainable_mask(model,
             noise=True))``).
+        overrides: per-fit constraints by leaf name (:func:`leaf_constraints_with`); a
+            :class:`~ceemx.models.constraints.Fixed` one holds its leaf.
 
     Returns:
         Booleans with the structure of ``system``. Leaves of fields declared
         ``ceemx.param(fixed=True)`` are always ``False``, whatever ``trainable`` selects.
     """
-    mask = _drop_fixed(system, _selected(system, trainable))
+    mask = _drop_fixed(system, _selected(system, trainable), overrides)
     if noise:
         on = tuple(
             jtu.tree_map(eqx.is_inexact_array, getattr(system, f))
@@ -114,7 +125,7 @@ def _selected(system: AbstractSystem, trainable: Trainable) -> PyTree:
     return trainable
 
 
-def _drop_fixed(system: AbstractSystem, mask: PyTree) -> PyTree:
+def _drop_fixed(system: AbstractSystem, mask: PyTree, overrides: Overrides = ()) -> PyTree:
     """``mask`` (a filter spec, possibly a prefix of ``system``) per leaf, with fixed leaves off."""
     leaves, treedef = jtu.tree_flatten(system)
     if not leaves:
@@ -125,7 +136,7 @@ def _drop_fixed(system: AbstractSystem, mask: PyTree) -> PyTree:
 
     full = jtu.tree_map(broadcast, mask, system, is_leaf=lambda v: v is None)
     flags = treedef.flatten_up_to(full)
-    constraints = leaf_constraints(system)
+    constraints = leaf_constraints_with(system, overrides)
     kept = [bool(f) and c.trainable for f, c in zip(flags, constraints, strict=True)]
     return jtu.tree_unflatten(treedef, kept)
 
@@ -143,10 +154,32 @@ def split_system(
     return theta, params, static
 
 
-def _trainable_constraints(system: AbstractSystem, mask: PyTree) -> list[AbstractConstraint]:
+def leaf_names(system: Any) -> list[str]:
+    """The name of each leaf of ``system`` as written: ``k``, ``physics.k``, ``obs_noise.scale``."""
+    paths = jtu.tree_flatten_with_path(system)[0]
+    return [jtu.keystr(path).removeprefix(".") for path, _ in paths]
+
+
+def leaf_constraints_with(system: AbstractSystem, overrides: Overrides) -> list[AbstractConstraint]:
+    """Each leaf's constraint: the class's (:func:`ceemx.param`), or the per-fit one of its name.
+
+    ``overrides``: ``(name, constraint)`` pairs, names as :func:`leaf_names` writes them
+    (``fit(..., bounds=..., fixed=...)``: :mod:`ceemx.identification.fitting.overrides`).
+    """
+    constraints = leaf_constraints(system)
+    if not overrides:
+        return constraints
+    given = dict(overrides)
+    return [given.get(n, c) for n, c in zip(leaf_names(system), constraints, strict=True)]
+
+
+def _trainable_constraints(
+    system: AbstractSystem, mask: PyTree, overrides: Overrides = ()
+) -> list[AbstractConstraint]:
     """The constraint of each trainable leaf, in the order of the trainable sub-tree's leaves."""
     flags = jtu.tree_structure(system).flatten_up_to(mask)
-    return [c for f, c in zip(flags, leaf_constraints(system), strict=True) if f]
+    every = leaf_constraints_with(system, overrides)
+    return [c for f, c in zip(flags, every, strict=True) if f]
 
 
 def _trainable_names(system: AbstractSystem, mask: PyTree) -> list[str]:
@@ -288,6 +321,8 @@ class FitProblem(eqx.Module):
         log_prior: ``None`` or a callable on the system returning log p(θ) (natural units).
         constraints: the constraint of each leaf of ``template``, in leaf order (θ's entries map
             to natural values through their ``forward``).
+        overrides: the per-fit constraints by leaf name it was created with
+            (:func:`leaf_constraints_with`; kept for the problems derived from it).
     """
 
     template: Any
@@ -295,6 +330,7 @@ class FitProblem(eqx.Module):
     data: Trajectories
     log_prior: Callable[[AbstractSystem], Any] | None = eqx.field(static=True, default=None)
     constraints: tuple[AbstractConstraint, ...] = eqx.field(static=True, default=())
+    overrides: Overrides = eqx.field(static=True, default=())
 
     @classmethod
     def create(
@@ -304,6 +340,7 @@ class FitProblem(eqx.Module):
         *,
         trainable: Trainable = None,
         log_prior: Callable[[AbstractSystem], Any] | None = None,
+        overrides: Overrides = (),
     ) -> tuple[FitProblem, Theta]:
         """The problem and the flat, unconstrained θ of ``system``'s trainable leaves.
 
@@ -312,9 +349,10 @@ class FitProblem(eqx.Module):
                 (host-side; skipped for traced values); when ``trainable`` selects nothing.
         """
         check_constraints(system)
-        mask = trainable_mask(system, trainable)
+        overrides = tuple(overrides)
+        mask = trainable_mask(system, trainable, overrides=overrides)
         params, static = eqx.partition(system, mask)
-        constraints = tuple(_trainable_constraints(system, mask))
+        constraints = tuple(_trainable_constraints(system, mask, overrides))
         # Strongly typed θ, template and fixed leaves: a weakly typed leaf (e.g. a noise scale
         # given as a Python float) would make the second epoch, whose θ comes back from a solver
         # strongly typed, compile again, and the problem's system a different program from the
@@ -336,7 +374,7 @@ class FitProblem(eqx.Module):
         ):
             check_room(c, x, z, where, back=b)
         check_log_prior(log_prior, system)
-        return cls(template, static, data, log_prior, constraints), theta
+        return cls(template, static, data, log_prior, constraints, overrides), theta
 
     def with_data(self, data: Trajectories) -> FitProblem:
         """This problem over other data of the same shape of model (θ's layout, prior kept).

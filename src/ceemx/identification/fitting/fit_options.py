@@ -56,6 +56,8 @@ class FitOptions:
         mesh: the devices the batch is split over (``None``: no placement).
         progress_label: which part of a longer fit this is, for the progress display
             (``"stage 1/2, noise round 2"``; ``""``: the whole fit).
+        overrides: the per-fit constraints of ``fit(..., bounds=, fixed=)`` by leaf name
+            (:mod:`ceemx.identification.fitting.overrides`).
     """
 
     solver: AbstractFitSolver
@@ -71,6 +73,7 @@ class FitOptions:
     mesh: Mesh | None = None
     diagnose: bool = True
     progress_label: str = ""
+    overrides: tuple = ()
 
     @property
     def spread(self) -> bool:
