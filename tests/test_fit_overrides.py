@@ -19,8 +19,8 @@ from ceemx.models.constraints import Fixed, GreaterThan, Interval, LessThan, Pos
 class Decay(ceemx.AbstractSystem):
     """x⁺ = a x + b u, y = c x; a positive (class constraint), c an observation gain."""
 
-    a: Array = ceemx.param(positive=True)
-    b: Array = ceemx.param()
+    a: Array = ceemx.param(positive=True, unit="1", description="level kept per sample")
+    b: Array = ceemx.param(unit="V/V")
     c: Array = ceemx.param()
     g: Array = ceemx.param(fixed=True, default=1.0)
 
@@ -73,6 +73,18 @@ def test_overrides_set_values_and_constraints():
     assert leaf_constraints_with(start(), ())[-4] == Positive()
 
 
+def test_units_and_descriptions_per_entry():
+    """``ceemx.param(unit=, description=)``: one label per entry of θ, fixed fields left out."""
+    from ceemx.identification.problem import FitProblem
+
+    data = ceemx.Trajectories.from_arrays(np.zeros(10), np.zeros(10))
+    system, overrides = apply_overrides(start(), None, {"c": None})
+    problem, _ = FitProblem.create(system, data, overrides=overrides)
+    assert problem.parameter_labels(system) == [("1", "level kept per sample"), ("V/V", "")]
+    with pytest.raises(TypeError, match="`unit` must be a string"):
+        ceemx.param(unit=3)
+
+
 @pytest.mark.parametrize(
     ("bounds", "fixed", "says"),
     [
@@ -123,7 +135,11 @@ def test_bounded_and_fixed_fit():
     )
     assert 0.79 < float(named.system.a) < 0.8
     assert float(named.system.c) == 1.0 and float(named.system.g) == 1.0
-    assert "in (0, 0.8)" in named.summary(uncertainty=False)
+    text = named.summary(uncertainty=False)
+    assert "in (0, 0.8)" in text and "a: level kept per sample" in text
+    assert text.splitlines()[2].split() == [
+        "parameter", "estimate", "unit", "std.", "error", "95", "%", "interval", "constraint"
+    ]  # fmt: skip
     with pytest.warns(UserWarning, match="weakly determined: a"):  # a sits on its bound
         assert set(named.parameter_estimates()) == {"a", "b[0]"}
     free = ceemx.fit(start(), data, **{**kwargs, "bounds": {"a": (0.0, 0.95)}})

@@ -41,6 +41,7 @@ from ceemx.models.constraints import (
     AbstractConstraint,
     Positive,
     Unconstrained,
+    label_at,
     leaf_constraints,
 )
 from ceemx.models.noise import AbstractNoise
@@ -452,6 +453,19 @@ class FitProblem(eqx.Module):
                     for i in itertools.product(*map(range, shape))
                 ]
         return names
+
+    def parameter_labels(self, system: AbstractSystem) -> list[tuple[str, str]]:
+        """``(unit, description)`` per entry of θ, from the :func:`ceemx.param` of each field.
+
+        ``system``: a system of this problem (the labels are class metadata; the template's
+        leaves no longer carry the classes' fields where a constraint rebuilt them).
+        """
+        mask = jtu.tree_map(lambda v: v is not None, self.template, is_leaf=lambda v: v is None)
+        params, _ = eqx.partition(system, mask)
+        out: list[tuple[str, str]] = []
+        for path, leaf in jtu.tree_flatten_with_path(params)[0]:
+            out += [label_at(system, path)] * int(np.size(leaf))
+        return out
 
     def trains(self, field: str) -> bool:
         """Whether any leaf of the system's top-level ``field`` (e.g. ``"obs_noise"``) is in θ."""

@@ -55,6 +55,9 @@ from ceemx.lib.tree import as_jax
 
 __all__ = [
     "CONSTRAINT_KEY",
+    "DESCRIPTION_KEY",
+    "UNIT_KEY",
+    "label_at",
     "AbstractConstraint",
     "Fixed",
     "GreaterThan",
@@ -70,6 +73,10 @@ __all__ = [
 
 CONSTRAINT_KEY = "ceemx.constraint"
 """The dataclass-metadata key under which :func:`param` stores a field's constraint."""
+UNIT_KEY = "ceemx.unit"
+"""The key of a :func:`param`'s unit (the summary's unit column)."""
+DESCRIPTION_KEY = "ceemx.description"
+"""The key of a :func:`param`'s description (named under the summary's table)."""
 
 
 def _softplus(z):
@@ -331,6 +338,8 @@ else:
         fixed: bool = False,
         constraint: AbstractConstraint | None = None,
         converter: Callable[[Any], Any] | None = _as_parameter,
+        unit: str | None = None,
+        description: str | None = None,
         **field_kwargs: Any,
     ) -> Any:
         """A system field that is a parameter, with an optional constraint (an ``eqx.field``).
@@ -345,6 +354,8 @@ else:
             converter: applied to the value when the system is built (Equinox converter); the
                 default turns numbers and integer or NumPy arrays into floating JAX arrays (Python
                 scalars stay weakly typed) and leaves sub-modules alone. ``None``: no conversion.
+            unit: the parameter's unit, e.g. ``"1/s"`` (the summary's unit column).
+            description: what it is, in a few words (the summary's notes name it).
             **field_kwargs: passed to ``eqx.field`` (``default``, ``default_factory``, ``metadata``,
                 ...).
 
@@ -394,6 +405,11 @@ else:
             c = Unconstrained()
         metadata = dict(field_kwargs.pop("metadata", {}))
         metadata[CONSTRAINT_KEY] = c
+        for key, text in ((UNIT_KEY, unit), (DESCRIPTION_KEY, description)):
+            if text is not None:
+                if not isinstance(text, str):
+                    raise TypeError(f"`{key.split('.')[-1]}` must be a string; got {text!r}.")
+                metadata[key] = text
         return eqx.field(converter=converter, metadata=metadata, **field_kwargs)
 
 
@@ -432,6 +448,31 @@ def constraint_at(tree: Any, path: tuple) -> AbstractConstraint:
         if not ok:
             break
     return _UNCONSTRAINED
+
+
+def label_at(tree: Any, path: tuple) -> tuple[str, str]:
+    """``(unit, description)`` of the leaf at key ``path`` of ``tree`` (``""`` where none).
+
+    From the :func:`param` of the outermost field above the leaf, as for its constraint.
+    """
+    node = tree
+    for key in path:
+        if isinstance(node, eqx.Module) and isinstance(key, jtu.GetAttrKey):
+            meta = _field_metadata(node, key.name)
+            if CONSTRAINT_KEY in meta:
+                return meta.get(UNIT_KEY, ""), meta.get(DESCRIPTION_KEY, "")
+        ok, node = _child(node, key)
+        if not ok:
+            break
+    return "", ""
+
+
+def _field_metadata(module: Any, name: str) -> Any:
+    if dataclasses.is_dataclass(module):
+        for f in dataclasses.fields(module):
+            if f.name == name:
+                return f.metadata
+    return {}
 
 
 def leaf_constraints(tree: Any) -> list[AbstractConstraint]:

@@ -450,6 +450,16 @@ def _cells(rows: Sequence[ParameterRow]) -> list[list[str]]:
     ]
 
 
+def _meanings(rows: Sequence[ParameterRow], labels: Sequence[tuple[str, str]]) -> str:
+    """``"k: stiffness; c: damping"``: the fields' descriptions, each once, in table order."""
+    seen: dict[str, str] = {}
+    for row, (_, text) in zip(rows, labels, strict=False):
+        field = row.name.split("[")[0]
+        if text and field not in seen:
+            seen[field] = text
+    return "; ".join(f"{k}: {v}" for k, v in seen.items())
+
+
 def _text_table(head: Sequence[str], body: Sequence[Sequence[str]], right: set[int]) -> list[str]:
     widths = [max(len(str(c)) for c in col) for col in zip(head, *body, strict=True)]
 
@@ -524,10 +534,19 @@ def fit_summary(
         rows, notes = parameter_rows(result, **options, uncertainty=uncertainty)
         shown = rows if max_rows is None else rows[:max_rows]
         head = [h.format(pct=f"{100 * level:g} %") for h in _HEAD]
-        table = (_md_table if md else _text_table)(head, _cells(shown), {1, 2})
+        cells = _cells(shown)
+        labels = result.problem.parameter_labels(result.system)
+        if any(unit for unit, _ in labels):  # a unit column after the estimate
+            head.insert(2, "unit")
+            for row, (unit, _) in zip(cells, labels, strict=False):
+                row.insert(2, unit)
+        table = (_md_table if md else _text_table)(head, cells, {1, 3} if len(head) > 5 else {1, 2})
         if md:
             out.append("")
         out += table
+        meanings = _meanings(shown, labels)
+        if meanings:
+            out += ["", meanings] if md else [meanings]
         if len(shown) < len(rows):
             out.append(
                 f"… {len(rows) - len(shown)} more parameters (summary(max_rows=None) shows all)"
