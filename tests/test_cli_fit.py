@@ -13,7 +13,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from ceemx import cli, fit_command
+from ceemx import cli, experiment_command, fit_command, fit_records
 from ceemx.experiments import EXPERIMENTS
 
 TANK = '''
@@ -184,7 +184,7 @@ def test_read_records_csv_and_npz(tmp_path):
     text[5] = text[5].rsplit(",", 1)[0] + ","  # an empty output cell: a missing sample
     (tmp_path / "a.csv").write_text("\n".join(text) + "\n")
     np.savez(tmp_path / "b.npz", pump=u[:20], level=y[:20], time=0.5 * np.arange(20))
-    records = fit_command.read_records(
+    records = fit_records.read_records(
         [str(tmp_path / "a.csv"), str(tmp_path / "b.npz")], ["level"], ["pump"], time="time"
     )
     assert records.dt == 0.5 and records.shortest == 20
@@ -194,8 +194,8 @@ def test_read_records_csv_and_npz(tmp_path):
     assert np.isnan(records.ys[0][4, 0])  # line 6 of the file is sample 4
     np.testing.assert_array_equal(records.ys[1][:, 0], y[:20])
     np.savez(tmp_path / "c.npz", pump=u, level=y, time=0.25 * np.arange(30))
-    with pytest.raises(fit_command.Refused, match="sample time 0.25"):
-        fit_command.read_records(
+    with pytest.raises(fit_records.Refused, match="sample time 0.25"):
+        fit_records.read_records(
             [str(tmp_path / "b.npz"), str(tmp_path / "c.npz")], ["level"], ["pump"], time="time"
         )
 
@@ -256,7 +256,7 @@ def test_experiment_values_refused(capsys, tmp_path):
     line = refused(capsys, ["demo", "--max-epochs", "-1"])
     assert "--max-epochs" in line
     args = cli.build_parser().parse_args(["experiment", "figure3", "--smoke", "--learner", "lbfgs"])
-    assert cli._experiment_kwargs(args) == {
+    assert experiment_command.experiment_kwargs(args) == {
         "smoke": True,
         "out": None,
         "seeds": None,

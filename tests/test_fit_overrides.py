@@ -12,8 +12,15 @@ from jaxtyping import Array
 
 import ceemx
 from ceemx.identification.fitting.overrides import apply_overrides
-from ceemx.identification.problem import leaf_constraints_with, trainable_mask
-from ceemx.models.constraints import Fixed, GreaterThan, Interval, LessThan, Positive
+from ceemx.identification.problem import trainable_mask
+from ceemx.models.constraints import (
+    Fixed,
+    GreaterThan,
+    Interval,
+    LessThan,
+    Positive,
+)
+from ceemx.models.parameter_meta import entry_labels, leaf_constraints_with
 
 
 class Decay(ceemx.AbstractSystem):
@@ -80,7 +87,7 @@ def test_units_and_descriptions_per_entry():
     data = ceemx.Trajectories.from_arrays(np.zeros(10), np.zeros(10))
     system, overrides = apply_overrides(start(), None, {"c": None})
     problem, _ = FitProblem.create(system, data, overrides=overrides)
-    assert problem.parameter_labels(system) == [("1", "level kept per sample"), ("V/V", "")]
+    assert entry_labels(problem.template, system) == [("1", "level kept per sample"), ("V/V", "")]
     with pytest.raises(TypeError, match="`unit` must be a string"):
         ceemx.param(unit=3)
 

@@ -41,18 +41,14 @@ from ceemx.models.constraints import (
     AbstractConstraint,
     Positive,
     Unconstrained,
-    label_at,
-    leaf_constraints,
 )
 from ceemx.models.noise import AbstractNoise
+from ceemx.models.parameter_meta import Overrides, leaf_constraints_with
 from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype
 
 __all__ = [
     "FitProblem",
-    "Overrides",
     "Trainable",
-    "leaf_constraints_with",
-    "leaf_names",
     "per_trajectory_nll",
     "per_trajectory_offset",
     "split_system",
@@ -61,8 +57,6 @@ __all__ = [
 
 Trainable = Callable[[AbstractSystem], Any] | PyTree | None
 """Which leaves of a system learn: see :func:`trainable_mask`."""
-Overrides = tuple[tuple[str, AbstractConstraint], ...]
-"""Per-fit constraints: ``(leaf name, constraint)`` pairs (:func:`leaf_constraints_with`)."""
 
 
 def trainable_mask(
@@ -85,7 +79,8 @@ def trainable_mask(
             :class:`ceemx.LaplaceEM`, which learns noise covariances:
             ``fit(model, data, solver=ceemx.LaplaceEM(), trainable=trainable_mask(model,
             noise=True))``).
-        overrides: per-fit constraints by leaf name (:func:`leaf_constraints_with`); a
+        overrides: per-fit constraints by leaf name
+            (:func:`~ceemx.models.parameter_meta.leaf_constraints_with`); a
             :class:`~ceemx.models.constraints.Fixed` one holds its leaf.
 
     Returns:
@@ -153,25 +148,6 @@ def split_system(
     params, static = eqx.partition(system, trainable_mask(system, trainable))
     theta, _ = ravel_pytree(params)
     return theta, params, static
-
-
-def leaf_names(system: Any) -> list[str]:
-    """The name of each leaf of ``system`` as written: ``k``, ``physics.k``, ``obs_noise.scale``."""
-    paths = jtu.tree_flatten_with_path(system)[0]
-    return [jtu.keystr(path).removeprefix(".") for path, _ in paths]
-
-
-def leaf_constraints_with(system: AbstractSystem, overrides: Overrides) -> list[AbstractConstraint]:
-    """Each leaf's constraint: the class's (:func:`ceemx.param`), or the per-fit one of its name.
-
-    ``overrides``: ``(name, constraint)`` pairs, names as :func:`leaf_names` writes them
-    (``fit(..., bounds=..., fixed=...)``: :mod:`ceemx.identification.fitting.overrides`).
-    """
-    constraints = leaf_constraints(system)
-    if not overrides:
-        return constraints
-    given = dict(overrides)
-    return [given.get(n, c) for n, c in zip(leaf_names(system), constraints, strict=True)]
 
 
 def _trainable_constraints(
@@ -323,7 +299,8 @@ class FitProblem(eqx.Module):
         constraints: the constraint of each leaf of ``template``, in leaf order (θ's entries map
             to natural values through their ``forward``).
         overrides: the per-fit constraints by leaf name it was created with
-            (:func:`leaf_constraints_with`; kept for the problems derived from it).
+            (:func:`~ceemx.models.parameter_meta.leaf_constraints_with`; kept for the problems
+            derived from it).
     """
 
     template: Any
@@ -453,19 +430,6 @@ class FitProblem(eqx.Module):
                     for i in itertools.product(*map(range, shape))
                 ]
         return names
-
-    def parameter_labels(self, system: AbstractSystem) -> list[tuple[str, str]]:
-        """``(unit, description)`` per entry of θ, from the :func:`ceemx.param` of each field.
-
-        ``system``: a system of this problem (the labels are class metadata; the template's
-        leaves no longer carry the classes' fields where a constraint rebuilt them).
-        """
-        mask = jtu.tree_map(lambda v: v is not None, self.template, is_leaf=lambda v: v is None)
-        params, _ = eqx.partition(system, mask)
-        out: list[tuple[str, str]] = []
-        for path, leaf in jtu.tree_flatten_with_path(params)[0]:
-            out += [label_at(system, path)] * int(np.size(leaf))
-        return out
 
     def trains(self, field: str) -> bool:
         """Whether any leaf of the system's top-level ``field`` (e.g. ``"obs_noise"``) is in θ."""

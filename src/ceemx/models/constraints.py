@@ -57,7 +57,7 @@ __all__ = [
     "CONSTRAINT_KEY",
     "DESCRIPTION_KEY",
     "UNIT_KEY",
-    "label_at",
+    "child_of",
     "AbstractConstraint",
     "Fixed",
     "GreaterThan",
@@ -426,7 +426,8 @@ def field_constraint(module: Any, name: str) -> AbstractConstraint | None:
     return None
 
 
-def _child(node: Any, key: Any) -> tuple[bool, Any]:
+def child_of(node: Any, key: Any) -> tuple[bool, Any]:
+    """``(found, child)``: the child of ``node`` at one key of a pytree path."""
     if isinstance(key, jtu.GetAttrKey):
         return True, getattr(node, key.name)
     if isinstance(key, jtu.SequenceKey):
@@ -444,35 +445,10 @@ def constraint_at(tree: Any, path: tuple) -> AbstractConstraint:
             c = field_constraint(node, key.name)
             if c is not None:
                 return c
-        ok, node = _child(node, key)
+        ok, node = child_of(node, key)
         if not ok:
             break
     return _UNCONSTRAINED
-
-
-def label_at(tree: Any, path: tuple) -> tuple[str, str]:
-    """``(unit, description)`` of the leaf at key ``path`` of ``tree`` (``""`` where none).
-
-    From the :func:`param` of the outermost field above the leaf, as for its constraint.
-    """
-    node = tree
-    for key in path:
-        if isinstance(node, eqx.Module) and isinstance(key, jtu.GetAttrKey):
-            meta = _field_metadata(node, key.name)
-            if CONSTRAINT_KEY in meta:
-                return meta.get(UNIT_KEY, ""), meta.get(DESCRIPTION_KEY, "")
-        ok, node = _child(node, key)
-        if not ok:
-            break
-    return "", ""
-
-
-def _field_metadata(module: Any, name: str) -> Any:
-    if dataclasses.is_dataclass(module):
-        for f in dataclasses.fields(module):
-            if f.name == name:
-                return f.metadata
-    return {}
 
 
 def leaf_constraints(tree: Any) -> list[AbstractConstraint]:

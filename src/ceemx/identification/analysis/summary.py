@@ -52,6 +52,7 @@ from ceemx.identification.analysis.profile_rule import summary_intervals
 from ceemx.lib.results import RESULTS, codes
 from ceemx.models.constraints import Unconstrained
 from ceemx.models.noise import AbstractNoise
+from ceemx.models.parameter_meta import entry_labels
 
 __all__ = [
     "ParameterRow",
@@ -535,7 +536,7 @@ def fit_summary(
         shown = rows if max_rows is None else rows[:max_rows]
         head = [h.format(pct=f"{100 * level:g} %") for h in _HEAD]
         cells = _cells(shown)
-        labels = result.problem.parameter_labels(result.system)
+        labels = entry_labels(result.problem.template, result.system)
         if any(unit for unit, _ in labels):  # a unit column after the estimate
             head.insert(2, "unit")
             for row, (unit, _) in zip(cells, labels, strict=False):

@@ -30,7 +30,6 @@ import equinox as eqx
 import jax.tree_util as jtu
 import numpy as np
 
-from ceemx.identification.problem import Overrides, leaf_names
 from ceemx.lib.tree import as_jax
 from ceemx.models.constraints import (
     AbstractConstraint,
@@ -41,6 +40,7 @@ from ceemx.models.constraints import (
     Unconstrained,
     leaf_constraints,
 )
+from ceemx.models.parameter_meta import Overrides, leaf_names
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["apply_overrides"]
