@@ -57,6 +57,19 @@ def _count(name: str, value, low: int = 1) -> int:
     return value
 
 
+def _check(data, validation, n_init, progress, **counts) -> None:
+    """Refuse :func:`black_box`'s arguments before any compute (messages name them)."""
+    for name, value in (("data", data), ("validation", validation)):
+        if value is not None and not isinstance(value, Trajectories):
+            raise TypeError(f"`{name}` must be a ceemx.Trajectories; got {type(value).__name__}.")
+    for name, value in counts.items():
+        _count(name, value)
+    if progress is not None:
+        check_bool("progress", progress)
+    if validation is not None and n_init is None:
+        raise ValueError("`validation` needs `n_init`, the records' initial-state window.")
+
+
 @no_type_check  # checks its arguments itself, with messages naming them
 def black_box(
     data: Trajectories,
@@ -86,7 +99,7 @@ def black_box(
         n_init: the validation records' initial-state window (required with ``validation``).
         patience: epochs without improvement before stopping (with ``validation``).
         key: PRNG key of the learned term's hidden layers (default ``PRNGKey(0)``).
-        progress: progress display of the fits (``ceemx.fit``'s ``progress``).
+        progress: the fits' progress display (``ceemx.fit``'s).
 
     Returns:
         A :class:`BlackBox`: ``system`` (neural), ``linear``, ``n4sid`` — each a
@@ -94,41 +107,26 @@ def black_box(
         two fits.
 
     Raises:
-        TypeError: ``data`` or ``validation`` is not a :class:`ceemx.Trajectories`.
-        ValueError: a count below 1; ``validation`` without ``n_init``; what the stages refuse.
+        TypeError, ValueError: bad arguments (named), before any compute; what a stage refuses.
 
     Example:
         >>> bb = ceemx.baselines.black_box(train, state_dim=2)  # doctest: +SKIP
         >>> ceemx.benchmark_score(bb.system, test, 50)  # the raw test record  # doctest: +SKIP
     """
-    for name, value in (("data", data), ("validation", validation)):
-        if value is not None and not isinstance(value, Trajectories):
-            raise TypeError(f"`{name}` must be a ceemx.Trajectories; got {type(value).__name__}.")
-    for name, value in (
-        ("state_dim", state_dim),
-        ("width", width),
-        ("depth", depth),
-        ("linear_epochs", linear_epochs),
-        ("max_epochs", max_epochs),
-        ("patience", patience),
-    ):
+    _check(data, validation, n_init, progress, state_dim=state_dim, width=width, depth=depth)
+    for name, value in (("linear_epochs", linear_epochs), ("max_epochs", max_epochs)):
         _count(name, value)
-    if progress is not None:
-        check_bool("progress", progress)
-    if validation is not None and n_init is None:
-        raise ValueError("`validation` needs `n_init`, the records' initial-state window.")
+    _count("patience", patience)
     train = with_constant_input(data)
     n4sid = fit_affine_sid(data, state_dim=state_dim)
     linear = refine_linear(n4sid, train, max_epochs=linear_epochs)
     neural = hybrid(linear.system, train, states=linear.states, width=width, depth=depth, key=key)
-    callbacks = []
     stopper = None
     if validation is not None:
         assert n_init is not None
         stopper = EarlyStopping(
             with_constant_input(validation), n_init, patience=patience, start=neural
         )
-        callbacks.append(stopper)
     result = fit(
         neural,
         train,
@@ -137,7 +135,7 @@ def black_box(
         trainable=neural.trainable("both"),
         log_prior=weight_decay,
         max_epochs=max_epochs,
-        callbacks=callbacks,
+        callbacks=() if stopper is None else (stopper,),
         diagnose=False,
         progress=progress,
     )

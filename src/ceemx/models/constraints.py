@@ -405,12 +405,19 @@ else:
             c = Unconstrained()
         metadata = dict(field_kwargs.pop("metadata", {}))
         metadata[CONSTRAINT_KEY] = c
-        for key, text in ((UNIT_KEY, unit), (DESCRIPTION_KEY, description)):
-            if text is not None:
-                if not isinstance(text, str):
-                    raise TypeError(f"`{key.split('.')[-1]}` must be a string; got {text!r}.")
-                metadata[key] = text
+        metadata.update(_labels(unit=unit, description=description))
         return eqx.field(converter=converter, metadata=metadata, **field_kwargs)
+
+
+def _labels(**texts: str | None) -> dict[str, str]:
+    """A :func:`param`'s ``unit`` and ``description`` as metadata (strings, or refused)."""
+    out = {}
+    for name, text in texts.items():
+        if text is not None:
+            if not isinstance(text, str):
+                raise TypeError(f"`{name}` must be a string; got {text!r}.")
+            out[UNIT_KEY if name == "unit" else DESCRIPTION_KEY] = text
+    return out
 
 
 _UNCONSTRAINED = Unconstrained()

@@ -451,6 +451,25 @@ def _cells(rows: Sequence[ParameterRow]) -> list[list[str]]:
     ]
 
 
+def _parameter_table(result, head: list[str], rows: Sequence[ParameterRow], md: bool) -> list[str]:
+    """The parameter table's lines, with units and descriptions where the fields declare them.
+
+    A unit column after the estimate when any parameter has a unit (:func:`ceemx.param`); the
+    fields' descriptions on a line under the table.
+    """
+    labels = entry_labels(result.problem.template, result.system)
+    cells = _cells(rows)
+    if any(unit for unit, _ in labels):
+        head.insert(2, "unit")
+        for row, (unit, _) in zip(cells, labels, strict=False):
+            row.insert(2, unit)
+    right = {1, 3} if len(head) > 5 else {1, 2}
+    out = [""] if md else []
+    out += (_md_table if md else _text_table)(head, cells, right)
+    meanings = _meanings(rows, labels)
+    return out + (["", meanings] if md else [meanings]) if meanings else out
+
+
 def _meanings(rows: Sequence[ParameterRow], labels: Sequence[tuple[str, str]]) -> str:
     """``"k: stiffness; c: damping"``: the fields' descriptions, each once, in table order."""
     seen: dict[str, str] = {}
@@ -535,19 +554,7 @@ def fit_summary(
         rows, notes = parameter_rows(result, **options, uncertainty=uncertainty)
         shown = rows if max_rows is None else rows[:max_rows]
         head = [h.format(pct=f"{100 * level:g} %") for h in _HEAD]
-        cells = _cells(shown)
-        labels = entry_labels(result.problem.template, result.system)
-        if any(unit for unit, _ in labels):  # a unit column after the estimate
-            head.insert(2, "unit")
-            for row, (unit, _) in zip(cells, labels, strict=False):
-                row.insert(2, unit)
-        table = (_md_table if md else _text_table)(head, cells, {1, 3} if len(head) > 5 else {1, 2})
-        if md:
-            out.append("")
-        out += table
-        meanings = _meanings(shown, labels)
-        if meanings:
-            out += ["", meanings] if md else [meanings]
+        out += _parameter_table(result, head, shown, md)
         if len(shown) < len(rows):
             out.append(
                 f"… {len(rows) - len(shown)} more parameters (summary(max_rows=None) shows all)"

@@ -9,7 +9,6 @@ the library chooses from the problem (:mod:`~ceemx.identification.fitting.defaul
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Literal
 
@@ -20,7 +19,7 @@ from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.fitting.default_path import fit_default, fit_named
 from ceemx.identification.fitting.fit_options import fit_options
-from ceemx.identification.fitting.overrides import apply_overrides
+from ceemx.identification.fitting.overrides import with_overrides
 from ceemx.identification.fitting.result import EpochInfo, FitResult
 from ceemx.identification.fitting.start import require_observations
 from ceemx.identification.solvers.base import AbstractFitSolver
@@ -97,12 +96,9 @@ def fit(
             alternated with the Laplace-evidence estimate until they settle (``noise_rounds``;
             ``max_epochs`` per round; no ``checkpoint``); ``None``: learned without a solver. The
             observation noise has floors from the data (``docs/guarantees.md``, "Learned noise").
-        bounds: per-fit bounds, ``{name: (lower, upper)}`` (``None``: an open end), e.g.
-            ``{"k": (0, 10)}``: the parameter is learned inside them in this fit, narrowing its
-            class's :func:`ceemx.param` constraint (:mod:`~.overrides`).
-        fixed: per-fit fixed values, ``{name: value}`` (``None``: the current value), e.g.
-            ``{"g": 9.81}``: the parameter is held there in this fit. Names as the summary
-            writes them, whole fields (``k``, ``physics.k``).
+        bounds: ``{name: (lower, upper)}`` (``None``: open), e.g. ``{"k": (0, 10)}``: learned
+            inside them in this fit, narrowing the class's constraint (:mod:`~.overrides`).
+        fixed: ``{name: value}`` (``None``: as it is), e.g. ``{"g": 9.81}``: held in this fit.
 
     Returns:
         A :class:`FitResult`.
@@ -118,9 +114,7 @@ def fit(
     """
     # every option, checked before any compute (the inputs are prepared next)
     options = fit_options(**{k: v for k, v in locals().items() if k not in _INPUTS})
-    if bounds is not None or fixed is not None:
-        system, overrides = apply_overrides(system, bounds, fixed)
-        options = dataclasses.replace(options, overrides=overrides)
+    system, options = with_overrides(system, options, bounds, fixed)
     inputs = prepare(system, data, x_init, identify=True)
     require_observations(inputs.data)  # every solver, every noise mode: before any compute
     if solver is None:

@@ -21,6 +21,7 @@ The per-fit constraints travel with the fit's options to every problem it builds
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from collections.abc import Mapping
@@ -30,6 +31,7 @@ import equinox as eqx
 import jax.tree_util as jtu
 import numpy as np
 
+from ceemx.identification.fitting.fit_options import FitOptions
 from ceemx.lib.tree import as_jax
 from ceemx.models.constraints import (
     AbstractConstraint,
@@ -43,7 +45,7 @@ from ceemx.models.constraints import (
 from ceemx.models.parameter_meta import Overrides, leaf_names
 from ceemx.models.system import AbstractSystem
 
-__all__ = ["apply_overrides"]
+__all__ = ["apply_overrides", "with_overrides"]
 
 _ELEMENT = re.compile(r"^(?P<field>.+)\[(?P<index>[\d, ]+)\]$")
 
@@ -157,3 +159,16 @@ def apply_overrides(
     system = jtu.tree_unflatten(jtu.tree_structure(system), leaves)
     assert names == leaf_names(system)
     return system, tuple(overrides)
+
+
+def with_overrides(
+    system: AbstractSystem,
+    options: FitOptions,
+    bounds: Mapping[str, Any] | None,
+    fixed: Mapping[str, Any] | None,
+) -> tuple[AbstractSystem, FitOptions]:
+    """:func:`apply_overrides` for :func:`ceemx.fit`: the system and options the fit runs with."""
+    if bounds is None and fixed is None:
+        return system, options
+    system, overrides = apply_overrides(system, bounds, fixed)
+    return system, dataclasses.replace(options, overrides=overrides)
