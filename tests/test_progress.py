@@ -140,9 +140,10 @@ def test_outcome_words():
 
 
 @pytest.mark.slow
-def test_fit_scores_and_diagnostics_log_in_a_captured_stream(quick, capsys):
+def test_fit_scores_and_diagnostics_log_in_a_captured_stream(quick, capsys, monkeypatch):
     """A fit without a solver, its score and its diagnostics, with stderr captured (no TTY):
-    every stage's lines name it, and each ends on its outcome."""
+    every part of the fit (stage, noise round) logs its outcome under its name, the last one the
+    result's; scoring and diagnostics say when they are done."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -158,7 +159,7 @@ def test_fit_scores_and_diagnostics_log_in_a_captured_stream(quick, capsys):
         jnp.array([[0.5]]), jnp.array([[1.0]]), B=jnp.array([[0.3]]), D=jnp.zeros((1, 1))
     )
     capsys.readouterr()
-    result = ceemx.fit(start, data, max_epochs=100)
+    result = ceemx.fit(start, data, max_epochs=100, progress=True)  # every part's last line
     err = capsys.readouterr().err.splitlines()
     ends = [line for line in err if "onverged " in line and "/100 epochs, " not in line]
     assert ends and all(
@@ -169,6 +170,8 @@ def test_fit_scores_and_diagnostics_log_in_a_captured_stream(quick, capsys):
     epochs = len([h for h in result.history if h["stage"] == last_stage])
     verdict = "converged at" if result.converged else "not converged after"
     assert f"{verdict} {epochs}/100 epochs" in ends[-1], "\n".join(err)
+    monkeypatch.setattr(progress, "DELAY", 0.0)  # however fast they run here (compiled or not)
+    monkeypatch.setattr(progress, "_TICK", 0.001)
     ceemx.benchmark_score(result.system, data, 10)
     result.diagnostics()
     err = capsys.readouterr().err
