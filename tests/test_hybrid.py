@@ -301,6 +301,71 @@ def test_early_stopping_keeps_the_best_and_stops_after_patience(duffing):
     assert stop.best_system is true
 
 
+def test_constant_input_reads_the_raw_inputs():
+    """``ConstantInput(model)`` on raw u is ``model`` on [u, 1], bit for bit; p counts the raw
+    inputs; the inner model refuses the raw record."""
+    from ceemx.systems import ConstantInput, LinearSystem
+
+    inner = LinearSystem(
+        jnp.array([[0.9, 0.1], [0.0, 0.8]]),
+        jnp.array([[1.0, 0.0]]),
+        B=jnp.array([[0.1, 0.2], [0.3, 0.05]]),
+        D=jnp.array([[0.0, 0.5]]),
+    )
+    raw = ConstantInput(inner)
+    assert (raw.input_dim, raw.state_dim, raw.obs_dim) == (1, 2, 1)
+    assert raw.process_noise is inner.process_noise and raw.obs_noise is inner.obs_noise
+    x, u = jnp.array([0.3, -0.2]), jnp.array([0.7])
+    with_one = jnp.array([0.7, 1.0])
+    for method in ("dynamics", "observe"):
+        got, want = getattr(raw, method)(x, u, 3), getattr(inner, method)(x, with_one, 3)
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    C, d = raw.linear_observation(u, 3)
+    np.testing.assert_array_equal(np.asarray(C @ x + d), np.asarray(inner.observe(x, with_one, 3)))
+    data = ceemx.Trajectories(jnp.zeros((1, 12, 1)), jnp.ones((1, 12, 1)))
+    with pytest.raises(ValueError, match="shape"):  # the model itself wants the channel
+        ceemx.free_run(inner, jnp.zeros((1, 2)), data.u)
+    with pytest.raises(ValueError, match="takes no input"):
+        ConstantInput(LinearSystem(jnp.eye(1), jnp.eye(1)))
+    with pytest.raises(TypeError, match="must be a ceemx system"):
+        ConstantInput(inner.A)
+
+
+@pytest.mark.slow  # N4SID, a linear CE-EM fit and a JointLM fit of ≈ 100 weights
+def test_black_box_route_scores_the_raw_record(duffing, tmp_path):
+    """``ceemx.baselines.black_box``: the three models score the held-out record as measured
+    (the route's models read the constant channel themselves), the refinement and the learned
+    term improve on N4SID as the step-by-step route does, early stopping keeps its best epoch,
+    and the neural model saves and loads."""
+    from ceemx.baselines import black_box, with_constant_input
+
+    true, _, _, data = duffing
+    T = 400
+    t = jnp.arange(T, dtype=jnp.float64) * DT
+    u = 1.6 * (jnp.sin(0.5 * t + 0.3) + 0.6 * jnp.sin(2.3 * t) + 0.4 * jnp.sin(2.9 * t + 1.0))
+    u = u[None, :, None]
+    x = simulate(true, u)
+    y = x[..., :1] + 0.01 * jax.random.normal(jax.random.PRNGKey(1), x[..., :1].shape)
+    held_out = ceemx.Trajectories(y, u)  # raw: one input
+    bb = black_box(data, state_dim=2, max_epochs=60, validation=held_out, n_init=20)
+    scores = [
+        float(ceemx.benchmark_score(m, held_out, 20).rmse[0, 0])
+        for m in (bb.n4sid, bb.linear, bb.system)
+    ]
+    assert scores[1] <= 0.5 * scores[0], scores
+    assert scores[2] <= scores[1] / 1.5, scores
+    inner = ceemx.benchmark_score(bb.result.system, with_constant_input(held_out), 20)
+    assert float(inner.rmse[0, 0]) == scores[2]  # the same model, the channel supplied
+    assert bb.system.inner is bb.result.system and bb.system.input_dim == 1
+    ceemx.save(tmp_path / "bb.ceemx", bb.system)
+    loaded = ceemx.load(tmp_path / "bb.ceemx")
+    assert float(ceemx.benchmark_score(loaded, held_out, 20).rmse[0, 0]) == scores[2]
+    with pytest.raises(ValueError, match="n_init"):
+        black_box(data, state_dim=2, validation=held_out)
+    with pytest.raises(ValueError, match="state_dim"):
+        black_box(data, state_dim=0)
+
+
 @pytest.mark.slow  # N4SID, a linear CE-EM fit and a JointLM fit of ≈ 100 weights (≈ 21 s)
 def test_neural_state_space_from_a_linear_start(duffing):
     """No physics: N4SID → CE-EM linear model → + learned term, scored on a held-out record.

@@ -1,6 +1,9 @@
-"""The ``ceemx`` command: ``ceemx demo``, ``ceemx experiment NAME``, ``ceemx --version``.
+"""The ``ceemx`` command: ``ceemx fit``, ``ceemx demo``, ``ceemx experiment NAME``, ``--version``.
 
 Examples::
+
+    ceemx fit tank.py:Tank run1.csv run2.csv --inputs u --outputs y --dt 4 --start k=0.5
+                                               # your model on your records (ceemx.fit_command)
 
     ceemx demo                                 # six coupled Lorenz attractors, < 2 min on a laptop
     ceemx experiment table1                    # paper Table 1, both weightings, 10 seeds
@@ -34,7 +37,12 @@ writing any result file (results are held in memory and written, atomically and 
 last, only when the run has finished); SIGTERM (``kill``, a batch scheduler's stop) the same, with
 ``ceemx: terminated`` and status 143. Either removes the ``--out`` folder if this run created it
 and nothing was written to it. A usage error (unknown option, ``--seeds 0``, an ``--out``
-folder that cannot be written) prints one line and exits with status 2 before any compute.
+folder that cannot be written, ``--max-epochs -3``, a ``--data`` folder that is not there, an
+option the experiment does not take) prints one line and exits with status 2 before any compute.
+Each command and each experiment has its own parser: ``ceemx experiment table1 --help`` lists
+the options table1 takes, and an option it does not take is refused by name. ``ceemx fit``
+refuses the same way a record or column that is not there, a model file that does not import
+and a model or fit that refuses its values (:mod:`ceemx.fit_command`).
 """
 
 from __future__ import annotations
@@ -46,7 +54,11 @@ import sys
 import threading
 import warnings
 from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import NoReturn
 
+from ceemx import fit_command
+from ceemx.experiment_command import add_experiment, experiment_kwargs, positive_int
 from ceemx.infra.interrupts import EXIT_INTERRUPTED, INTERRUPTED, Interrupts, missing_folders
 
 __all__ = ["main"]
@@ -61,7 +73,7 @@ def _version() -> str:
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose usage errors are one line on stderr and exit status 2."""
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:  # type: ignore[override]
         message = " ".join(message.split())
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
@@ -73,25 +85,6 @@ class _Parser(argparse.ArgumentParser):
 # unimported).
 
 
-def _seeds(text: str):
-    from ceemx.experiments import parse_seeds
-
-    try:
-        return parse_seeds(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
-def _threads(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1; got {text!r}")
-    return n
-
-
 def _add_demo(sub, methods: Sequence[str]) -> None:
     """The ``demo`` command and its options."""
     demo = sub.add_parser(
@@ -100,73 +93,10 @@ def _add_demo(sub, methods: Sequence[str]) -> None:
     demo.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
     demo.add_argument("--out", default="ceemx-demo", help="output folder (default: ./ceemx-demo)")
     demo.add_argument("--method", choices=methods, default=None, help="default: joint")
-    demo.add_argument("--max-epochs", type=int, default=None, help="bound on iterations")
-
-
-def _add_experiment(sub, experiments: Sequence[str], methods: Sequence[str]):
-    """The ``experiment`` command with the options every experiment takes; returns its parser."""
-    exp = sub.add_parser(
-        "experiment",
-        help="run an experiment (table1, figure2, figure3, figure4, real_data, calibration)",
+    demo.add_argument(
+        "--max-epochs", type=positive_int, default=None, metavar="N", help="bound on iterations"
     )
-    exp.add_argument("name", choices=experiments, help="which experiment")
-    exp.add_argument("--smoke", action="store_true", help="tiny, fast version (for tests)")
-    exp.add_argument(
-        "--seeds",
-        type=_seeds,
-        default=None,
-        metavar="N|S1,S2,...",
-        help="N: the first N seeds of the experiment's sequence (table1: 0, 1, …; figure2: "
-        "43, 44, …; figure3: 42, 43, …); a comma list: exactly those seeds (default: the "
-        "paper's)",
-    )
-    exp.add_argument("--out", default=None, help="output folder (default: ./results/NAME)")
-    exp.add_argument(
-        "--method",
-        choices=methods,
-        default=None,
-        help="joint (x, θ) LM, Algorithm 1, Particle EM (figure3), or Laplace EM (table1: EM "
-        "with a Gaussian E-step, likelihood weighting; figure2 runs CE-EM and "
-        "Particle EM; figure4: the NL model's CE-EM solver, alternate or joint) (default: "
-        "table1 alternate, figure3 joint, figure4 alternate)",
-    )
-    return exp
-
-
-def _add_experiment_options(exp) -> None:
-    """The ``experiment`` options that only some experiments take."""
-    exp.add_argument(
-        "--protocol",
-        choices=("ours", "authors"),
-        default=None,
-        help="table1: 'authors' runs the authors' protocol (explicit midpoint, x1 spread 5, zero "
-        "start states, paper weighting, rho_x 0.001, Nelder-Mead with rho_theta 0.01)",
-    )
-    exp.add_argument(
-        "--weighting",
-        choices=("likelihood", "paper", "both"),
-        default=None,
-        help="noise weights of the fitted system (default: table1 both, figure3 paper)",
-    )
-    exp.add_argument(
-        "--max-epochs", type=int, default=None, help="epochs (or joint iterations) per fit"
-    )
-    exp.add_argument(
-        "--learner",
-        choices=("lm", "lbfgs"),
-        default="lm",
-        help="figure3, alternate: θ-step optimiser",
-    )
-    exp.add_argument(
-        "--data", default=None, metavar="DIR", help="figure4: the paper's helicopter dataset folder"
-    )
-    exp.add_argument(
-        "--dataset",
-        default=None,
-        choices=("cascaded_tanks", "silverbox", "coupled_electric_drives"),
-        help="figure4: run the five models on windows of a real dataset's records; "
-        "real_data: only this dataset (default: all three)",
-    )
+    demo.set_defaults(command_parser=demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -180,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"ceemx {_version()}")
     parser.add_argument(
         "--threads",
-        type=_threads,
+        type=positive_int,
         default=None,
         metavar="N",
         help="CPU threads for JAX (default: CEEMX_THREADS, else all cores); 1 is often faster "
@@ -188,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_demo(sub, METHODS)
-    _add_experiment_options(_add_experiment(sub, EXPERIMENTS, METHODS))
+    add_experiment(sub, EXPERIMENTS)
+    fit_command.add_parser(sub)
     return parser
 
 
@@ -239,6 +170,8 @@ def _default_out(args: argparse.Namespace) -> str:
     """The output folder a command writes to when ``--out`` is not given."""
     if args.command == "demo":
         return "ceemx-demo"
+    if args.command == "fit":
+        return "ceemx-fit"
     default = f"results/{args.name}"
     if args.name == "figure4" and args.dataset is not None:
         default += f"-{args.dataset}"
@@ -250,7 +183,7 @@ def _thread_count(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
     threads = args.threads
     if threads is None and os.environ.get("CEEMX_THREADS", "").strip():
         try:
-            threads = _threads(os.environ["CEEMX_THREADS"].strip())
+            threads = positive_int(os.environ["CEEMX_THREADS"].strip())
         except argparse.ArgumentTypeError as e:
             parser.error(f"CEEMX_THREADS: {e}")
     return threads
@@ -280,45 +213,20 @@ def _start_jax() -> None:
     enable_compilation_cache()
 
 
-def _experiment_kwargs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict:
-    """The keyword arguments of ``run`` for ``ceemx experiment NAME`` (usage errors exit 2)."""
-    kwargs = dict(
-        smoke=args.smoke,
-        seeds=args.seeds,
-        out=args.out,
-        method=args.method,
-        max_epochs=args.max_epochs,
-    )
-    if args.weighting is not None:
-        kwargs["weighting"] = args.weighting
-    if args.protocol is not None:
-        if args.name != "table1":
-            parser.error("--protocol applies to table1 only")
-        kwargs["protocol"] = args.protocol
-    if args.name == "figure3":
-        kwargs["learner"] = args.learner
-    if args.name == "figure4":
-        kwargs["data"] = args.data
-        kwargs["dataset"] = args.dataset
-    elif args.name == "real_data":
-        if args.data is not None:
-            parser.error("--data applies to figure4 only (real_data reads CEEMX_DATA)")
-        if args.method not in (None, "joint", "alternate"):
-            parser.error("real_data: --method must be joint or alternate")
-        kwargs["dataset"] = args.dataset
-    elif args.data is not None or args.dataset is not None:
-        parser.error("--data applies to figure4 only, --dataset to figure4 and real_data")
-    return kwargs
-
-
 def _main(argv: Sequence[str] | None, interrupts: Interrupts) -> int:
     """Parse and check the arguments, start JAX, run the command; returns the exit status.
 
-    Everything up to the last usage error runs without importing JAX (see ``_seeds``); then the
-    thread limit, then JAX's start (the limit must come before JAX's backend starts).
+    Everything up to the last usage error runs without importing JAX (the argument types of
+    :mod:`ceemx.experiment_command`, the records of :mod:`ceemx.fit_records`); then the thread
+    limit, then JAX's start (the limit must come before JAX's backend starts).
     """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if args.command == "fit":  # records after the options: more records (argparse stops at -x)
+        args.records += [a for a in extra if not a.startswith("-")]
+        extra = [a for a in extra if a.startswith("-")]
+    if extra:
+        _unknown(parser, args, extra)
     if args.command is None:
         parser.print_help()
         return 2
@@ -329,7 +237,12 @@ def _main(argv: Sequence[str] | None, interrupts: Interrupts) -> int:
     with interrupts.critical():
         _check_out(parser, args.out, _default_out(args))
     threads = _thread_count(parser, args)
-    kwargs = _experiment_kwargs(parser, args) if args.command == "experiment" else None
+    if args.command == "fit":
+        records = _fit_records(args)
+        _limit_threads(threads)
+        _start_jax()
+        return _fit(args, records, interrupts)
+    kwargs = experiment_kwargs(args) if args.command == "experiment" else None
     _limit_threads(threads)
     _start_jax()
     from ceemx.evaluation import report
@@ -347,6 +260,74 @@ def _main(argv: Sequence[str] | None, interrupts: Interrupts) -> int:
     with report.deferred_writes() as held, _noise_warnings_counted():
         module.run(**kwargs)
     return _commit(held, interrupts)
+
+
+def _unknown(parser: argparse.ArgumentParser, args: argparse.Namespace, extra: list[str]) -> None:
+    """Refuse arguments the command does not take, naming what it takes (exit 2)."""
+    command = getattr(args, "command_parser", None) or parser
+    flags = [a.split("=", 1)[0] for a in extra if a.startswith("-")]
+    if command is parser or not flags:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    flags_of = (a.option_strings for a in command._actions)
+    takes = [o for names in flags_of for o in names if o.startswith("--") and o != "--help"]
+    what = f"experiment {args.name}" if args.command == "experiment" else args.command
+    _refuse(
+        command,
+        f"{', '.join(flags)}: not an option of {what} (its options: {', '.join(takes)})",
+    )
+
+
+def _refuse(parser: argparse.ArgumentParser, message: str) -> NoReturn:
+    """Exit 2 with ``message`` as one line that names the command's help."""
+    parser.error(message)
+    raise AssertionError("unreachable")  # argparse's error exits
+
+
+def _fit_records(args: argparse.Namespace):
+    """The records of ``ceemx fit`` read and checked before JAX starts (refusals exit 2)."""
+    parser = args.command_parser
+    try:
+        fit_command.check_model_spec(args.model)
+        if args.dt is not None and args.time is not None:
+            raise fit_command.Refused("give --dt or --time, not both")
+        records = fit_command.read_records(
+            args.records, args.outputs, args.inputs, dt=args.dt, time=args.time
+        )
+        tests = None
+        if args.test:
+            tests = fit_command.read_records(
+                args.test, args.outputs, args.inputs, dt=records.dt, time=args.time
+            )
+        fit_command.n_init_of(args, records, tests)
+    except fit_command.Refused as e:
+        _refuse(parser, str(e))
+    return records, tests
+
+
+def _fit(args: argparse.Namespace, records, interrupts: Interrupts) -> int:
+    """``ceemx fit``: fit, score and draw, then write everything to ``--out`` at once."""
+    from ceemx.evaluation import report
+
+    out = Path(args.out)
+    report.plt()  # figures drawn off-screen
+    try:
+        done = fit_command.run(args, *records)
+    except fit_command.Refused as e:
+        _refuse(args.command_parser, str(e))
+    print(done.summary)
+    print(done.scores)
+    with report.deferred_writes() as held:
+        report.save_text(out / "summary.txt", done.summary + "\n")
+        report.save_text(out / "scores.txt", done.scores + "\n")
+        for name, fig in done.figures.items():
+            report.save_figure(fig, out / name)
+        report.save_json(out / "results.json", done.results)
+    status = _commit(held, interrupts)
+    if status == 0:
+        with interrupts.critical():
+            done.save(out / "model.ceemx")
+        print(f"ceemx fit: wrote {', '.join(sorted(p.name for p in out.iterdir()))} to {out}")
+    return status
 
 
 @contextlib.contextmanager

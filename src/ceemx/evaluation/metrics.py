@@ -32,6 +32,7 @@ from ceemx.evaluation.initial_state import initial_state_prepared
 from ceemx.evaluation.simulation import free_run_batch, strongly_typed
 from ceemx.infra.compilation import jit
 from ceemx.infra.policy import Runs, program
+from ceemx.infra.progress import task
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, select
 from ceemx.lib.tree import as_jax
@@ -337,15 +338,20 @@ def benchmark_score(
     x1 = promote_array("x1", x1, system)
     n_init = _check_record(test, n_init)
     s = _check_scale(scale, system.obs_dim)
-    if x1 is None:
-        start, status = initial_state_prepared(system, test, n_init, return_status=True, **kwargs)
-    else:
-        start, status = _given_start(x1, system, test, kwargs)
-    x_sim, y_sim = free_run_batch(strongly_typed(system), start, test.u, jnp.zeros((), jnp.int32))
-    scale_arr = jnp.asarray(np.broadcast_to(s, (system.obs_dim,)), test.y.dtype)
-    metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
-    status = _flag_diverged(start, metrics[3], status)
-    metrics, status = _flag_constant(test, n_init, metrics, status)
+    records = f"{test.batch_size} record{'s' if test.batch_size > 1 else ''}"
+    with task(f"benchmark_score: {records} of {test.num_steps} steps"):  # a line when it runs long
+        if x1 is None:
+            start, status = initial_state_prepared(
+                system, test, n_init, return_status=True, **kwargs
+            )
+        else:
+            start, status = _given_start(x1, system, test, kwargs)
+        zero = jnp.zeros((), jnp.int32)
+        x_sim, y_sim = free_run_batch(strongly_typed(system), start, test.u, zero)
+        scale_arr = jnp.asarray(np.broadcast_to(s, (system.obs_dim,)), test.y.dtype)
+        metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
+        status = _flag_diverged(start, metrics[3], status)
+        metrics, status = _flag_constant(test, n_init, metrics, status)
     info = test.info  # the outputs' names, with their units where the errors are in them
     labels = None if info is None else info.output_labels(test.obs_dim, units=scale is None)
     return BenchmarkScore(*metrics, y_sim, x_sim, start, status, n_init, labels)

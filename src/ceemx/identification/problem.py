@@ -41,9 +41,9 @@ from ceemx.models.constraints import (
     AbstractConstraint,
     Positive,
     Unconstrained,
-    leaf_constraints,
 )
 from ceemx.models.noise import AbstractNoise
+from ceemx.models.parameter_meta import Overrides, leaf_constraints_with
 from ceemx.models.system import AbstractSystem, GaussianPrior, float_dtype
 
 __all__ = [
@@ -60,7 +60,11 @@ Trainable = Callable[[AbstractSystem], Any] | PyTree | None
 
 
 def trainable_mask(
-    system: AbstractSystem, trainable: Trainable = None, *, noise: bool = False
+    system: AbstractSystem,
+    trainable: Trainable = None,
+    *,
+    noise: bool = False,
+    overrides: Overrides = (),
 ) -> PyTree:
     """A boolean pytree over ``system`` marking the leaves that learn.
 
@@ -75,12 +79,15 @@ def trainable_mask(
             :class:`ceemx.LaplaceEM`, which learns noise covariances:
             ``fit(model, data, solver=ceemx.LaplaceEM(), trainable=trainable_mask(model,
             noise=True))``).
+        overrides: per-fit constraints by leaf name
+            (:func:`~ceemx.models.parameter_meta.leaf_constraints_with`); a
+            :class:`~ceemx.models.constraints.Fixed` one holds its leaf.
 
     Returns:
         Booleans with the structure of ``system``. Leaves of fields declared
         ``ceemx.param(fixed=True)`` are always ``False``, whatever ``trainable`` selects.
     """
-    mask = _drop_fixed(system, _selected(system, trainable))
+    mask = _drop_fixed(system, _selected(system, trainable), overrides)
     if noise:
         on = tuple(
             jtu.tree_map(eqx.is_inexact_array, getattr(system, f))
@@ -114,7 +121,7 @@ def _selected(system: AbstractSystem, trainable: Trainable) -> PyTree:
     return trainable
 
 
-def _drop_fixed(system: AbstractSystem, mask: PyTree) -> PyTree:
+def _drop_fixed(system: AbstractSystem, mask: PyTree, overrides: Overrides = ()) -> PyTree:
     """``mask`` (a filter spec, possibly a prefix of ``system``) per leaf, with fixed leaves off."""
     leaves, treedef = jtu.tree_flatten(system)
     if not leaves:
@@ -125,7 +132,7 @@ def _drop_fixed(system: AbstractSystem, mask: PyTree) -> PyTree:
 
     full = jtu.tree_map(broadcast, mask, system, is_leaf=lambda v: v is None)
     flags = treedef.flatten_up_to(full)
-    constraints = leaf_constraints(system)
+    constraints = leaf_constraints_with(system, overrides)
     kept = [bool(f) and c.trainable for f, c in zip(flags, constraints, strict=True)]
     return jtu.tree_unflatten(treedef, kept)
 
@@ -143,10 +150,13 @@ def split_system(
     return theta, params, static
 
 
-def _trainable_constraints(system: AbstractSystem, mask: PyTree) -> list[AbstractConstraint]:
+def _trainable_constraints(
+    system: AbstractSystem, mask: PyTree, overrides: Overrides = ()
+) -> list[AbstractConstraint]:
     """The constraint of each trainable leaf, in the order of the trainable sub-tree's leaves."""
     flags = jtu.tree_structure(system).flatten_up_to(mask)
-    return [c for f, c in zip(flags, leaf_constraints(system), strict=True) if f]
+    every = leaf_constraints_with(system, overrides)
+    return [c for f, c in zip(flags, every, strict=True) if f]
 
 
 def _trainable_names(system: AbstractSystem, mask: PyTree) -> list[str]:
@@ -288,6 +298,9 @@ class FitProblem(eqx.Module):
         log_prior: ``None`` or a callable on the system returning log p(θ) (natural units).
         constraints: the constraint of each leaf of ``template``, in leaf order (θ's entries map
             to natural values through their ``forward``).
+        overrides: the per-fit constraints by leaf name it was created with
+            (:func:`~ceemx.models.parameter_meta.leaf_constraints_with`; kept for the problems
+            derived from it).
     """
 
     template: Any
@@ -295,6 +308,7 @@ class FitProblem(eqx.Module):
     data: Trajectories
     log_prior: Callable[[AbstractSystem], Any] | None = eqx.field(static=True, default=None)
     constraints: tuple[AbstractConstraint, ...] = eqx.field(static=True, default=())
+    overrides: Overrides = eqx.field(static=True, default=())
 
     @classmethod
     def create(
@@ -304,6 +318,7 @@ class FitProblem(eqx.Module):
         *,
         trainable: Trainable = None,
         log_prior: Callable[[AbstractSystem], Any] | None = None,
+        overrides: Overrides = (),
     ) -> tuple[FitProblem, Theta]:
         """The problem and the flat, unconstrained θ of ``system``'s trainable leaves.
 
@@ -312,9 +327,10 @@ class FitProblem(eqx.Module):
                 (host-side; skipped for traced values); when ``trainable`` selects nothing.
         """
         check_constraints(system)
-        mask = trainable_mask(system, trainable)
+        overrides = tuple(overrides)
+        mask = trainable_mask(system, trainable, overrides=overrides)
         params, static = eqx.partition(system, mask)
-        constraints = tuple(_trainable_constraints(system, mask))
+        constraints = tuple(_trainable_constraints(system, mask, overrides))
         # Strongly typed θ, template and fixed leaves: a weakly typed leaf (e.g. a noise scale
         # given as a Python float) would make the second epoch, whose θ comes back from a solver
         # strongly typed, compile again, and the problem's system a different program from the
@@ -336,7 +352,7 @@ class FitProblem(eqx.Module):
         ):
             check_room(c, x, z, where, back=b)
         check_log_prior(log_prior, system)
-        return cls(template, static, data, log_prior, constraints), theta
+        return cls(template, static, data, log_prior, constraints, overrides), theta
 
     def with_data(self, data: Trajectories) -> FitProblem:
         """This problem over other data of the same shape of model (θ's layout, prior kept).

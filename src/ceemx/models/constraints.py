@@ -55,6 +55,9 @@ from ceemx.lib.tree import as_jax
 
 __all__ = [
     "CONSTRAINT_KEY",
+    "DESCRIPTION_KEY",
+    "UNIT_KEY",
+    "child_of",
     "AbstractConstraint",
     "Fixed",
     "GreaterThan",
@@ -70,6 +73,10 @@ __all__ = [
 
 CONSTRAINT_KEY = "ceemx.constraint"
 """The dataclass-metadata key under which :func:`param` stores a field's constraint."""
+UNIT_KEY = "ceemx.unit"
+"""The key of a :func:`param`'s unit (the summary's unit column)."""
+DESCRIPTION_KEY = "ceemx.description"
+"""The key of a :func:`param`'s description (named under the summary's table)."""
 
 
 def _softplus(z):
@@ -331,6 +338,8 @@ else:
         fixed: bool = False,
         constraint: AbstractConstraint | None = None,
         converter: Callable[[Any], Any] | None = _as_parameter,
+        unit: str | None = None,
+        description: str | None = None,
         **field_kwargs: Any,
     ) -> Any:
         """A system field that is a parameter, with an optional constraint (an ``eqx.field``).
@@ -345,6 +354,8 @@ else:
             converter: applied to the value when the system is built (Equinox converter); the
                 default turns numbers and integer or NumPy arrays into floating JAX arrays (Python
                 scalars stay weakly typed) and leaves sub-modules alone. ``None``: no conversion.
+            unit: the parameter's unit, e.g. ``"1/s"`` (the summary's unit column).
+            description: what it is, in a few words (the summary's notes name it).
             **field_kwargs: passed to ``eqx.field`` (``default``, ``default_factory``, ``metadata``,
                 ...).
 
@@ -394,7 +405,19 @@ else:
             c = Unconstrained()
         metadata = dict(field_kwargs.pop("metadata", {}))
         metadata[CONSTRAINT_KEY] = c
+        metadata.update(_labels(unit=unit, description=description))
         return eqx.field(converter=converter, metadata=metadata, **field_kwargs)
+
+
+def _labels(**texts: str | None) -> dict[str, str]:
+    """A :func:`param`'s ``unit`` and ``description`` as metadata (strings, or refused)."""
+    out = {}
+    for name, text in texts.items():
+        if text is not None:
+            if not isinstance(text, str):
+                raise TypeError(f"`{name}` must be a string; got {text!r}.")
+            out[UNIT_KEY if name == "unit" else DESCRIPTION_KEY] = text
+    return out
 
 
 _UNCONSTRAINED = Unconstrained()
@@ -410,7 +433,8 @@ def field_constraint(module: Any, name: str) -> AbstractConstraint | None:
     return None
 
 
-def _child(node: Any, key: Any) -> tuple[bool, Any]:
+def child_of(node: Any, key: Any) -> tuple[bool, Any]:
+    """``(found, child)``: the child of ``node`` at one key of a pytree path."""
     if isinstance(key, jtu.GetAttrKey):
         return True, getattr(node, key.name)
     if isinstance(key, jtu.SequenceKey):
@@ -428,7 +452,7 @@ def constraint_at(tree: Any, path: tuple) -> AbstractConstraint:
             c = field_constraint(node, key.name)
             if c is not None:
                 return c
-        ok, node = _child(node, key)
+        ok, node = child_of(node, key)
         if not ok:
             break
     return _UNCONSTRAINED

@@ -4,6 +4,7 @@ The paper's coupled Lorenz attractors, a linear system, a neural observation mod
 gray-box models of the three real datasets (:mod:`ceemx.systems.gray_box`).
 """
 
+from ceemx.systems.constant_input import ConstantInput
 from ceemx.systems.gray_box import CascadedTanks, CoupledDrives, Silverbox
 from ceemx.systems.linear import LinearSystem
 from ceemx.systems.lorenz import (
@@ -17,6 +18,7 @@ from ceemx.systems.neural import NeuralObservationSystem
 
 __all__ = [
     "CascadedTanks",
+    "ConstantInput",
     "CoupledDrives",
     "CoupledLorenz",
     "LinearSystem",

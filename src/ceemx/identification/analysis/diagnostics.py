@@ -78,6 +78,7 @@ from ceemx.identification.analysis.noise_estimate import (
 )
 from ceemx.inference.ekf import ekf_prepared
 from ceemx.infra.options import check_bool, check_real
+from ceemx.infra.progress import task
 from ceemx.lib.results import messages
 from ceemx.lib.tree import as_jax
 from ceemx.models.system import AbstractSystem, GaussianPrior
@@ -277,16 +278,18 @@ def residual_diagnostics(
     M = int(min(lags, data.num_steps - 1))
     system = _strong(system)
     inputs = prepare(system, data, states, identify=True)
-    noise = _noise_reading(system, inputs, estimate)
-    ratio_ok, ratio_problems = _noise_verdicts(noise, factor)
-    x1 = np.asarray(noise.states[:, 0])
-    if states is not None:  # where the MAP failed, the given start
-        x1 = np.where(np.isfinite(x1), x1, np.asarray(states)[:, 0])
-    prior = system.initial_prior if initial is None else initial
-    z = _innovations(inputs.system, inputs.data, x1, prior)
-    inside = np.arange(data.num_steps)[None, :] < _record_lengths(inputs.data)[:, None]
-    c, nis = correlation_statistics(z, np.asarray(inputs.data.u), M, inside)
-    tests = _prediction_error_tests(c, nis)
+    records = f"{data.batch_size} record{'s' if data.batch_size > 1 else ''}"
+    with task(f"diagnostics: {records} of {data.num_steps} steps"):  # a line when it runs long
+        noise = _noise_reading(system, inputs, estimate)
+        ratio_ok, ratio_problems = _noise_verdicts(noise, factor)
+        x1 = np.asarray(noise.states[:, 0])
+        if states is not None:  # where the MAP failed, the given start
+            x1 = np.where(np.isfinite(x1), x1, np.asarray(states)[:, 0])
+        prior = system.initial_prior if initial is None else initial
+        z = _innovations(inputs.system, inputs.data, x1, prior)
+        inside = np.arange(data.num_steps)[None, :] < _record_lengths(inputs.data)[:, None]
+        c, nis = correlation_statistics(z, np.asarray(inputs.data.u), M, inside)
+        tests = _prediction_error_tests(c, nis)
     return ResidualDiagnostics(
         noise_ratios=noise.ratios,
         assumed_std=noise.assumed,

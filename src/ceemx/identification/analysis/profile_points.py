@@ -250,7 +250,7 @@ class ProfilePoints:
             constraints[self.leaf] = HeldEntry(constraints[self.leaf], self.offset)
             held = FitProblem(
                 problem.template, problem.static, problem.data, problem.log_prior,
-                tuple(constraints),
+                tuple(constraints), problem.overrides,
             )  # fmt: skip
             state = self._refit(held, jnp.asarray(start.theta).at[self.j].set(z_in), start.states)
             theta = state.theta
@@ -266,6 +266,7 @@ class ProfilePoints:
                 problem.data,
                 trainable=jtu.tree_unflatten(treedef, flags),
                 log_prior=problem.log_prior,
+                overrides=problem.overrides,
             )
             state = self._refit(held, theta0, start.states)
             theta = problem.theta_of(held.build(state.theta))

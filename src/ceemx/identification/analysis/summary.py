@@ -52,6 +52,7 @@ from ceemx.identification.analysis.profile_rule import summary_intervals
 from ceemx.lib.results import RESULTS, codes
 from ceemx.models.constraints import Unconstrained
 from ceemx.models.noise import AbstractNoise
+from ceemx.models.parameter_meta import entry_labels
 
 __all__ = [
     "ParameterRow",
@@ -450,6 +451,35 @@ def _cells(rows: Sequence[ParameterRow]) -> list[list[str]]:
     ]
 
 
+def _parameter_table(result, head: list[str], rows: Sequence[ParameterRow], md: bool) -> list[str]:
+    """The parameter table's lines, with units and descriptions where the fields declare them.
+
+    A unit column after the estimate when any parameter has a unit (:func:`ceemx.param`); the
+    fields' descriptions on a line under the table.
+    """
+    labels = entry_labels(result.problem.template, result.system)
+    cells = _cells(rows)
+    if any(unit for unit, _ in labels):
+        head.insert(2, "unit")
+        for row, (unit, _) in zip(cells, labels, strict=False):
+            row.insert(2, unit)
+    right = {1, 3} if len(head) > 5 else {1, 2}
+    out = [""] if md else []
+    out += (_md_table if md else _text_table)(head, cells, right)
+    meanings = _meanings(rows, labels)
+    return out + (["", meanings] if md else [meanings]) if meanings else out
+
+
+def _meanings(rows: Sequence[ParameterRow], labels: Sequence[tuple[str, str]]) -> str:
+    """``"k: stiffness; c: damping"``: the fields' descriptions, each once, in table order."""
+    seen: dict[str, str] = {}
+    for row, (_, text) in zip(rows, labels, strict=False):
+        field = row.name.split("[")[0]
+        if text and field not in seen:
+            seen[field] = text
+    return "; ".join(f"{k}: {v}" for k, v in seen.items())
+
+
 def _text_table(head: Sequence[str], body: Sequence[Sequence[str]], right: set[int]) -> list[str]:
     widths = [max(len(str(c)) for c in col) for col in zip(head, *body, strict=True)]
 
@@ -524,10 +554,7 @@ def fit_summary(
         rows, notes = parameter_rows(result, **options, uncertainty=uncertainty)
         shown = rows if max_rows is None else rows[:max_rows]
         head = [h.format(pct=f"{100 * level:g} %") for h in _HEAD]
-        table = (_md_table if md else _text_table)(head, _cells(shown), {1, 2})
-        if md:
-            out.append("")
-        out += table
+        out += _parameter_table(result, head, shown, md)
         if len(shown) < len(rows):
             out.append(
                 f"… {len(rows) - len(shown)} more parameters (summary(max_rows=None) shows all)"

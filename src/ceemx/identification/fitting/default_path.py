@@ -84,7 +84,9 @@ def fit_default(
     ``checkpoint`` is refused before any compute where a stage learns the noise
     (:func:`check_checkpoint`). Then :func:`run_stages`.
     """
-    problem, theta = FitProblem.create(system, inputs.data, trainable=options.trainable)
+    problem, theta = FitProblem.create(
+        system, inputs.data, trainable=options.trainable, overrides=options.overrides
+    )
     placed = options.mesh is not None
     choice = choose(noise=noise, **problem_facts(problem, theta, system, options.spread, placed))
     check_checkpoint(choice, options)
@@ -118,6 +120,7 @@ def run_stages(
             diagnose=options.diagnose and last,
             checkpoint=_stage_folder(options.checkpoint, k, stage, len(choice.stages)),
             callbacks=callbacks,
+            progress_label=f"stage {k + 1}/{len(choice.stages)}" if len(choice.stages) > 1 else "",
         )
         data, start = inputs.data, inputs.states
         if stage.part is not None:
@@ -229,7 +232,11 @@ def _checked_start(system: AbstractSystem, inputs: Prepared, options: FitOptions
     """
     states = start_states(inputs)
     problem, theta = FitProblem.create(
-        inputs.system, inputs.data, trainable=options.trainable, log_prior=options.log_prior
+        inputs.system,
+        inputs.data,
+        trainable=options.trainable,
+        log_prior=options.log_prior,
+        overrides=options.overrides,
     )
     check_start(problem, theta, states)
     return Prepared(inputs.system, inputs.data, states)

@@ -9,7 +9,7 @@ the library chooses from the problem (:mod:`~ceemx.identification.fitting.defaul
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Literal
 
 from jax.sharding import Mesh
@@ -19,6 +19,7 @@ from ceemx.data.checks import prepare
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.fitting.default_path import fit_default, fit_named
 from ceemx.identification.fitting.fit_options import fit_options
+from ceemx.identification.fitting.overrides import with_overrides
 from ceemx.identification.fitting.result import EpochInfo, FitResult
 from ceemx.identification.fitting.start import require_observations
 from ceemx.identification.solvers.base import AbstractFitSolver
@@ -28,7 +29,7 @@ from ceemx.models.system import AbstractSystem
 
 __all__ = ["fit"]
 
-_INPUTS = ("system", "data", "x_init")
+_INPUTS = ("system", "data", "x_init", "bounds", "fixed")
 
 
 @entry_point  # BLAS threads and results as the policy says (ceemx.infra.policy)
@@ -51,6 +52,8 @@ def fit(
     devices: Literal["all"] | Mesh | None = None,
     diagnose: bool = True,
     noise: Literal["fixed", "learn"] | None = None,
+    bounds: Mapping[str, tuple[float | None, float | None]] | None = None,
+    fixed: Mapping[str, Any] | None = None,
 ) -> FitResult:
     """Identify θ and the state trajectories by maximising the CE-EM objective J(x, θ) (Eq. 9).
 
@@ -92,6 +95,9 @@ def fit(
             alternated with the Laplace-evidence estimate until they settle (``noise_rounds``;
             ``max_epochs`` per round; no ``checkpoint``); ``None``: learned without a solver. The
             observation noise has floors from the data (``docs/guarantees.md``, "Learned noise").
+        bounds: ``{name: (lower, upper)}`` (``None``: open), e.g. ``{"k": (0, 10)}``: learned
+            inside them in this fit, narrowing the class's constraint (:mod:`~.overrides`).
+        fixed: ``{name: value}`` (``None``: as it is), e.g. ``{"g": 9.81}``: held in this fit.
 
     Returns:
         A :class:`FitResult`.
@@ -106,6 +112,7 @@ def fit(
     """
     # every option, checked before any compute (the inputs are prepared next)
     options = fit_options(**{k: v for k, v in locals().items() if k not in _INPUTS})
+    system, options = with_overrides(system, options, bounds, fixed)
     inputs = prepare(system, data, x_init, identify=True)
     require_observations(inputs.data)  # every solver, every noise mode: before any compute
     if solver is None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -21,45 +20,64 @@ from ceemx.identification.fitting.start import (
 from ceemx.identification.solvers.base import FitState, total_J
 from ceemx.infra import checkpoint as ckpt
 from ceemx.infra.distributed import is_main_process, to_host
+from ceemx.infra.progress import Progress
 
-__all__ = ["run_epochs"]
+__all__ = ["fit_progress", "outcome", "run_epochs"]
 
 
-def run_epochs(start: FitStart, options: FitOptions) -> tuple[FitState, bool]:
+def fit_progress(options: FitOptions, name: str) -> Progress:
+    """The progress display of one fit (:mod:`ceemx.infra.progress`; process 0 only)."""
+    show = options.progress if is_main_process() else False
+    return Progress(name, options.max_epochs, show=show, unit="epoch")
+
+
+def outcome(history: list, max_epochs: int) -> str:
+    """How the epochs ended, for the progress display: ``"converged at 8/50 epochs"``."""
+    n = len(history)
+    last = history[-1] if history else {}
+    if last.get("converged", False):
+        return f"converged at {n}/{max_epochs} epochs"
+    if last.get("stop", False):
+        return f"stopped at {n}/{max_epochs} epochs"
+    return f"not converged after {n}/{max_epochs} epochs"
+
+
+def run_epochs(
+    start: FitStart, options: FitOptions, bar: Progress | None = None
+) -> tuple[FitState, bool]:
     """The epochs from ``start``: (the last state, whether the solver converged).
 
     They run until the solver converges or stops, a callback stops them, or ``max_epochs``
     (resumed ones included) have run. Each epoch's record is appended to ``start.history``.
-    Over several processes only process 0 shows progress and writes checkpoints.
+    Over several processes only process 0 shows progress and writes checkpoints. ``bar``: the
+    fit's display (:func:`fit_progress`; ``None``: none), updated after every epoch.
     """
     solver, problem, state, history = start.solver, start.problem, start.state, start.history
-    show = (sys.stderr.isatty() if options.progress is None else options.progress) and (
-        is_main_process()
-    )
-    bar = _Progress(show, options.max_epochs, len(history), type(solver).__name__)
+    bar = Progress("", show=False) if bar is None else bar
     converged = bool(history and history[-1].get("converged", False))
     stopped = bool(history and history[-1].get("stop", False))
-    try:
-        while len(history) < options.max_epochs and not (converged or stopped):
-            epoch = len(history) + 1
-            t0 = time.perf_counter()
-            before = state
-            state, own = solver.step(problem, state)
-            if epoch == 1 and all_failed(state) and not all_failed(before):
-                # why every trajectory failed at once, when the start says (else the status does)
-                refuse_failed_start(problem, before.theta, before.states, solver, at_init=False)
-            record = _record(epoch, before, state, time.perf_counter() - t0, own)
-            stop, converged = solver.terminate(problem, before, state, record)
-            info = EpochInfo(epoch, problem.build(state.theta), state.states, record)
-            stopped = _run_callbacks(options.callbacks, info) or stop
-            record["converged"] = converged
-            record["stop"] = converged or stopped
-            history.append(record)
-            bar.update(record)
-            if options.checkpoint is not None:
-                _save(options, state, history, start.fingerprint)
-    finally:
-        bar.close()
+    if history:  # a resumed fit
+        bar.update(len(history))
+    while len(history) < options.max_epochs and not (converged or stopped):
+        epoch = len(history) + 1
+        if epoch == 1:
+            bar.status("first epoch")
+        t0 = time.perf_counter()
+        before = state
+        state, own = solver.step(problem, state)
+        if epoch == 1 and all_failed(state) and not all_failed(before):
+            # why every trajectory failed at once, when the start says (else the status does)
+            refuse_failed_start(problem, before.theta, before.states, solver, at_init=False)
+        record = _record(epoch, before, state, time.perf_counter() - t0, own)
+        stop, converged = solver.terminate(problem, before, state, record)
+        info = EpochInfo(epoch, problem.build(state.theta), state.states, record)
+        stopped = _run_callbacks(options.callbacks, info) or stop
+        record["converged"] = converged
+        record["stop"] = converged or stopped
+        history.append(record)
+        bar.update(1, f"J={record['J']:.6g}, {record['time']:.2f} s")
+        if options.checkpoint is not None:
+            _save(options, state, history, start.fingerprint)
     return state, converged
 
 
@@ -98,21 +116,3 @@ def _run_callbacks(callbacks: Sequence[Callable[[EpochInfo], Any]], info: EpochI
         elif out is False:
             stop = True
     return stop
-
-
-class _Progress:
-    def __init__(self, enabled: bool, total: int, initial: int, desc: str):
-        self.bar = None
-        if enabled:
-            from tqdm.auto import tqdm
-
-            self.bar = tqdm(total=total, initial=initial, desc=desc, unit="epoch", leave=True)
-
-    def update(self, record):
-        if self.bar is not None:
-            self.bar.set_postfix(J=f"{record['J']:.6g}", t=f"{record['time']:.2f}s")
-            self.bar.update(1)
-
-    def close(self):
-        if self.bar is not None:
-            self.bar.close()

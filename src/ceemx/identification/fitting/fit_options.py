@@ -54,6 +54,10 @@ class FitOptions:
         solver: the fit solver (``fit`` without one: :class:`ceemx.Alternating` for the checks
             here; the default path puts each stage's solver in its place).
         mesh: the devices the batch is split over (``None``: no placement).
+        progress_label: which part of a longer fit this is, for the progress display
+            (``"stage 1/2, noise round 2"``; ``""``: the whole fit).
+        overrides: the per-fit constraints of ``fit(..., bounds=, fixed=)`` by leaf name
+            (:mod:`ceemx.identification.fitting.overrides`).
     """
 
     solver: AbstractFitSolver
@@ -68,6 +72,8 @@ class FitOptions:
     outliers: str = "exclude"
     mesh: Mesh | None = None
     diagnose: bool = True
+    progress_label: str = ""
+    overrides: tuple = ()
 
     @property
     def spread(self) -> bool:

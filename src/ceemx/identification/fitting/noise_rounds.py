@@ -87,10 +87,10 @@ def learn_noise(
     system, states, learned = _next_noise(guess, estimate, nm)
     result, settled, last = None, False, []
     for k in range(1, max_rounds + 1):
-        clock = time.perf_counter()
+        clock, opts = time.perf_counter(), _round_options(options, k)  # its progress: round k
         with warnings.catch_warnings(record=True) as caught:  # the last round's are re-issued
             warnings.simplefilter("always")
-            result = run_fit(system, Prepared(promote_tree(system, system), data, states), options)
+            result = run_fit(system, Prepared(promote_tree(system, system), data, states), opts)
         last = list(caught)
         fitted = _with_noise_of(result.system, guess)
         new, new_nm, _ = estimate_noise_prepared(fitted, data, result.states)
@@ -115,6 +115,12 @@ def learn_noise(
         warn(_unsettled(rounds, result.converged), NoiseEstimateWarning)
         result = dataclasses.replace(result, converged=False)
     return dataclasses.replace(result, noise_rounds=tuple(rounds))
+
+
+def _round_options(options: FitOptions, k: int) -> FitOptions:
+    """``options`` with the progress display's label naming round ``k``."""
+    label = ", ".join(s for s in (options.progress_label, f"noise round {k}") if s)
+    return dataclasses.replace(options, progress_label=label)
 
 
 def _next_noise(guess: AbstractSystem, estimate: AbstractSystem, nm: NoiseMoments):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 
 from ceemx.data.checks import Prepared
-from ceemx.identification.fitting.epochs import run_epochs
+from ceemx.identification.fitting.epochs import fit_progress, outcome, run_epochs
 from ceemx.identification.fitting.finish import finish_fit
 from ceemx.identification.fitting.fit_options import FitOptions
 from ceemx.identification.fitting.result import FitResult
@@ -21,9 +21,16 @@ def run_fit(system: AbstractSystem, inputs: Prepared, options: FitOptions) -> Fi
     ``system`` is the model as given (its problem is built from it); ``inputs`` hold it, the data
     and the start states prepared (:func:`ceemx.data.checks.prepare`).
     """
+    name = type(options.solver).__name__
+    name += f" ({options.progress_label})" if options.progress_label else ""
     with contextlib.ExitStack() as hold:  # the checkpoint folder's lock, for the whole fit
+        bar = hold.enter_context(fit_progress(options, name))
+        bar.status("start states, compiling")
         start = start_fit(system, inputs, options, hold)
         if start.compiling is not None:  # the epoch programs compiled beside the start states
             start.compiling.join()
-        state, converged = run_epochs(start, options)
-        return finish_fit(start, state, converged, options)
+        state, converged = run_epochs(start, options, bar)
+        bar.status("uncertainty and checks")
+        result = finish_fit(start, state, converged, options)
+        bar.close(outcome(start.history, options.max_epochs))
+        return result

@@ -102,7 +102,11 @@ def start_fit(
             hold.enter_context(ckpt.lock(options.checkpoint))
     # the problem is built from the system as given (its weakly typed leaves cast to its dtype)
     problem, theta = FitProblem.create(
-        system, inputs.data, trainable=options.trainable, log_prior=options.log_prior
+        system,
+        inputs.data,
+        trainable=options.trainable,
+        log_prior=options.log_prior,
+        overrides=options.overrides,
     )
     solver.check_problem(problem, theta)  # what it refuses, before any compute
     compiling = _precompile(solver, problem, theta, inputs, options)

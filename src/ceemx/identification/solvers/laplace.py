@@ -560,7 +560,12 @@ class _NoiseSplit:
             c for c, m in zip(problem.constraints, self.marks, strict=True) if not m
         )
         self.inner = FitProblem(
-            model, eqx.combine(noise, problem.static), problem.data, problem.log_prior, constraints
+            model,
+            eqx.combine(noise, problem.static),
+            problem.data,
+            problem.log_prior,
+            constraints,
+            problem.overrides,
         )
         self.theta_inner = ravel_pytree(model)[0]
 
