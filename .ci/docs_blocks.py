@@ -40,6 +40,7 @@ import sys
 import tempfile
 import time
 import traceback
+import types
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -166,7 +167,12 @@ def run_page(path: Path) -> dict:
             except FileNotFoundError as e:
                 result["skipped"] = f"needs the {name} data ({str(e).split(':')[0]})"
                 return result
-    namespace: dict = {"__name__": "__main__"}
+    # The blocks run as one script would: in a module that is ``__main__`` (so that a class the
+    # page defines is found by name, as ``ceemx.save`` looks it up).
+    script = types.ModuleType("__main__")
+    script.__file__ = str(path)
+    sys.modules["__main__"] = script
+    namespace = script.__dict__
     for block in page.blocks:
         entry: dict = {"line": block.line, "skip": block.skip}
         result["blocks"].append(entry)
