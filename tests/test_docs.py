@@ -9,6 +9,7 @@ import pathlib
 import re
 import sys
 
+import numpy as np
 import pytest
 
 import ceemx
@@ -114,3 +115,19 @@ def test_every_page_parses_for_the_docs_test():
     """Each text fence of every page is the output of the Python block before it."""
     counts = {p.name: len(docs_blocks.parse(p).blocks) for p in docs_blocks.pages()}
     assert counts["README.md"] >= 1 and counts["real_data.md"] >= 4
+
+
+def test_figures_show_the_numbers_the_pages_print():
+    """docs/make_figures.py records what each figure shows; the pages print the same runs."""
+    import json
+
+    shown = json.loads((ROOT / "docs" / "figures" / "figures.json").read_text())
+    page = docs_blocks.parse(ROOT / "docs" / "getting_started.md")
+    printed = page.blocks[1].output  # the scoring block: the fit the tanks figure draws
+    assert printed is not None
+    rmse = float(re.search(r"^0\s+\S+\s+([\d.]+)", printed, re.M).group(1))
+    np.testing.assert_allclose(rmse, shown["benchmark_tanks"]["gray-box RMSE [V]"], rtol=1e-3)
+    text = " ".join((ROOT / "docs" / "getting_started.md").read_text().split())
+    quoted = re.search(r"RMSE ([\d.]+) mV on the arrow record", text).group(1)
+    assert quoted == f"{shown['benchmark_silverbox']['gray-box RMSE [mV]']:.3g}"
+    assert f"RMSE {rmse:.3g} V" in text
