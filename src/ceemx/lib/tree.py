@@ -25,7 +25,8 @@ class _Values:
 
     def __repr__(self) -> str:
         if self.values.ndim == 0:
-            return f"{self.values.item():.6g}"
+            value = self.values.item()
+            return repr(value) if isinstance(value, bool) else f"{value:.6g}"
         return np.array2string(
             self.values, separator=", ", formatter={"float_kind": lambda v: f"{v:.6g}"}
         )
@@ -46,7 +47,10 @@ def value_repr(module: Any, size: int = SHOWN_SIZE) -> str:
             return leaf
         if leaf.size > size:
             return leaf
-        return _Values(np.asarray(leaf))
+        try:  # an array spread over processes is not readable here: its short form
+            return _Values(np.asarray(leaf))
+        except RuntimeError:
+            return leaf
 
     return eqx.tree_pformat(jtu.tree_map(shown, module))
 
