@@ -122,7 +122,7 @@ def test_a_system_checks_a_new_models_dimension():
 
 
 def test_noise_models_and_systems_print_their_values():
-    """``print`` shows the scales and parameters (not ``f64[]``); big or traced arrays stay short."""
+    """``print`` shows scales and parameters (not ``f64[]``); big or traced arrays stay short."""
     import jax
 
     f64 = jnp.float64
