@@ -13,9 +13,10 @@ space: a wrapped table line is the same line), numbers to a relative 1e-3, wall-
 error (the reader would see a warning the page does not show). ``--write`` puts the run's outputs
 into the pages instead: the committed command that regenerates every printed output.
 
-A page that loads a real dataset (``datasets.cascaded_tanks()`` and the like) runs only when the
+A block that loads a real dataset (``datasets.cascaded_tanks()`` and the like) runs only when the
 data file is on disk (``CEEMX_DATA``, which this runner points at ``../shared/data`` when it is
-unset and that folder exists; the download cache): otherwise it is skipped, said so. A block
+unset and that folder exists; the download cache): otherwise it and the rest of its page are not
+run, said so (the blocks before it run). A block
 preceded by ``<!-- docs-test: skip REASON -->`` is not run (the reason is reported): a reproducer
 of a hang, a block that needs a package ceemx does not depend on.
 
@@ -158,6 +159,7 @@ def run_page(path: Path) -> dict:
     """Execute the page's blocks in order in one namespace; outputs, times, the first error."""
     page = parse(path)
     result: dict = {"page": str(path), "blocks": [], "skipped": None, "error": None}
+    no_data = len(page.blocks)  # the first block not run for want of data
     if page.datasets:
         from ceemx.datasets import data_file
 
@@ -166,17 +168,21 @@ def run_page(path: Path) -> dict:
                 data_file(name, download=False)
             except FileNotFoundError as e:
                 result["skipped"] = f"needs the {name} data ({str(e).split(':')[0]})"
-                return result
+                loads = [b.skip is None and bool(DATASET.search(b.code)) for b in page.blocks]
+                no_data = loads.index(True)
+                break
     # The blocks run as one script would: in a module that is ``__main__`` (so that a class the
     # page defines is found by name, as ``ceemx.save`` looks it up).
     script = types.ModuleType("__main__")
     script.__file__ = str(path)
     sys.modules["__main__"] = script
     namespace = script.__dict__
-    for block in page.blocks:
+    for i, block in enumerate(page.blocks):
         entry: dict = {"line": block.line, "skip": block.skip}
         result["blocks"].append(entry)
-        if block.skip is not None:
+        if i >= no_data:  # this block loads the data or follows one that does
+            entry["skip"] = result["skipped"]
+        if entry["skip"] is not None:
             continue
         code = compile("\n" * (block.line - 1) + block.code, str(path), "exec")
         out = io.StringIO()
@@ -298,10 +304,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 run = json.loads(report.read_text())
                 n_run = sum(1 for e in run["blocks"] if "output" in e)
-                n_skip = [e["line"] for e in run["blocks"] if e["skip"] is not None]
-                if run["skipped"]:
-                    rows.append(f"{name}: skipped, {run['skipped']} ({len(page.blocks)} blocks)")
-                    continue
+                n_skip = [b.line for b in page.blocks if b.skip is not None]
                 problems, checked = check(page, run, args.write)
                 if args.write and not run["error"] and write_outputs(page, run):
                     checked_word = "written"
@@ -313,6 +316,9 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 if n_skip:
                     row += f"; not run (directive): lines {', '.join(map(str, n_skip))}"
+                if run["skipped"]:
+                    first = next(e["line"] for e in run["blocks"] if e["skip"] == run["skipped"])
+                    row += f"; from line {first} on not run: {run['skipped']}"
                 if problems:
                     failed += 1
                     row += " — FAILED\n" + "\n".join("  " + p for p in problems)
