@@ -3,8 +3,9 @@
 Fits the cascaded tanks' and the Silverbox's gray-box models (as ``ceemx experiment real_data``
 does, with its budgets) and N4SID beside them, scores both on the official test records, and draws
 
-- ``benchmark_tanks.png`` — :func:`ceemx.plot_benchmark`: the test output, both simulations, the
-  error, and the upper-tank level against its physical range [0, h];
+- ``benchmark_tanks.png`` — :func:`ceemx.plot_benchmark`: the test output, the gray-box
+  simulation (the fit of ``docs/getting_started.md``'s scoring block), the error, and the
+  upper-tank level against its physical range [0, h];
 - ``benchmark_silverbox.png`` — the same on the Silverbox's 40 000-sample arrow test record
   (decimated for display, the zoom on the largest error);
 - ``resid_silverbox.png`` — :func:`ceemx.plot_resid`: the simulation error's autocorrelation and
@@ -13,12 +14,15 @@ does, with its budgets) and N4SID beside them, scores both on the official test 
   (:func:`ceemx.evaluation.plots.plot_residual_diagnostics`).
 
 Data: ``../shared/data``, ``CEEMX_DATA`` or the download (:mod:`ceemx.datasets`). About 2 minutes
-on a 2-core CPU. Usage: ``.venv/bin/python docs/make_figures.py [OUT_DIR]`` (default
+on a 2-core CPU. Writes ``figures.json`` beside them: the numbers each figure shows (scores,
+the diagnostics' verdicts), which ``tests/test_docs.py`` compares with the numbers the pages
+print. Usage: ``PYTHONPATH=src .venv/bin/python docs/make_figures.py [OUT_DIR]`` (default
 ``docs/figures``).
 """
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from pathlib import Path
@@ -36,21 +40,22 @@ from ceemx.evaluation.report import save_figure  # noqa: E402
 from ceemx.systems.gray_box import CascadedTanks, Silverbox  # noqa: E402
 
 DPI = 100  # the figures are 11 in wide: 1100 pixels
+NUMBERS: dict[str, dict] = {}  # what each figure shows, written to figures.json
 
 
 def tanks(out: Path) -> None:
     """The cascaded tanks' benchmark figure and the diagnostics of the fit."""
     ds = ceemx.datasets.cascaded_tanks()
+    # The fit of docs/getting_started.md's scoring block: the figure shows what that page prints.
     result = ceemx.fit(CascadedTanks.default(), ds.train, solver=ceemx.JointLM(), max_epochs=200)
     print(result)
-    linear = fit_sid(ds.train, state_dim=2)
     test = ds.tests["test"]
     ours = ceemx.benchmark_score(result.system, test, ds.n_init)
-    lin = ceemx.benchmark_score(linear, test, ds.n_init)
     h = float(result.system.h)
+    NUMBERS["benchmark_tanks"] = {"gray-box RMSE [V]": float(ours.rmse[0, 0])}
     fig = ceemx.plot_benchmark(
         test.y[0],
-        {"gray-box CE-EM": ours.y_sim[0], "N4SID (linear, 2 states)": lin.y_sim[0]},
+        {"gray-box CE-EM": ours.y_sim[0]},
         n_init=ds.n_init,
         hidden=ours.x_sim[0, :, 0],
         hidden_label="gray-box: upper-tank level x₁ [V]",
@@ -62,7 +67,14 @@ def tanks(out: Path) -> None:
         title="Cascaded tanks, official test record: free-run simulation",
     )
     save_figure(fig, out / "benchmark_tanks.png", dpi=DPI)
-    plot_residual_diagnostics(result.diagnostics(), out / "diagnostics_tanks.png")
+    diagnostics = result.diagnostics()
+    print(diagnostics)
+    plot_residual_diagnostics(diagnostics, out / "diagnostics_tanks.png")
+    NUMBERS["diagnostics_tanks"] = {
+        "white": [None if w is None else bool(w) for w in diagnostics.white],
+        "box_pierce_p": [float(p) for p in diagnostics.box_pierce_p],
+        "problems": len(diagnostics.problems),
+    }
 
 
 def silverbox(out: Path) -> None:
@@ -76,6 +88,10 @@ def silverbox(out: Path) -> None:
     test = ds.tests["arrow_full"]
     ours = ceemx.benchmark_score(result.system, ceemx.foh_inputs(test), ds.n_init)
     lin = ceemx.benchmark_score(linear, test, ds.n_init)
+    NUMBERS["benchmark_silverbox"] = {
+        "gray-box RMSE [mV]": float(ours.rmse[0, 0]) * ds.score_scale,
+        "N4SID RMSE [mV]": float(lin.rmse[0, 0]) * ds.score_scale,
+    }
     y = np.asarray(test.y[0])
     fig = ceemx.plot_benchmark(
         y,
@@ -117,6 +133,8 @@ def main(argv: list[str]) -> None:
         print(f"{make.__name__}: {time.perf_counter() - t0:.1f} s", flush=True)
     for path in sorted(out.glob("*.png")):
         print(f"{path}: {path.stat().st_size / 1024:.0f} KB")
+    # The numbers the figures show, for the docs that quote them (tests/test_docs.py checks them).
+    (out / "figures.json").write_text(json.dumps(NUMBERS, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -362,6 +362,11 @@ def test_cascaded_tanks_dataset():
     rmse = [p.rmse["test"] for p in ds.published]
     assert rmse == sorted(rmse) and rmse[0] == 0.18 and rmse[-1] == 0.75 and len(rmse) == 6
     assert all(p.unit == "V" and "1024" in p.note for p in ds.published)
+    # The records carry their metadata: scores and plots name the channels with their units.
+    info = ds.tests["test"].info
+    assert info is not None and info == ds.train.info and info.dt == 4.0
+    assert info.output_labels(1) == ("lower tank level [V]",)
+    assert info.input_names == ("pump voltage",) and info.input_units == ("V",)
 
 
 @_need("silverbox")

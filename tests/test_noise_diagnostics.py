@@ -7,6 +7,7 @@ fitted with one compiled program (JointLM, B trainable, started at the true stat
 below differs only in array values (strongly typed, so none retraces).
 """
 
+import dataclasses
 import warnings
 
 import equinox as eqx
@@ -19,6 +20,7 @@ import ceemx
 from ceemx.evaluation import plots
 from ceemx.identification.analysis.diagnostics import residual_diagnostics
 from ceemx.identification.analysis.noise_check import LOWER, chi2_band, noise_check
+from ceemx.identification.analysis.summary import _facts as summary_facts
 
 jax.config.update("jax_enable_x64", True)
 
@@ -152,6 +154,38 @@ def test_diagnostics_name_the_wrong_scale(problem):
     assert not diag.ratio_ok["process_noise"].any() and diag.ratio_ok["obs_noise"].all()
     assert any(p.startswith("process_noise (state 1)") and "too tight" in p for p in diag.problems)
     assert diag.nis[0] > 4 and not diag.nis_ok[0]
+    # One verdict per noise question: with a passing end-of-fit check beside the failing
+    # component, the check's line, the report and the fit summary all say INCONSISTENT.
+    assert diag.noise_verdict == "INCONSISTENT: process_noise state 1, process_noise state 2"
+    _, _, res = problem
+    assert res.noise_check is not None and res.noise_check.verdict == "consistent"
+    both = dataclasses.replace(diag, noise_check=res.noise_check)
+    report = str(both)  # print() gives the report, repr stays one line
+    assert report == both.summary() and report.startswith("Residual diagnostics\nnoise check")
+    assert "consistent" not in report.replace("INCONSISTENT", "").replace("inconsistent", "")
+    assert "the overall rho, pooling every component, lies inside its band" in report
+    assert repr(both) == f"ResidualDiagnostics(outputs=1, lags=25, problems={len(both.problems)})"
+    facts = dict(summary_facts(res, both))
+    assert facts["noise check"].endswith(both.noise_verdict)
+    assert dict(summary_facts(res))["noise check"].endswith("): consistent")  # no diagnostics
+
+
+def test_printed_fit_objects_show_their_values(problem):
+    """Noise models, standard errors and the named estimates print numbers, not dtypes."""
+    _, _, res = problem
+    assert repr(res.system.obs_noise) == "DiagonalGaussian(scale=0.03, dim=1)"
+    assert "B=[[0.5" not in repr(res.system) and "f64[" not in repr(res.system)
+    se = res.standard_errors()
+    b_se = np.asarray(se.B)
+    assert f"B=[[{b_se[0, 0]:.6g}],\n" in repr(se) and "A=None" in repr(se)
+    estimates = res.parameter_estimates()
+    assert list(estimates) == ["B[0,0]", "B[1,0]"]
+    value, error = estimates["B[1,0]"]  # still a pair
+    assert (value, error) == (float(res.system.B[1, 0]), float(b_se[1, 0]))
+    assert repr(estimates["B[1,0]"]) == f"Estimate(estimate={value:.6g}, std_error={error:.6g})"
+    table = str(estimates).splitlines()
+    assert table[0].split() == ["parameter", "estimate", "std.", "error"]
+    assert table[2].split() == ["B[1,0]", f"{value:.6g}", f"{error:.3g}"]
 
 
 @pytest.mark.slow

@@ -119,3 +119,27 @@ def test_a_system_checks_a_new_models_dimension():
         ceemx.systems.LinearSystem(A, C, process_noise=wrong)
     system = ceemx.systems.LinearSystem(A, C, process_noise=FactorGaussian(jnp.eye(2)))
     assert eqx.tree_equal(system.process_noise, FactorGaussian(jnp.eye(2)))
+
+
+def test_noise_models_and_systems_print_their_values():
+    """``print`` shows scales and parameters (not ``f64[]``); big or traced arrays stay short."""
+    import jax
+
+    f64 = jnp.float64
+    assert repr(ceemx.DiagonalGaussian(jnp.asarray(0.05, f64), 1)) == (
+        "DiagonalGaussian(scale=0.05, dim=1)"
+    )
+    assert "scale=[0.1, 0.002]" in repr(ceemx.DiagonalGaussian(jnp.array([0.1, 2e-3], f64), 2))
+    system = ceemx.systems.LinearSystem(
+        jnp.full((6, 6), 0.5, f64), jnp.eye(6, dtype=f64)[:1], process_noise=0.01, obs_noise=0.2
+    )
+    text = repr(system)
+    assert "A=f64[6,6]" in text and "C=[[1, 0, 0, 0, 0, 0]]" in text  # 36 entries: the shape
+    assert "obs_noise=DiagonalGaussian(scale=0.2, dim=1)" in text
+
+    @jax.jit
+    def traced(noise):
+        assert repr(noise).startswith("DiagonalGaussian(scale=f64[]")
+        return noise.scale
+
+    traced(ceemx.DiagonalGaussian(jnp.asarray(0.05, f64), 1))

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ceemx.data.info import DataInfo
 from ceemx.data.trajectories import Trajectories
 from ceemx.datasets.download import data_file, sha256
 from ceemx.datasets.registry import DatasetEntry, PublishedResult, Segment, entry
@@ -201,8 +202,9 @@ class RealDataset:
     verified: bool = True
 
 
-def _trajectories(records: Sequence[Record]) -> Trajectories:
-    return Trajectories(np.stack([y for _, y in records]), np.stack([u for u, _ in records]))
+def _trajectories(records: Sequence[Record], info: DataInfo | None = None) -> Trajectories:
+    y, u = np.stack([y for _, y in records]), np.stack([u for u, _ in records])
+    return Trajectories(y, u, info=info)
 
 
 def real_dataset(
@@ -234,9 +236,11 @@ def real_dataset(
     spec = entry(name)
     return RealDataset(
         name=name,
-        train=_trajectories(list(rec.train.values())),
+        train=_trajectories(list(rec.train.values()), spec.info),
         train_names=tuple(rec.train),
-        tests={spec.test_names.get(k, k): _trajectories([r]) for k, r in rec.tests.items()},
+        tests={
+            spec.test_names.get(k, k): _trajectories([r], spec.info) for k, r in rec.tests.items()
+        },
         n_init=rec.n_init,
         dt=rec.dt,
         units=rec.units,

@@ -23,6 +23,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from ceemx.data.info import DataInfo
 from ceemx.datasets.download import SOURCES, Source
 from ceemx.models.system import AbstractSystem
 from ceemx.systems.gray_box import CascadedTanks, CoupledDrives, Silverbox
@@ -170,6 +171,8 @@ class DatasetEntry:
         model: the gray-box model (:class:`GrayBox`).
         windowing: how the experiments fit a long estimation record (``None``: whole).
         chosen: the settings chosen by hand (:class:`HandChosen`).
+        output_units, input_names, input_units: the channels' units and the inputs' names
+            (with ``dt`` and ``output_names``: :attr:`info`, the records' metadata).
     """
 
     name: str
@@ -193,6 +196,16 @@ class DatasetEntry:
     chosen: HandChosen
     test_names: Mapping[str, str] = field(default_factory=dict)
     windowing: Windowing | None = None
+    output_units: tuple[str, ...] | None = None
+    input_names: tuple[str, ...] | None = None
+    input_units: tuple[str, ...] | None = None
+
+    @property
+    def info(self) -> DataInfo:
+        """The records' metadata: sample time, channel names and units (``Trajectories.info``)."""
+        return DataInfo(
+            self.dt, "s", self.output_names, self.output_units, self.input_names, self.input_units
+        )
 
     @property
     def file(self) -> str:
@@ -218,6 +231,9 @@ CASCADED_TANKS = DatasetEntry(
     n_init=50,
     units="u: pump voltage [V]; y: lower-tank level [V]",
     output_names=("lower tank level",),
+    output_units=("V",),
+    input_names=("pump voltage",),
+    input_units=("V",),
     citation=(
         "M. Schoukens, P. Mattsson, T. Wigren, J.-P. Noël, 'Cascaded tanks benchmark combining "
         "soft and hard nonlinearities', Workshop on Nonlinear System Identification Benchmarks, "
@@ -264,6 +280,9 @@ SILVERBOX = DatasetEntry(
     n_init=50,
     units="u: V1 [V]; y: V2 [V] (scores are usually reported in mV)",
     output_names=("V2",),
+    output_units=("V",),
+    input_names=("V1",),
+    input_units=("V",),
     citation=(
         "T. Wigren, J. Schoukens, 'Three free data sets for development and benchmarking in "
         "nonlinear system identification', European Control Conference (ECC), 2013."
@@ -320,6 +339,9 @@ COUPLED_ELECTRIC_DRIVES = DatasetEntry(
     n_init=10,
     units="u: motor input [V]; y: pulley speed from a sign-insensitive counter",
     output_names=("pulley speed",),
+    output_units=("counter units",),
+    input_names=("motor input",),
+    input_units=("V",),
     citation=(
         "T. Wigren, M. Schoukens, 'Coupled electric drives data set and reference models', "
         "Technical report 2017-024, Department of Information Technology, Uppsala University, "

@@ -8,10 +8,51 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
+from jax.core import Tracer
 
-__all__ = ["as_jax", "is_weak", "trace_numbers"]
+__all__ = ["as_jax", "is_weak", "trace_numbers", "value_repr"]
 
 _T = TypeVar("_T")
+
+SHOWN_SIZE = 25  # arrays up to this many entries print their values; larger ones their shape
+
+
+class _Values:
+    """A leaf that prints as its values (``0.05``, ``[0.1, 0.2]``)."""
+
+    def __init__(self, values: np.ndarray):
+        self.values = values
+
+    def __repr__(self) -> str:
+        if self.values.ndim == 0:
+            value = self.values.item()
+            return repr(value) if isinstance(value, bool) else f"{value:.6g}"
+        return np.array2string(
+            self.values, separator=", ", formatter={"float_kind": lambda v: f"{v:.6g}"}
+        )
+
+
+def value_repr(module: Any, size: int = SHOWN_SIZE) -> str:
+    """``module`` as Equinox prints it, with the values of its small concrete arrays.
+
+    Equinox prints every array as its dtype and shape (``scale=f64[]``), which hides what an
+    identified model learned. Here arrays of at most ``size`` entries print their values
+    (``scale=0.0123``, ``k=[0.23, 0.017]``); larger ones (network weights) and traced values
+    keep the short form.
+    """
+    import equinox as eqx
+
+    def shown(leaf):
+        if isinstance(leaf, Tracer) or not isinstance(leaf, jax.Array | np.ndarray):
+            return leaf
+        if leaf.size > size:
+            return leaf
+        try:  # an array spread over processes is not readable here: its short form
+            return _Values(np.asarray(leaf))
+        except RuntimeError:
+            return leaf
+
+    return eqx.tree_pformat(jtu.tree_map(shown, module))
 
 
 def trace_numbers(tree: _T, dtype) -> _T:

@@ -48,7 +48,7 @@ from ceemx.lib.dense import (
     symmetrize,
     whitening_matrix,
 )
-from ceemx.lib.tree import as_jax
+from ceemx.lib.tree import as_jax, value_repr
 from ceemx.lib.typing import Scalar
 
 __all__ = [
@@ -99,6 +99,10 @@ class AbstractNoise(eqx.Module):
     negative log-density projected onto the positive semi-definite cone (eigenvalues clipped at
     zero), which makes any smooth density usable by the second-order smoother.
     """
+
+    def __repr__(self) -> str:
+        """Equinox's form, with the values of small arrays (``scale=0.05``, not ``f64[]``)."""
+        return value_repr(self)
 
     @abc.abstractmethod
     def log_prob(self, r: Float[Array, " d"], mask: Bool[Array, " d"] | None = None) -> Scalar:

@@ -16,6 +16,7 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Real
 
+from ceemx.lib.tree import value_repr
 from ceemx.lib.typing import Scalar, State
 from ceemx.models.constraint_checks import check_constraints
 from ceemx.models.noise import AbstractNoise, as_noise
@@ -34,6 +35,10 @@ _S = TypeVar("_S", bound="AbstractSystem")
 
 class GaussianPrior(eqx.Module):
     """Initial-state prior x₁ ~ N(mean, Σ), Σ given by a noise model on the deviation x₁ − mean."""
+
+    def __repr__(self) -> str:
+        """Equinox's form, with the values of small arrays (``scale=0.05``, not ``f64[]``)."""
+        return value_repr(self)
 
     mean: State
     noise: AbstractNoise
@@ -118,6 +123,10 @@ class AbstractSystem(eqx.Module):
     every floating-point parameter is finite and all share one dtype (weakly typed Python scalars
     excepted); and that every :func:`ceemx.param` value satisfies its constraint.
     """
+
+    def __repr__(self) -> str:
+        """Equinox's form, with the values of small arrays (``scale=0.05``, not ``f64[]``)."""
+        return value_repr(self)
 
     process_noise: AbstractNoise = eqx.field(
         kw_only=True, default_factory=_unset, converter=_noise_argument

@@ -150,12 +150,37 @@ class ResidualDiagnostics:
         """(m,) the pointwise 99 % band ±2.58/√N of the correlations, per output."""
         return BAND_Z / np.sqrt(np.maximum(self.counts, 1))
 
+    @property
+    def noise_verdict(self) -> str:
+        """One verdict on the assumed noise: the end-of-fit check and the per-component ratios.
+
+        ``"consistent"`` when both agree it is; otherwise ``"INCONSISTENT"`` naming the
+        components outside their band (and saying when the overall ρ alone lies inside its
+        band: the check pools every component, so it can hide one that is off).
+        """
+        off = [
+            f"{name} {_COMPONENT[name]} {i + 1}"
+            for name in NOISE_FIELDS
+            for i in np.flatnonzero(~np.asarray(self.ratio_ok[name], dtype=bool))
+        ]
+        check = self.noise_check
+        if check is not None and check.interpolating:
+            return check.verdict
+        if not off:
+            if check is None or check.consistent:
+                return "consistent"
+            return "INCONSISTENT overall (rho outside its band; each component inside its band)"
+        text = "INCONSISTENT: " + ", ".join(off)
+        if check is not None and check.consistent:
+            text += " (the overall rho, pooling every component, lies inside its band)"
+        return text
+
     def summary(self) -> str:
         """Plain text: a few lines per component, then the problems found."""
         F = self.factor
         lines = ["Residual diagnostics"]
         if self.noise_check is not None:
-            lines += self.noise_check.summary().splitlines()
+            lines += self.noise_check.summary(verdict=self.noise_verdict).splitlines()
         lines.append(
             f"noise ratios (Laplace E-step, realised / assumed variance; band [{1 / F:.3g}, "
             f"{F:.3g}]; biased towards 1 when the assumed noise is too loose):"
@@ -200,6 +225,10 @@ class ResidualDiagnostics:
             words.append("input test not run (constant inputs)")
         words.append("unbiased" if self.unbiased[i] else "biased")
         return words
+
+    def __str__(self) -> str:
+        """The report (:meth:`summary`): ``print(result.diagnostics())`` shows it."""
+        return self.summary()
 
     def __repr__(self) -> str:
         return (

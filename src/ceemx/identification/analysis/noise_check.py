@@ -215,9 +215,9 @@ class NoiseCheck:
         """√ρ: the realised / assumed standard deviation."""
         return float(np.sqrt(self.ratio))
 
-    def summary(self) -> str:
-        """A few lines of plain text."""
-        verdict = self.verdict
+    def summary(self, verdict: str | None = None) -> str:
+        """A few lines of plain text; ``verdict`` replaces :attr:`verdict` (the diagnostics')."""
+        verdict = self.verdict if verdict is None else verdict
         lines = [
             f"noise check (CE residuals at the fit): rho = {self.ratio:.3g} "
             f"(sqrt = {self.std_ratio:.3g} in std; band [{self.band[0]:.3g}, {self.band[1]:.3g}], "

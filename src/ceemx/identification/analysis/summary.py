@@ -340,8 +340,8 @@ def _noise_origin(result, field: str) -> str:
     return " (learned)" if _learned(result, field) else " (given)"
 
 
-def _facts(result) -> list[tuple[str, str]]:
-    """Label → value, after the parameter table."""
+def _facts(result, report=None) -> list[tuple[str, str]]:
+    """Label → value, after the parameter table (``report``: the diagnostics, when run)."""
     system = result.system
     data = None if result.problem is None else result.problem.data
     J = result.history[-1]["J"] if result.history else result.initial_J
@@ -372,7 +372,8 @@ def _facts(result) -> list[tuple[str, str]]:
         facts.append(("noise rounds", _rounds_line(result.noise_rounds)))
     check = result.noise_check
     if check is not None:
-        verdict = check.verdict
+        # One verdict per noise question: with the diagnostics, their per-component ratios too.
+        verdict = check.verdict if report is None else report.noise_verdict
         facts.append(
             (
                 "noise check",
@@ -561,7 +562,8 @@ def fit_summary(
             )
         if not rows:
             out.append("(no trainable parameters)")
-    facts = _facts(result)
+    report = result.diagnostics() if diagnostics else None
+    facts = _facts(result, report)
     if md:
         out += ["", *_md_table(["", ""], [[k, v] for k, v in facts], set())]
     else:
@@ -585,9 +587,9 @@ def fit_summary(
                 textwrap.fill(m, _WIDTH, initial_indent="- ", subsequent_indent="  ") for m in said
             ]
         )
-    if diagnostics:
-        report = result.diagnostics().summary()
-        out += ["", "```", report, "```"] if md else ["", report]
+    if report is not None:
+        text = report.summary()
+        out += ["", "```", text, "```"] if md else ["", text]
     if not md:
         out.append(rule)
     return Summary("\n".join(out))

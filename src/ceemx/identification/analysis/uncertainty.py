@@ -36,7 +36,7 @@ entry is NaN and a warning says so.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -55,6 +55,7 @@ from ceemx.lib.dense import symmetrize
 from ceemx.lib.typing import PerTrajectory, States, Theta
 
 __all__ = [
+    "Estimate",
     "NamedEstimates",
     "evidence_covariance",
     "fit_covariance",
@@ -122,12 +123,32 @@ def _names(problem: FitProblem) -> list[str]:
     return problem.parameter_names()
 
 
+class Estimate(NamedTuple):
+    """One parameter's estimate and standard error, in natural units (a tuple: ``v, se = e``)."""
+
+    estimate: float
+    std_error: float
+
+    def __repr__(self) -> str:
+        return f"Estimate(estimate={self.estimate:.6g}, std_error={self.std_error:.6g})"
+
+
 class NamedEstimates(dict):
-    """``name → (estimate, standard error)``, keyed by names as written (``A[0,0]``, ``sigma``).
+    """``name → Estimate(estimate, std_error)``, keyed by names as written (``A[0,0]``, ``sigma``).
 
     The key paths of earlier versions (``.A[0,0]``, ``.sigma``) still look up, through ``[]``,
-    ``in`` and ``get``; iteration gives the names as written.
+    ``in`` and ``get``; iteration gives the names as written. ``print`` shows a table.
     """
+
+    def __str__(self) -> str:
+        """A table: each parameter's name, estimate and standard error."""
+        rows = [("parameter", "estimate", "std. error")]
+        rows += [(name, f"{e:.6g}", f"{se:.3g}") for name, (e, se) in self.items()]
+        widths = [max(len(r[i]) for r in rows) for i in range(3)]
+        return "\n".join(
+            f"{r[0].ljust(widths[0])}  {r[1].rjust(widths[1])}  {r[2].rjust(widths[2])}"
+            for r in rows
+        )
 
     def __missing__(self, key):
         if isinstance(key, str) and key.startswith(".") and dict.__contains__(self, key[1:]):
@@ -340,7 +361,7 @@ def standard_errors(
 def standard_errors_by_name(
     problem: FitProblem, theta: Theta, covariance: Float[Array, "theta theta"]
 ) -> dict[str, tuple[float, float]]:
-    """``name → (estimate, standard error)`` per entry of θ, both in natural units.
+    """``name → Estimate(estimate, std_error)`` per entry of θ, both in natural units.
 
     Names as written (:meth:`FitProblem.parameter_names`); a :class:`NamedEstimates`, so the key
     paths of earlier versions (``.A[0,0]``) still look up.
@@ -348,7 +369,7 @@ def standard_errors_by_name(
     values = problem.natural(theta)  # natural values, in θ order
     se = np.sqrt(np.diagonal(np.asarray(natural_covariance(problem, theta, covariance))))
     return NamedEstimates(
-        (n, (float(v), float(s)))
+        (n, Estimate(float(v), float(s)))
         for n, v, s in zip(_names(problem), np.asarray(values), se, strict=True)
     )
 

@@ -199,7 +199,10 @@ class FitResult(eqx.Module):
         return fit_standard_errors(self)
 
     def parameter_estimates(self) -> dict[str, tuple[float, float]]:
-        """``name → (estimate, standard error)`` per trainable scalar, in natural units.
+        """``name → Estimate(estimate, std_error)`` per trainable scalar, in natural units.
+
+        Each value is a named pair (``value, se = estimates["k"]`` still unpacks); ``print``
+        shows the dict as a table.
 
         Names as written in the system (``sigma[0]``, ``A[0,1]``, ``process_noise.scale``); the
         key paths of earlier versions (``.A[0,1]``) still look up. The dict feeds
