@@ -53,6 +53,12 @@ from .data.trajectories import (
 from .evaluation.early_stopping import (
     EarlyStopping as EarlyStopping,
 )
+from .evaluation.hybrid_selection import (
+    HybridFit as HybridFit,
+)
+from .evaluation.hybrid_selection import (
+    fit_hybrid as fit_hybrid,
+)
 from .evaluation.export import (
     export_simulate as export_simulate,
 )
