@@ -53,17 +53,17 @@ from .data.trajectories import (
 from .evaluation.early_stopping import (
     EarlyStopping as EarlyStopping,
 )
-from .evaluation.hybrid_selection import (
-    HybridFit as HybridFit,
-)
-from .evaluation.hybrid_selection import (
-    fit_hybrid as fit_hybrid,
-)
 from .evaluation.export import (
     export_simulate as export_simulate,
 )
 from .evaluation.export import (
     export_step as export_step,
+)
+from .evaluation.hybrid_selection import (
+    HybridFit as HybridFit,
+)
+from .evaluation.hybrid_selection import (
+    fit_hybrid as fit_hybrid,
 )
 from .evaluation.initial_state import (
     estimate_initial_state as estimate_initial_state,

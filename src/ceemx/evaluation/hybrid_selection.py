@@ -101,6 +101,8 @@ class HybridFit:
         best_epoch: the chosen training length (0: no term).
         term_epochs: iterations the held-out training ran before it stopped.
         validation_rmse: the validation score of the held-out physics and hybrid.
+        term_stop: why the held-out training ended (its last iteration's record: converged,
+            stop, accepted, the LM's status, whether the term settled, failed trajectories).
         refit: whether the final model was refitted on every sample.
         samples: samples of the fit part, the validation tail and the whole record.
         wall_s: wall time per stage [s].
@@ -118,6 +120,7 @@ class HybridFit:
     best_epoch: int
     term_epochs: int
     validation_rmse: dict[str, float]
+    term_stop: dict[str, Any]
     refit: bool
     samples: dict[str, int]
     wall_s: dict[str, float] = field(default_factory=dict)
@@ -133,6 +136,7 @@ class HybridFit:
             "best_epoch": self.best_epoch,
             "term_epochs": self.term_epochs,
             "validation_rmse": dict(self.validation_rmse),
+            "term_stop": dict(self.term_stop),
             "refit": self.refit,
             "samples": dict(self.samples),
             "wall_s": dict(self.wall_s),
@@ -159,6 +163,18 @@ class HybridFit:
             f" samples); {sum(self.wall_s.values()):.1f} s in all"
         )
         return "\n".join(lines)
+
+
+#: The history keys that say why the term's training ended.
+_WHY = (
+    "epoch",
+    "converged",
+    "stop",
+    "accepted",
+    "lm_status",
+    "term_settled",
+    "failed_trajectories",
+)
 
 
 def split_tail(
@@ -283,12 +299,14 @@ def fit_hybrid(
     options = dict(score_options or {})
     unknown = sorted(set(options) - SCORE_OPTIONS)
     if unknown:
-        raise ValueError(f"`score_options` has unknown keys {unknown}; allowed: {sorted(SCORE_OPTIONS)}.")
+        raise ValueError(
+            f"`score_options` has unknown keys {unknown}; allowed: {sorted(SCORE_OPTIONS)}."
+        )
     scale0 = _noise_scale(physics)
     say = progress or (lambda _line: None)
     fit_raw, validation = split_tail(data, n_init, validation_fraction)
     fit_part, whole = _windows(fit_raw, window), _windows(data, window)
-    bounds = {k: v for k, v in (("lower", lower), ("upper", upper)) if v is not None}
+    bounds = lower is not None or upper is not None
     wall: dict[str, float] = {}
 
     # 1. the noise weighting: loose-to-tight continuation of physics fits on the fit part
@@ -328,13 +346,19 @@ def fit_hybrid(
 
     # 2. the learned term's training length: early stopping on the validation tail
     t0 = time.perf_counter()
-    term = dict(
-        dynamics=dynamics, observation=observation, width=width, depth=depth, prior_std=prior_std
+
+    def with_term(base: AbstractSystem, record: Trajectories, states) -> Any:
+        return hybrid(
+            base, record, states=states, dynamics=dynamics, observation=observation,
+            width=width, depth=depth, prior_std=prior_std, lower=lower, upper=upper,
+        )  # fmt: skip
+
+    model = with_term(held_physics.system, fit_part, held_physics.states)
+    stopper = EarlyStopping(
+        validation, n_init, patience=patience, start=model, score_options=options
     )
-    model = hybrid(held_physics.system, fit_part, states=held_physics.states, **term, **bounds)
-    stopper = EarlyStopping(validation, n_init, patience=patience, start=model, score_options=options)
-    held_out: AbstractSystem = model
-    epochs_run = 0
+    held_out: Any = model
+    epochs_run, why = 0, {}
     if term_epochs:
         res = fit(
             model,
@@ -349,13 +373,16 @@ def fit_hybrid(
         )
         epochs_run = len(res.history)
         held_out = stopper.restore(res).system
+        last = res.history[-1] if res.history else {}
+        why = {k: last[k] for k in _WHY if k in last}
     best_epoch = stopper.best_epoch if math.isfinite(stopper.best_rmse) else 0
     hybrid_rmse = stopper.best_rmse if best_epoch else physics_rmse
     say(f"learned term: best iteration {best_epoch} of {epochs_run}, validation {hybrid_rmse:.4g}")
     wall["term"] = time.perf_counter() - t0
 
     # 3. every sample: the physics and the term refitted at the chosen settings
-    final_physics, final, term_result = held_physics, held_out, None
+    final_physics, term_result = held_physics, None
+    final: Any = held_out
     if refit:
         t0 = time.perf_counter()
         final_physics = fit(
@@ -363,7 +390,7 @@ def fit_hybrid(
         )
         final = final_physics.system
         if best_epoch or bounds:
-            final = hybrid(final_physics.system, whole, states=final_physics.states, **term, **bounds)
+            final = with_term(final_physics.system, whole, final_physics.states)
         if best_epoch:
             term_result = fit(
                 final,
@@ -392,6 +419,7 @@ def fit_hybrid(
         best_epoch=best_epoch,
         term_epochs=epochs_run,
         validation_rmse={"physics": physics_rmse, "hybrid": hybrid_rmse},
+        term_stop=why,
         refit=refit,
         samples={
             "fit": int(fit_raw.num_steps * fit_raw.batch_size),

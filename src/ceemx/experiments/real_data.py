@@ -147,7 +147,7 @@ def fit_models(plan: Plan, train, method: str, verbose: bool = False) -> Fitted:
         read = with_constant_input(train)
         lin = fits.linear_guess(n4sid, read, plan.settings)
         nsel, ninfo = fits.fit_selected(plan, lin, read, neural=True, progress=say)
-        A = np.asarray(nsel.physics.system.A)
+        A = np.asarray(getattr(nsel.physics.system, "A"))  # noqa: B009  (a LinearSystem)
         out.linear_info = {
             **lin_info,
             "ceem": {
