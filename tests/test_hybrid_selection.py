@@ -246,3 +246,17 @@ def test_fit_hybrid_selects_on_the_training_record_and_beats_the_physics():
     }
     assert math.isfinite(scores["hybrid"]) and scores["hybrid"] < 0.5 * scores["physics"], scores
     assert "noise weighting" in sel.summary()
+
+
+def test_early_stopping_counts_a_slow_steady_improvement(monkeypatch):
+    """Each epoch 0.05 % better (under min_delta = 0.1 %): the patience resets once the steps
+    add up to min_delta, so the training goes on; a flat score still stops after `patience`."""
+    _, data = _tiny()
+    stop = ceemx.EarlyStopping(data, n_init=5, patience=3, min_delta=1e-3)
+    scores = iter([1.0 * (1 - 5e-4) ** k for k in range(12)] + [0.99] * 10)
+    monkeypatch.setattr(stop, "score", lambda system: next(scores))
+    out = [stop(ceemx.EpochInfo(k, None, None, {})) for k in range(1, 13)]
+    assert False not in out  # twelve slowly improving epochs: never stopped
+    assert stop.best_epoch == 12
+    flat = [stop(ceemx.EpochInfo(k, None, None, {})) for k in range(13, 23)]
+    assert flat.index(False) <= 3  # no real improvement since the last reset: stops
