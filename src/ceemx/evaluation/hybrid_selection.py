@@ -277,7 +277,10 @@ def fit_hybrid(
     Raises:
         TypeError, ValueError: naming the argument, before any fit.
     """
-    from ceemx import JointLM, fit, hybrid, weight_decay
+    from ceemx.identification.fitting.driver import fit
+    from ceemx.identification.hybrid_builder import hybrid
+    from ceemx.identification.solvers.joint import JointLM
+    from ceemx.systems.learned_term import weight_decay
 
     if not isinstance(physics, AbstractSystem):
         raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
@@ -373,8 +376,8 @@ def fit_hybrid(
         )
         epochs_run = len(res.history)
         held_out = stopper.restore(res).system
-        last = res.history[-1] if res.history else {}
-        why = {k: last[k] for k in _WHY if k in last}
+        end = res.history[-1] if res.history else {}
+        why = {k: end[k] for k in _WHY if k in end}
     best_epoch = stopper.best_epoch if math.isfinite(stopper.best_rmse) else 0
     hybrid_rmse = stopper.best_rmse if best_epoch else physics_rmse
     say(f"learned term: best iteration {best_epoch} of {epochs_run}, validation {hybrid_rmse:.4g}")
