@@ -60,15 +60,15 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import hand_tuned as fits  # noqa: E402  (the former hand-tuned procedure)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from hand_tuned import Plan, Settings  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx import datasets  # noqa: E402
 from ceemx.datasets import REGISTRY  # noqa: E402
 from ceemx.experiments import real_data  # noqa: E402
-from ceemx.experiments import real_data_fits as fits  # noqa: E402
-from ceemx.experiments.real_data_fits import Plan, Settings  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 RESULTS_DRIVES = HERE / "results" / "real_data_ablations_drives.json"
@@ -114,11 +114,18 @@ def noise(name: str) -> None:
 
 
 def process(name: str, scale: float) -> None:
-    """The experiment's row for one dataset with the process noise set to ``scale``."""
-    entry = REGISTRY[name]
-    chosen = dataclasses.replace(entry.chosen, process_noise=scale)
-    REGISTRY[name] = dataclasses.replace(entry, chosen=chosen)  # what the experiment reads
-    result = real_data.run_dataset(name, settings=Settings(), method="joint", verbose=True)
+    """The experiment's row for one dataset with the process noise fixed at ``scale``.
+
+    One candidate of the selection: the factor ``scale`` / the model's default noise (the
+    neural model's linear noise is scaled by the same factor).
+    """
+    from ceemx.experiments.real_data_fits import Settings as RunSettings
+
+    model = REGISTRY[name].model
+    default = model.factory(dtype=jnp.float64, **model.options).process_noise.scale
+    factor = scale / float(np.max(np.asarray(default)))
+    settings = RunSettings(noise_factors=(factor,))
+    result = real_data.run_dataset(name, settings=settings, method="joint", verbose=True)
     for row in result["rows"]:
         print(row[:6])
 

@@ -49,14 +49,14 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
+import hand_tuned as fits  # noqa: E402  (the former hand-tuned procedure)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from hand_tuned import Plan, Settings  # noqa: E402
 
 import ceemx  # noqa: E402
 from ceemx import datasets  # noqa: E402
 from ceemx.datasets import REGISTRY  # noqa: E402
-from ceemx.experiments import real_data_fits as fits  # noqa: E402
-from ceemx.experiments.real_data_fits import Plan, Settings  # noqa: E402
 from ceemx.identification.problem import trainable_mask  # noqa: E402
 from ceemx.models.constraints import param  # noqa: E402
 from ceemx.systems.gray_box import (  # noqa: E402
@@ -130,7 +130,7 @@ TANK_VARIANTS: dict[str, tuple[float, dict, tuple[str, ...], tuple[str, ...]]] =
 }
 
 
-#: The cascaded tanks' registry entry: the experiment's model and its hand-chosen settings.
+#: The cascaded tanks' registry entry (its hand-chosen settings: ``hand_tuned.HAND``).
 TANKS = REGISTRY["cascaded_tanks"]
 
 
@@ -142,7 +142,9 @@ def _plan(ds) -> Plan:
 def _physics_guess():
     """The experiment's physical guess (its options and hand-chosen process noise)."""
     m = TANKS.model
-    return m.factory(dtype=jnp.float64, **m.options, process_noise=TANKS.chosen.process_noise)
+    return m.factory(
+        dtype=jnp.float64, **m.options, process_noise=fits.HAND[TANKS.name].process_noise
+    )
 
 
 def _tanks_guess(scale, switches):

@@ -193,13 +193,10 @@ def test_registry_entry_is_consistent(name):
     columns = {s.u for s in (*e.train.values(), *e.tests.values())}
     columns |= {s.y for s in (*e.train.values(), *e.tests.values())}
     assert max(columns) < len(e.columns)
-    model = e.model.factory(**e.model.options, process_noise=e.chosen.process_noise)
+    model = e.model.factory(**e.model.options)
     assert model.obs_dim == len(e.output_names) and model.control_dim == 1
     assert 0 <= e.model.hidden[1] < model.state_dim
     assert float(np.asarray(model.dt)) == pytest.approx(e.dt)
-    assert float(np.asarray(model.process_noise.scale).max()) == e.chosen.process_noise
-    if e.windowing is not None:
-        assert e.windowing.window <= e.windowing.samples
 
 
 def test_cli_datasets_are_the_registry(capsys):

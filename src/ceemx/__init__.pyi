@@ -59,6 +59,12 @@ from .evaluation.export import (
 from .evaluation.export import (
     export_step as export_step,
 )
+from .evaluation.hybrid_selection import (
+    HybridFit as HybridFit,
+)
+from .evaluation.hybrid_selection import (
+    fit_hybrid as fit_hybrid,
+)
 from .evaluation.initial_state import (
     estimate_initial_state as estimate_initial_state,
 )

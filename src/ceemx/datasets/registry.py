@@ -6,11 +6,13 @@ An entry (:class:`DatasetEntry`) holds
   which samples of which columns form the estimation and test records, ``n_init``, the sample
   period, units, the unit published scores use, the published results, the citation;
 - the default windows of :func:`ceemx.datasets.window_splits`;
-- the dataset's gray-box model (:class:`GrayBox`: the :mod:`ceemx.systems.gray_box` model, the
-  hidden state the figures show, physical bounds, where a learned term enters) and how the
-  experiments fit a long record (:class:`Windowing`);
-- the settings chosen by hand (:class:`HandChosen`: process noise, the scoring start, network
-  width, epochs), grouped so that a selection procedure can replace them in one place.
+- the dataset's gray-box model (:class:`GrayBox`: the :mod:`ceemx.systems.gray_box` model at
+  its default guess, the hidden state the figures show, physical bounds, where a learned term
+  enters) — the physics a user would write, not settings of a fit.
+
+An entry holds no fitting settings (noise weighting, epochs, network size, windows, scoring
+start): ``ceemx experiment real_data`` selects them on the training record by
+:func:`ceemx.fit_hybrid`, the same way on every dataset.
 
 Adding a dataset is adding an entry here (and its file's source in
 :data:`ceemx.datasets.download.SOURCES`): the loaders, :func:`~ceemx.datasets.window_splits`
@@ -32,10 +34,8 @@ __all__ = [
     "REGISTRY",
     "DatasetEntry",
     "GrayBox",
-    "HandChosen",
     "PublishedResult",
     "Segment",
-    "Windowing",
     "entry",
 ]
 
@@ -97,57 +97,8 @@ class GrayBox:
 
 
 @dataclass(frozen=True)
-class Windowing:
-    """How a long estimation record is fitted: windows of its first samples.
-
-    The first ``samples`` samples are cut into windows of ``window`` samples with half overlap;
-    the samples after them hold the validation data of early stopping.
-
-    Attributes:
-        samples: samples fitted, from the record's start.
-        window: samples per window.
-    """
-
-    samples: int
-    window: int
-
-
-@dataclass(frozen=True)
-class HandChosen:
-    """Settings chosen by hand for one dataset, not by a selection procedure.
-
-    Attributes:
-        process_noise: the gray-box model's process-noise std (its ``process_noise`` field).
-        score_options: options of :func:`ceemx.benchmark_score` for every model on this
-            dataset (how the initial state of a free run is started).
-        linear_noise: (process, observation) noise std of the linear baseline's CE-EM
-            refinement, × std(y) (:func:`ceemx.baselines.refine_linear`).
-        width: hidden units of a learned term's network.
-        depth: hidden layers of a learned term's network.
-        prior_std: std of the learned term's Gaussian weight prior (weight decay).
-        max_epochs: iterations of the gray-box and linear CE-EM fits.
-        hybrid_epochs: joint iterations of the learned models (early stopping usually ends
-            them sooner).
-    """
-
-    process_noise: float
-    score_options: Mapping[str, Any] = field(default_factory=dict)
-    #: a small process noise makes the CE fit close to a simulation-error (output-error) fit:
-    #: the tanks' test RMSE 1.88 V (N4SID) → 0.699 V (1e-4: 0.673 V, 1e-2: 0.870 V; fixed, not
-    #: selected on a test record)
-    linear_noise: tuple[float, float] = (1e-3, 0.05)
-    width: int = 16
-    depth: int = 1
-    prior_std: float = 1.0
-    max_epochs: int = 200
-    #: Silverbox's neural model still improves at 200 (multisine 1.94 mV after 30 iterations,
-    #: 0.44 after 100, 0.33 after 200)
-    hybrid_epochs: int = 200
-
-
-@dataclass(frozen=True)
 class DatasetEntry:
-    """One real dataset: its official protocol, its gray-box model, its hand-chosen settings.
+    """One real dataset: its official protocol and its gray-box model.
 
     Attributes:
         name: the dataset's name (its key in :data:`REGISTRY`).
@@ -169,8 +120,6 @@ class DatasetEntry:
         valid_fraction: last part of each estimation record it keeps for validation.
         default_tests: the test records it windows by default.
         model: the gray-box model (:class:`GrayBox`).
-        windowing: how the experiments fit a long estimation record (``None``: whole).
-        chosen: the settings chosen by hand (:class:`HandChosen`).
         output_units, input_names, input_units: the channels' units and the inputs' names
             (with ``dt`` and ``output_names``: :attr:`info`, the records' metadata).
     """
@@ -193,9 +142,7 @@ class DatasetEntry:
     valid_fraction: float
     default_tests: tuple[str, ...]
     model: GrayBox
-    chosen: HandChosen
     test_names: Mapping[str, str] = field(default_factory=dict)
-    windowing: Windowing | None = None
     output_units: tuple[str, ...] | None = None
     input_names: tuple[str, ...] | None = None
     input_units: tuple[str, ...] | None = None
@@ -261,9 +208,6 @@ CASCADED_TANKS = DatasetEntry(
         hidden=("upper-tank level x₁ [V]", 0),
         bounds={"lower": 0.0},  # tank levels are never negative
     ),
-    # process noise 0.001 V (the model's default 0.05), chosen on the held-out tail of the
-    # estimation record: validation RMSE 0.262 → 0.219 V
-    chosen=HandChosen(process_noise=0.001),
 )
 
 SILVERBOX = DatasetEntry(
@@ -314,13 +258,6 @@ SILVERBOX = DatasetEntry(
         options={"hold": "foh"},
         targets=(1,),  # the missing physics is a force: the velocity equation of (y, ẏ/ω)
     ),
-    # 65 062 estimation samples: the fits read windows of the first 8192
-    windowing=Windowing(samples=8192, window=512),
-    # process noise 1e-4 V (the model's default 1e-3): a stiffer dynamics weight brings the CE
-    # fit closer to a simulation-error fit — multisine test 1.785 → 0.933 mV (physics), 1.609 →
-    # 0.890 mV (hybrid); the noise the Laplace evidence learns (observation std → 1e-6, the
-    # states absorb the data) gave 2.43 mV
-    chosen=HandChosen(process_noise=1e-4),
 )
 
 COUPLED_ELECTRIC_DRIVES = DatasetEntry(
@@ -362,16 +299,6 @@ COUPLED_ELECTRIC_DRIVES = DatasetEntry(
     valid_fraction=0.25,
     default_tests=("set1_low", "set2_high"),
     model=GrayBox(CoupledDrives.default, hidden=("belt state x₂", 1)),
-    chosen=HandChosen(
-        # process noise 0.002 (the model's default 0.02): the test RMSEs of a former, simpler
-        # drives model went 0.297 / 0.739 → 0.229 / 0.388; this model scores 0.115 / 0.145
-        process_noise=0.002,
-        # The sensor is sign-insensitive: the window's simulation error has a minimum per sign
-        # of the belt speed, and the default start (a weak-dynamics smoothing pass) can end in
-        # the wrong one (set 2's test: 0.275 vs 0.177 for one fitted model); two starts, the
-        # better window error kept.
-        score_options={"warm_process_noise": (1.0, None)},
-    ),
 )
 
 #: The real datasets by name.

@@ -58,8 +58,9 @@ class EarlyStopping:
         validation: the validation record(s), as the model reads them.
         n_init: outputs used to estimate the initial state (≥ 1, < T).
         patience: epochs without a relative improvement of ``min_delta`` before stopping.
-        min_delta: the relative improvement that resets the patience (any improvement is kept
-            as the best model).
+        min_delta: the relative improvement that resets the patience, counted from the score
+            at the last reset (so a slow, steady improvement resets it once it adds up; any
+            improvement is kept as the best model).
         every: score every ``every`` epochs (scoring costs one free run).
         start: the fit's starting model, scored as epoch 0 (recommended: :meth:`restore` then
             never returns a model worse on the validation record than the start, e.g. the
@@ -131,6 +132,7 @@ class EarlyStopping:
         self.best_system: AbstractSystem | None = None
         self.best_epoch = 0
         self._progress_epoch = 0
+        self._progress_rmse = math.inf  # the score at the last patience reset
         self.best_rmse = math.inf
         self.scores: list[tuple[int, float]] = []
         self._last_epoch = 0  # the last epoch of the fit being watched (0: none yet)
@@ -139,6 +141,7 @@ class EarlyStopping:
             self.scores.append((0, rmse))
             if np.isfinite(rmse):
                 self.best_system, self.best_rmse = start, rmse
+                self._progress_rmse = rmse
 
     def score(self, system: AbstractSystem) -> float:
         """The validation free-run RMSE of ``system`` (over all outputs)."""
@@ -155,8 +158,10 @@ class EarlyStopping:
         rmse = self.score(info.system)
         self.scores.append((info.epoch, rmse))
         if np.isfinite(rmse) and rmse < self.best_rmse:
-            if rmse < self.best_rmse * (1 - self.min_delta):
-                self._progress_epoch = info.epoch  # patience counts from a real improvement
+            if rmse < self._progress_rmse * (1 - self.min_delta):
+                # patience counts from a real improvement: min_delta below the score at the last
+                # reset, so many small steps count once they add up
+                self._progress_epoch, self._progress_rmse = info.epoch, rmse
             self.best_system, self.best_epoch, self.best_rmse = info.system, info.epoch, rmse
         info.record["val_rmse"] = rmse
         if info.epoch - self._progress_epoch >= self.patience * self.every:

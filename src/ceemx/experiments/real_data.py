@@ -97,12 +97,13 @@ class Fitted:
     """The models of one dataset and the summaries of their fits.
 
     Attributes:
-        physics: the gray-box fit (a :class:`~ceemx.FitResult`).
+        physics: the gray-box model (the physics fit :func:`ceemx.fit_hybrid` selected).
         n4sid: the N4SID model (``None`` when N4SID failed).
-        learned: the other models by key (``linear_ceem``, ``hybrid``, ``neural``).
+        learned: the other models by key (``linear_ceem``, ``hybrid``, ``neural``, and the
+            held-out-tail models ``hybrid_tail``, ``neural_tail``).
         fit_info: the gray-box fit's summary.
         linear_info: N4SID's summary (with its CE-EM refinement's under ``"ceem"``).
-        learned_info: the learned models' summaries by key.
+        learned_info: the learned models' summaries by key (each with its selection record).
     """
 
     physics: Any
@@ -113,27 +114,51 @@ class Fitted:
     learned_info: dict[str, Any] = field(default_factory=dict)
 
 
-def fit_models(plan: Plan, train, method: str) -> Fitted:
-    """Every model of one dataset: gray-box, N4SID and its CE-EM refinement, learned models."""
+def fit_models(plan: Plan, train, method: str, verbose: bool = False) -> Fitted:
+    """Every model of one dataset, each selected by :func:`ceemx.fit_hybrid` (one code path).
+
+    The gray-box guess and the N4SID model go through the same selection: the noise weighting
+    and the learned term's length chosen on the held-out tail of ``train``, then refitted on
+    all of it. ``method`` must be ``"joint"`` (the selection's fits are joint).
+    """
     import jax.numpy as jnp
 
-    physics, fit_info = fits.fit_graybox(plan, train, method, jnp.float64)
-    n4sid, lin_info = fits.fit_linear(train, physics.system.state_dim)
-    out = Fitted(physics, n4sid, fit_info=fit_info, linear_info=lin_info)
-    refined = None
-    if n4sid is not None:
-        refined, ceem_info = fits.refine_linear(n4sid, train, plan)
-        out.linear_info = {**lin_info, "ceem": ceem_info}
-        out.learned["linear_ceem"] = refined.system
+    from ceemx.baselines import with_constant_input
+
+    if method != "joint":
+        raise ValueError("real_data: the selection fits by the joint method; use method='joint'.")
+    name = plan.entry.name
+    say = (lambda line: print(f"[{name}] {line}", flush=True)) if verbose else None
+    model = plan.entry.model
+    guess = model.factory(dtype=jnp.float64, **model.options)
+    sel, info = fits.fit_selected(plan, guess, fits.inputs_for(guess, train), neural=False,
+                                  progress=say)  # fmt: skip
+    out = Fitted(sel.physics.system, None, fit_info=fits.fit_info(sel.physics, guess))
+    out.fit_info["selection"] = info["selection"]
     if plan.settings.hybrid:
-        start, linear_start = fits.learned_starts(plan, method, physics, refined)
-        out.learned["hybrid"], out.learned_info["hybrid"] = fits.fit_learned(
-            plan, start.system, start.states, neural=False
-        )
-        if linear_start is not None:
-            out.learned["neural"], out.learned_info["neural"] = fits.fit_learned(
-                plan, linear_start.system, linear_start.states, neural=True
-            )
+        out.learned["hybrid"], out.learned["hybrid_tail"] = sel.system, sel.held_out
+        out.learned_info["hybrid"] = info
+    window = fits.window_of(plan, train)
+    n4sid, lin_info = fits.fit_linear(
+        train if window is None else train.windows(window, window // 2), guess.state_dim
+    )
+    out.n4sid, out.linear_info = n4sid, lin_info
+    if n4sid is not None:
+        read = with_constant_input(train)
+        lin = fits.linear_guess(n4sid, read, plan.settings)
+        nsel, ninfo = fits.fit_selected(plan, lin, read, neural=True, progress=say)
+        A = np.asarray(getattr(nsel.physics.system, "A"))  # noqa: B009  (a LinearSystem)
+        out.linear_info = {
+            **lin_info,
+            "ceem": {
+                **fits.fit_info(nsel.physics),
+                "spectral_radius": float(np.max(np.abs(np.linalg.eigvals(A)))),
+            },
+        }
+        out.learned["linear_ceem"] = nsel.physics.system
+        if plan.settings.hybrid:
+            out.learned["neural"], out.learned["neural_tail"] = nsel.system, nsel.held_out
+            out.learned_info["neural"] = ninfo
     return out
 
 
@@ -149,6 +174,12 @@ def _hidden_ranges(per_test: dict[str, dict], idx: int) -> None:
 def _print_dataset(name: str, plan: Plan, fitted: Fitted, per_test: dict[str, dict]) -> None:
     fit_info = fitted.fit_info
     state = "converged" if fit_info["converged"] else "not converged"
+    chosen = fit_info["selection"]
+    print(
+        f"[{name}] physics: process noise × {chosen['factor']:.3g} ({chosen['process_noise']:.3g})"
+        f" chosen of {len(chosen['candidates'])} candidates",
+        flush=True,
+    )
     print(
         f"[{name}] {fit_info['epochs']} epochs ({state}),"
         f" fit {fit_info['wall_s']:.1f} s (first epoch {fit_info['first_epoch_s']:.1f} s, then "
@@ -183,10 +214,12 @@ def run_dataset(name: str, *, settings: Settings, method: str, verbose: bool) ->
     ds = plan.data
     train = fits.training_data(plan)
     tests = fits.test_records(plan)
-    fitted = fit_models(plan, train, method)
-    options = dict(plan.chosen.score_options)
+    t0 = time.perf_counter()
+    fitted = fit_models(plan, train, method, verbose)
+    fit_s = time.perf_counter() - t0
+    options = dict(plan.settings.score_options)
     per_test = {
-        t: score_test(fitted.physics.system, fitted.n4sid, test, t, ds, fitted.learned, options)
+        t: score_test(fitted.physics, fitted.n4sid, test, t, ds, fitted.learned, options)
         for t, test in tests.items()
     }
     _hidden_ranges(per_test, plan.entry.model.hidden[1])
@@ -196,7 +229,7 @@ def run_dataset(name: str, *, settings: Settings, method: str, verbose: bool) ->
         "dataset": name,
         "train_shape": list(train.y.shape),
         "n_init": ds.n_init,
-        "chosen": dataclasses.asdict(plan.chosen),
+        "fit_s": fit_s,
         "fit": fitted.fit_info,
         "linear": fitted.linear_info,
         "learned": fitted.learned_info,
@@ -244,12 +277,14 @@ def run(
     common.enable_x64()
     del seeds
     method = "joint" if method is None else method
-    if method not in ("joint", "alternate"):
-        raise ValueError(f"real_data: `method` must be 'joint' or 'alternate'; got {method!r}.")
+    if method != "joint":
+        raise ValueError(
+            f"real_data: `method` must be 'joint' (the selection's fits are joint); got {method!r}."
+        )
     names = _dataset_names(dataset)
     settings = settings or (SMOKE if smoke else Settings())
     if max_epochs is not None:
-        settings = Settings(**{**settings.__dict__, "max_epochs": max_epochs})
+        settings = dataclasses.replace(settings, max_epochs=max_epochs)
     outdir = output_dir(out, f"results/{NAME}")
     t0 = time.perf_counter()
     results = [run_dataset(n, settings=settings, method=method, verbose=verbose) for n in names]

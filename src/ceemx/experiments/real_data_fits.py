@@ -1,71 +1,103 @@
 """The fits of ``ceemx experiment real_data``: gray-box, linear baselines, learned models, scores.
 
-Everything a fit needs to know about its dataset comes from the dataset's registry entry
-(:data:`ceemx.datasets.REGISTRY`) through a :class:`Plan`: the gray-box model and its options,
-the settings chosen by hand (process noise, scoring start, network size, epochs) with the run's
-changes (:class:`Settings`), and whether the estimation record is fitted whole or in windows.
+Every dataset goes through one code path with one set of settings (:class:`Settings`, the same
+for every dataset): the physics and hybrid by :func:`ceemx.fit_hybrid` from the registry entry's
+gray-box model at its default guess, the neural state-space model by :func:`ceemx.fit_hybrid`
+from the N4SID model of the same order, each choosing its noise weighting and the learned term's
+training length on the held-out tail of the training records. What a fit reads from the registry
+is the protocol (records, ``n_init``, units) and the user's physics model (its structure, state
+bounds, where a term enters); nothing here names a dataset
+(``tests/test_real_data_selection.py`` checks it).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.datasets import REGISTRY, RealDataset
-from ceemx.datasets.registry import DatasetEntry, HandChosen, Windowing
-from ceemx.experiments import common
+from ceemx.datasets.registry import DatasetEntry
+from ceemx.evaluation.hybrid_selection import NOISE_FACTORS
 
 __all__ = [
     "SMOKE",
     "Plan",
     "Settings",
-    "fit_graybox",
-    "fit_learned",
     "fit_linear",
-    "learned_starts",
+    "fit_selected",
+    "linear_guess",
     "make_plan",
     "reads",
-    "refine_linear",
     "score",
-    "split",
     "test_records",
     "training_data",
+    "window_of",
 ]
+
+#: How the initial state of every free run is set, on every dataset: two starts of the
+#: initial-state smoother (its weak-dynamics pass and none), the lower window simulation error
+#: kept — a sensor with several window minima (a sign-insensitive one) needs both, the others
+#: lose nothing.
+SCORE_OPTIONS: dict[str, Any] = {"warm_process_noise": (1.0, None)}
 
 
 @dataclass(frozen=True)
 class Settings:
-    """One run's budgets and its changes to the registry's hand-chosen settings.
+    """One run's settings, the same for every dataset.
 
     Attributes:
-        max_epochs: iterations of the gray-box and linear fits (``None``: the entry's).
-        hybrid_epochs: joint iterations of the learned models (``None``: the entry's).
-        fit_samples: samples fitted of a record fitted in windows (``None``: the entry's).
-        window: window length of such a record (``None``: the entry's).
+        max_epochs: iterations of each physics and linear fit.
+        hybrid_epochs: iterations of a learned term's training at most (early stopping on the
+            validation tail usually ends it sooner).
+        max_samples: samples of each training record used (its first ones; a budget: the rest
+            of a longer record is not read).
+        window: a record of more than ``4 × window`` samples is fitted in windows of ``window``
+            samples with half overlap.
         test_samples: samples of each official test record scored (``None``: all).
         hybrid: fit the learned models beside the gray-box (physics only) and N4SID.
-        patience: early stopping's patience (epochs without a better validation score).
-        validation_fraction: the tail of each training record held out for early stopping
+        patience: early stopping's patience (iterations without a better validation score).
+        validation_fraction: the tail of each training record held out for the selection
             (never the test records).
+        noise_factors: the candidate factors on each model's default process noise.
+        linear_noise: (process, observation) noise std of the linear model's guess, × std(y)
+            (the loosest candidate of its selection).
+        width: hidden units of a learned term's network.
+        depth: hidden layers of a learned term's network.
+        prior_std: σ of the learned term's Gaussian weight prior (weight decay).
+        refit: refit the selected settings on every training sample.
+        score_options: options of :func:`ceemx.benchmark_score` for every free run.
     """
 
-    max_epochs: int | None = None
-    hybrid_epochs: int | None = None
-    fit_samples: int | None = None
-    window: int | None = None
+    max_epochs: int = 200
+    hybrid_epochs: int = 200
+    max_samples: int = 10240
+    window: int = 512
     test_samples: int | None = None
     hybrid: bool = True
     patience: int = 5
     validation_fraction: float = 0.2
+    noise_factors: tuple[float, ...] = NOISE_FACTORS
+    linear_noise: tuple[float, float] = (1e-3, 0.05)
+    width: int = 16
+    depth: int = 1
+    prior_std: float = 1.0
+    refit: bool = True
+    score_options: dict[str, Any] = field(default_factory=lambda: dict(SCORE_OPTIONS))
 
 
-SMOKE = Settings(max_epochs=3, hybrid_epochs=2, fit_samples=1024, window=256, test_samples=300)
+SMOKE = Settings(
+    max_epochs=3,
+    hybrid_epochs=2,
+    max_samples=1280,
+    window=256,
+    test_samples=300,
+    noise_factors=(1.0, 0.1),
+)
 
 
 @dataclass(frozen=True)
@@ -75,21 +107,12 @@ class Plan:
     Attributes:
         entry: the dataset's registry entry.
         data: its official records.
-        chosen: the entry's hand-chosen settings with the run's changes.
-        windowing: the entry's windowing with the run's changes (``None``: records fitted whole).
         settings: the run's settings.
     """
 
     entry: DatasetEntry
     data: RealDataset
-    chosen: HandChosen
-    windowing: Windowing | None
     settings: Settings
-
-
-def _changed(obj, **changes):
-    """``obj`` with the changes that are not ``None``."""
-    return dataclasses.replace(obj, **{k: v for k, v in changes.items() if v is not None})
 
 
 def make_plan(name: str, settings: Settings, data: RealDataset | None = None) -> Plan:
@@ -97,39 +120,20 @@ def make_plan(name: str, settings: Settings, data: RealDataset | None = None) ->
     from ceemx import datasets
 
     entry = REGISTRY[name]
-    chosen = _changed(
-        entry.chosen, max_epochs=settings.max_epochs, hybrid_epochs=settings.hybrid_epochs
-    )
-    windowing = entry.windowing
-    if windowing is not None:
-        windowing = _changed(windowing, samples=settings.fit_samples, window=settings.window)
     data = datasets.real_dataset(name) if data is None else data
-    return Plan(entry, data, chosen, windowing, settings)
+    return Plan(entry, data, settings)
 
 
 def training_data(plan: Plan) -> Trajectories:
-    """The records the gray-box and linear models are fitted to (a long record: its windows)."""
-    w = plan.windowing
-    if w is None:
-        return plan.data.train
-    return plan.data.train[:, : w.samples].windows(w.window, w.window // 2)
+    """The training records the fits read: the first ``max_samples`` samples of each."""
+    train = plan.data.train
+    return train[:, : plan.settings.max_samples]
 
 
-def split(plan: Plan) -> tuple[Trajectories, Trajectories]:
-    """(fit records, validation records) for the learned models, both from the training data.
-
-    The tail ``validation_fraction`` of every training record is held out (a record fitted in
-    windows: the estimation-record samples after those fitted, cut into the same windows); the
-    official test records are never used.
-    """
-    ds, fraction = plan.data, plan.settings.validation_fraction
-    if plan.windowing is not None:
-        a = plan.windowing.samples
-        b = a + max(int(fraction * a), 2 * ds.n_init)
-        return training_data(plan), ds.train[:, a:b]
-    train = ds.train
-    cut = train.num_steps - max(int(fraction * train.num_steps), 2 * ds.n_init)
-    return train[:, :cut], train[:, cut - ds.n_init :]
+def window_of(plan: Plan, data: Trajectories) -> int | None:
+    """The window a record is fitted in (``None``: whole), by its length alone."""
+    w = plan.settings.window
+    return w if data.num_steps > 4 * w else None
 
 
 def test_records(plan: Plan) -> dict:
@@ -177,6 +181,8 @@ def score(system, test, n_init: int, scale: float, options: dict[str, Any]):
 
 def _scalar_parameters(guess, system) -> dict[str, float]:
     """The learned scalar parameters of a fitted gray-box model, by name."""
+    import dataclasses
+
     from ceemx.identification.problem import trainable_mask
 
     learned = trainable_mask(guess)
@@ -187,27 +193,20 @@ def _scalar_parameters(guess, system) -> dict[str, float]:
     }
 
 
-def fit_graybox(plan: Plan, train, method: str, dtype):
-    """The gray-box model fitted by CE-EM from its physical guess; returns (result, summary)."""
-    from ceemx import JointLM, fit
-
-    model = plan.entry.model
-    guess = model.factory(dtype=dtype, **model.options, process_noise=plan.chosen.process_noise)
-    solver = JointLM() if method == "joint" else common.make_solver("alternate")
-    data = inputs_for(guess, train)
-    t0 = time.perf_counter()
-    result = fit(guess, data, solver=solver, max_epochs=plan.chosen.max_epochs)
-    wall = time.perf_counter() - t0
+def fit_info(result, guess=None) -> dict[str, Any]:
+    """A physics (or linear) fit's summary: iterations, convergence, times, parameters."""
     epoch_s = [h["time"] for h in result.history]
-    return result, {
+    info = {
         "epochs": len(result.history),
         "converged": bool(result.converged),
-        "wall_s": wall,
+        "wall_s": float(sum(epoch_s)),
         "first_epoch_s": epoch_s[0] if epoch_s else math.nan,
         "steady_epoch_s": float(np.median(epoch_s[1:])) if len(epoch_s) > 1 else math.nan,
-        "parameters": _scalar_parameters(guess, result.system),
         "J": float(result.history[-1]["J"]) if result.history else math.nan,
     }
+    if guess is not None:
+        info["parameters"] = _scalar_parameters(guess, result.system)
+    return info
 
 
 def fit_linear(train, order: int):
@@ -226,118 +225,74 @@ def fit_linear(train, order: int):
     return model, {"wall_s": time.perf_counter() - t0, "spectral_radius": radius}
 
 
-def refine_linear(n4sid, train, plan: Plan):
-    """N4SID's model refined by CE-EM (:func:`ceemx.baselines.refine_linear`).
+def linear_guess(n4sid, train, settings: Settings):
+    """N4SID's model with the noise of :func:`ceemx.baselines.refine_linear` (× std(y)).
 
-    The noise is the entry's hand-chosen ``linear_noise``. Returns the fit result (its states
-    start the neural model) and its summary.
-    """
-    from ceemx.baselines import refine_linear as refine
-    from ceemx.baselines import with_constant_input
-
-    t0 = time.perf_counter()
-    process_noise, obs_noise = plan.chosen.linear_noise
-    result = refine(
-        n4sid,
-        with_constant_input(train),
-        process_noise=process_noise,
-        obs_noise=obs_noise,
-        max_epochs=plan.chosen.max_epochs,
-    )
-    A = np.asarray(getattr(result.system, "A"))  # noqa: B009  (a LinearSystem)
-    return result, {
-        "epochs": len(result.history),
-        "converged": bool(result.converged),
-        "wall_s": time.perf_counter() - t0,
-        "spectral_radius": float(np.max(np.abs(np.linalg.eigvals(A)))),
-    }
-
-
-def learned_starts(plan: Plan, method: str, physics, refined):
-    """The fits the learned models start from, none of which has seen the validation records.
-
-    Early stopping scores each epoch on the tail of the training records (:func:`split`); a
-    start fitted on the whole record has seen that tail, which makes its own validation score
-    optimistic and stops the learned model at or near the start. So the starts are the physics
-    and the CE-EM linear fits of the fit part alone (a record fitted in windows: its validation
-    samples lie after the fitted ones already, the full fits are the starts). Returns (physics
-    fit, linear fit or ``None``).
+    ``train`` as the model reads it (:func:`ceemx.baselines.with_constant_input`).
     """
     import jax.numpy as jnp
 
-    if plan.windowing is not None:
-        return physics, refined
-    fit_part, _ = split(plan)
-    start, _ = fit_graybox(plan, fit_part, method, jnp.float64)
-    if refined is None:
-        return start, None
-    n4sid, _ = fit_linear(fit_part, start.system.state_dim)
-    return start, None if n4sid is None else refine_linear(n4sid, fit_part, plan)[0]
+    from ceemx.baselines.sid import output_spread
+    from ceemx.systems import LinearSystem
+
+    scale, per_output = output_spread(train)
+    process, obs = settings.linear_noise
+    return LinearSystem(
+        n4sid.A,
+        n4sid.C,
+        n4sid.B,
+        n4sid.D,
+        process_noise=process * scale,
+        obs_noise=jnp.asarray(obs * per_output, train.y.dtype),
+    )
 
 
 def _net_leaves(system):
     import equinox as eqx
     import jax.tree_util as jtu
 
-    terms = (system.dynamics_term, system.observation_term)
+    terms = (getattr(system, "dynamics_term", None), getattr(system, "observation_term", None))
     return jtu.tree_leaves(
         eqx.filter([t.net for t in terms if t is not None], eqx.is_inexact_array)
     )
 
 
-def fit_learned(plan: Plan, base, states, *, neural: bool, observation=False):
-    """A learned term on ``base``, trained by the joint method with early stopping.
+def fit_selected(plan: Plan, guess, train, *, neural: bool, progress=None):
+    """:func:`ceemx.fit_hybrid` of ``guess`` on ``train`` with the run's settings.
 
-    ``neural=False``: the hybrid (the physics fit plus a learned term in its vector field, the
-    physical state bounds); ``neural=True``: the neural state-space model (the CE-EM linear
-    model plus a learned term in its transition; no physics, no bounds). ``observation``: a
-    learned term in the observation too (not used by the experiment).
+    ``neural=False``: the gray-box guess, its learned term where the entry's model says and
+    its physical state bounds; ``neural=True``: a linear guess, the term on every equation, no
+    bounds. ``train`` as the guess reads it. Returns (the :class:`ceemx.HybridFit`, summary).
     """
-    import jax.numpy as jnp
+    from ceemx import fit_hybrid
 
-    from ceemx import JointLM, fit, hybrid, weight_decay
-    from ceemx.evaluation.early_stopping import EarlyStopping
-
-    model, chosen, n_init = plan.entry.model, plan.chosen, plan.data.n_init
-    read = reads(base)
-    fit_data, val = split(plan)
-    fit_data, val = read(fit_data), read(val)  # ``states`` are the fit part's (learned_starts)
-    learned = hybrid(
-        base,
-        fit_data,
-        states=states,
+    s, model = plan.settings, plan.entry.model
+    t0 = time.perf_counter()
+    sel = fit_hybrid(
+        guess,
+        train,
+        n_init=plan.data.n_init,
         dynamics=True if neural else model.targets,
-        observation=observation,
-        width=chosen.width,
-        depth=chosen.depth,
-        prior_std=chosen.prior_std,
+        width=s.width,
+        depth=s.depth,
+        prior_std=s.prior_std,
+        noise_factors=s.noise_factors,
+        validation_fraction=s.validation_fraction,
+        window=window_of(plan, train),
+        max_epochs=s.max_epochs,
+        term_epochs=s.hybrid_epochs if s.hybrid else 0,
+        patience=s.patience,
+        refit=s.refit,
+        score_options=s.score_options,
+        progress=progress,
         **({} if neural else dict(model.bounds)),
     )
-    stopper = EarlyStopping(
-        val,
-        n_init,
-        patience=plan.settings.patience,
-        start=learned,
-        score_options=dict(chosen.score_options),
-    )
-    t0 = time.perf_counter()
-    result = fit(
-        learned,
-        fit_data,
-        jnp.asarray(states),
-        solver=JointLM(),
-        trainable=learned.trainable("both"),
-        log_prior=weight_decay,
-        max_epochs=chosen.hybrid_epochs,
-        callbacks=[stopper],
-        diagnose=False,
-    )
-    wall = time.perf_counter() - t0
-    result = stopper.restore(result)
-    return result.system, {
-        "epochs": len(result.history),
-        "best_epoch": stopper.best_epoch,
-        "validation_rmse": stopper.best_rmse,
-        "wall_s": wall,
-        "weights": int(sum(np.size(w) for w in _net_leaves(result.system))),
+    info = {
+        "weights": int(sum(np.size(w) for w in _net_leaves(sel.held_out))),
+        "best_epoch": sel.best_epoch,
+        "epochs": sel.term_epochs,
+        "validation_rmse": sel.validation_rmse["hybrid"],
+        "wall_s": time.perf_counter() - t0,
+        "selection": sel.record(),
     }
+    return sel, info

@@ -91,8 +91,8 @@ def make_tables(results: list[dict], *, method: str, wall: float) -> str:
         for t, e in r["tests"].items()
     )
     learned += (
-        "\n\nOver every test sample, the n_init outputs included (how most published "
-        f"cascaded-tanks results score): {every}."
+        "\n\nOver every test sample, the n_init outputs included (how some datasets' published "
+        f"results are scored): {every}."
     )
     return (
         f"## CE-EM on real datasets (method {method}; official protocol: free-run "

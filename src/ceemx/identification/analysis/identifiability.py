@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from ceemx.identification.analysis.end_point import end_point
+from ceemx.identification.fitting.term_progress import has_learned_term
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.schur import schur_complement
 from ceemx.infra.distributed import to_host
@@ -223,6 +224,8 @@ def end_point_identifiability(
     demand): the analysis costs about one epoch, ≤ 5 % of such a fit.
     """
     if converged or len(history) < MIN_EPOCHS or not np.any(to_host(state.weights) > 0):
+        return None
+    if has_learned_term(problem.build(state.theta)):  # a network's weights: never determined
         return None
     return identifiability_at(problem, state.theta, state.states, state.weights)
 

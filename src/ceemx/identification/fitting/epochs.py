@@ -17,7 +17,8 @@ from ceemx.identification.fitting.start import (
     gathered,
     refuse_failed_start,
 )
-from ceemx.identification.solvers.base import FitState, total_J
+from ceemx.identification.fitting.term_progress import TermProgress
+from ceemx.identification.solvers.base import FitState, objective_scale, total_J
 from ceemx.infra import checkpoint as ckpt
 from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.progress import Progress
@@ -56,6 +57,7 @@ def run_epochs(
     bar = Progress("", show=False) if bar is None else bar
     converged = bool(history and history[-1].get("converged", False))
     stopped = bool(history and history[-1].get("stop", False))
+    term = TermProgress.of(problem.build(state.theta), total_J(state))  # None: no learned term
     if history:  # a resumed fit
         bar.update(len(history))
     while len(history) < options.max_epochs and not (converged or stopped):
@@ -71,6 +73,8 @@ def run_epochs(
         record = _record(epoch, before, state, time.perf_counter() - t0, own)
         stop, converged = solver.terminate(problem, before, state, record)
         info = EpochInfo(epoch, problem.build(state.theta), state.states, record)
+        if term is not None:
+            stop, converged = _term_rule(term, solver, problem, state, info, stop, converged)
         stopped = _run_callbacks(options.callbacks, info) or stop
         record["converged"] = converged
         record["stop"] = converged or stopped
@@ -79,6 +83,20 @@ def run_epochs(
         if options.checkpoint is not None:
             _save(options, state, history, start.fingerprint)
     return state, converged
+
+
+def _term_rule(term, solver, problem, state, info, stop, converged) -> tuple[bool, bool]:
+    """(stop, converged) of a model with a learned term (:mod:`.term_progress`).
+
+    Converged only once the term settled over the window; a solver that stopped because it
+    converged goes on until then. ``term_settled`` in the record says which.
+    """
+    tolerance = float(solver.rtol) * objective_scale(problem, state) + float(solver.atol)
+    settled = term.update(info.system, float(info.record["J"]), tolerance)
+    info.record["term_settled"] = settled
+    if converged and not settled:
+        return False, False
+    return stop, converged and settled
 
 
 def _save(options: FitOptions, state: FitState, history: list, fingerprint) -> None:

@@ -57,6 +57,7 @@ from ceemx.identification.analysis.identifiability import (
     end_point_identifiability,
     identifiability_at,
 )
+from ceemx.identification.fitting.term_progress import has_learned_term
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.solvers import joint_matrix_free
 from ceemx.identification.solvers.base import (
@@ -329,6 +330,7 @@ class JointLM(AbstractFitSolver):
         check = (
             self.check_identifiability
             and due
+            and not has_learned_term(problem.build(after.theta))  # weights: never determined
             and th1.size <= MAX_P
             and improvement_converged(problem, before, after, self.check_rtol, 0.0)
         )

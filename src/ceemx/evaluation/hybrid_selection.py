@@ -1,0 +1,434 @@
+"""A hybrid model from a physics model and a training record, its settings chosen from that record.
+
+:func:`fit_hybrid` is the one procedure behind ``ceemx experiment real_data``: it has no setting
+that depends on the record, and it chooses the two that decide a hybrid's free-run score by that
+score, measured on the held-out tail of the *training* record (never a test record):
+
+1. **The noise weighting.** A CE fit maximises J (Eq. 9), where the process and observation
+   noise weigh the dynamics' residuals against the outputs'; only their ratio moves the point
+   estimate, so the observation noise is kept and the process noise is scaled. A loose weighting
+   lets the smoothed states absorb the model's errors (a good one-step fit that free-runs badly);
+   a tight one makes the fit an output-error (simulation) fit, whose landscape is rougher. The
+   physics is fitted on the fit part at ``noise_factors`` × its process noise, loose to tight,
+   each fit started from the previous one's parameters and states (a continuation), and each
+   scored by a free run over the validation tail; the continuation stops after
+   ``noise_patience`` factors without a better score. The noise the likelihood learns
+   (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space model,
+   not the free-run score, and on the real datasets it made that score worse.
+2. **The learned term's training length.** The hybrid (:func:`ceemx.hybrid`: the chosen physics
+   fit plus a zero-initialised network) is trained on the fit part by :class:`ceemx.JointLM`
+   with weight decay, every iteration scored on the validation tail
+   (:class:`ceemx.EarlyStopping`, the physics scored as iteration 0); the best iteration is the
+   training length. When no iteration beats the physics, the term is left out (length 0).
+3. **Every sample in the final model** (``refit=True``): the physics is refitted on the whole
+   record at the chosen weighting (from the fit part's parameters), and the term trained on the
+   whole record for the chosen number of iterations. The held-out model (the fit part's,
+   early-stopped) is returned beside it, so the two can be compared on test data.
+
+The result (:class:`HybridFit`) holds the selected model, both physics fits and the selection's
+record: every candidate weighting with its validation score, the chosen one, the term's
+validation score per iteration and the chosen length (:meth:`HybridFit.record`, a JSON-able
+dict; :meth:`HybridFit.summary`, text).
+
+Width, depth and the weight-decay σ of the term are fixed options (16 units, one hidden layer,
+σ = 1): on the real datasets' validation tails no change of them helped by more than the
+rounding-level spread of the early-stopped path (``docs/results.md``, "Hybrid variants").
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike
+
+from ceemx.data.trajectories import Trajectories
+from ceemx.evaluation.early_stopping import SCORE_OPTIONS, EarlyStopping
+from ceemx.identification.fitting.result import FitResult
+from ceemx.infra.options import check_int, check_positive
+from ceemx.models.system import AbstractSystem, with_noise
+
+__all__ = ["NOISE_FACTORS", "HybridFit", "NoiseCandidate", "fit_hybrid", "split_tail"]
+
+#: The default candidate process-noise factors, loose to tight: half decades over three decades
+#: from the model's own process noise.
+NOISE_FACTORS: tuple[float, ...] = tuple(10.0 ** (-k / 2) for k in range(7))
+
+
+@dataclass(frozen=True)
+class NoiseCandidate:
+    """One noise weighting the selection tried.
+
+    Attributes:
+        factor: the factor on the model's process noise.
+        process_noise: the largest process-noise scale at that factor.
+        validation_rmse: the physics fit's free-run RMSE on the validation tail.
+        epochs: iterations of its fit.
+        converged: whether its fit converged.
+        wall_s: its fit's and score's wall time [s].
+    """
+
+    factor: float
+    process_noise: float
+    validation_rmse: float
+    epochs: int
+    converged: bool
+    wall_s: float
+
+
+@dataclass
+class HybridFit:
+    """What :func:`fit_hybrid` selected and how (module notes).
+
+    Attributes:
+        system: the selected model: the hybrid trained on every sample for the chosen length
+            (``refit=True``), else the held-out one; the physics (a hybrid with a zero term when
+            bounds were asked for) when the term did not beat it on the validation tail.
+        physics: the physics fit at the chosen weighting on every sample (``refit=False``: on
+            the fit part).
+        held_out: the hybrid trained on the fit part, stopped at its best validation iteration.
+        held_out_physics: the physics fit at the chosen weighting on the fit part.
+        candidates: every weighting tried, loose to tight.
+        factor: the chosen factor on the model's process noise.
+        process_noise: the chosen process-noise scale (the largest component).
+        term_scores: (iteration, validation RMSE) of the term's training on the fit part
+            (iteration 0: the physics).
+        best_epoch: the chosen training length (0: no term).
+        term_epochs: iterations the held-out training ran before it stopped.
+        validation_rmse: the validation score of the held-out physics and hybrid.
+        term_stop: why the held-out training ended (its last iteration's record: converged,
+            stop, accepted, the LM's status, whether the term settled, failed trajectories).
+        refit: whether the final model was refitted on every sample.
+        samples: samples of the fit part, the validation tail and the whole record.
+        wall_s: wall time per stage [s].
+        term_result: the final term fit's :class:`ceemx.FitResult` (``None`` without a term).
+    """
+
+    system: AbstractSystem
+    physics: FitResult
+    held_out: AbstractSystem
+    held_out_physics: AbstractSystem
+    candidates: list[NoiseCandidate]
+    factor: float
+    process_noise: float
+    term_scores: list[tuple[int, float]]
+    best_epoch: int
+    term_epochs: int
+    validation_rmse: dict[str, float]
+    term_stop: dict[str, Any]
+    refit: bool
+    samples: dict[str, int]
+    wall_s: dict[str, float] = field(default_factory=dict)
+    term_result: FitResult | None = None
+
+    def record(self) -> dict[str, Any]:
+        """The selection's record as plain Python values (for JSON)."""
+        return {
+            "candidates": [c.__dict__ for c in self.candidates],
+            "factor": self.factor,
+            "process_noise": self.process_noise,
+            "term_scores": [[int(e), float(r)] for e, r in self.term_scores],
+            "best_epoch": self.best_epoch,
+            "term_epochs": self.term_epochs,
+            "validation_rmse": dict(self.validation_rmse),
+            "term_stop": dict(self.term_stop),
+            "refit": self.refit,
+            "samples": dict(self.samples),
+            "wall_s": dict(self.wall_s),
+        }
+
+    def summary(self) -> str:
+        """The selection in a few lines of text."""
+        lines = ["noise weighting (process noise × factor, free-run RMSE on the validation tail):"]
+        for c in self.candidates:
+            mark = "  ← chosen" if c.factor == self.factor else ""
+            lines.append(
+                f"  × {c.factor:.3g} (σ_w {c.process_noise:.3g}): {c.validation_rmse:.4g}"
+                f" ({c.epochs} iterations, {c.wall_s:.1f} s){mark}"
+            )
+        v = self.validation_rmse
+        lines.append(
+            f"learned term: best iteration {self.best_epoch} of {self.term_epochs}, validation "
+            f"{v['hybrid']:.4g} (physics {v['physics']:.4g})"
+            + ("" if self.best_epoch else ": no iteration beat the physics, term left out")
+        )
+        where = "every sample" if self.refit else "the fit part"
+        lines.append(
+            f"final model: fitted on {where} ({self.samples['total' if self.refit else 'fit']}"
+            f" samples); {sum(self.wall_s.values()):.1f} s in all"
+        )
+        return "\n".join(lines)
+
+
+#: The history keys that say why the term's training ended.
+_WHY = (
+    "epoch",
+    "converged",
+    "stop",
+    "accepted",
+    "lm_status",
+    "term_settled",
+    "failed_trajectories",
+)
+
+
+def split_tail(
+    data: Trajectories, n_init: int, fraction: float = 0.2
+) -> tuple[Trajectories, Trajectories]:
+    """(fit part, validation tail) of every record: the last ``fraction`` held out.
+
+    The tail holds at least ``2 n_init`` samples and starts ``n_init`` samples before the cut
+    (its first ``n_init`` outputs set the free run's initial state, as in a test record).
+    """
+    T = data.num_steps
+    held = max(int(fraction * T), 2 * n_init)
+    cut = T - held
+    if cut < 2 * n_init:
+        raise ValueError(
+            f"a record of {T} samples is too short to hold out a validation tail of {held} "
+            f"(n_init = {n_init}): lower `validation_fraction` or pass longer records."
+        )
+    return data[:, :cut], data[:, cut - n_init :]
+
+
+def _windows(data: Trajectories, window: int | None) -> Trajectories:
+    """``data`` cut into windows of ``window`` samples with half overlap (``None``: whole)."""
+    if window is None or data.num_steps <= window:
+        return data
+    return data.windows(window, window // 2)
+
+
+def _noise_scale(system: AbstractSystem) -> float:
+    s = system.process_noise.scale_parameters()
+    if s is None:
+        raise TypeError(
+            f"`physics.process_noise` ({type(system.process_noise).__name__}) has no scale to "
+            "select: give the model a Gaussian process noise (a scale)."
+        )
+    return float(np.max(np.asarray(s)))
+
+
+def fit_hybrid(
+    physics: AbstractSystem,
+    data: Trajectories,
+    *,
+    n_init: int,
+    dynamics: bool | Sequence[int] = True,
+    observation: bool | Sequence[int] = False,
+    lower: ArrayLike | None = None,
+    upper: ArrayLike | None = None,
+    width: int = 16,
+    depth: int = 1,
+    prior_std: float = 1.0,
+    noise_factors: Sequence[float] = NOISE_FACTORS,
+    noise_patience: int = 2,
+    validation_fraction: float = 0.2,
+    window: int | None = None,
+    max_epochs: int = 200,
+    term_epochs: int = 200,
+    patience: int = 5,
+    refit: bool = True,
+    score_options: Mapping[str, Any] | None = None,
+    progress: Callable[[str], Any] | None = None,
+) -> HybridFit:
+    """The physics model and a learned term, every setting chosen on the training record.
+
+    The procedure (module notes): the noise weighting by a loose-to-tight continuation of
+    physics fits, the term's training length by early stopping, both judged by the free-run
+    RMSE on the held-out tail of ``data``; then, with ``refit``, both refitted on every sample.
+
+    Args:
+        physics: the physics model at its initial guess, with its noise models (its process
+            noise is the loosest candidate: its default is fine; a Gaussian noise model).
+        data: the training record(s), as the model reads them (a first-order-hold model's
+            stacked inputs); never a test record.
+        n_init: outputs that set a free run's initial state (the protocol the model is judged
+            by, e.g. a dataset's ``n_init``).
+        dynamics: where the term enters the transition (:func:`ceemx.hybrid`).
+        observation: where a term enters the observation (:func:`ceemx.hybrid`).
+        lower: lower state bounds (:func:`ceemx.hybrid`).
+        upper: upper state bounds.
+        width: the term's hidden width.
+        depth: the term's hidden layers.
+        prior_std: the weight-decay prior's σ.
+        noise_factors: candidate factors on the model's process noise, loose to tight.
+        noise_patience: candidates without a better validation score before the continuation
+            stops.
+        validation_fraction: the tail of every record held out for the selection.
+        window: fit records longer than this in windows of ``window`` samples with half
+            overlap (a long record; ``None``: whole).
+        max_epochs: iterations of each physics fit.
+        term_epochs: iterations of the term's training at most.
+        patience: iterations without a better validation score before the term's training
+            stops.
+        refit: refit the chosen settings on every sample (else return the held-out model).
+        score_options: options of :func:`ceemx.benchmark_score` for the validation free runs
+            (how the initial state is set; the same options should score the test records).
+        progress: called with a line of text after each stage (e.g. ``print``).
+
+    Returns:
+        A :class:`HybridFit`: ``.system`` the selected model, ``.record()`` the selection.
+
+    Raises:
+        TypeError, ValueError: naming the argument, before any fit.
+    """
+    from ceemx.identification.fitting.driver import fit
+    from ceemx.identification.hybrid_builder import hybrid
+    from ceemx.identification.solvers.joint import JointLM
+    from ceemx.systems.learned_term import weight_decay
+
+    if not isinstance(physics, AbstractSystem):
+        raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
+    if not isinstance(data, Trajectories):
+        raise TypeError(f"`data` must be ceemx.Trajectories; got {type(data).__name__}.")
+    check_int("n_init", n_init, 1)
+    for name, value in (("noise_patience", noise_patience), ("patience", patience)):
+        check_int(name, value, 1)
+    check_int("max_epochs", max_epochs, 1)
+    check_int("term_epochs", term_epochs, 0)
+    if window is not None:
+        check_int("window", window, 2 * n_init)
+    check_positive("validation_fraction", validation_fraction)
+    if validation_fraction >= 1:
+        raise ValueError(f"`validation_fraction` must be in (0, 1); got {validation_fraction!r}.")
+    factors = [float(f) for f in noise_factors]
+    if not factors or not all(math.isfinite(f) and f > 0 for f in factors):
+        raise ValueError(f"`noise_factors` must be positive numbers; got {noise_factors!r}.")
+    options = dict(score_options or {})
+    unknown = sorted(set(options) - SCORE_OPTIONS)
+    if unknown:
+        raise ValueError(
+            f"`score_options` has unknown keys {unknown}; allowed: {sorted(SCORE_OPTIONS)}."
+        )
+    scale0 = _noise_scale(physics)
+    say = progress or (lambda _line: None)
+    fit_raw, validation = split_tail(data, n_init, validation_fraction)
+    fit_part, whole = _windows(fit_raw, window), _windows(data, window)
+    bounds = lower is not None or upper is not None
+    wall: dict[str, float] = {}
+
+    # 1. the noise weighting: loose-to-tight continuation of physics fits on the fit part
+    judge = EarlyStopping(validation, n_init, score_options=options)
+    t0 = time.perf_counter()
+    candidates: list[NoiseCandidate] = []
+    best: tuple[float, float, FitResult] | None = None  # (rmse, factor, fit)
+    last: FitResult | None = None
+    since_best = 0
+    for f in factors:
+        t = time.perf_counter()
+        start = physics if last is None else last.system
+        model = with_noise(start, process_noise=physics.process_noise.scaled(f))
+        x0 = None if last is None else last.states
+        res = fit(model, fit_part, x0, solver=JointLM(), max_epochs=max_epochs, diagnose=False)
+        rmse = judge.score(res.system)
+        candidates.append(
+            NoiseCandidate(
+                f, f * scale0, rmse, len(res.history), bool(res.converged), time.perf_counter() - t
+            )
+        )
+        say(f"noise × {f:.3g}: validation {rmse:.4g} ({len(res.history)} iterations)")
+        last = res
+        if math.isfinite(rmse) and (best is None or rmse < best[0]):
+            best, since_best = (rmse, f, res), 0
+        else:
+            since_best += 1
+            if since_best >= noise_patience:
+                break
+    if best is None:
+        raise RuntimeError(
+            "every candidate noise weighting diverged on the validation tail (non-finite free "
+            "run); check the physics model's guess and the data's units."
+        )
+    physics_rmse, factor, held_physics = best
+    wall["noise"] = time.perf_counter() - t0
+
+    # 2. the learned term's training length: early stopping on the validation tail
+    t0 = time.perf_counter()
+
+    def with_term(base: AbstractSystem, record: Trajectories, states) -> Any:
+        return hybrid(
+            base, record, states=states, dynamics=dynamics, observation=observation,
+            width=width, depth=depth, prior_std=prior_std, lower=lower, upper=upper,
+        )  # fmt: skip
+
+    model = with_term(held_physics.system, fit_part, held_physics.states)
+    stopper = EarlyStopping(
+        validation, n_init, patience=patience, start=model, score_options=options
+    )
+    held_out: Any = model
+    epochs_run, why = 0, {}
+    if term_epochs:
+        res = fit(
+            model,
+            fit_part,
+            jnp.asarray(held_physics.states),
+            solver=JointLM(),
+            trainable=model.trainable("both"),
+            log_prior=weight_decay,
+            max_epochs=term_epochs,
+            callbacks=[stopper],
+            diagnose=False,
+        )
+        epochs_run = len(res.history)
+        held_out = stopper.restore(res).system
+        end = res.history[-1] if res.history else {}
+        why = {k: end[k] for k in _WHY if k in end}
+    best_epoch = stopper.best_epoch if math.isfinite(stopper.best_rmse) else 0
+    hybrid_rmse = stopper.best_rmse if best_epoch else physics_rmse
+    say(f"learned term: best iteration {best_epoch} of {epochs_run}, validation {hybrid_rmse:.4g}")
+    wall["term"] = time.perf_counter() - t0
+
+    # 3. every sample: the physics and the term refitted at the chosen settings
+    final_physics, term_result = held_physics, None
+    final: Any = held_out
+    if refit:
+        t0 = time.perf_counter()
+        final_physics = fit(
+            held_physics.system, whole, solver=JointLM(), max_epochs=max_epochs, diagnose=False
+        )
+        final = final_physics.system
+        if best_epoch or bounds:
+            final = with_term(final_physics.system, whole, final_physics.states)
+        if best_epoch:
+            term_result = fit(
+                final,
+                whole,
+                jnp.asarray(final_physics.states),
+                solver=JointLM(),
+                trainable=final.trainable("both"),
+                log_prior=weight_decay,
+                max_epochs=best_epoch,
+                diagnose=False,
+            )
+            final = term_result.system
+        wall["refit"] = time.perf_counter() - t0
+        say(f"refit on every sample: {wall['refit']:.1f} s")
+    elif not best_epoch and not bounds:
+        final = held_physics.system  # the term's start: equal to the physics
+    return HybridFit(
+        system=final,
+        physics=final_physics,
+        held_out=held_out,
+        held_out_physics=held_physics.system,
+        candidates=candidates,
+        factor=factor,
+        process_noise=factor * scale0,
+        term_scores=list(stopper.scores),
+        best_epoch=best_epoch,
+        term_epochs=epochs_run,
+        validation_rmse={"physics": physics_rmse, "hybrid": hybrid_rmse},
+        term_stop=why,
+        refit=refit,
+        samples={
+            "fit": int(fit_raw.num_steps * fit_raw.batch_size),
+            "validation": int((validation.num_steps - n_init) * validation.batch_size),
+            "total": int(data.num_steps * data.batch_size),
+        },
+        wall_s=wall,
+        term_result=term_result,
+    )
