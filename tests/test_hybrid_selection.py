@@ -72,7 +72,8 @@ def test_registry_holds_the_protocol_and_the_physics_only():
     the fitting settings (noise, epochs, width, windows, scoring start) are not there."""
     protocol = {
         "name", "source", "columns", "train", "tests", "dt", "n_init", "units", "output_names",
-        "citation", "score_unit", "score_scale", "published", "window_length", "window_stride",
+        "output_units", "input_names", "input_units", "citation", "score_unit", "score_scale",
+        "published", "window_length", "window_stride",
         "valid_fraction", "default_tests", "test_names", "model",
     }  # fmt: skip
     assert {f.name for f in dataclasses.fields(registry_module.DatasetEntry)} == protocol
