@@ -5,6 +5,7 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from ceemx.evaluation import plots, report
 from ceemx.evaluation.estimates import Estimate, mean_se
@@ -125,6 +126,25 @@ def test_plot_benchmark_panels_zoom_error_and_bounds(tmp_path):
     assert len(fig.axes) == 2 and fig.axes[-1].get_xlabel() == "time [s]"
     fig = plots.plot_benchmark(y, good, zoom=(10, 50))
     assert fig.axes[1].get_xlim() == (10, 49)
+    report.plt().close("all")
+
+
+def test_plot_benchmark_reads_names_units_and_sample_time_from_the_record():
+    import ceemx
+
+    t = np.arange(200)
+    y = np.sin(t / 8.0)[None, :, None]
+    record = ceemx.Trajectories.from_arrays(
+        [y[0]], dt=0.25, output_names=("level",), output_units=("V",)
+    )
+    fig = plots.plot_benchmark(record, {"model": 0.9 * y}, n_init=10, zoom=False)
+    assert fig.axes[0].get_ylabel() == "level [V]" and fig.axes[-1].get_xlabel() == "time [s]"
+    assert "RMSE" in _texts(fig) and "V)" in _texts(fig)
+    fig = plots.plot_benchmark(record, 0.9 * y, output_names="h", unit="mV", zoom=False)
+    assert fig.axes[0].get_ylabel() == "h [mV]"  # the call's names and unit win
+    two = ceemx.Trajectories.from_arrays([y[0], y[0]])
+    with pytest.raises(ValueError, match="`y`: one record"):
+        plots.plot_benchmark(two, 0.9 * y)
     report.plt().close("all")
 
 

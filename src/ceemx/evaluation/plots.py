@@ -38,6 +38,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from jaxtyping import ArrayLike
 
+from ceemx.data.info import DataInfo
 from ceemx.evaluation.report import plt, save_figure
 from ceemx.evaluation.trace_panels import (
     Bounds,
@@ -137,7 +138,9 @@ def plot_benchmark(
     (dashed, the region outside shaded; a note says how often and how far the state leaves it).
 
     Args:
-        y: the measured output of one record: (T,), (T, m) or (1, T, m) (NaN: missing).
+        y: the measured output of one record: (T,), (T, m) or (1, T, m) (NaN: missing), or
+            the record itself (a one-record :class:`~ceemx.Trajectories`, e.g. ``test[0:1]``):
+            its :class:`~ceemx.DataInfo` then gives the default names, unit and ``dt``.
         y_sim: the simulated output, same shape, or several models' as ``{name: y_sim}`` (in
             legend order; the first one's largest error places the default zoom).
         n_init: samples used to estimate the initial state (not scored).
@@ -179,6 +182,7 @@ def plot_benchmark(
         >>> len(fig.axes)
         6
     """
+    y, output_names, unit, dt = _from_record(y, output_names, unit, dt)
     _check_plot_options(zoom_fraction, zoom_samples, score_scale, dt, max_points)
     rec = _record(y, y_sim, label, n_init, output_names, hidden, hidden_label, bounds)
     panels = _panels(rec, zoom, zoom_fraction, int(zoom_samples), dt, max_points)
@@ -188,6 +192,26 @@ def plot_benchmark(
         if title:
             fig.suptitle(title, x=0.01, ha="left", fontweight="bold")
     return fig
+
+
+def _from_record(y, output_names, unit: str, dt):
+    """``y`` as arrays, with the defaults a record (one-record ``Trajectories``) carries.
+
+    Its outputs (masked samples NaN), and its ``DataInfo``'s output names, unit and sample time
+    where the call gives none. Arrays pass through.
+    """
+    if not (hasattr(y, "mask") and hasattr(y, "info")):
+        return y, output_names, unit, dt
+    info = y.info if y.info is not None else DataInfo()
+    if y.batch_size != 1:
+        raise ValueError(f"`y`: one record (e.g. data[i : i + 1]); got {y.batch_size} records.")
+    values = np.where(np.asarray(y.mask), np.asarray(y.y, np.float64), np.nan)[0]
+    units = set(info.output_units or ())
+    if not unit and len(units) == 1:
+        unit = units.pop()
+    if dt is None and info.dt is not None and info.time_unit == "s":
+        dt = info.dt
+    return values, info.output_names if output_names is None else output_names, unit, dt
 
 
 def _check_plot_options(zoom_fraction, zoom_samples, score_scale, dt, max_points) -> None:
