@@ -66,18 +66,20 @@ def record(system, T, B=2, seed=0):
 
 @pytest.fixture(scope="module")
 def no_input_fit():
-    """A JointLM fit of the model without inputs (A trainable), two trajectories."""
+    """A converged JointLM result of the model without inputs (A trainable), two trajectories,
+    at the simulated states, as ``fit`` returns it: diagnostics read only the end point, and
+    building it compiles no fit."""
+    from ceemx.identification.problem import FitProblem
+    from ceemx.lib.results import RESULTS, select
+
     system = linear(inputs=False)
     x, data = record(system, 40)
-    res = ceemx.fit(
-        system,
-        data,
-        x,
-        solver=ceemx.JointLM(),
-        trainable=lambda s: s.A,
-        max_epochs=2,
-        diagnose=False,
-    )
+    problem, theta = FitProblem.create(system, data, trainable=lambda s: s.A)
+    status = select(jnp.ones((2,), bool), RESULTS.successful, RESULTS.nonfinite)
+    res = ceemx.FitResult(
+        system, x, status, [], True, ceemx.JointLM(), 0.0,
+        problem=problem, theta=theta, weights=f64([1.0, 1.0]),
+    )  # fmt: skip
     return res, data
 
 

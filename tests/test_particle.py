@@ -518,17 +518,24 @@ def test_systematic_resampling(num):
     np.testing.assert_array_less(np.abs(counts.mean(0) - expected), 4.5 * se + 1e-12)
 
 
+# The small helpers below run under jit, as the filter and smoother run them: one program per
+# shape instead of one per operation (eager evaluation compiles each of a few dozen operations).
+offspring_counts = jax.jit(lp.offspring_counts, static_argnums=1)
+ess = jax.jit(lp.ess)
+log_normalize = jax.jit(lp.log_normalize)
+
+
 def test_offspring_counts():
     """How often each particle index appears among the ancestors."""
     anc = jnp.asarray([0, 0, 2, 3, 3, 3], jnp.int32)
-    np.testing.assert_array_equal(lp.offspring_counts(anc, 6), [2, 0, 1, 3, 0, 0])
+    np.testing.assert_array_equal(offspring_counts(anc, 6), [2, 0, 1, 3, 0, 0])
 
 
 def test_offspring_counts_of_fewer_draws():
     """``systematic_resample(key, log_w, num)`` allows num != N ancestors; counting them over N
     particles must be possible too."""
     anc = jnp.asarray([0, 0, 2], jnp.int32)
-    np.testing.assert_array_equal(lp.offspring_counts(anc, 5), [2, 0, 1, 0, 0])
+    np.testing.assert_array_equal(offspring_counts(anc, 5), [2, 0, 1, 0, 0])
 
 
 def test_ess_and_log_normalize():
@@ -537,14 +544,14 @@ def test_ess_and_log_normalize():
     rng = np.random.default_rng(1)
     log_w = rng.standard_normal(12) * 2
     w = np.exp(log_w) / np.exp(log_w).sum()
-    np.testing.assert_allclose(lp.ess(jnp.asarray(log_w)), 1.0 / np.sum(w**2), rtol=1e-12)
-    np.testing.assert_allclose(lp.ess(jnp.full((12,), -3.0)), 12.0, rtol=1e-12)
+    np.testing.assert_allclose(ess(jnp.asarray(log_w)), 1.0 / np.sum(w**2), rtol=1e-12)
+    np.testing.assert_allclose(ess(jnp.full((12,), -3.0)), 12.0, rtol=1e-12)
     point = jnp.asarray(np.where(np.arange(12) == 4, 0.0, -np.inf))
-    np.testing.assert_allclose(lp.ess(point), 1.0, rtol=1e-12)
-    normed, total = lp.log_normalize(jnp.asarray(log_w))
+    np.testing.assert_allclose(ess(point), 1.0, rtol=1e-12)
+    normed, total = log_normalize(jnp.asarray(log_w))
     np.testing.assert_allclose(np.exp(normed), w, rtol=1e-12)
     np.testing.assert_allclose(total, np.log(np.exp(log_w).sum()), rtol=1e-12)
-    normed, total = lp.log_normalize(jnp.full((5,), -jnp.inf))
+    normed, total = log_normalize(jnp.full((5,), -jnp.inf))
     assert total == -np.inf
     np.testing.assert_allclose(normed, np.full(5, -np.log(5.0)))
 
@@ -582,16 +589,23 @@ def test_gaussian_update_matches_dense_conditioning(mask):
     mu, y = rng.standard_normal(n), rng.standard_normal(m)
     mask = np.array(mask)
     y_in = np.where(mask, y, np.nan)
-    up = kalman.gaussian_update(jnp.asarray(P), jnp.asarray(C), jnp.asarray(L), jnp.asarray(mask))
+    up, got_mean, logp = _update(*map(jnp.asarray, (P, C, L, mask, mu, y_in)))
     K, post, Co, S_o = condition(P, C, R, mask)
     mean = mu + K @ (y[mask] - Co @ mu)
-    np.testing.assert_allclose(up.mean(jnp.asarray(mu), jnp.asarray(y_in)), mean, atol=1e-12)
-    np.testing.assert_allclose(up.chol_post @ up.chol_post.T, post, atol=1e-12)
-    np.testing.assert_allclose(np.tril(up.chol_post), up.chol_post)
-    logp = kalman.predictive_log_density(up, jnp.asarray(mu), jnp.asarray(y_in))
+    np.testing.assert_allclose(got_mean, mean, atol=1e-12)
+    chol_post = np.asarray(up.chol_post)
+    np.testing.assert_allclose(chol_post @ chol_post.T, post, atol=1e-12)
+    np.testing.assert_allclose(np.tril(chol_post), chol_post)
     expected = 0.0 if S_o is None else gauss_logpdf(y[mask] - Co @ mu, S_o)
     np.testing.assert_allclose(logp, expected, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(np.asarray(up.gain)[:, ~mask], 0.0)
+
+
+@jax.jit
+def _update(P, C, L, mask, mu, y):
+    """The update, its posterior mean and predictive log-density: one program for every mask."""
+    up = kalman.gaussian_update(P, C, L, mask)
+    return up, up.mean(mu, y), kalman.predictive_log_density(up, mu, y)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -312,13 +312,15 @@ def counted(monkeypatch):
 def test_fit_validates_once_and_builds_its_problem_once(counted, solver):
     """The warm start, the solver's refusals, the compile thread and the exclusion of an outlier
     trajectory reuse the inputs and the problem of the one ``prepare`` and ``FitProblem.create``."""
-    y = np.random.default_rng(1).standard_normal((4, T, M))
-    y[3] *= 1e3  # an outlier record: the health test excludes it (a sub-problem, not a new one)
+    # an outlier record: the health test excludes it (a sub-problem, not a new one), leaving B
+    # records: the fit's programs are those test_fit_mixed_precision_is_clear compiled
+    y = np.random.default_rng(1).standard_normal((B + 1, T, M))
+    y[B] *= 1e3
     with pytest.warns(UserWarning, match="excluded from the fit"):
         result = ceemx.fit(
             system(), ceemx.Trajectories(y), solver=solver(), max_epochs=2, diagnose=False
         )
-    assert result.excluded == (3,)
+    assert result.excluded == (B,)
     assert counted == {"validate": 1, "create": 1}
 
 
