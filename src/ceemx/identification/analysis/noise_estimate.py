@@ -323,10 +323,15 @@ def estimate_noise_prepared(
     search: bool = True,
     max_evaluations: int = 60,
     smoother: LMSmoother | None = None,
+    around: AbstractSystem | None = None,
 ) -> tuple[AbstractSystem, NoiseMoments, int]:
     """:func:`estimate_noise` of prepared data and states, its options checked: no checks.
 
     ``system`` as given (the estimate keeps its leaves; promoted for each evaluation).
+    ``around``: an earlier estimate for a nearby θ, not degenerate (the noise rounds'): the grid
+    then spans one decade either way of its factors (9 points for two) instead of three of the
+    guess's (49): the grid's task, finding the basin that is not the degenerate one, was done
+    for it. The search box and the floors are the guess's as always.
     """
     fields = tuple(dict.fromkeys(fields))
     nm = moments_prepared(_promoted(system), data, states, smoother)
@@ -346,7 +351,8 @@ def estimate_noise_prepared(
             part_data = data[:b].head(t)
             first = moments_prepared(_promoted(system), part_data, nm.states[:b, :t], smoother)
             searched = _search(system, part_data, layout, first, smoother, bounds, max_evaluations)
-        for z in decade_grid(layout.z0):
+        grid = decade_grid(layout.z0) if around is None else decade_grid(layout.z_of(around), 1)
+        for z in grid:
             searched.objective(z)
         if searched is not full:
             searched.climb(searched.best_z)
@@ -407,6 +413,14 @@ class _ScaleLayout:
         self.entry_fields = [
             f for f, k in zip(self.fields, self.sizes, strict=True) for _ in range(max(k, 1))
         ]
+
+    def z_of(self, other: AbstractSystem) -> np.ndarray:
+        """The factors z (log, one per field) that scale this layout's noise to ``other``'s."""
+        assert self.factors_only
+        ratios = [
+            np.mean(np.log(_stds(getattr(other, f)) / _stds(self.base[f]))) for f in self.fields
+        ]
+        return np.asarray(ratios, np.float64)
 
     def entries_of(self, field: str) -> list[int]:
         """The indices of z that scale ``field``."""
