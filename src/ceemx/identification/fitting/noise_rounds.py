@@ -54,23 +54,19 @@ def learn_noise(
     than 5 % and the fit converged. After ``max_rounds`` rounds without that, it warns and the
     result is not converged.
 
-    An estimate at the degenerate boundary σ_v → 0 (``NoiseMoments.degenerate``: σ_v held at the
-    upper end of its evidence margin) is not fitted at while θ has not been fitted to
-    convergence: at a θ still far off, the process noise absorbs the model error, the states
-    interpolate the data, and a CE fit at that noise leaves the hidden states free and hardly
-    moves θ. The round fits at the previous noise instead — the first at the user's, from the
-    MAP states of the estimate (which follow the data) — and the next estimate, at a fitted θ,
-    is the data's. Made after a converged fit, a degenerate estimate is the data's answer too
-    (a process noise that dominates the observation noise: the record cannot reject σ_v → 0 even
-    at the truth) and is fitted at, σ_v at its margin's upper end; kept out there, a guess 100×
-    off stayed the fit's noise. When no estimate is usable the fit stays at the user's noise,
-    with a warning that the noise was not learned.
+    An estimate at the degenerate boundary σ_v → 0 (``NoiseMoments.degenerate``) is not fitted
+    at: at a θ still far off, the process noise absorbs the model error, the states interpolate
+    the data, and a CE fit at that noise leaves the hidden states free and hardly moves θ. The
+    round fits at the previous noise instead — the first at the user's, from the MAP states of
+    the estimate (which follow the data) — and the next estimate, at a fitted θ, is the data's.
+    When no estimate is anything but degenerate the fit stays at the user's noise, with a
+    warning that the noise was not learned.
 
     The result is the last round's fit, at the noise that round used — the last record of
     ``FitResult.noise_rounds``: round 0 the estimate at the start; round k the noise fit k ran
     at, its epochs and whether it converged, and of the estimate made after it the evidence,
     ``floored``, ``degenerate``, ``notes`` and ``change`` (how far it moved the factors; 0 when
-    kept out), ``settled``, ``time`` (seconds of the round); the last also ``learned``.
+    degenerate), ``settled``, ``time`` (seconds of the round); the last also ``learned``.
 
     Args:
         system: the model at its initial θ, with the user's noise guess (as given).
@@ -102,10 +98,8 @@ def learn_noise(
         last = list(caught)
         fitted = _with_noise_of(result.system, guess)
         new, new_nm, _ = estimate_noise_prepared(fitted, data, result.states, around=around)
-        # a degenerate estimate is kept out unless θ was fitted to convergence before it
-        usable = not new_nm.degenerate or bool(result.converged)
-        change = _change(new, system) if usable else 0.0
-        learned = learned or usable
+        change = 0.0 if new_nm.degenerate else _change(new, system)  # a degenerate one is kept out
+        learned = learned or not new_nm.degenerate
         around = None if new_nm.degenerate else new
         settled = bool(change <= NOISE_ROUND_RTOL)
         rounds.append(_round_record(k, system, new_nm, result, time.perf_counter() - clock))
@@ -159,16 +153,15 @@ def _not_learned(rounds: list[dict]) -> str:
 
 def _unsettled(rounds: list[dict], converged: bool) -> str:
     last = rounds[-1]
-    if not last["change"] <= NOISE_ROUND_RTOL:
-        why = (
-            f"the last estimate moved a noise factor by {100 * last['change']:.3g} % (more than "
-            f"{100 * NOISE_ROUND_RTOL:.3g} %)"
-        ) + ("" if converged else ", and its fit did not converge")
-    else:
-        why = "the last round's fit did not converge"
+    why = (
+        f"the last estimate moved a noise factor by {100 * last['change']:.3g} % (more than "
+        f"{100 * NOISE_ROUND_RTOL:.3g} %)"
+        if not last["change"] <= NOISE_ROUND_RTOL
+        else "the last round's fit did not converge"
+    )
     return (
         f"fit(..., noise='learn') stopped after {len(rounds) - 1} rounds before the noise "
-        f"settled: {why}. The result is "
+        f"settled: {why}{'' if converged else ', and its fit did not converge'}. The result is "
         "the last round's fit at the noise it used, reported not converged "
         "(FitResult.noise_rounds holds every round). Fit again from it (more max_epochs), or "
         "at a fixed noise."
