@@ -48,11 +48,11 @@ def learn_noise(
     Each round fits θ and the states at the current noise (``fit`` with the given solver,
     warm-started), then re-estimates the factors at the fitted θ, again from the user's guess
     (its search box and floors, so a degenerate maximum found once is not inherited); its grid
-    spans one decade either way of the previous estimate where that was not degenerate (the
-    basin is found; the full grid of decades would cost most of the rounds' posterior
-    evaluations), else three decades of the guess. It stops when no factor changes by more
-    than 5 % and the fit converged. After ``max_rounds`` rounds without that, it warns and the
-    result is not converged.
+    spans one decade either way of the previous estimate where that was not degenerate, and each
+    factor alone over the guess's decades (the full grid of decades each round cost most of the
+    rounds' posterior evaluations), else three decades of the guess. It stops when no factor
+    changes by more than 5 % and the fit converged. After ``max_rounds`` rounds without that, it
+    warns and the result is not converged.
 
     An estimate at the degenerate boundary σ_v → 0 (``NoiseMoments.degenerate``) is not fitted
     at: at a θ still far off, the process noise absorbs the model error, the states interpolate
