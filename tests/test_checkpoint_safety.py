@@ -490,3 +490,29 @@ def test_fit_on_a_folder_in_use_is_refused_before_compute(no_compute, tmp_path):
         with raises(ckpt.CheckpointError, "is in use by another fit"):
             ceemx.fit(decay(), DATA, X0, checkpoint=str(tmp_path), solver=ceemx.Alternating())
     assert os.listdir(tmp_path) == []
+
+
+def _strict_json(text: str):
+    """JSON as the standard defines it: ``NaN``, ``Infinity`` and ``-Infinity`` refused."""
+
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_nonfinite_history_is_valid_json_and_reads_back(tmp_path):
+    # a failed trajectory's J is −inf or NaN in the history: latest.json held -Infinity and NaN,
+    # which strict JSON readers refuse; now tagged, and read back as the same floats
+    history = [
+        {"epoch": 1, "J": -np.inf, "J_b": [1.5, np.nan], "rate": np.float32("inf"), "note": None},
+        {"epoch": 2, "J": np.float64("nan"), "J_b": np.array([-np.inf, 2.0]), "ok": True},
+    ]
+    tree = {"a": jnp.arange(2.0)}
+    ckpt.save(str(tmp_path), tree, history, {"method": "x"})
+    meta = _strict_json((tmp_path / "latest.json").read_text())
+    assert meta["history"][0]["J"] == {"nonfinite": "-inf"}
+    _, back = ckpt.load(str(tmp_path), tree, None)
+    assert back[0]["J"] == -np.inf and back[0]["rate"] == np.inf and back[0]["note"] is None
+    assert back[0]["J_b"][0] == 1.5 and np.isnan(back[0]["J_b"][1])
+    assert np.isnan(back[1]["J"]) and back[1]["J_b"] == [-np.inf, 2.0] and back[1]["ok"] is True

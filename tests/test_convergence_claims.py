@@ -94,6 +94,17 @@ def test_start_at_an_absurd_scale_is_refused(kwargs, text):
             fit(root(**kwargs), solver=solver())
 
 
+@pytest.mark.parametrize("c", [1e-20, 1e-12])
+def test_start_absurd_against_the_data_is_refused(c):
+    """c·√x with y ≈ 1.4: c = 1e-20 is far from 0's rounding, but its e-fold change moves the
+    residuals by 1e-20 of their size; Alternating and JointLM reported converged=True with c
+    frozen (from 1e-12: moved 0.25 %, "converged")."""
+    x_init = np.full((B, T, 1), 2.0)
+    for solver in SOLVERS:
+        with pytest.raises(ValueError, match=f"`system.c` = {c:g} is too near its bound for the"):
+            fit(root(c=c), x_init, solver=solver())
+
+
 def test_start_just_clear_of_the_limits_is_accepted():
     problem, theta = ceemx.FitProblem.create(root(c=1e-90, a=1 - 1e-9, d=-2 - 1e-9), DATA)
     assert np.all(np.isfinite(np.asarray(theta))) and problem is not None

@@ -528,3 +528,47 @@ def test_expected_dynamics_terms_evaluate_each_distinct_previous_state_once():
     np.testing.assert_allclose(fast, ref, rtol=1e-13)
     np.testing.assert_allclose(value, ref, rtol=1e-13)
     np.testing.assert_allclose(grad, ref_grad, rtol=1e-10, atol=1e-10 * np.max(np.abs(ref_grad)))
+
+
+@pytest.mark.slow  # ≈ 3 s (a Lorenz program, as the test above)
+def test_padding_after_the_last_observation_leaves_the_m_step_and_noise_statistics():
+    """A record padded with masked steps (a shorter record of a ragged batch): the M-step's
+    value, θ-gradient and Gauss–Newton matrix and the noise statistics equal those of the record
+    alone, whatever the posterior over the padding (the states after the last observation
+    integrate out of p(y | θ)). They counted the padding's expected dynamics terms: fits of a
+    nonlinear model moved with the amount of padding (a = 0.81 → 0.92)."""
+    from ceemx.experiments import common
+    from ceemx.identification.learning.expected import cubature_points
+    from ceemx.identification.noise_moments import noise_second_moments
+    from ceemx.identification.problem import FitProblem
+    from ceemx.inference.objective import expected_neg_log_joint_single, linearize_expected
+
+    true = common.true_lorenz(1, key=jax.random.PRNGKey(4), m=2, process_noise=0.1, obs_noise=0.5)
+    p = common.lorenz_problem(43, true, B=1, T=6, sigma_w=0.1, sigma_v=0.5, coupling=False)
+    d, T, n, extra = p.data, p.states.shape[1], p.states.shape[2], 4
+    rng = np.random.default_rng(1)
+    cov = jnp.asarray(np.broadcast_to(0.02 * np.eye(n), (1, T + extra, n, n)).copy())
+    cov = cov.at[:, T:].set(30.0 * np.eye(n))  # the padding's posterior: wide, anything
+    cross = jnp.asarray(0.01 * rng.normal(size=(1, T + extra - 1, n, n)))
+    states = jnp.concatenate([p.states, 5.0 + jnp.asarray(rng.normal(size=(1, extra, n)))], 1)
+
+    def padded(a, value):
+        return jnp.concatenate([a, jnp.full(a.shape[:1] + (extra,) + a.shape[2:], value)], 1)
+
+    d_pad = ceemx.Trajectories(padded(d.y, 0.0), padded(d.u, 0.0), padded(d.mask, False))
+    problem, theta = FitProblem.create(true, d, trainable=common.LORENZ_PARAMS)
+
+    @eqx.filter_jit
+    def terms(problem, theta, states, cov, cross, data):
+        points, pairs = cubature_points(states, cov, cross)
+        system = problem.build(theta)
+        one = (points[0], pairs[0], data.y[0], data.u[0], data.mask[0])
+        value = expected_neg_log_joint_single(system, *one)
+        lin = linearize_expected(problem.build, theta, *one)
+        moments = noise_second_moments(system, points, pairs, data, jnp.ones(1))
+        return value, lin, moments
+
+    alone = terms(problem, theta, states[:, :T], cov[:, :T], cross[:, : T - 1], d)
+    pad = terms(problem, theta, states, cov, cross, d_pad)
+    for got, want in zip(jax.tree.leaves(pad), jax.tree.leaves(alone), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)

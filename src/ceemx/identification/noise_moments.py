@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ceemx.data.trajectories import Trajectories
+from ceemx.inference.objective import dynamics_weights, observed_span
 from ceemx.infra.compilation import jit
 from ceemx.lib.cubature import pair_points_first_half
 from ceemx.lib.typing import PerTrajectory
@@ -64,12 +65,14 @@ def noise_second_moments(
 ) -> dict[str, Array]:
     """Weighted sums of the expected residual second moments under q (cubature).
 
-    Returns a dict: ``dyn`` (n, n) Σ_b w_b Σ_t E[r^w_t r^wᵀ_t] and ``dyn_count`` Σ_b w_b (T−1);
+    Returns a dict: ``dyn`` (n, n) Σ_b w_b Σ_t E[r^w_t r^wᵀ_t] and ``dyn_count`` Σ_b w_b (T_b−1),
+    over the transitions up to each trajectory's last observation
+    (:func:`~ceemx.inference.objective.dynamics_weights`: a shorter record's padding is left out);
     ``obs_diag`` (m,) Σ_b w_b Σ_t mask·E[(r^v_t)²] and ``obs_count`` (m,) Σ_b w_b Σ_t mask;
     ``obs_full`` (m, m) the same with missing components filled in from their conditional under
     the current observation noise where it couples them
     (:meth:`ceemx.AbstractNoise.masked_fill`; otherwise the unfilled moments) and
-    ``obs_full_count`` Σ_b w_b T.
+    ``obs_full_count`` Σ_b w_b T_b, over the steps up to each trajectory's last observation.
     """
     n = points.shape[-1]
     obs = system.obs_noise
@@ -89,12 +92,19 @@ def noise_second_moments(
         fx = jax.vmap(lambda xs, ut, t: jax.vmap(lambda x: system.dynamics(x, ut, t))(xs))(
             first, u[:-1], ts[:-1]
         )
-        r = zp[..., n:] - spread(fx)
+        keep = dynamics_weights(mask)  # not the steps after the last observation
+        r = jnp.where(keep[:, None, None], zp[..., n:] - spread(fx), 0.0)
         S_dyn = jnp.einsum("tki,tkj->tij", r, r) / zp.shape[1]
         diag = jnp.diagonal(S_obs, axis1=-2, axis2=-1)
-        return S_dyn.sum(0), diag.sum(0), mask.sum(0).astype(xp.dtype), S_full.sum(0)
+        span = observed_span(mask)
+        S_full = jnp.where(span[:, None, None], S_full, 0.0)
+        counts = (keep.sum(), mask.sum(0), span.sum())
+        counts = tuple(c.astype(xp.dtype) for c in counts)
+        return S_dyn.sum(0), diag.sum(0), S_full.sum(0), *counts
 
-    dyn, diag, count, full = jax.vmap(one)(points, pairs, data.y, data.u, data.mask)
+    dyn, diag, full, dyn_count, count, full_count = jax.vmap(one)(
+        points, pairs, data.y, data.u, data.mask
+    )
     w = jnp.where(weights > 0, weights, 0.0)
     ok = weights > 0
 
@@ -102,14 +112,13 @@ def noise_second_moments(
         shape = (-1,) + (1,) * (a.ndim - 1)
         return jnp.sum(jnp.where(ok.reshape(shape), w.reshape(shape) * a, 0.0), axis=0)
 
-    total = jnp.sum(w)
     return {
         "dyn": wsum(dyn),
-        "dyn_count": total * (T - 1),
+        "dyn_count": wsum(dyn_count),
         "obs_diag": wsum(diag),
         "obs_count": wsum(count),
         "obs_full": wsum(full),
-        "obs_full_count": total * T,
+        "obs_full_count": wsum(full_count),
     }
 
 

@@ -30,6 +30,7 @@ __all__ = [
     "Linearization",
     "auto_jacobian",
     "depends_on",
+    "dynamics_weights",
     "expected_neg_log_joint_single",
     "linearize",
     "linearize_expected",
@@ -37,6 +38,7 @@ __all__ = [
     "neg_log_joint_single",
     "nll_offset",
     "nll_offset_single",
+    "observed_span",
     "residuals",
     "whitened_residuals",
 ]
@@ -354,6 +356,26 @@ def _prior_theta_gradient(build: Callable[[Any], AbstractSystem], x0, theta):
 # (x_t, x_{t+1}).
 
 
+def dynamics_weights(mask: Bool[Array, "T m"]) -> Bool[Array, " T-1"]:
+    """Which transitions (x_t, x_{t+1}) of one trajectory end at or before its last observation.
+
+    The states after a trajectory's last observed sample — the padding of a shorter record in a
+    batch (:meth:`ceemx.Trajectories.from_arrays`), or a masked tail — integrate out of p(y | θ)
+    exactly: ∫ p(x_{t+1} | x_t) dx_{t+1} = 1 whatever θ. Under Laplace EM's Gaussian posterior
+    they are the prior chain run on from the last observed state, its covariance growing with
+    every step; their expected dynamics terms would fit θ and the process noise to that
+    linearised chain. They are left out of the M-step objective and the noise statistics.
+    """
+    return observed_span(mask)[1:]
+
+
+def observed_span(mask: Bool[Array, "T m"]) -> Bool[Array, " T"]:
+    """Which steps of one trajectory come at or before its last observed sample."""
+    steps = jnp.arange(mask.shape[0])
+    last = jnp.max(jnp.where(jnp.any(mask, axis=-1), steps, -1))
+    return steps <= last
+
+
 def _expected_terms(theta_build, points, pairs, y, u, mask):
     """Per-point residual functions of θ, flattened over (time, point): used by both functions.
 
@@ -409,9 +431,12 @@ def expected_neg_log_joint_single(
     x, yy, uu, mk, t = obs_rows
     r_obs = jax.vmap(obs_res, in_axes=(None, 0, 0, 0, 0, 0))(system, x, yy, uu, mk, t)
     (xp, uw, tw), z_next, spread = dyn
+    keep = jnp.repeat(dynamics_weights(mask), pairs.shape[1])  # per pair point
     r_dyn = z_next - spread(jax.vmap(dyn_fn, in_axes=(None, 0, 0, 0))(system, xp, uw, tw))
+    r_dyn = jnp.where(keep[:, None], r_dyn, 0.0)
     total = c1 * jnp.sum(jax.vmap(system.obs_noise.nll)(r_obs, mk))
-    total = total + c2 * jnp.sum(jax.vmap(system.process_noise.nll)(r_dyn))
+    dyn_nll = jax.vmap(system.process_noise.nll)(r_dyn)
+    total = total + c2 * jnp.sum(jnp.where(keep, dyn_nll, 0.0))
     if system.initial_prior is not None:
         total = total + jnp.mean(jax.vmap(system.initial_prior.nll)(points[0]))
     return total
@@ -443,11 +468,14 @@ def linearize_expected(
         theta, x, yy, uu, mk, t
     )
     (xp, uw, tw), z_next, spread = dyn
+    keep = jnp.repeat(dynamics_weights(mask), pairs.shape[1])  # per pair point
     r_dyn = z_next - spread(jax.vmap(dyn_fn, in_axes=(None, 0, 0, 0))(theta, xp, uw, tw))
+    r_dyn = jnp.where(keep[:, None], r_dyn, 0.0)
     # ∂r/∂θ = −∂f/∂θ at each pair point's x_t (x_{t+1} does not depend on θ)
     F = -spread(
         jax.vmap(auto_jacobian(dyn_fn, 0, P, n), in_axes=(None, 0, 0, 0))(theta, xp, uw, tw)
     )
+    F = jnp.where(keep[:, None, None], F, 0.0)
     # Row scalings for diagonal noise (as in `linearize`): no d × d product per cubature point.
     if on.diagonal_curvature:
         SG = jax.vmap(on.sqrt_curvature_diagonal)(r_obs, mk)[..., None] * G
@@ -457,7 +485,8 @@ def linearize_expected(
         SF = jax.vmap(pn.sqrt_curvature_diagonal)(r_dyn)[..., None] * F
     else:
         SF = jax.vmap(pn.sqrt_curvature)(r_dyn) @ F
-    value = c1 * jnp.sum(jax.vmap(on.nll)(r_obs, mk)) + c2 * jnp.sum(jax.vmap(pn.nll)(r_dyn))
+    dyn_nll = jnp.where(keep, jax.vmap(pn.nll)(r_dyn), 0.0)
+    value = c1 * jnp.sum(jax.vmap(on.nll)(r_obs, mk)) + c2 * jnp.sum(dyn_nll)
     grad = c1 * jnp.einsum("kmp,km->p", G, jax.vmap(jax.grad(on.nll))(r_obs, mk))
     grad = grad + c2 * jnp.einsum("knp,kn->p", F, jax.vmap(jax.grad(pn.nll))(r_dyn))
     D = c1 * jnp.einsum("kmp,kmq->pq", SG, SG) + c2 * jnp.einsum("knp,knq->pq", SF, SF)

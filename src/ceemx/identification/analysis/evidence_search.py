@@ -154,9 +154,12 @@ class EvidenceSearch:
         return out
 
 
-def decade_grid(z0: np.ndarray) -> list[np.ndarray]:
-    """Points in decades of every factor (all combinations up to two factors, else one by one)."""
-    steps = DECADE * np.arange(-3.0, 4.0)
+def decade_grid(z0: np.ndarray, decades: int = 3) -> list[np.ndarray]:
+    """Points in decades of every factor (all combinations up to two factors, else one by one).
+
+    ``decades`` either way of ``z0``: 7 points per factor by default, 3 for ``decades=1``.
+    """
+    steps = DECADE * np.arange(-float(decades), decades + 1.0)
     if z0.size <= 2:
         mesh = np.meshgrid(*[z + steps for z in z0], indexing="ij")
         return [np.array(p) for p in zip(*(m.ravel() for m in mesh), strict=True)]

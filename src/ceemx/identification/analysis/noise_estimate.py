@@ -33,7 +33,12 @@ from jaxtyping import Array, ArrayLike
 
 from ceemx.data.checks import Prepared, prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
-from ceemx.identification.analysis.evidence_search import LOG_RANGE, EvidenceSearch, decade_grid
+from ceemx.identification.analysis.evidence_search import (
+    DECADE,
+    LOG_RANGE,
+    EvidenceSearch,
+    decade_grid,
+)
 from ceemx.identification.analysis.noise_floor import check_informative, flagged, with_floors
 from ceemx.identification.initialize import warm_start_states
 from ceemx.identification.learning.expected import cubature_points
@@ -323,10 +328,18 @@ def estimate_noise_prepared(
     search: bool = True,
     max_evaluations: int = 60,
     smoother: LMSmoother | None = None,
+    around: AbstractSystem | None = None,
 ) -> tuple[AbstractSystem, NoiseMoments, int]:
     """:func:`estimate_noise` of prepared data and states, its options checked: no checks.
 
     ``system`` as given (the estimate keeps its leaves; promoted for each evaluation).
+    ``around``: an earlier estimate for a nearby θ, not degenerate (the noise rounds'): the grid
+    then spans one decade either way of its factors, and each factor alone over the guess's
+    seven decades with the others at the estimate's (23 points for two factors, not 49). The
+    lines keep the grid's task, finding the basin that is not a collapsed one: an estimate at a
+    θ still far off can lie in it without being flagged (Lorenz from a 100× tight guess: σ_v =
+    1.5e-8 against 0.01, kept by a grid around it alone, where the evidence at σ_v = 0.05 is
+    1.8 nats higher). The search box and the floors are the guess's as always.
     """
     fields = tuple(dict.fromkeys(fields))
     nm = moments_prepared(_promoted(system), data, states, smoother)
@@ -346,7 +359,12 @@ def estimate_noise_prepared(
             part_data = data[:b].head(t)
             first = moments_prepared(_promoted(system), part_data, nm.states[:b, :t], smoother)
             searched = _search(system, part_data, layout, first, smoother, bounds, max_evaluations)
-        for z in decade_grid(layout.z0):
+        grid = decade_grid(layout.z0)
+        if around is not None:  # one decade around it, and each factor over the guess's decades
+            grid = decade_grid(layout.z_of(around), 1) + _decade_lines(
+                layout.z_of(around), layout.z0
+            )
+        for z in grid:
             searched.objective(z)
         if searched is not full:
             searched.climb(searched.best_z)
@@ -360,6 +378,17 @@ def estimate_noise_prepared(
     stds = {f: _stds(getattr(estimate, f)) for f in NOISE_FIELDS}
     nm = flagged(full.best["nm"], layout, stds, z, full)
     return estimate, nm, len(full.cache) + part_evaluations
+
+
+def _decade_lines(z: np.ndarray, z0: np.ndarray) -> list[np.ndarray]:
+    """Points: one entry of z at a time moved over the seven decades of ``z0``'s."""
+    out = []
+    for i in range(z.size):
+        for step in DECADE * np.arange(-3.0, 4.0):
+            point = z.copy()
+            point[i] = z0[i] + step
+            out.append(point)
+    return out
 
 
 def _search(system, data, layout, nm, smoother, bounds, max_evaluations) -> EvidenceSearch:
@@ -407,6 +436,14 @@ class _ScaleLayout:
         self.entry_fields = [
             f for f, k in zip(self.fields, self.sizes, strict=True) for _ in range(max(k, 1))
         ]
+
+    def z_of(self, other: AbstractSystem) -> np.ndarray:
+        """The factors z (log, one per field) that scale this layout's noise to ``other``'s."""
+        assert self.factors_only
+        ratios = [
+            np.mean(np.log(_stds(getattr(other, f)) / _stds(self.base[f]))) for f in self.fields
+        ]
+        return np.asarray(ratios, np.float64)
 
     def entries_of(self, field: str) -> list[int]:
         """The indices of z that scale ``field``."""

@@ -37,6 +37,7 @@ import numpy as np
 
 from ceemx.identification.analysis.summary import describe_noise
 from ceemx.identification.problem import FitProblem, per_trajectory_nll, per_trajectory_offset
+from ceemx.inference.objective import whitened_residuals
 from ceemx.infra.distributed import to_host
 from ceemx.infra.policy import Runs, program
 from ceemx.lib.typing import States, Theta
@@ -45,6 +46,7 @@ __all__ = [
     "ABSURD_MEAN_SQUARE",
     "OUTLIER_OPTIONS",
     "Health",
+    "check_scale",
     "check_start",
     "failed_start",
     "no_finite_start",
@@ -55,6 +57,14 @@ OUTLIER_OPTIONS = ("exclude", "warn", "keep")
 
 ABSURD_MEAN_SQUARE = 1e16
 """r_b above which a start is refused (residuals beyond 10⁸ noise standard deviations)."""
+
+INVISIBLE_EFFECT = 1e-10
+"""A parameter near its bound whose e-fold change moves the whitened residuals by less than this
+fraction of their norm is refused at the start (:func:`check_scale`)."""
+
+#: |d natural / dθ| at or below which a constrained entry counts as near its bound (softplus'
+#: slope there is its distance to the bound) and is tested by :func:`check_scale`
+_NEAR_BOUND_SLOPE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -168,7 +178,67 @@ def check_start(
             "cannot be judged. Check the scale and units of `x_init` and of the initial "
             "parameters and the noise models (or pass x_init=None for the solver's warm start)."
         )
+    check_scale(problem, theta, states)
     return health
+
+
+def check_scale(problem: FitProblem, theta: Theta, states: States) -> None:
+    """Refuse a parameter started so near its bound that the data cannot show it.
+
+    Tested: the entries near a bound (|dx/dθ| ≤ 1e-6, the transform saturated: a positive
+    parameter below 1e-6), of models with Gaussian noise. For each, ‖∂r̃/∂θ_i‖, the change of the
+    whitened residuals r̃ for an e-fold change of its distance to the bound, against ‖r̃‖. Below
+    :data:`INVISIBLE_EFFECT` (1e-10) of it — ``y = c·√x`` with c = 1e-12 where y ≈ 1 — the
+    parameter's whole effect on the model's outputs lies ten orders of magnitude below what the
+    fit must explain: every step a solver takes in it is damped to nothing (its curvature is
+    below any damping's floor, its gradient as small), it stays where it started and the fit
+    stops "converged". The start is at an absurd scale against the data, as 1e-300 is against
+    any. An entry the model does not use at all (an exactly zero derivative) is left to the
+    identifiability report.
+
+    Raises:
+        ValueError: naming the parameter, its value, its effect and what to do (before any
+            epoch).
+    """
+    slope = np.abs(to_host(problem.natural_jacobian(theta)))
+    near = slope <= _NEAR_BOUND_SLOPE
+    if not near.any():
+        return
+    system = problem.build(theta)
+    if not (system.obs_noise.is_gaussian and system.process_noise.is_gaussian):
+        return
+    effect, size = (to_host(v) for v in _effects(problem, theta, states))
+    size = float(size)
+    invisible = near & (effect > 0) & (effect < INVISIBLE_EFFECT * size)
+    if not invisible.any():
+        return
+    i = int(np.flatnonzero(invisible)[0])
+    name = problem.parameter_names()[i]
+    value = float(to_host(problem.natural(theta))[i])
+    raise ValueError(
+        f"`system.{name}` = {value:.6g} is too near its bound for the data to show it: an e-fold "
+        f"change of it moves the fit's whitened residuals by {effect[i]:.3g} (in norm), "
+        f"{effect[i] / size:.2g} of their size at the start ({size:.3g}), below "
+        f"{INVISIBLE_EFFECT:.0e}. Its effect on the model's outputs is then far below anything "
+        "the fit must explain: every step in it is damped to nothing, so it would stay at its "
+        "start and the fit stop there. The start is at an absurd scale against the data (a "
+        "unit error, or a placeholder value): start it at a value of the size the data "
+        "suggest, or fix it (`ceemx.param(fixed=True)` or leave it out of `trainable`)."
+    )
+
+
+@program(runs=Runs.ONCE)  # only at a start with a parameter near its bound
+def _effects(problem: FitProblem, theta: Theta, states: States):
+    """(‖∂r̃/∂θ_i‖ for every entry i, ‖r̃‖): the whitened residuals' response and size."""
+
+    def residuals(th):
+        return whitened_residuals(problem.build(th), states, problem.data)
+
+    def column(e):
+        return jnp.sqrt(jnp.sum(jax.jvp(residuals, (theta,), (e,))[1] ** 2))
+
+    size = jnp.sqrt(jnp.sum(residuals(theta) ** 2))
+    return jax.lax.map(column, jnp.eye(theta.shape[0], dtype=theta.dtype)), size
 
 
 @program(runs=Runs.ONCE)  # only after a start every trajectory failed at (a diagnosis)

@@ -46,10 +46,13 @@ def learn_noise(
     log-evidence maximised, a grid of decades around the guess first, the observation noise
     held at or above its floors from the data, :mod:`~ceemx.identification.analysis.noise_floor`).
     Each round fits θ and the states at the current noise (``fit`` with the given solver,
-    warm-started), then re-estimates the factors at the fitted θ, again from the user's guess (so
-    a degenerate maximum found once is not inherited); it stops when no factor changes by more
-    than 5 % and the fit converged. After ``max_rounds`` rounds without that, it warns and the
-    result is not converged.
+    warm-started), then re-estimates the factors at the fitted θ, again from the user's guess
+    (its search box and floors, so a degenerate maximum found once is not inherited); its grid
+    spans one decade either way of the previous estimate where that was not degenerate, and each
+    factor alone over the guess's decades (the full grid of decades each round cost most of the
+    rounds' posterior evaluations), else three decades of the guess. It stops when no factor
+    changes by more than 5 % and the fit converged. After ``max_rounds`` rounds without that, it
+    warns and the result is not converged.
 
     An estimate at the degenerate boundary σ_v → 0 (``NoiseMoments.degenerate``) is not fitted
     at: at a θ still far off, the process noise absorbs the model error, the states interpolate
@@ -85,6 +88,7 @@ def learn_noise(
     estimate, nm, _ = estimate_noise_prepared(guess, data, start_states(inputs))
     rounds: list[dict] = [_round_record(0, estimate, nm, None, time.perf_counter() - clock)]
     system, states, learned = _next_noise(guess, estimate, nm)
+    around = None if nm.degenerate else estimate  # the grid's centre (estimate_noise_prepared)
     result, settled, last = None, False, []
     for k in range(1, max_rounds + 1):
         clock, opts = time.perf_counter(), _round_options(options, k)  # its progress: round k
@@ -93,9 +97,10 @@ def learn_noise(
             result = run_fit(system, Prepared(promote_tree(system, system), data, states), opts)
         last = list(caught)
         fitted = _with_noise_of(result.system, guess)
-        new, new_nm, _ = estimate_noise_prepared(fitted, data, result.states)
+        new, new_nm, _ = estimate_noise_prepared(fitted, data, result.states, around=around)
         change = 0.0 if new_nm.degenerate else _change(new, system)  # a degenerate one is kept out
         learned = learned or not new_nm.degenerate
+        around = None if new_nm.degenerate else new
         settled = bool(change <= NOISE_ROUND_RTOL)
         rounds.append(_round_record(k, system, new_nm, result, time.perf_counter() - clock))
         rounds[-1].update(change=change, settled=settled and bool(result.converged))
