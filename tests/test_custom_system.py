@@ -325,7 +325,8 @@ def test_foh_observe_sees_the_stacked_pair():
 def test_documented_example_runs():
     assert ceemx.param is cons.param
     text = (pathlib.Path(__file__).parents[1] / "docs" / "custom_systems.md").read_text()
-    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    code = next(b for b in blocks if "class MassSpringDamper" in b)
     namespace: dict = {}
     exec(compile(code, "custom_systems.md", "exec"), namespace)
     result, true = namespace["result"], namespace["true"]
@@ -334,6 +335,9 @@ def test_documented_example_runs():
     np.testing.assert_allclose(float(result.system.k), float(true.k), rtol=0.02)
     np.testing.assert_allclose(float(result.system.c), float(true.c), rtol=0.05)
     assert float(result.system.m) == 1.0  # fixed
+    bounded = namespace["bounded"]  # per-fit bounds and fixed values
+    assert 0 < float(bounded.system.k) < 10 and float(bounded.system.m) == 1.0
+    np.testing.assert_allclose(float(bounded.system.k), float(true.k), rtol=0.02)
 
 
 # --- user model bugs named at the first trace ---------------------------------------------------
