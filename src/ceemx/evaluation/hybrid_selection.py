@@ -37,6 +37,7 @@ rounding-level spread of the early-stopped path (``docs/results.md``, "Hybrid va
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -213,6 +214,153 @@ def _noise_scale(system: AbstractSystem) -> float:
     return float(np.max(np.asarray(s)))
 
 
+def _check_options(  # fmt: skip
+    physics,
+    data,
+    n_init,
+    noise_patience,
+    patience,
+    max_epochs,
+    term_epochs,
+    window,
+    validation_fraction,
+    noise_factors,
+    score_options,
+) -> tuple[list[float], dict[str, Any]]:
+    """:func:`fit_hybrid`'s arguments checked before any compute: (the factors, score options)."""
+    if not isinstance(physics, AbstractSystem):
+        raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
+    if not isinstance(data, Trajectories):
+        raise TypeError(f"`data` must be ceemx.Trajectories; got {type(data).__name__}.")
+    check_int("n_init", n_init, 1)
+    for name, value in (("noise_patience", noise_patience), ("patience", patience)):
+        check_int(name, value, 1)
+    check_int("max_epochs", max_epochs, 1)
+    check_int("term_epochs", term_epochs, 0)
+    if window is not None:
+        check_int("window", window, 2 * n_init)
+    check_positive("validation_fraction", validation_fraction)
+    if validation_fraction >= 1:
+        raise ValueError(f"`validation_fraction` must be in (0, 1); got {validation_fraction!r}.")
+    factors = [float(f) for f in noise_factors]
+    if not factors or not all(math.isfinite(f) and f > 0 for f in factors):
+        raise ValueError(f"`noise_factors` must be positive numbers; got {noise_factors!r}.")
+    options = dict(score_options or {})
+    unknown = sorted(set(options) - SCORE_OPTIONS)
+    if unknown:
+        raise ValueError(
+            f"`score_options` has unknown keys {unknown}; allowed: {sorted(SCORE_OPTIONS)}."
+        )
+    return factors, options
+
+
+def _select_noise(
+    physics: AbstractSystem,
+    fit_part: Trajectories,
+    judge: EarlyStopping,
+    factors: list[float],
+    scale0: float,
+    max_epochs: int,
+    noise_patience: int,
+    say: Callable[[str], Any],
+) -> tuple[list[NoiseCandidate], tuple[float, float, FitResult]]:
+    """The loose-to-tight continuation: (every candidate, the best as (rmse, factor, fit))."""
+    from ceemx.identification.fitting.driver import fit
+    from ceemx.identification.solvers.joint import JointLM
+
+    candidates: list[NoiseCandidate] = []
+    best: tuple[float, float, FitResult] | None = None  # (rmse, factor, fit)
+    last: FitResult | None = None
+    since_best = 0
+    for f in factors:
+        t = time.perf_counter()
+        start = physics if last is None else last.system
+        model = with_noise(start, process_noise=physics.process_noise.scaled(f))
+        x0 = None if last is None else last.states
+        res = fit(model, fit_part, x0, solver=JointLM(), max_epochs=max_epochs, diagnose=False)
+        rmse = judge.score(res.system)
+        candidates.append(
+            NoiseCandidate(
+                f, f * scale0, rmse, len(res.history), bool(res.converged), time.perf_counter() - t
+            )
+        )
+        say(f"noise × {f:.3g}: validation {rmse:.4g} ({len(res.history)} iterations)")
+        last = res
+        if math.isfinite(rmse) and (best is None or rmse < best[0]):
+            best, since_best = (rmse, f, res), 0
+        else:
+            since_best += 1
+            if since_best >= noise_patience:
+                break
+    if best is None:
+        raise RuntimeError(
+            "every candidate noise weighting diverged on the validation tail (non-finite free "
+            "run); check the physics model's guess and the data's units."
+        )
+    return candidates, best
+
+
+def _train_term(build, held_physics, fit_part, validation, n_init, patience, options, epochs):
+    """The term on the chosen physics, trained with every iteration scored on the tail.
+
+    Returns (the early stopping, the best model, iterations run, why training ended).
+    """
+    from ceemx.identification.fitting.driver import fit
+    from ceemx.identification.solvers.joint import JointLM
+    from ceemx.systems.learned_term import weight_decay
+
+    model = build(held_physics.system, fit_part, states=held_physics.states)
+    stopper = EarlyStopping(
+        validation, n_init, patience=patience, start=model, score_options=options
+    )
+    if not epochs:
+        return stopper, model, 0, {}
+    res = fit(
+        model,
+        fit_part,
+        jnp.asarray(held_physics.states),
+        solver=JointLM(),
+        trainable=model.trainable("both"),
+        log_prior=weight_decay,
+        max_epochs=epochs,
+        callbacks=[stopper],
+        diagnose=False,
+    )
+    end = res.history[-1] if res.history else {}
+    why = {k: end[k] for k in _WHY if k in end}
+    return stopper, stopper.restore(res).system, len(res.history), why
+
+
+def _refit_all(build, held_physics, whole, max_epochs: int, best_epoch: int, bounds: bool):
+    """The physics, then the term for ``best_epoch`` iterations, on every sample.
+
+    Returns (the physics fit, the final model, the term's fit or ``None``).
+    """
+    from ceemx.identification.fitting.driver import fit
+    from ceemx.identification.solvers.joint import JointLM
+    from ceemx.systems.learned_term import weight_decay
+
+    physics = fit(
+        held_physics.system, whole, solver=JointLM(), max_epochs=max_epochs, diagnose=False
+    )
+    final: Any = physics.system
+    if best_epoch or bounds:
+        final = build(physics.system, whole, states=physics.states)
+    if not best_epoch:
+        return physics, final, None
+    term = fit(
+        final,
+        whole,
+        jnp.asarray(physics.states),
+        solver=JointLM(),
+        trainable=final.trainable("both"),
+        log_prior=weight_decay,
+        max_epochs=best_epoch,
+        diagnose=False,
+    )
+    return physics, term.system, term
+
+
 def fit_hybrid(
     physics: AbstractSystem,
     data: Trajectories,
@@ -243,12 +391,9 @@ def fit_hybrid(
     RMSE on the held-out tail of ``data``; then, with ``refit``, both refitted on every sample.
 
     Args:
-        physics: the physics model at its initial guess, with its noise models (its process
-            noise is the loosest candidate: its default is fine; a Gaussian noise model).
-        data: the training record(s), as the model reads them (a first-order-hold model's
-            stacked inputs); never a test record.
-        n_init: outputs that set a free run's initial state (the protocol the model is judged
-            by, e.g. a dataset's ``n_init``).
+        physics: the physics at its guess, Gaussian noise (its process noise: the loosest).
+        data: the training record(s) as the model reads them; never a test record.
+        n_init: outputs that set a free run's initial state (the protocol's, e.g. a dataset's).
         dynamics: where the term enters the transition (:func:`ceemx.hybrid`).
         observation: where a term enters the observation (:func:`ceemx.hybrid`).
         lower: lower state bounds (:func:`ceemx.hybrid`).
@@ -257,15 +402,12 @@ def fit_hybrid(
         depth: the term's hidden layers.
         prior_std: the weight-decay prior's σ.
         noise_factors: candidate factors on the model's process noise, loose to tight.
-        noise_patience: candidates without a better validation score before the continuation
-            stops.
+        noise_patience: candidates without a better score before the continuation stops.
         validation_fraction: the tail of every record held out for the selection.
-        window: fit records longer than this in windows of ``window`` samples with half
-            overlap (a long record; ``None``: whole).
+        window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
         term_epochs: iterations of the term's training at most.
-        patience: iterations without a better validation score before the term's training
-            stops.
+        patience: iterations without a better score before the term's training stops.
         refit: refit the chosen settings on every sample (else return the held-out model).
         score_options: options of :func:`ceemx.benchmark_score` for the validation free runs
             (how the initial state is set; the same options should score the test records).
@@ -277,34 +419,12 @@ def fit_hybrid(
     Raises:
         TypeError, ValueError: naming the argument, before any fit.
     """
-    from ceemx.identification.fitting.driver import fit
     from ceemx.identification.hybrid_builder import hybrid
-    from ceemx.identification.solvers.joint import JointLM
-    from ceemx.systems.learned_term import weight_decay
 
-    if not isinstance(physics, AbstractSystem):
-        raise TypeError(f"`physics` must be a ceemx.AbstractSystem; got {type(physics).__name__}.")
-    if not isinstance(data, Trajectories):
-        raise TypeError(f"`data` must be ceemx.Trajectories; got {type(data).__name__}.")
-    check_int("n_init", n_init, 1)
-    for name, value in (("noise_patience", noise_patience), ("patience", patience)):
-        check_int(name, value, 1)
-    check_int("max_epochs", max_epochs, 1)
-    check_int("term_epochs", term_epochs, 0)
-    if window is not None:
-        check_int("window", window, 2 * n_init)
-    check_positive("validation_fraction", validation_fraction)
-    if validation_fraction >= 1:
-        raise ValueError(f"`validation_fraction` must be in (0, 1); got {validation_fraction!r}.")
-    factors = [float(f) for f in noise_factors]
-    if not factors or not all(math.isfinite(f) and f > 0 for f in factors):
-        raise ValueError(f"`noise_factors` must be positive numbers; got {noise_factors!r}.")
-    options = dict(score_options or {})
-    unknown = sorted(set(options) - SCORE_OPTIONS)
-    if unknown:
-        raise ValueError(
-            f"`score_options` has unknown keys {unknown}; allowed: {sorted(SCORE_OPTIONS)}."
-        )
+    factors, options = _check_options(
+        physics, data, n_init, noise_patience, patience, max_epochs, term_epochs, window,
+        validation_fraction, noise_factors, score_options,
+    )  # fmt: skip
     scale0 = _noise_scale(physics)
     say = progress or (lambda _line: None)
     fit_raw, validation = split_tail(data, n_init, validation_fraction)
@@ -313,71 +433,23 @@ def fit_hybrid(
     wall: dict[str, float] = {}
 
     # 1. the noise weighting: loose-to-tight continuation of physics fits on the fit part
-    judge = EarlyStopping(validation, n_init, score_options=options)
     t0 = time.perf_counter()
-    candidates: list[NoiseCandidate] = []
-    best: tuple[float, float, FitResult] | None = None  # (rmse, factor, fit)
-    last: FitResult | None = None
-    since_best = 0
-    for f in factors:
-        t = time.perf_counter()
-        start = physics if last is None else last.system
-        model = with_noise(start, process_noise=physics.process_noise.scaled(f))
-        x0 = None if last is None else last.states
-        res = fit(model, fit_part, x0, solver=JointLM(), max_epochs=max_epochs, diagnose=False)
-        rmse = judge.score(res.system)
-        candidates.append(
-            NoiseCandidate(
-                f, f * scale0, rmse, len(res.history), bool(res.converged), time.perf_counter() - t
-            )
-        )
-        say(f"noise × {f:.3g}: validation {rmse:.4g} ({len(res.history)} iterations)")
-        last = res
-        if math.isfinite(rmse) and (best is None or rmse < best[0]):
-            best, since_best = (rmse, f, res), 0
-        else:
-            since_best += 1
-            if since_best >= noise_patience:
-                break
-    if best is None:
-        raise RuntimeError(
-            "every candidate noise weighting diverged on the validation tail (non-finite free "
-            "run); check the physics model's guess and the data's units."
-        )
+    judge = EarlyStopping(validation, n_init, score_options=options)
+    candidates, best = _select_noise(
+        physics, fit_part, judge, factors, scale0, max_epochs, noise_patience, say
+    )
     physics_rmse, factor, held_physics = best
     wall["noise"] = time.perf_counter() - t0
 
     # 2. the learned term's training length: early stopping on the validation tail
     t0 = time.perf_counter()
-
-    def with_term(base: AbstractSystem, record: Trajectories, states) -> Any:
-        return hybrid(
-            base, record, states=states, dynamics=dynamics, observation=observation,
-            width=width, depth=depth, prior_std=prior_std, lower=lower, upper=upper,
-        )  # fmt: skip
-
-    model = with_term(held_physics.system, fit_part, held_physics.states)
-    stopper = EarlyStopping(
-        validation, n_init, patience=patience, start=model, score_options=options
+    build = functools.partial(
+        hybrid, dynamics=dynamics, observation=observation, width=width, depth=depth,
+        prior_std=prior_std, lower=lower, upper=upper,
+    )  # fmt: skip
+    stopper, held_out, epochs_run, why = _train_term(
+        build, held_physics, fit_part, validation, n_init, patience, options, term_epochs
     )
-    held_out: Any = model
-    epochs_run, why = 0, {}
-    if term_epochs:
-        res = fit(
-            model,
-            fit_part,
-            jnp.asarray(held_physics.states),
-            solver=JointLM(),
-            trainable=model.trainable("both"),
-            log_prior=weight_decay,
-            max_epochs=term_epochs,
-            callbacks=[stopper],
-            diagnose=False,
-        )
-        epochs_run = len(res.history)
-        held_out = stopper.restore(res).system
-        end = res.history[-1] if res.history else {}
-        why = {k: end[k] for k in _WHY if k in end}
     best_epoch = stopper.best_epoch if math.isfinite(stopper.best_rmse) else 0
     hybrid_rmse = stopper.best_rmse if best_epoch else physics_rmse
     say(f"learned term: best iteration {best_epoch} of {epochs_run}, validation {hybrid_rmse:.4g}")
@@ -388,47 +460,22 @@ def fit_hybrid(
     final: Any = held_out
     if refit:
         t0 = time.perf_counter()
-        final_physics = fit(
-            held_physics.system, whole, solver=JointLM(), max_epochs=max_epochs, diagnose=False
+        final_physics, final, term_result = _refit_all(
+            build, held_physics, whole, max_epochs, best_epoch, bounds
         )
-        final = final_physics.system
-        if best_epoch or bounds:
-            final = with_term(final_physics.system, whole, final_physics.states)
-        if best_epoch:
-            term_result = fit(
-                final,
-                whole,
-                jnp.asarray(final_physics.states),
-                solver=JointLM(),
-                trainable=final.trainable("both"),
-                log_prior=weight_decay,
-                max_epochs=best_epoch,
-                diagnose=False,
-            )
-            final = term_result.system
         wall["refit"] = time.perf_counter() - t0
         say(f"refit on every sample: {wall['refit']:.1f} s")
     elif not best_epoch and not bounds:
         final = held_physics.system  # the term's start: equal to the physics
+    samples = {
+        "fit": int(fit_raw.num_steps * fit_raw.batch_size),
+        "validation": int((validation.num_steps - n_init) * validation.batch_size),
+        "total": int(data.num_steps * data.batch_size),
+    }
     return HybridFit(
-        system=final,
-        physics=final_physics,
-        held_out=held_out,
-        held_out_physics=held_physics.system,
-        candidates=candidates,
-        factor=factor,
-        process_noise=factor * scale0,
-        term_scores=list(stopper.scores),
-        best_epoch=best_epoch,
-        term_epochs=epochs_run,
-        validation_rmse={"physics": physics_rmse, "hybrid": hybrid_rmse},
-        term_stop=why,
-        refit=refit,
-        samples={
-            "fit": int(fit_raw.num_steps * fit_raw.batch_size),
-            "validation": int((validation.num_steps - n_init) * validation.batch_size),
-            "total": int(data.num_steps * data.batch_size),
-        },
-        wall_s=wall,
-        term_result=term_result,
-    )
+        system=final, physics=final_physics, held_out=held_out,
+        held_out_physics=held_physics.system, candidates=candidates, factor=factor,
+        process_noise=factor * scale0, term_scores=list(stopper.scores), best_epoch=best_epoch,
+        term_epochs=epochs_run, validation_rmse={"physics": physics_rmse, "hybrid": hybrid_rmse},
+        term_stop=why, refit=refit, samples=samples, wall_s=wall, term_result=term_result,
+    )  # fmt: skip
