@@ -22,7 +22,15 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.datasets import REGISTRY, RealDataset
 from ceemx.datasets.registry import DatasetEntry
 from ceemx.experiments import common
-from ceemx.experiments.real_data_fits import inputs_for, reads, score, test_records
+from ceemx.experiments.real_data_fits import (
+    _net_leaves,
+    _scalar_parameters,
+    fit_linear,
+    inputs_for,
+    reads,
+    score,
+    test_records,
+)
 
 __all__ = [
     "HAND",
@@ -203,18 +211,6 @@ def split(plan: Plan) -> tuple[Trajectories, Trajectories]:
     return train[:, :cut], train[:, cut - ds.n_init :]
 
 
-def _scalar_parameters(guess, system) -> dict[str, float]:
-    """The learned scalar parameters of a fitted gray-box model, by name."""
-    from ceemx.identification.problem import trainable_mask
-
-    learned = trainable_mask(guess)
-    return {
-        f.name: float(np.asarray(getattr(system, f.name)))
-        for f in dataclasses.fields(system)
-        if getattr(learned, f.name, False) is True and np.ndim(getattr(system, f.name)) == 0
-    }
-
-
 def fit_graybox(plan: Plan, train, method: str, dtype):
     """The gray-box model fitted by CE-EM from its physical guess; returns (result, summary)."""
     from ceemx import JointLM, fit
@@ -236,22 +232,6 @@ def fit_graybox(plan: Plan, train, method: str, dtype):
         "parameters": _scalar_parameters(guess, result.system),
         "J": float(result.history[-1]["J"]) if result.history else math.nan,
     }
-
-
-def fit_linear(train, order: int):
-    """The linear baseline: N4SID of the same order, affine and refitted for simulation.
-
-    :func:`ceemx.baselines.fit_affine_sid` (plain N4SID free-ran the tanks to 532.5 V).
-    """
-    from ceemx.baselines import fit_affine_sid
-
-    t0 = time.perf_counter()
-    try:
-        model = fit_affine_sid(train, state_dim=order)
-    except ValueError as e:  # too little data for the horizon, etc.
-        return None, {"error": str(e), "wall_s": time.perf_counter() - t0}
-    radius = float(np.max(np.abs(np.linalg.eigvals(np.asarray(model.A)))))
-    return model, {"wall_s": time.perf_counter() - t0, "spectral_radius": radius}
 
 
 def refine_linear(n4sid, train, plan: Plan):
@@ -301,16 +281,6 @@ def learned_starts(plan: Plan, method: str, physics, refined):
         return start, None
     n4sid, _ = fit_linear(fit_part, start.system.state_dim)
     return start, None if n4sid is None else refine_linear(n4sid, fit_part, plan)[0]
-
-
-def _net_leaves(system):
-    import equinox as eqx
-    import jax.tree_util as jtu
-
-    terms = (system.dynamics_term, system.observation_term)
-    return jtu.tree_leaves(
-        eqx.filter([t.net for t in terms if t is not None], eqx.is_inexact_array)
-    )
 
 
 def fit_learned(plan: Plan, base, states, *, neural: bool, observation=False):

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from ceemx.experiment_command import positive_int
 from ceemx.fit_records import Records, Refused, read_records
 
 __all__ = ["Records", "Refused", "add_parser", "load_model", "read_records", "run"]
@@ -59,16 +60,6 @@ def _columns(text: str) -> tuple[str, ...]:
     if not all(names) or len(set(names)) != len(names):
         raise argparse.ArgumentTypeError(f"expected distinct comma-separated names; got {text!r}")
     return names
-
-
-def _count(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1; got {text!r}")
-    return n
 
 
 def _positive(text: str) -> float:
@@ -153,10 +144,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
         default="auto",
         help="learn the noise scales or keep the model's (auto: fit's default)",
     )
-    p.add_argument("--max-epochs", type=_count, default=100, help="bound on epochs (default 100)")
+    p.add_argument(
+        "--max-epochs", type=positive_int, default=100, help="bound on epochs (default 100)"
+    )
     p.add_argument(
         "--n-init",
-        type=_count,
+        type=positive_int,
         default=None,
         metavar="N",
         help="samples that set the initial state before scoring (default: a tenth of the "

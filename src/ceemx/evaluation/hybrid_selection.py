@@ -305,27 +305,13 @@ def _train_term(build, held_physics, fit_part, validation, n_init, patience, opt
 
     Returns (the early stopping, the best model, iterations run, why training ended).
     """
-    from ceemx.identification.fitting.driver import fit
-    from ceemx.identification.solvers.joint import JointLM
-    from ceemx.systems.learned_term import weight_decay
-
     model = build(held_physics.system, fit_part, states=held_physics.states)
     stopper = EarlyStopping(
         validation, n_init, patience=patience, start=model, score_options=options
     )
     if not epochs:
         return stopper, model, 0, {}
-    res = fit(
-        model,
-        fit_part,
-        jnp.asarray(held_physics.states),
-        solver=JointLM(),
-        trainable=model.trainable("both"),
-        log_prior=weight_decay,
-        max_epochs=epochs,
-        callbacks=[stopper],
-        diagnose=False,
-    )
+    res = _fit_term(model, fit_part, held_physics.states, epochs, callbacks=[stopper])
     end = res.history[-1] if res.history else {}
     why = {k: end[k] for k in _WHY if k in end}
     return stopper, stopper.restore(res).system, len(res.history), why
@@ -338,7 +324,6 @@ def _refit_all(build, held_physics, whole, max_epochs: int, best_epoch: int, bou
     """
     from ceemx.identification.fitting.driver import fit
     from ceemx.identification.solvers.joint import JointLM
-    from ceemx.systems.learned_term import weight_decay
 
     physics = fit(
         held_physics.system, whole, solver=JointLM(), max_epochs=max_epochs, diagnose=False
@@ -348,17 +333,27 @@ def _refit_all(build, held_physics, whole, max_epochs: int, best_epoch: int, bou
         final = build(physics.system, whole, states=physics.states)
     if not best_epoch:
         return physics, final, None
-    term = fit(
-        final,
-        whole,
-        jnp.asarray(physics.states),
+    term = _fit_term(final, whole, physics.states, best_epoch)
+    return physics, term.system, term
+
+
+def _fit_term(model, data: Trajectories, states, epochs: int, callbacks=()) -> FitResult:
+    """JointLM on the physics and the term together, the weights under weight decay."""
+    from ceemx.identification.fitting.driver import fit
+    from ceemx.identification.solvers.joint import JointLM
+    from ceemx.systems.learned_term import weight_decay
+
+    return fit(
+        model,
+        data,
+        jnp.asarray(states),
         solver=JointLM(),
-        trainable=final.trainable("both"),
+        trainable=model.trainable("both"),
         log_prior=weight_decay,
-        max_epochs=best_epoch,
+        max_epochs=epochs,
+        callbacks=callbacks,
         diagnose=False,
     )
-    return physics, term.system, term
 
 
 def fit_hybrid(
