@@ -187,6 +187,9 @@ def with_floors(search: EvidenceSearch, layout: Any, data: Trajectories) -> Evid
 
         z_floor, why = layout.floor_z(i, resolution), "resolution"
         f_star, f_edge = along(z_star[i]), along(lo)
+        import os
+        if os.environ.get("P40_UP", "1") == "1" and z_star[i] + DECADE < hi:
+            f_edge = min(f_edge, along(z_star[i] + DECADE))
         if f_edge <= f_star + EVIDENCE_MARGIN:  # the data cannot reject σ_v → 0
             f_min = min(f_star, f_edge)
             start = float(z_star[i]) if f_star <= f_min + EVIDENCE_MARGIN else lo

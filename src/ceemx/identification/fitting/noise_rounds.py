@@ -98,8 +98,12 @@ def learn_noise(
         last = list(caught)
         fitted = _with_noise_of(result.system, guess)
         new, new_nm, _ = estimate_noise_prepared(fitted, data, result.states, around=around)
-        change = 0.0 if new_nm.degenerate else _change(new, system)  # a degenerate one is kept out
-        learned = learned or not new_nm.degenerate
+        import os
+        mode = os.environ.get("P40_MODE", "always")
+        margin_only = not (set(new_nm.degenerate) & set(new_nm.at_edge))
+        usable = not new_nm.degenerate or (margin_only and (mode == "always" or (mode == "converged" and bool(result.converged))))
+        change = _change(new, system) if usable else 0.0
+        learned = learned or usable
         around = None if new_nm.degenerate else new
         settled = bool(change <= NOISE_ROUND_RTOL)
         rounds.append(_round_record(k, system, new_nm, result, time.perf_counter() - clock))
@@ -135,7 +139,9 @@ def _next_noise(guess: AbstractSystem, estimate: AbstractSystem, nm: NoiseMoment
     at a θ still far off, the model error the process noise absorbs leaves σ_v → 0, and a CE fit
     at that noise hardly moves θ — the states interpolate the data).
     """
-    if nm.degenerate:
+    import os
+    margin_only = not (set(nm.degenerate) & set(nm.at_edge))
+    if nm.degenerate and not (margin_only and os.environ.get("P40_MODE", "always") == "always"):
         return guess, nm.states, False
     return estimate, nm.states, True
 
