@@ -231,12 +231,20 @@ def test_noise_check_does_not_call_interpolating_states_consistent(lin_data):
 class _Rounds:
     """Stand-ins for a noise round's fit and estimate: a noise factor per estimate, a record."""
 
-    def __init__(self, factors, degenerate=()):
+    def __init__(self, factors, degenerate=(), at_edge=()):
         self.factors, self.degenerate, self.fitted_at = list(factors), degenerate, []
+        self.at_edge = at_edge
 
     def estimate(self, system, data, states, **_):
         c = self.factors.pop(0)
-        nm = NoiseMoments({}, states, jnp.zeros(2), jnp.ones(2, bool), degenerate=self.degenerate)
+        nm = NoiseMoments(
+            {},
+            states,
+            jnp.zeros(2),
+            jnp.ones(2, bool),
+            degenerate=self.degenerate,
+            at_edge=self.at_edge,
+        )
         return linear(Q * c, R * c), nm, 1
 
     def run_fit(self, system, inputs, options):
@@ -270,10 +278,11 @@ def test_noise_rounds_that_do_not_settle_say_so(monkeypatch, lin_data):
     assert any("did not settle" in m for m in r.messages())
 
 
-def test_degenerate_noise_estimates_are_not_fitted_at(monkeypatch, lin_data):
-    # every estimate sits at the degenerate boundary (σ_v → 0): no fit runs at one; the fit
-    # runs at the noise given, converges, and the result says the noise was not learned
-    fake = _Rounds([1e-3] * 7, degenerate=("obs_noise",))
+def test_noise_the_data_do_not_determine_is_not_fitted_at(monkeypatch, lin_data):
+    # every estimate's evidence is flat over the whole box (σ_v held at its upper edge): no fit
+    # runs at one; the fit runs at the noise given, converges, and the result says the noise
+    # was not learned
+    fake = _Rounds([1e-3] * 7, degenerate=("obs_noise",), at_edge=("obs_noise",))
     monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
     monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
     x0 = jnp.zeros((2, 200, 2))
@@ -283,3 +292,18 @@ def test_degenerate_noise_estimates_are_not_fitted_at(monkeypatch, lin_data):
     assert _std(r.system.process_noise) == pytest.approx(Q)
     assert any("the noise was not learned" in m for m in r.messages())
     assert r.summary().count("(given)") == 2
+
+
+def test_degenerate_estimate_held_at_its_margin_is_fitted_at(monkeypatch, lin_data):
+    # every estimate is degenerate (the data do not determine σ_v within a decade) and held at
+    # the upper end of its evidence margin: the loose side of what the data allow, fitted at
+    # from the start. Kept out, a guess 100× too tight stayed the fit's noise on records whose
+    # process noise dominates, with intervals 100× too narrow.
+    fake = _Rounds([2.0, 2.0], degenerate=("obs_noise",))
+    monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
+    monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
+    x0 = jnp.zeros((2, 200, 2))
+    r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
+    assert fake.fitted_at == [pytest.approx(2.0 * Q)] and r.converged
+    assert _std(r.system.process_noise) == pytest.approx(2.0 * Q)
+    assert r.noise_rounds[-1]["learned"] and r.noise_rounds[-1]["degenerate"] == ("obs_noise",)

@@ -18,13 +18,18 @@ larger of them:
   difference between them, every other a whole multiple of it (:func:`output_resolution`) —
   σ_v is held at or above quantum/√12, the standard deviation of the rounding error.
   Continuous data lie on no grid and set no such floor.
-- **The evidence's margin.** When the evidence at the box's lower edge is within
-  :data:`EVIDENCE_MARGIN` nats of its maximum, the data cannot reject σ_v → 0: they bound the
-  observation noise from above only. σ_v is then the largest value whose evidence lies within the
-  margin of the maximum — the upper end of its 95 % profile interval (1.92 nats: half the 95 %
-  point of χ²₁), the loose side, which is the safe side for a CE fit. Where the evidence is flat
-  over the whole box the observation noise is not determined by the data at all and the
-  estimate says so (:attr:`NoiseMoments.notes`).
+- **The evidence's margin.** When the evidence at the box's lower edge, or one decade above its
+  maximum, is within :data:`EVIDENCE_MARGIN` nats of the maximum, the data do not determine σ_v
+  to within a decade: they cannot reject σ_v → 0, or cannot tell it from ten times itself, and
+  bound it from above only. σ_v is then the largest value whose evidence lies within the margin
+  of the maximum — the upper end of its 95 % profile interval (1.92 nats: half the 95 % point of
+  χ²₁), the loose side, which is the safe side for a CE fit. The second test matters where the
+  maximum itself sits far below the data's noise, at a value the states' Hessian can barely
+  resolve (σ_v ≈ 1e-8 against 0.01 on a Lorenz record whose process noise dominates): the
+  evidence there is flat up to the true scale but falls again toward the box's edge, numerically,
+  so the first test alone missed it and a Laplace finish at that σ_v lost every digit. Where
+  the evidence is flat over the whole box the observation noise is not determined by the data
+  at all and the estimate says so (:attr:`NoiseMoments.notes`).
 
 Where a record holds no observation, or every observed output is constant, no noise can be told
 from signal and the estimate is refused (:func:`check_informative`).
@@ -187,8 +192,7 @@ def with_floors(search: EvidenceSearch, layout: Any, data: Trajectories) -> Evid
 
         z_floor, why = layout.floor_z(i, resolution), "resolution"
         f_star, f_edge = along(z_star[i]), along(lo)
-        import os
-        if os.environ.get("P40_UP", "1") == "1" and z_star[i] + DECADE < hi:
+        if z_star[i] + DECADE < hi:  # nor tell σ_v from ten times itself
             f_edge = min(f_edge, along(z_star[i] + DECADE))
         if f_edge <= f_star + EVIDENCE_MARGIN:  # the data cannot reject σ_v → 0
             f_min = min(f_star, f_edge)

@@ -94,7 +94,8 @@ class Stage:
             ``None``: all of them.
         epochs, converged, seconds: filled in once the stage has run (epochs of every noise
             round together; seconds of wall time).
-        skipped: why the stage did not run (``None``: it ran, or has not yet).
+        skipped: why the stage did not run, or why its result was discarded (``None``: it ran
+            and its result stands, or it has not run yet).
     """
 
     solver: AbstractFitSolver

@@ -17,6 +17,7 @@ import numpy as np
 
 from ceemx.data.checks import Prepared, promote_tree
 from ceemx.identification.analysis.noise_check import NoiseCheckWarning, noise_check
+from ceemx.identification.analysis.noise_floor import EVIDENCE_MARGIN
 from ceemx.identification.analysis.noise_estimate import start_states
 from ceemx.identification.fitting.choice import (
     Choice,
@@ -134,16 +135,13 @@ def run_stages(
             # the start judged at the given noise, before the noise estimate adapts to it
             prepared = _checked_start(current, prepared, opts)
         t0 = time.perf_counter()
-        with warnings.catch_warnings(record=not last) as caught:
-            if not last:
-                warnings.simplefilter("always")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             result = (
                 learn_noise(current, prepared, opts)
                 if stage.noise == "learn"
                 else run_fit(current, prepared, opts)
             )
-        for w in caught or ():
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         results.append(result)
         done.append(
             dataclasses.replace(
@@ -154,6 +152,16 @@ def run_stages(
             )
         )
         current = result.system
+        lost = _finish_lost(results) if last and k else None
+        if lost is None:
+            for w in caught:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        else:  # the finish's answer, and what it warned of, discarded: the previous stage's stands
+            results.pop()
+            done[-1] = dataclasses.replace(done[-1], skipped=lost)
+            if options.diagnose:
+                results[-1] = _with_noise_check(results[-1])
+            break
         if stop.stopped:  # a callback stopped the fit: no later stage
             break
         why = None if last else _finish_pointless(result)
@@ -186,6 +194,32 @@ def _finish_pointless(result: FitResult) -> str | None:
             "converging"
         )
     return None
+
+
+def _finish_lost(results: list[FitResult]) -> str | None:
+    """Why the finish's result is discarded (``None``: keep it).
+
+    The Laplace-EM finish starts at the noise stage's θ and noise, where the noise rounds
+    evaluated the same Laplace evidence; EM only climbs it. A finish that ends below that value
+    by more than :data:`~ceemx.identification.analysis.noise_floor.EVIDENCE_MARGIN` nats, or at
+    a non-finite one, has met a posterior its E-step cannot evaluate (a noise so small that the
+    states' Hessian loses every digit): its estimate is not the evidence's maximiser, and the
+    noise stage's estimate is the answer.
+    """
+    rounds = results[-2].noise_rounds
+    history = results[-1].history
+    if not rounds or not history or "log_evidence" not in history[-1]:
+        return None
+    before, after = rounds[-1].get("log_evidence"), history[-1]["log_evidence"]
+    if before is None or not np.isfinite(before):
+        return None
+    if np.isfinite(after) and after >= before - EVIDENCE_MARGIN:
+        return None
+    return (
+        f"ran and was discarded: its Laplace evidence ended at {after:.6g}, below the "
+        f"{before:.6g} of the noise stage's end point it started from (the E-step cannot "
+        "evaluate the posterior at this noise); the noise stage's estimate is the answer"
+    )
 
 
 def _with_noise_check(result: FitResult) -> FitResult:

@@ -54,19 +54,20 @@ def learn_noise(
     changes by more than 5 % and the fit converged. After ``max_rounds`` rounds without that, it
     warns and the result is not converged.
 
-    An estimate at the degenerate boundary σ_v → 0 (``NoiseMoments.degenerate``) is not fitted
-    at: at a θ still far off, the process noise absorbs the model error, the states interpolate
-    the data, and a CE fit at that noise leaves the hidden states free and hardly moves θ. The
-    round fits at the previous noise instead — the first at the user's, from the MAP states of
-    the estimate (which follow the data) — and the next estimate, at a fitted θ, is the data's.
-    When no estimate is anything but degenerate the fit stays at the user's noise, with a
-    warning that the noise was not learned.
+    A degenerate observation noise (``NoiseMoments.degenerate``: the data do not determine σ_v
+    within a decade) is held at the upper end of its evidence margin, the loose side of what the
+    data allow, and is fitted at like any estimate: kept out, a guess 100× too tight stayed the
+    fit's noise on records whose process noise dominates (the record cannot reject σ_v → 0 even
+    at the truth), and its intervals were 100× too narrow. Only an estimate held at the search
+    box's upper edge (evidence flat over the whole box) is kept out: the round fits at the
+    previous noise, the first at the user's. When no estimate is usable the fit stays at the
+    user's noise, with a warning that the noise was not learned.
 
     The result is the last round's fit, at the noise that round used — the last record of
     ``FitResult.noise_rounds``: round 0 the estimate at the start; round k the noise fit k ran
     at, its epochs and whether it converged, and of the estimate made after it the evidence,
     ``floored``, ``degenerate``, ``notes`` and ``change`` (how far it moved the factors; 0 when
-    degenerate), ``settled``, ``time`` (seconds of the round); the last also ``learned``.
+    kept out), ``settled``, ``time`` (seconds of the round); the last also ``learned``.
 
     Args:
         system: the model at its initial θ, with the user's noise guess (as given).
@@ -98,11 +99,8 @@ def learn_noise(
         last = list(caught)
         fitted = _with_noise_of(result.system, guess)
         new, new_nm, _ = estimate_noise_prepared(fitted, data, result.states, around=around)
-        import os
-        mode = os.environ.get("P40_MODE", "always")
-        margin_only = not (set(new_nm.degenerate) & set(new_nm.at_edge))
-        usable = not new_nm.degenerate or (margin_only and (mode == "always" or (mode == "converged" and bool(result.converged))))
-        change = _change(new, system) if usable else 0.0
+        usable = _usable(new_nm)
+        change = _change(new, system) if usable else 0.0  # an unusable one is kept out
         learned = learned or usable
         around = None if new_nm.degenerate else new
         settled = bool(change <= NOISE_ROUND_RTOL)
@@ -139,11 +137,19 @@ def _next_noise(guess: AbstractSystem, estimate: AbstractSystem, nm: NoiseMoment
     at a θ still far off, the model error the process noise absorbs leaves σ_v → 0, and a CE fit
     at that noise hardly moves θ — the states interpolate the data).
     """
-    import os
-    margin_only = not (set(nm.degenerate) & set(nm.at_edge))
-    if nm.degenerate and not (margin_only and os.environ.get("P40_MODE", "always") == "always"):
+    if not _usable(nm):
         return guess, nm.states, False
     return estimate, nm.states, True
+
+
+def _usable(nm: NoiseMoments) -> bool:
+    """Whether a fit may run at the estimate: not held at its search box's upper edge.
+
+    A degenerate observation noise held at the upper end of its evidence margin is the loose
+    side of what the data allow, and a CE fit there is as safe as at any loose noise; one held at
+    the box's upper edge (the evidence flat over the whole box) says nothing of the data.
+    """
+    return not set(nm.degenerate) & set(nm.at_edge)
 
 
 def _change(new: AbstractSystem, old: AbstractSystem) -> float:
@@ -153,13 +159,12 @@ def _change(new: AbstractSystem, old: AbstractSystem) -> float:
 
 def _not_learned(rounds: list[dict]) -> str:
     return (
-        "fit(..., noise='learn') could not learn the noise from this record: every estimate's "
-        "evidence maximum lay at the degenerate boundary, the observation noise → 0 with the "
-        "states interpolating the data (FitResult.noise_rounds: 'notes'). A CE fit at such a "
-        "noise fits θ to one-step residuals and free-runs badly, so the fit is at the noise "
-        "given. The data cannot tell observation noise from process noise at the observed "
-        "states here: give the sensor's accuracy as the observation noise and fit with "
-        "noise='fixed', or learn the noise with solver=ceemx.LaplaceEM()."
+        "fit(..., noise='learn') could not learn the noise from this record: at every fitted θ "
+        "the evidence was flat over the observation noise's whole search box (seven decades "
+        "either way of the guess; FitResult.noise_rounds: 'notes'), so the data do not "
+        "determine it and the fit is at the noise given. Give the sensor's accuracy as the "
+        "observation noise and fit with noise='fixed', or learn the noise with "
+        "solver=ceemx.LaplaceEM()."
     )
 
 
