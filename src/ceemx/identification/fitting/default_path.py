@@ -17,8 +17,8 @@ import numpy as np
 
 from ceemx.data.checks import Prepared, promote_tree
 from ceemx.identification.analysis.noise_check import NoiseCheckWarning, noise_check
-from ceemx.identification.analysis.noise_floor import EVIDENCE_MARGIN
 from ceemx.identification.analysis.noise_estimate import start_states
+from ceemx.identification.analysis.noise_floor import EVIDENCE_MARGIN
 from ceemx.identification.fitting.choice import (
     Choice,
     Noise,
