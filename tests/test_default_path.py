@@ -272,3 +272,32 @@ def test_finish_skipped_where_the_joint_covariance_is_not_positive_definite(reco
     assert text.splitlines()[0].startswith("Fit summary: JointLM, ") or text.startswith(
         "Fit summary: JointLM, "
     )
+
+
+def test_a_finish_that_lowers_the_evidence_is_discarded():
+    # The Laplace finish starts where the noise rounds evaluated the same evidence and EM only
+    # climbs it; ending lower (a Lorenz record with σ_v learned at 2e-9: the E-step's evidence
+    # −1e12 at the first epoch, "converged" at −3.4e8 with ρ = 1.1e4) or non-finite means its
+    # E-step failed there, and the noise stage's estimate stands.
+    from types import SimpleNamespace
+
+    from ceemx.identification.fitting.default_path import _finish_lost
+
+    def stages(before, after):
+        noise = SimpleNamespace(noise_rounds=({"log_evidence": 0.0}, {"log_evidence": before}))
+        return [noise, SimpleNamespace(history=[{"log_evidence": after}])]
+
+    assert _finish_lost(stages(101.35, 101.4)) is None  # climbed
+    assert _finish_lost(stages(101.35, 100.0)) is None  # within the margin (1.92 nats)
+    why = _finish_lost(stages(101.35, -3.36e8))
+    assert why is not None and "below the 101.35" in why
+    assert _finish_lost(stages(101.35, float("nan"))) is not None
+    assert _finish_lost(stages(float("nan"), 5.0)) is None  # nothing to compare with
+    no_rounds = [SimpleNamespace(noise_rounds=()), SimpleNamespace(history=[{"J": 1.0}])]
+    assert _finish_lost(no_rounds) is None
+    # the path says so: the stage ran, its result set aside
+    from ceemx.identification.fitting.choice import Choice, Stage
+
+    ran = Stage(ceemx.JointLM(), "learn", epochs=20, converged=True, seconds=1.0)
+    lost = Stage(ceemx.LaplaceEM(), epochs=5, converged=True, seconds=2.0, discarded=why)
+    assert f"LaplaceEM in θ at that noise — discarded: {why}" in Choice((ran, lost), "r").describe()

@@ -293,6 +293,7 @@ def _choice_facts(result) -> list[tuple[str, str]]:
             else f"{type(s.solver).__name__} {_count(s.epochs or 0, 'epoch')}, "
             + ("converged" if s.converged else "NOT converged")
             + (f", {s.seconds:.3g} s" if s.seconds is not None else "")
+            + (", discarded" if getattr(s, "discarded", None) else "")
             for s in choice.stages
         ]
         facts.append(("stages", "; ".join(parts)))
@@ -300,8 +301,12 @@ def _choice_facts(result) -> list[tuple[str, str]]:
 
 
 def _ran(choice) -> list:
-    """The stages of a path that ran (not skipped)."""
-    return [s for s in choice.stages if not getattr(s, "skipped", None)]
+    """The stages of a path that ran and stand (not skipped, not discarded)."""
+    return [
+        s
+        for s in choice.stages
+        if not getattr(s, "skipped", None) and not getattr(s, "discarded", None)
+    ]
 
 
 def _epochs_fact(result) -> str:

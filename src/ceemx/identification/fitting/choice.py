@@ -94,8 +94,8 @@ class Stage:
             ``None``: all of them.
         epochs, converged, seconds: filled in once the stage has run (epochs of every noise
             round together; seconds of wall time).
-        skipped: why the stage did not run, or why its result was discarded (``None``: it ran
-            and its result stands, or it has not run yet).
+        skipped: why the stage did not run (``None``: it ran, or has not yet).
+        discarded: why the stage's result was set aside after it ran (``None``: it stands).
     """
 
     solver: AbstractFitSolver
@@ -105,6 +105,7 @@ class Stage:
     converged: bool | None = None
     seconds: float | None = None
     skipped: str | None = None
+    discarded: str | None = None
 
     def describe(self, first: bool = True) -> str:
         """E.g. ``"JointLM (noise learned on the first 2500 steps)"``."""
@@ -149,7 +150,9 @@ class Choice:
     def describe(self) -> str:
         """The path in words, e.g. "JointLM (noise learned), then LaplaceEM in θ at that noise"."""
         return ", then ".join(
-            s.describe(i == 0) + (f" — skipped: {s.skipped}" if s.skipped else "")
+            s.describe(i == 0)
+            + (f" — skipped: {s.skipped}" if s.skipped else "")
+            + (f" — discarded: {s.discarded}" if s.discarded else "")
             for i, s in enumerate(self.stages)
         )
 

@@ -158,7 +158,7 @@ def run_stages(
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         else:  # the finish's answer, and what it warned of, discarded: the previous stage's stands
             results.pop()
-            done[-1] = dataclasses.replace(done[-1], skipped=lost)
+            done[-1] = dataclasses.replace(done[-1], discarded=lost)
             if options.diagnose:
                 results[-1] = _with_noise_check(results[-1])
             break
@@ -216,7 +216,7 @@ def _finish_lost(results: list[FitResult]) -> str | None:
     if np.isfinite(after) and after >= before - EVIDENCE_MARGIN:
         return None
     return (
-        f"ran and was discarded: its Laplace evidence ended at {after:.6g}, below the "
+        f"its Laplace evidence ended at {after:.6g}, below the "
         f"{before:.6g} of the noise stage's end point it started from (the E-step cannot "
         "evaluate the posterior at this noise); the noise stage's estimate is the answer"
     )
