@@ -42,6 +42,7 @@ import numpy as np
 from ceemx.data.info import DataInfo
 from ceemx.data.trajectories import Trajectories
 from ceemx.infra.checkpoint import atomic_write, load_leaf
+from ceemx.infra.json_values import from_json, to_json
 from ceemx.infra.structure import NameNotFound, StructureError, describe, rebuild
 from ceemx.infra.warn import warn
 from ceemx.models.system import AbstractSystem, float_dtype
@@ -235,7 +236,7 @@ def save(
 
     def write(f):
         with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_DEFLATED) as z:
-            z.writestr(_META, json.dumps(meta, indent=1))
+            z.writestr(_META, to_json(meta, indent=1))
             z.writestr(_LEAVES, leaves)
 
     target = pathlib.Path(path)
@@ -248,7 +249,7 @@ def _read(path: pathlib.Path) -> tuple[dict, bytes]:
         raise FileNotFoundError(f"no model file {os.fspath(path)!r}.")
     try:
         with zipfile.ZipFile(path) as z:
-            meta = json.loads(z.read(_META))
+            meta = from_json(z.read(_META))
             leaves = z.read(_LEAVES)
     except (zipfile.BadZipFile, KeyError, json.JSONDecodeError) as err:
         raise ValueError(

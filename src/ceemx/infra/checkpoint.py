@@ -19,7 +19,6 @@ from __future__ import annotations
 import errno
 import hashlib
 import io
-import json
 import os
 import re
 import tempfile
@@ -35,6 +34,7 @@ import jax.tree_util as jtu
 import numpy as np
 
 from ceemx.infra.folder_lock import folder_lock
+from ceemx.infra.json_values import from_json, to_json
 from ceemx.lib.tree import as_jax
 
 __all__ = [
@@ -303,7 +303,7 @@ def save(folder: str, tree, history: list[dict], fingerprint: dict | None = None
         "fingerprint": fingerprint,
         "history": history,
     }
-    text = json.dumps(_jsonable(meta), allow_nan=False)
+    text = to_json(meta)
     try:
         _atomic_write(os.path.join(folder, _LATEST), text.encode())
     except Exception as err:
@@ -339,41 +339,6 @@ def _raise_write_error(folder: str, err: BaseException) -> None:
         f"({name}errno {code}{limit}); the previous checkpoint there, if any, is kept unchanged. "
         "Free space or pass another folder to go on."
     ) from err
-
-
-def _to_builtin(value):
-    """JSON fallback for NumPy/JAX scalars and arrays that callbacks may put in the history."""
-    arr = np.asarray(value)
-    return arr.item() if arr.ndim == 0 else arr.tolist()
-
-
-#: the key of a non-finite float in ``latest.json``: ``{"nonfinite": "nan" | "inf" | "-inf"}``
-#: (JSON has no NaN or infinity: ``json.dumps`` writes them as ``NaN``/``-Infinity``, which
-#: strict readers refuse; a failed trajectory's J is −inf or NaN in the history)
-_NONFINITE = "nonfinite"
-
-
-def _jsonable(value):
-    """``value`` in JSON's types: NumPy/JAX values as Python ones, a non-finite float tagged."""
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if value is None or isinstance(value, str | bool | int):
-        return value
-    if isinstance(value, float):
-        return float(value) if np.isfinite(value) else {_NONFINITE: repr(float(value))}
-    out = _to_builtin(value)
-    if isinstance(out, type(value)) and not isinstance(out, list):
-        raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
-    return _jsonable(out)
-
-
-def _from_json(obj: dict):
-    """``json.loads``'s object hook: a tagged non-finite float back to the float."""
-    if set(obj) == {_NONFINITE} and obj[_NONFINITE] in ("nan", "inf", "-inf"):
-        return float(obj[_NONFINITE])
-    return obj
 
 
 def _first_difference(saved: str, now: str, width: int = 40) -> str:
@@ -486,7 +451,7 @@ def _load(folder: str, path: str, template, fingerprint: dict | None):
     hint = 'pass a new folder or `checkpoint_mismatch="restart"` to start afresh.'
     try:
         with open(path, "rb") as f:
-            meta = json.loads(f.read().decode(), object_hook=_from_json)
+            meta = from_json(f.read().decode())
         name, history = meta["state"], meta["history"]
         if not isinstance(name, str) or os.path.basename(name) != name:
             raise TypeError(f"bad state file name {name!r}")
