@@ -1,6 +1,8 @@
 """Noise without guessing: estimate_noise (Laplace log-evidence in one factor per noise model) and
 fit(..., noise="learn") — the answer must not depend on the user's noise guess."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -231,9 +233,9 @@ def test_noise_check_does_not_call_interpolating_states_consistent(lin_data):
 class _Rounds:
     """Stand-ins for a noise round's fit and estimate: a noise factor per estimate, a record."""
 
-    def __init__(self, factors, degenerate=(), at_edge=()):
+    def __init__(self, factors, degenerate=(), at_edge=(), converged=True):
         self.factors, self.degenerate, self.fitted_at = list(factors), degenerate, []
-        self.at_edge = at_edge
+        self.at_edge, self.converged = at_edge, converged
 
     def estimate(self, system, data, states, **_):
         c = self.factors.pop(0)
@@ -251,7 +253,7 @@ class _Rounds:
         self.fitted_at.append(_std(system.process_noise))
         history = [{"epoch": 1, "time": 100.0, "J": 0.0}]
         return FitResult(
-            system, inputs.states, RESULTS.successful, history, True, options.solver, 0.0
+            system, inputs.states, RESULTS.successful, history, self.converged, options.solver, 0.0
         )
 
 
@@ -294,16 +296,34 @@ def test_noise_the_data_do_not_determine_is_not_fitted_at(monkeypatch, lin_data)
     assert r.summary().count("(given)") == 2
 
 
-def test_degenerate_estimate_held_at_its_margin_is_fitted_at(monkeypatch, lin_data):
-    # every estimate is degenerate (the data do not determine σ_v within a decade) and held at
-    # the upper end of its evidence margin: the loose side of what the data allow, fitted at
-    # from the start. Kept out, a guess 100× too tight stayed the fit's noise on records whose
+def test_degenerate_estimate_after_a_converged_fit_is_fitted_at(monkeypatch, lin_data):
+    # the start's estimate is degenerate (kept out: the first fit runs at the noise given); the
+    # one after that fit converged is the data's (σ_v at its margin's upper end) and the next
+    # round fits at it. Kept out, a guess 100× too tight stayed the fit's noise on records whose
     # process noise dominates, with intervals 100× too narrow.
-    fake = _Rounds([2.0, 2.0], degenerate=("obs_noise",))
+    fake = _Rounds([1e-3, 2.0, 2.0], degenerate=("obs_noise",))
     monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
     monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
     x0 = jnp.zeros((2, 200, 2))
     r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
-    assert fake.fitted_at == [pytest.approx(2.0 * Q)] and r.converged
+    assert fake.fitted_at == [pytest.approx(Q), pytest.approx(2.0 * Q)] and r.converged
     assert _std(r.system.process_noise) == pytest.approx(2.0 * Q)
     assert r.noise_rounds[-1]["learned"] and r.noise_rounds[-1]["degenerate"] == ("obs_noise",)
+
+
+def test_degenerate_estimate_after_a_fit_that_did_not_converge_is_not_fitted_at(
+    monkeypatch, lin_data
+):
+    # θ still far off (no fit converges): every round fits at the noise given, and the result
+    # says the noise was not learned and the rounds did not settle
+    fake = _Rounds([1e-3] * 7, degenerate=("obs_noise",), converged=False)
+    monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
+    monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
+    x0 = jnp.zeros((2, 200, 2))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
+    said = [str(w.message) for w in caught if w.category is NoiseEstimateWarning]
+    assert any("could not learn the noise" in m for m in said)
+    assert any("stopped after 6 rounds before the noise settled" in m for m in said)
+    assert fake.fitted_at == [pytest.approx(Q)] * 6 and not r.converged

@@ -18,18 +18,18 @@ larger of them:
   difference between them, every other a whole multiple of it (:func:`output_resolution`) —
   σ_v is held at or above quantum/√12, the standard deviation of the rounding error.
   Continuous data lie on no grid and set no such floor.
-- **The evidence's margin.** When the evidence at the box's lower edge, or one decade above its
-  maximum, is within :data:`EVIDENCE_MARGIN` nats of the maximum, the data do not determine σ_v
-  to within a decade: they cannot reject σ_v → 0, or cannot tell it from ten times itself, and
-  bound it from above only. σ_v is then the largest value whose evidence lies within the margin
-  of the maximum — the upper end of its 95 % profile interval (1.92 nats: half the 95 % point of
-  χ²₁), the loose side, which is the safe side for a CE fit. The second test matters where the
-  maximum itself sits far below the data's noise, at a value the states' Hessian can barely
-  resolve (σ_v ≈ 1e-8 against 0.01 on a Lorenz record whose process noise dominates): the
-  evidence there is flat up to the true scale but falls again toward the box's edge, numerically,
-  so the first test alone missed it and a Laplace finish at that σ_v lost every digit. Where
-  the evidence is flat over the whole box the observation noise is not determined by the data
-  at all and the estimate says so (:attr:`NoiseMoments.notes`).
+- **The evidence's margin.** When the evidence at the box's lower edge, or :data:`FLAT_DECADES`
+  decades above its maximum, is within :data:`EVIDENCE_MARGIN` nats of the maximum, the data do not
+  determine σ_v: they cannot reject σ_v → 0, or cannot tell it from a hundred times itself, and
+  bound it from above only. σ_v is then the largest value whose evidence lies within the margin of
+  the maximum — the upper end of its 95 % profile interval (1.92 nats: half the 95 % point of χ²₁),
+  the loose side, which is the safe side for a CE fit. The second test finds a maximum that sits far
+  below the data's noise, at a value the states' Hessian can barely resolve (σ_v ≈ 1e-8 against 0.01
+  on a Lorenz record whose process noise dominates): the evidence is flat from there up to the true
+  scale, but falls again toward the box's edge, numerically, so the first test misses it, and a
+  Laplace finish at that σ_v loses every digit. Where the evidence is flat over the whole box the
+  observation noise is not determined by the data at all and the estimate says so
+  (:attr:`NoiseMoments.notes`).
 
 Where a record holds no observation, or every observed output is constant, no noise can be told
 from signal and the estimate is refused (:func:`check_informative`).
@@ -48,6 +48,7 @@ from ceemx.identification.analysis.evidence_search import DECADE, EvidenceSearch
 
 __all__ = [
     "EVIDENCE_MARGIN",
+    "FLAT_DECADES",
     "check_informative",
     "flagged",
     "margin_floor",
@@ -59,6 +60,12 @@ __all__ = [
 #: nats below the evidence's maximum that bound a degenerate observation noise from above (half
 #: the 95 % point of χ²₁: the upper end of the 95 % profile-likelihood interval)
 EVIDENCE_MARGIN = 1.92
+
+#: decades above the evidence's maximum within whose margin σ_v counts as undetermined: flat
+#: over two orders of magnitude is the degenerate ridge, not a maximum (a Bouc–Wen record whose
+#: true σ_v = 1e-9 has its 95 % interval's upper end 1.5 decades above the maximum; a Lorenz
+#: record's maximum at σ_v = 2e-9 against a true 0.01 is flat over seven)
+FLAT_DECADES = 2
 
 #: bisection steps of :func:`margin_floor` (a decade bracket to 1/64 of a decade)
 _BISECTIONS = 6
@@ -192,8 +199,8 @@ def with_floors(search: EvidenceSearch, layout: Any, data: Trajectories) -> Evid
 
         z_floor, why = layout.floor_z(i, resolution), "resolution"
         f_star, f_edge = along(z_star[i]), along(lo)
-        if z_star[i] + DECADE < hi:  # nor tell σ_v from ten times itself
-            f_edge = min(f_edge, along(z_star[i] + DECADE))
+        if z_star[i] + FLAT_DECADES * DECADE < hi:  # nor tell σ_v from 100 times itself
+            f_edge = min(f_edge, along(z_star[i] + FLAT_DECADES * DECADE))
         if f_edge <= f_star + EVIDENCE_MARGIN:  # the data cannot reject σ_v → 0
             f_min = min(f_star, f_edge)
             start = float(z_star[i]) if f_star <= f_min + EVIDENCE_MARGIN else lo
