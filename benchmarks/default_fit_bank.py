@@ -278,7 +278,7 @@ def _lorenz(theta, pn, on):
 
 def _lorenz_data(key, true):
     kx, ks = jax.random.split(key)
-    x1 = jnp.asarray([-6.0, -6.0, 24.0]) + 2.5 * jax.random.normal(kx, (1, 3))
+    x1 = jnp.asarray([[-6.0, -6.0, 24.0]]) + 2.5 * jax.random.normal(kx, (1, 3))
     return ceemx.simulate(true, ks, x1, 128)[1]
 
 

@@ -301,3 +301,39 @@ def test_a_finish_that_lowers_the_evidence_is_discarded():
     ran = Stage(ceemx.JointLM(), "learn", epochs=20, converged=True, seconds=1.0)
     lost = Stage(ceemx.LaplaceEM(), epochs=5, converged=True, seconds=2.0, discarded=why)
     assert f"LaplaceEM in θ at that noise — discarded: {why}" in Choice((ran, lost), "r").describe()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model, seed", [("lorenz", 17), ("msd-1e-1", 3)])
+def test_default_fit_from_a_100x_tight_noise_guess_learns_the_noise(model, seed):
+    # Two records of the default-fit bank (benchmarks/default_fit_bank.py), θ 30 % off and both
+    # noise scales guessed 100× too tight. Lorenz seed 17: σ_v learned at 2e-9 (truth 0.01) on
+    # an evidence flat up to 0.05, then a Laplace finish that "converged" at ρ = 1.1e4.
+    # msd-1e-1 seed 3: every estimate degenerate (process noise dominates), kept out, the guess
+    # stayed: c = 0.079 ± 0.0009 (truth 0.5), "could not learn the noise".
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        import default_fit_bank as bank  # pyright: ignore[reportMissingImports]
+    finally:
+        sys.path.pop(0)
+    cfg = bank.CONFIGS[model]
+    data, system, _, factor = bank.problem(cfg, seed, "alternate")
+    assert factor == 0.01
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = ceemx.fit(system, data)
+    assert not any("could not learn the noise" in str(w.message) for w in caught)
+    assert r.converged and not any(s.discarded for s in r.choice.stages)
+    estimates = r.parameter_estimates()
+    for name, truth in cfg.true.items():
+        est, se = estimates[name]
+        assert np.isfinite(se) and abs(est - truth) < 4 * se, (name, est, se, truth)
+    learned = {
+        f: np.sqrt(np.diag(np.asarray(getattr(r.system, f).covariance())))
+        for f in ("process_noise", "obs_noise")
+    }
+    assert np.all(learned["process_noise"] > cfg.process_std / 3)
+    assert np.all(learned["obs_noise"] > cfg.obs_std / 3)

@@ -39,6 +39,7 @@ from ceemx.identification.analysis.evidence_search import (
     EvidenceSearch,
     decade_grid,
 )
+from ceemx.identification.analysis.noise_check import INTERPOLATION, square_sums
 from ceemx.identification.analysis.noise_floor import check_informative, flagged, with_floors
 from ceemx.identification.initialize import warm_start_states
 from ceemx.identification.learning.expected import cubature_points
@@ -372,12 +373,26 @@ def estimate_noise_prepared(
         start = searched.best_z
     full.climb(start)
     if "obs_noise" in fields:  # the degenerate boundary σ_v → 0 (analysis.noise_floor)
-        full = with_floors(full, layout, data)
+        best = full.best_z
+        states = full.best["nm"].states
+        full = with_floors(full, layout, data, _interpolates(system, layout, data, best, states))
     z = full.best["z"]
     estimate = layout.system(system, z)
     stds = {f: _stds(getattr(estimate, f)) for f in NOISE_FIELDS}
     nm = flagged(full.best["nm"], layout, stds, z, full)
     return estimate, nm, len(full.cache) + part_evaluations
+
+
+def _interpolates(system, layout, data: Trajectories, z: np.ndarray, states) -> bool:
+    """Whether the MAP states at log-scales ``z`` interpolate the data.
+
+    The noise check's criterion (``noise_check.INTERPOLATION``): the observation residuals'
+    mean squared whitened value below 1e-4, residuals 100× below the observation noise.
+    """
+    trial = _promoted(layout.system(system, z))
+    obs, _, _ = square_sums(trial, states, data)
+    count = float(np.sum(np.asarray(data.mask)))
+    return bool(count > 0 and float(np.sum(np.asarray(obs))) < INTERPOLATION * count)
 
 
 def _decade_lines(z: np.ndarray, z0: np.ndarray) -> list[np.ndarray]:

@@ -18,18 +18,19 @@ larger of them:
   difference between them, every other a whole multiple of it (:func:`output_resolution`) —
   σ_v is held at or above quantum/√12, the standard deviation of the rounding error.
   Continuous data lie on no grid and set no such floor.
-- **The evidence's margin.** When the evidence at the box's lower edge, or :data:`FLAT_DECADES`
-  decades above its maximum, is within :data:`EVIDENCE_MARGIN` nats of the maximum, the data do not
-  determine σ_v: they cannot reject σ_v → 0, or cannot tell it from a hundred times itself, and
-  bound it from above only. σ_v is then the largest value whose evidence lies within the margin of
-  the maximum — the upper end of its 95 % profile interval (1.92 nats: half the 95 % point of χ²₁),
-  the loose side, which is the safe side for a CE fit. The second test finds a maximum that sits far
-  below the data's noise, at a value the states' Hessian can barely resolve (σ_v ≈ 1e-8 against 0.01
-  on a Lorenz record whose process noise dominates): the evidence is flat from there up to the true
-  scale, but falls again toward the box's edge, numerically, so the first test misses it, and a
-  Laplace finish at that σ_v loses every digit. Where the evidence is flat over the whole box the
-  observation noise is not determined by the data at all and the estimate says so
-  (:attr:`NoiseMoments.notes`).
+- **The evidence's margin.** When the evidence at the box's lower edge is within
+  :data:`EVIDENCE_MARGIN` nats of its maximum, or when the states at the maximum interpolate the
+  data (the observation residuals' mean squared whitened value below 1e-4, the noise check's
+  criterion), the data do not determine σ_v: they cannot reject σ_v → 0 and bound it from above
+  only. σ_v is then the largest value whose evidence lies within the margin of the maximum — the
+  upper end of its 95 % profile interval (1.92 nats: half the 95 % point of χ²₁), the loose side,
+  which is the safe side for a CE fit. The second test finds a maximum far below the data's noise,
+  where the states' Hessian barely resolves σ_v (σ_v ≈ 1e-8 against 0.01 on a Lorenz record whose
+  process noise dominates): the evidence there is flat up to the true scale but dips and falls
+  numerically toward the box's edge, so the first test misses it, and a Laplace finish at that σ_v
+  loses every digit; its margin is searched from the box's upper edge down, past such dips. Where
+  the evidence is flat over the whole box the observation noise is not determined by the data at all
+  and the estimate says so (:attr:`NoiseMoments.notes`).
 
 Where a record holds no observation, or every observed output is constant, no noise can be told
 from signal and the estimate is refused (:func:`check_informative`).
@@ -48,24 +49,18 @@ from ceemx.identification.analysis.evidence_search import DECADE, EvidenceSearch
 
 __all__ = [
     "EVIDENCE_MARGIN",
-    "FLAT_DECADES",
     "check_informative",
     "flagged",
     "margin_floor",
     "output_resolution",
     "resolution_floor",
+    "top_margin",
     "with_floors",
 ]
 
 #: nats below the evidence's maximum that bound a degenerate observation noise from above (half
 #: the 95 % point of χ²₁: the upper end of the 95 % profile-likelihood interval)
 EVIDENCE_MARGIN = 1.92
-
-#: decades above the evidence's maximum within whose margin σ_v counts as undetermined: flat
-#: over two orders of magnitude is the degenerate ridge, not a maximum (a Bouc–Wen record whose
-#: true σ_v = 1e-9 has its 95 % interval's upper end 1.5 decades above the maximum; a Lorenz
-#: record's maximum at σ_v = 2e-9 against a true 0.01 is flat over seven)
-FLAT_DECADES = 2
 
 #: bisection steps of :func:`margin_floor` (a decade bracket to 1/64 of a decade)
 _BISECTIONS = 6
@@ -173,12 +168,52 @@ def margin_floor(
     return below, True
 
 
-def with_floors(search: EvidenceSearch, layout: Any, data: Trajectories) -> EvidenceSearch:
+def top_margin(
+    objective: Callable[[float], float], z_best: float, f_best: float, upper: float, step: float
+) -> tuple[float, bool]:
+    """:func:`margin_floor`'s answer, searched from ``upper`` down.
+
+    The largest log-scale z ≥ ``z_best`` with ``objective(z) ≤ f_best + EVIDENCE_MARGIN``.
+    :func:`margin_floor` climbs from the maximum and stops at the first point outside the
+    margin; at a maximum where the states interpolate the data the evidence can dip there
+    numerically and rise again toward the data's noise, which this search, coming down from the
+    box's edge a ``step`` at a time, does not stop at.
+
+    Returns:
+        ``(z, determined)``: the upper end to 1/64 of ``step``; ``determined`` is ``False`` when
+        the evidence is within the margin at ``upper`` itself (``z`` is that edge). ``z_best``
+        itself when no point above it is within the margin.
+    """
+    level = f_best + EVIDENCE_MARGIN
+    above, z = None, upper
+    while z > z_best:
+        if objective(z) <= level:
+            break
+        above, z = z, z - step
+    else:
+        return z_best, True
+    if above is None:
+        return upper, False
+    below = z
+    for _ in range(_BISECTIONS):
+        mid = 0.5 * (below + above)
+        if objective(mid) <= level:
+            below = mid
+        else:
+            above = mid
+    return below, True
+
+
+def with_floors(
+    search: EvidenceSearch, layout: Any, data: Trajectories, interpolates: bool = False
+) -> EvidenceSearch:
     """The search re-run with each observation scale bounded below by its floors (module notes).
 
     The resolution floor of a quantised output always; the evidence's margin where the evidence
     at the box's lower edge (the other scales at the best point) is within
-    :data:`EVIDENCE_MARGIN` of its maximum.
+    :data:`EVIDENCE_MARGIN` of its maximum, or where the states at the maximum interpolate the
+    data (``interpolates``, from the caller: the noise check's criterion) — the margin's upper
+    end then searched from the box's upper edge down (:func:`top_margin`).
     ``search`` itself when no floor lies above its estimate; else a search that shares its
     evaluations, its ``floors`` recording each raised bound and why.
 
@@ -186,6 +221,7 @@ def with_floors(search: EvidenceSearch, layout: Any, data: Trajectories) -> Evid
         search: the finished search.
         layout: the estimate's scale layout (``entries_of``, ``floor_z``).
         data: the record (its resolution).
+        interpolates: whether the MAP states at the maximum interpolate the data.
     """
     z_star, floors = search.best_z, {}
     resolution = resolution_floor(data)
@@ -199,14 +235,15 @@ def with_floors(search: EvidenceSearch, layout: Any, data: Trajectories) -> Evid
 
         z_floor, why = layout.floor_z(i, resolution), "resolution"
         f_star, f_edge = along(z_star[i]), along(lo)
-        if z_star[i] + FLAT_DECADES * DECADE < hi:  # nor tell σ_v from 100 times itself
-            f_edge = min(f_edge, along(z_star[i] + FLAT_DECADES * DECADE))
+        z_margin, determined = None, True
         if f_edge <= f_star + EVIDENCE_MARGIN:  # the data cannot reject σ_v → 0
             f_min = min(f_star, f_edge)
             start = float(z_star[i]) if f_star <= f_min + EVIDENCE_MARGIN else lo
             z_margin, determined = margin_floor(along, start, f_min, hi, DECADE)
-            if z_margin > z_floor:
-                z_floor, why = z_margin, "margin" if determined else "flat"
+        elif interpolates:  # a maximum where the states interpolate the data
+            z_margin, determined = top_margin(along, float(z_star[i]), f_star, hi, DECADE)
+        if z_margin is not None and z_margin > z_floor:
+            z_floor, why = z_margin, "margin" if determined else "flat"
         z_floor = min(z_floor, hi)
         if z_floor > z_star[i]:
             floors[i] = (z_floor, why)
