@@ -20,6 +20,7 @@ from ceemx.identification.analysis.noise_floor import (
     EVIDENCE_MARGIN,
     margin_floor,
     output_resolution,
+    top_margin,
 )
 
 
@@ -50,6 +51,32 @@ def test_margin_floor_is_the_upper_end_of_the_margin():
     # flat all the way to the box's upper edge: not determined, the edge
     z, determined = margin_floor(lambda z: 0.0, -20.0, 0.0, 5.0, step)
     assert not determined and z == 5.0
+
+
+def test_top_margin_passes_a_numerical_dip_that_stops_the_climb():
+    # −evidence: its minimum at z = −18 (σ_v far below the data's noise, where the states
+    # interpolate the data), a numerical dip of 5 nats over (−16, −13), within 0.5 nats again up
+    # to z = −4, rising as (z + 4)² beyond. Climbing from the minimum stops at the dip; coming
+    # down from the box's top finds the margin's real upper end, where 0.5 + (z + 4)² = 1.92.
+    def objective(z):
+        if z <= -18.0:
+            return 0.0
+        if -16.0 < z < -13.0:
+            return 5.0
+        return 0.5 + max(z + 4.0, 0.0) ** 2
+
+    step = float(np.log(10.0))
+    climbed, _ = margin_floor(objective, -18.0, 0.0, 10.0, step)
+    assert climbed < -15.0
+    z, determined = top_margin(objective, -18.0, 0.0, 10.0, step)
+    top = -4.0 + np.sqrt(EVIDENCE_MARGIN - 0.5)
+    assert determined and z <= top < z + step / 64
+    # nothing above the maximum within the margin: the maximum itself
+    z, determined = top_margin(lambda z: 0.0 if z <= 0 else 10.0, -1.0, 0.0, 10.0, step)
+    assert determined and z == -1.0
+    # within the margin at the box's top: not determined, the edge
+    z, determined = top_margin(lambda z: 0.0, -1.0, 0.0, 10.0, step)
+    assert not determined and z == 10.0
 
 
 # ---------------------------------------------------------------------------------------------
