@@ -20,7 +20,7 @@ default options, the same as the selection's validation free runs):
   the training record as its validation.
 
 Usage: ``python benchmarks/friction_case.py [--n-train 20000] [--n-test 5000] [--seed 0]
-[--neural] [--out benchmarks/results/friction_case.json]``.
+[--neural] [--process-noise P [V]] [--out benchmarks/results/friction_case.json]``.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import time
 from pathlib import Path
 
 import jax
+import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
@@ -55,8 +56,9 @@ def score_mm(system, test, n_init: int) -> float:
     return float(ceemx.benchmark_score(system, test, n_init, scale=MM).rmse[0, 0])
 
 
-def run(n_train: int, n_test: int, seed: int, neural: bool) -> dict:
-    """Every stage of the case, its scores and times."""
+def run(n_train: int, n_test: int, seed: int, neural: bool, process_noise=None) -> dict:
+    """Every stage of the case, its scores and times (``process_noise``: the guess's, else its
+    default)."""
     out: dict = {"n_train": n_train, "n_test": n_test, "seed": seed, "uptime_start": _uptime()}
     load0 = os.getloadavg()[0]
     wall: dict[str, float] = {}
@@ -65,14 +67,18 @@ def run(n_train: int, n_test: int, seed: int, neural: bool) -> dict:
     rec = friction_sim.friction_positioning(seed, n_train, n_test)
     wall["simulate"] = time.perf_counter() - t0
     n_init = rec.n_init
+    guess = rec.guess
+    if process_noise is not None:
+        guess = friction_sim.ViscousMass.guess(process_noise=process_noise)
+    out["guess_process_noise"] = np.ravel(guess.process_noise.scale_parameters()).tolist()
 
     t0 = time.perf_counter()
-    physics = ceemx.fit(rec.guess, rec.train, solver=ceemx.JointLM(), diagnose=False)
+    physics = ceemx.fit(guess, rec.train, solver=ceemx.JointLM(), diagnose=False)
     wall["physics"] = time.perf_counter() - t0
     print(f"physics fit: {wall['physics']:.1f} s, {len(physics.history)} iterations", flush=True)
 
     t0 = time.perf_counter()
-    sel = ceemx.fit_hybrid(rec.guess, rec.train, n_init=n_init, dynamics=(1,), progress=print)
+    sel = ceemx.fit_hybrid(guess, rec.train, n_init=n_init, dynamics=(1,), progress=print)
     wall["fit_hybrid"] = time.perf_counter() - t0
     print(sel.summary(), flush=True)
 
@@ -97,12 +103,7 @@ def run(n_train: int, n_test: int, seed: int, neural: bool) -> dict:
 
     base = min(scores["physics"], scores["physics_selected"])
     gap = (base - scores["hybrid"]) / (base - scores["true"])
-    params = {
-        k: float(getattr(m, k))
-        for m, tag in ((physics.system, ""),)
-        for k in ("mass", "viscous", "offset")
-        if tag == ""
-    }
+    params = {k: float(getattr(physics.system, k)) for k in ("mass", "viscous", "offset")}
     out.update(
         scores_mm=scores,
         gap_closed=gap,
@@ -125,9 +126,15 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--n-test", type=int, default=5_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--neural", action="store_true", help="also the neural state space")
+    parser.add_argument(
+        "--process-noise",
+        type=float,
+        nargs="+",
+        help="the guess's process noise",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "friction_case.json")
     args = parser.parse_args(argv)
-    out = run(args.n_train, args.n_test, args.seed, args.neural)
+    out = run(args.n_train, args.n_test, args.seed, args.neural, args.process_noise)
     s = out["scores_mm"]
     print(
         "test free-run RMSE [mm]: "

@@ -1,4 +1,4 @@
-"""A simulated positioning stage with friction its user's physics lacks: a test of ``fit_hybrid``.
+r"""A simulated positioning stage with friction its user's physics lacks: a test of ``fit_hybrid``.
 
 A carriage of mass m on a guide, driven by a force u and held on a position reference by a PID
 controller that reads a noisy position sensor. The guide's friction is Stribeck + Coulomb +
@@ -6,13 +6,13 @@ viscous with a smooth sign,
 
 .. math::
 
-    F_f(v) = \\bigl(F_c + (F_s - F_c)\\,e^{-(v/v_s)^2}\\bigr)\\tanh(v/ε) + b\\,v,
+    F_f(v) = \bigl(F_c + (F_s - F_c)\,e^{-(v/v_s)^2}\bigr)\tanh(v/ε) + b\,v,
 
 and a constant force offset c (cable drag, a slight slope):
 
 .. math::
 
-    \\dot p = v, \\qquad m\\,\\dot v = u - F_f(v) - c, \\qquad y = p + e.
+    \dot p = v, \qquad m\,\dot v = u - F_f(v) - c, \qquad y = p + e.
 
 :class:`StribeckMass` is that plant as a ceemx system (the truth); :class:`ViscousMass` is the
 physics its user writes — mass, viscous friction and the offset, no Coulomb or Stribeck term.
@@ -101,17 +101,17 @@ class ViscousMass(AbstractContinuousSystem):
 
     @property
     def state_dim(self) -> int:
-        """n = 2: position and velocity."""
+        """The state dimension n = 2: position and velocity."""
         return 2
 
     @property
     def obs_dim(self) -> int:
-        """m = 1: the measured position."""
+        """The output dimension m = 1: the measured position."""
         return 1
 
     @property
     def control_dim(self) -> int:
-        """p = 1: the force."""
+        """The number of inputs p = 1: the force."""
         return 1
 
     def vector_field(
@@ -171,17 +171,17 @@ class StribeckMass(AbstractContinuousSystem):
 
     @property
     def state_dim(self) -> int:
-        """n = 2: position and velocity."""
+        """The state dimension n = 2: position and velocity."""
         return 2
 
     @property
     def obs_dim(self) -> int:
-        """m = 1: the measured position."""
+        """The output dimension m = 1: the measured position."""
         return 1
 
     @property
     def control_dim(self) -> int:
-        """p = 1: the force."""
+        """The number of inputs p = 1: the force."""
         return 1
 
     def vector_field(
