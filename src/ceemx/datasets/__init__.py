@@ -2,6 +2,9 @@
 
 * :func:`load_helicopter` reads the paper's normalised Stanford helicopter dataset (needs torch).
 * :func:`helicopter_like` generates the documented stand-in (``docs/helicopter_benchmark.md``).
+* :func:`friction_positioning` simulates a positioning stage under PID control whose friction
+  (Stribeck + Coulomb + viscous) its user's physics lacks (:mod:`~ceemx.datasets.friction_sim`:
+  the records, the true plant and the physics at a guess; ``docs/hybrid_models.md``).
 * :func:`cascaded_tanks`, :func:`silverbox` and :func:`coupled_electric_drives` read three real
   measured nonlinear system-identification datasets as :class:`RealDataset` objects (official
   records, ``n_init``, units, citation, published results); :func:`load_records`,
@@ -15,6 +18,7 @@ All loaders work on the host in NumPy float64 and return :class:`ceemx.Trajector
 """
 
 from ceemx.datasets.download import DatasetUnavailable, cache_dir, data_file, data_root, fetch
+from ceemx.datasets.friction_sim import friction_positioning
 from ceemx.datasets.heli_sim import helicopter_like, simulate_flights
 from ceemx.datasets.helicopter import HelicopterData, load_helicopter
 from ceemx.datasets.records import (
@@ -44,6 +48,7 @@ __all__ = [
     "data_file",
     "data_root",
     "fetch",
+    "friction_positioning",
     "helicopter_like",
     "load_helicopter",
     "load_records",
