@@ -235,8 +235,7 @@ def choose(
     learn = noise != "fixed"
     long = B * T >= LONG_STEPS
     part = coarse_shape(B, T, NOISE_PART_STEPS) if (learn and long and not placed) else None
-    accelerate = {"acceleration": "quasi_newton"} if long else {}
-    finish = LaplaceEM(atol=FINISH_ATOL, **accelerate)
+    finish = LaplaceEM(acceleration="quasi_newton" if long else "squarem", atol=FINISH_ATOL)
     noise_words = "the noise learned from the data" if learn else "the noise as given"
     reason = (
         f"{size}: the joint method (fast where parameters are few) with {noise_words}, then a "
