@@ -112,9 +112,9 @@ def pytest_configure(config):
 
 
 # Python's cyclic garbage collector at its default thresholds (700, 10, 10) ran a collection every
-# 700 allocations of JAX's tracing and lowering, and took a tenth of the CPU of a compile-bound
-# test file (perf). Collections 70× rarer, and the modules imported by collection frozen out of
-# them: 5–10 % less CPU per file, the same peak memory.
+# 700 allocations of JAX's tracing and lowering, and took about a tenth of the CPU samples of
+# compile-bound test files (perf). Collections 70× rarer, and the modules imported by collection
+# frozen out of them: 2–9 % less CPU on such files, the same peak memory.
 GC_THRESHOLDS = (50_000, 20, 100)
 
 
