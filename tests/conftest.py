@@ -23,6 +23,7 @@ before the workers start); each worker, and a run without xdist, does in ``pytes
 before any test module is imported.
 """
 
+import gc
 import os
 import sys
 
@@ -107,6 +108,21 @@ def pytest_configure(config):
     jax.config.update("jax_enable_x64", True)
     for name, value in STRICT_PROMOTION.items():
         jax.config.update(name.lower(), value)
+    gc.set_threshold(*GC_THRESHOLDS)
+
+
+# Python's cyclic garbage collector at its default thresholds (700, 10, 10) ran a collection every
+# 700 allocations of JAX's tracing and lowering, and took about a tenth of the CPU samples of
+# compile-bound test files (perf). Collections 70× rarer, and the modules imported by collection
+# frozen out of them: 2–9 % less CPU on such files, the same peak memory.
+GC_THRESHOLDS = (50_000, 20, 100)
+
+
+def pytest_collection_finish(session):
+    """Freeze what collection imported: later collections need not scan it again."""
+    del session
+    gc.collect()
+    gc.freeze()
 
 
 # The suite's files by the seconds their tests take in a full run, heaviest first (subprocesses
