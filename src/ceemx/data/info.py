@@ -58,10 +58,11 @@ class DataInfo:
 
     dt: float | None = None
     time_unit: str = "s"
-    output_names: tuple[str, ...] | None = None
-    output_units: tuple[str, ...] | None = None
-    input_names: tuple[str, ...] | None = None
-    input_units: tuple[str, ...] | None = None
+    # a string or a sequence of strings as given (one string: one channel), a tuple once built
+    output_names: Sequence[str] | None = None
+    output_units: Sequence[str] | None = None
+    input_names: Sequence[str] | None = None
+    input_units: Sequence[str] | None = None
 
     def __post_init__(self):
         for field in ("output_names", "output_units", "input_names", "input_units"):
