@@ -84,15 +84,11 @@ def stribeck_friction(v, coulomb, static, stribeck_velocity, smoothing, viscous,
     return level * xp.tanh(v / smoothing) + viscous * v
 
 
-class ViscousMass(AbstractContinuousSystem):
-    """The user's physics: m v̇ = u − b v − c, ṗ = v, y = p (no Coulomb or Stribeck friction).
+class _AbstractCarriage(AbstractContinuousSystem):
+    """A carriage on a guide: m v̇ = u − friction(v) − c, ṗ = v, y = p.
 
-    State (position [m], velocity [m/s]); input the force [N]; output the position [m].
-
-    Attributes:
-        mass: m [kg], positive.
-        viscous: b [N·s/m], positive.
-        offset: c [N], a constant force.
+    State (position [m], velocity [m/s]), input the force [N], output the position [m]; the
+    subclasses give the friction.
     """
 
     mass: Float[ArrayLike, ""] = param(positive=True)
@@ -114,11 +110,15 @@ class ViscousMass(AbstractContinuousSystem):
         """The number of inputs p = 1: the force."""
         return 1
 
+    def friction(self, v: Float[Array, ""]) -> Float[ArrayLike, ""]:
+        """The guide's friction force at velocity v [N]."""
+        raise NotImplementedError
+
     def vector_field(
         self, x: Float[Array, " 2"], u: Float[Array, " p"], t: Real[ArrayLike, ""]
     ) -> Float[Array, " 2"]:
-        """(v, (u − b v − c)/m)."""
-        return jnp.stack([x[1], (u[0] - self.viscous * x[1] - self.offset) / self.mass])
+        """(v, (u − friction(v) − c)/m)."""
+        return jnp.stack([x[1], (u[0] - self.friction(x[1]) - self.offset) / self.mass])
 
     def observe(
         self, x: Float[Array, " 2"], u: Float[Array, " p"], t: Real[ArrayLike, ""]
@@ -134,6 +134,22 @@ class ViscousMass(AbstractContinuousSystem):
     def default_state_mean(self) -> Float[Array, " 2"]:
         """A typical state (at rest at the origin)."""
         return jnp.zeros((2,), dtype=jnp.result_type(self.mass))
+
+
+class ViscousMass(_AbstractCarriage):
+    """The user's physics: m v̇ = u − b v − c, ṗ = v, y = p (no Coulomb or Stribeck friction).
+
+    State (position [m], velocity [m/s]); input the force [N]; output the position [m].
+
+    Attributes:
+        mass: m [kg], positive.
+        viscous: b [N·s/m], positive.
+        offset: c [N], a constant force.
+    """
+
+    def friction(self, v: Float[Array, ""]) -> Float[ArrayLike, ""]:
+        """The viscous friction b v."""
+        return self.viscous * v
 
     @classmethod
     def guess(cls, **kwargs: Any) -> ViscousMass:
@@ -148,7 +164,7 @@ class ViscousMass(AbstractContinuousSystem):
         return cls(**{**params, **options, **kwargs})
 
 
-class StribeckMass(AbstractContinuousSystem):
+class StribeckMass(_AbstractCarriage):
     """The plant: m v̇ = u − F_f(v) − c, ṗ = v, y = p (module notes; F_f: :func:`stribeck_friction`).
 
     Attributes:
@@ -161,52 +177,16 @@ class StribeckMass(AbstractContinuousSystem):
         smoothing: ε [m/s] of the smooth sign, fixed.
     """
 
-    mass: Float[ArrayLike, ""] = param(positive=True)
-    viscous: Float[ArrayLike, ""] = param(positive=True)
-    offset: Float[ArrayLike, ""] = param(default=0.0)
     coulomb: Float[ArrayLike, ""] = param(fixed=True, default=0.0)
     static: Float[ArrayLike, ""] = param(fixed=True, default=0.0)
     stribeck_velocity: Float[ArrayLike, ""] = param(fixed=True, default=1.0)
     smoothing: Float[ArrayLike, ""] = param(fixed=True, default=1e-3)
 
-    @property
-    def state_dim(self) -> int:
-        """The state dimension n = 2: position and velocity."""
-        return 2
-
-    @property
-    def obs_dim(self) -> int:
-        """The output dimension m = 1: the measured position."""
-        return 1
-
-    @property
-    def control_dim(self) -> int:
-        """The number of inputs p = 1: the force."""
-        return 1
-
-    def vector_field(
-        self, x: Float[Array, " 2"], u: Float[Array, " p"], t: Real[ArrayLike, ""]
-    ) -> Float[Array, " 2"]:
-        """(v, (u − F_f(v) − c)/m)."""
-        friction = stribeck_friction(
-            x[1], self.coulomb, self.static, self.stribeck_velocity, self.smoothing, self.viscous
+    def friction(self, v: Float[Array, ""]) -> Float[ArrayLike, ""]:
+        """F_f(v), :func:`stribeck_friction`."""
+        return stribeck_friction(
+            v, self.coulomb, self.static, self.stribeck_velocity, self.smoothing, self.viscous
         )
-        return jnp.stack([x[1], (u[0] - friction - self.offset) / self.mass])
-
-    def observe(
-        self, x: Float[Array, " 2"], u: Float[Array, " p"], t: Real[ArrayLike, ""]
-    ) -> Float[Array, " 1"]:
-        """The position."""
-        return x[:1]
-
-    def linear_observation(self, u, t):
-        """``(C, d)`` with y = C x + d: the position is measured."""
-        dtype = jnp.result_type(self.mass)
-        return jnp.array([[1.0, 0.0]], dtype=dtype), jnp.zeros((1,), dtype=dtype)
-
-    def default_state_mean(self) -> Float[Array, " 2"]:
-        """A typical state (at rest at the origin)."""
-        return jnp.zeros((2,), dtype=jnp.result_type(self.mass))
 
     @classmethod
     def truth(cls, **kwargs: Any) -> StribeckMass:

@@ -159,13 +159,7 @@ def margin_floor(
             return upper, False
         else:
             below = z
-    for _ in range(_BISECTIONS):
-        mid = 0.5 * (below + above)
-        if objective(mid) <= level:
-            below = mid
-        else:
-            above = mid
-    return below, True
+    return _bisect(objective, level, below, above), True
 
 
 def top_margin(
@@ -195,13 +189,18 @@ def top_margin(
     if above is None:
         return upper, False
     below = z
+    return _bisect(objective, level, below, above), True
+
+
+def _bisect(objective: Callable[[float], float], level: float, below: float, above: float) -> float:
+    """The margin's end between ``below`` (within it) and ``above`` (outside it), to 1/64."""
     for _ in range(_BISECTIONS):
         mid = 0.5 * (below + above)
         if objective(mid) <= level:
             below = mid
         else:
             above = mid
-    return below, True
+    return below
 
 
 def with_floors(

@@ -82,9 +82,8 @@ NOISE_PART_STEPS = 2_500
 #: nats: the Laplace finish stops once an epoch changes the log-evidence by less. A change that
 #: small is statistically nothing (an interval's end moves the evidence by 1.92 nats), and even at
 #: an EM rate of 0.99 the epochs left would add under 1e-3 nats. The solver's own relative
-#: tolerance (1e-10 of |J|) sits below the Laplace approximation's accuracy for a nonlinear model,
-#: where EM's ascent is not exact: on a two-tank record the finish lowered the evidence by 2e-6
-#: nats an epoch for its whole budget and never met it.
+#: tolerance (1e-10 of |J|) lies below the Laplace approximation's accuracy for a nonlinear model,
+#: where EM's ascent is not exact and an epoch's change can stay above it for the whole budget.
 FINISH_ATOL = 1e-5
 
 Noise = Literal["fixed", "learn"]
