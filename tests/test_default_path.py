@@ -304,11 +304,13 @@ def test_a_finish_that_lowers_the_evidence_is_discarded():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model, seed", [("lorenz", 17), ("msd-1e-1", 3)])
+@pytest.mark.parametrize("model, seed", [("lorenz", 17), ("lorenz", 27), ("msd-1e-1", 3)])
 def test_default_fit_from_a_100x_tight_noise_guess_learns_the_noise(model, seed):
     # Two records of the default-fit bank (benchmarks/default_fit_bank.py), θ 30 % off and both
     # noise scales guessed 100× too tight. Lorenz seed 17: σ_v learned at 2e-9 (truth 0.01) on
-    # an evidence flat up to 0.05, then a Laplace finish that "converged" at ρ = 1.1e4.
+    # an evidence flat up to 0.05, then a Laplace finish that "converged" at ρ = 1.1e4. Lorenz
+    # seed 27: σ_v learned at 3.6e-9, the margin measured from a numerical spike of the evidence
+    # there: the states interpolated the data, the covariance was NaN, the finish skipped.
     # msd-1e-1 seed 3: every estimate degenerate (process noise dominates), kept out, the guess
     # stayed: c = 0.079 ± 0.0009 (truth 0.5), "could not learn the noise".
     import sys

@@ -20,8 +20,30 @@ from ceemx.identification.analysis.noise_floor import (
     EVIDENCE_MARGIN,
     margin_floor,
     output_resolution,
+    plateau,
     top_margin,
 )
+
+
+def test_a_margin_from_an_interpolating_spike_is_measured_from_the_plateau_above_it():
+    # −evidence as a Lorenz record showed it: a numerical spike 2.8 nats above the plateau at
+    # the interpolating maximum z = −19.5 (σ_v = 3.6e-9), the plateau (0) up to z = −5.6
+    # (σ_v = 3.6e-3), rising as (z + 5.6)² beyond. From the spike the margin holds σ_v at the
+    # spike; from the plateau it ends where (z + 5.6)² = 1.92.
+    def objective(z):
+        return -2.8 if abs(z + 19.5) < 1e-9 else max(z + 5.6, 0.0) ** 2
+
+    step = float(np.log(10.0))
+    z_star, top = -19.5, 7.0
+    spike, _ = top_margin(objective, z_star, objective(z_star), top, step)
+    assert spike == z_star
+    reference = plateau(objective, z_star, objective(z_star), top, step)
+    assert reference == 0.0
+    z, determined = top_margin(objective, z_star, reference, top, step)
+    end = -5.6 + np.sqrt(EVIDENCE_MARGIN)
+    assert determined and z <= end < z + step / 64
+    # no decade above the maximum: its own value
+    assert plateau(objective, 6.0, -1.0, top, step) == -1.0
 
 
 def test_output_resolution_is_the_quantum_of_quantised_outputs():

@@ -258,24 +258,25 @@ class _Rounds:
 
 
 def test_noise_rounds_that_do_not_settle_say_so(monkeypatch, lin_data):
-    # every estimate doubles the noise: the rounds stop unsettled after 6. They warn, the result
-    # is not converged, its system carries the last round's noise (the one reported), and the
-    # summary gives every round's time, "(learned)" and the number of rounds.
-    fake = _Rounds([2.0**k for k in range(7)])
+    # every estimate doubles the noise: the rounds stop unsettled after their bound. They warn,
+    # the result is not converged, its system carries the last round's noise (the one reported),
+    # and the summary gives every round's time, "(learned)" and the number of rounds.
+    n = noise_rounds.MAX_NOISE_ROUNDS
+    fake = _Rounds([2.0**k for k in range(n + 1)])
     monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
     monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
     x0 = jnp.zeros((2, 200, 2))
     with pytest.warns(
-        NoiseEstimateWarning, match="stopped after 6 rounds before the noise settled"
+        NoiseEstimateWarning, match=f"stopped after {n} rounds before the noise settled"
     ):
         r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
-    assert not r.converged and len(r.noise_rounds) == 7
+    assert not r.converged and len(r.noise_rounds) == n + 1
     assert _std(r.system.process_noise) == pytest.approx(r.noise_rounds[-1]["process_noise_std"][0])
     assert _std(r.system.process_noise) == pytest.approx(fake.fitted_at[-1])
     text = " ".join(r.summary().split())  # wrapped lines joined
     total = sum(round_["time"] for round_ in r.noise_rounds)
-    assert f"{total:.3g} s in all (6 noise rounds)" in text
-    assert "noise learned in 6 rounds" in text and "not settled" in text
+    assert f"{total:.3g} s in all ({n} noise rounds)" in text
+    assert f"noise learned in {n} rounds" in text and "not settled" in text
     assert text.count("(learned)") == 2 and "(given)" not in text
     assert any("did not settle" in m for m in r.messages())
 
@@ -316,7 +317,8 @@ def test_degenerate_estimate_after_a_fit_that_did_not_converge_is_not_fitted_at(
 ):
     # θ still far off (no fit converges): every round fits at the noise given, and the result
     # says the noise was not learned and the rounds did not settle
-    fake = _Rounds([1e-3] * 7, degenerate=("obs_noise",), converged=False)
+    n = noise_rounds.MAX_NOISE_ROUNDS
+    fake = _Rounds([1e-3] * (n + 1), degenerate=("obs_noise",), converged=False)
     monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
     monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
     x0 = jnp.zeros((2, 200, 2))
@@ -325,5 +327,5 @@ def test_degenerate_estimate_after_a_fit_that_did_not_converge_is_not_fitted_at(
         r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
     said = [str(w.message) for w in caught if w.category is NoiseEstimateWarning]
     assert any("could not learn the noise" in m for m in said)
-    assert any("stopped after 6 rounds before the noise settled" in m for m in said)
-    assert fake.fitted_at == [pytest.approx(Q)] * 6 and not r.converged
+    assert any(f"stopped after {n} rounds before the noise settled" in m for m in said)
+    assert fake.fitted_at == [pytest.approx(Q)] * n and not r.converged

@@ -28,7 +28,9 @@ larger of them:
   where the states' Hessian barely resolves σ_v (σ_v ≈ 1e-8 against 0.01 on a Lorenz record whose
   process noise dominates): the evidence there is flat up to the true scale but dips and falls
   numerically toward the box's edge, so the first test misses it, and a Laplace finish at that σ_v
-  loses every digit; its margin is searched from the box's upper edge down, past such dips. Where
+  loses every digit; its margin is searched from the box's upper edge down, past such dips, and
+  measured from the best evidence on the decades above the maximum (:func:`plateau`): the
+  maximum's own value can be a numerical spike above the evidence's limit as σ_v → 0. Where
   the evidence is flat over the whole box the observation noise is not determined by the data at all
   and the estimate says so (:attr:`NoiseMoments.notes`).
 
@@ -53,6 +55,7 @@ __all__ = [
     "flagged",
     "margin_floor",
     "output_resolution",
+    "plateau",
     "resolution_floor",
     "top_margin",
     "with_floors",
@@ -192,6 +195,21 @@ def top_margin(
     return _bisect(objective, level, below, above), True
 
 
+def plateau(
+    objective: Callable[[float], float], z_best: float, f_best: float, upper: float, step: float
+) -> float:
+    """The reference value of a margin from a maximum where the states interpolate the data.
+
+    The best ``objective`` (−evidence) on the decades above ``z_best`` up to ``upper``, not at
+    ``z_best`` itself: there the states' Hessian has lost most of its digits and the evidence
+    can spike above its limit as σ_v → 0 (a Lorenz record: 93.7 nats at σ_v = 3.6e-9 between
+    90.9 one decade above and −28 one below, over a plateau at 90.96 up to 3.6e-3) — a margin
+    measured from the spike holds σ_v at the spike. ``f_best`` when no decade lies above it.
+    """
+    zs = np.arange(z_best + step, upper + 0.5 * step, step)
+    return min((objective(min(z, upper)) for z in zs), default=f_best)
+
+
 def _bisect(objective: Callable[[float], float], level: float, below: float, above: float) -> float:
     """The margin's end between ``below`` (within it) and ``above`` (outside it), to 1/64."""
     for _ in range(_BISECTIONS):
@@ -240,7 +258,8 @@ def with_floors(
             start = float(z_star[i]) if f_star <= f_min + EVIDENCE_MARGIN else lo
             z_margin, determined = margin_floor(along, start, f_min, hi, DECADE)
         elif interpolates:  # a maximum where the states interpolate the data
-            z_margin, determined = top_margin(along, float(z_star[i]), f_star, hi, DECADE)
+            f_ref = plateau(along, float(z_star[i]), f_star, hi, DECADE)
+            z_margin, determined = top_margin(along, float(z_star[i]), f_ref, hi, DECADE)
         if z_margin is not None and z_margin > z_floor:
             z_floor, why = z_margin, "margin" if determined else "flat"
         z_floor = min(z_floor, hi)
