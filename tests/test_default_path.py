@@ -274,6 +274,51 @@ def test_finish_skipped_where_the_joint_covariance_is_not_positive_definite(reco
     )
 
 
+class _Damped(ceemx.AbstractSystem):
+    """x⁺ = a·x − c·x, y = x, with c positive (its transform saturates near 0)."""
+
+    a: jax.Array = ceemx.param()
+    c: jax.Array = ceemx.param(positive=True)
+
+    @property
+    def state_dim(self) -> int:
+        return 1
+
+    @property
+    def obs_dim(self) -> int:
+        return 1
+
+    def dynamics(self, x, u, t):
+        return (self.a - self.c) * x
+
+    def observe(self, x, u, t):
+        return x
+
+
+def test_a_parameter_left_at_its_bound_starts_the_finish_from_its_start_value(records):
+    # The joint fit can drive a positive parameter to 1e-10, where its transform's slope is
+    # 1e-10 and no later step moves it: the finish (Laplace EM) then "converged" there, 15 nats
+    # below its maximum (the bank's msd-1e-1 seed 71: c = 2.6e-10 against the evidence's 0.41,
+    # truth 0.5). The finish starts it at the user's start value instead, and says so.
+    from ceemx.identification.fitting.default_path import FitOptions, off_the_bound
+
+    data = ceemx.Trajectories(jnp.asarray(records))
+    start = _Damped(a=jnp.asarray(0.9), c=jnp.asarray(0.2), process_noise=0.3, obs_noise=0.2)
+    stuck = _Damped(a=jnp.asarray(0.7), c=jnp.asarray(2.6e-10), process_noise=0.1, obs_noise=0.05)
+    options = FitOptions(solver=ceemx.LaplaceEM())
+    fresh, names = off_the_bound(stuck, start, data, options)
+    assert names == ("c",) and float(fresh.c) == pytest.approx(0.2, rel=1e-12)
+    assert float(fresh.a) == 0.7 and float(fresh.process_noise.scale) == 0.1  # the rest kept
+    moved = _Damped(a=jnp.asarray(0.7), c=jnp.asarray(1e-3), process_noise=0.1, obs_noise=0.05)
+    assert off_the_bound(moved, start, data, options) == (moved, ())
+    from ceemx.identification.fitting.choice import Choice, Stage
+
+    ran = Stage(ceemx.JointLM(), "learn", epochs=20, converged=True, seconds=1.0)
+    finish = Stage(ceemx.LaplaceEM(), epochs=5, converged=True, seconds=2.0, restarted=names)
+    said = Choice((ran, finish), "r").describe()
+    assert said.endswith("(from the start's c: the previous stage left it at the bound)")
+
+
 def test_a_finish_that_lowers_the_evidence_is_discarded():
     # The Laplace finish starts where the noise rounds evaluated the same evidence and EM only
     # climbs it; ending lower (a Lorenz record with σ_v learned at 2e-9: the E-step's evidence
@@ -304,13 +349,16 @@ def test_a_finish_that_lowers_the_evidence_is_discarded():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model, seed", [("lorenz", 17), ("lorenz", 27), ("msd-1e-1", 3)])
+@pytest.mark.parametrize(
+    "model, seed", [("lorenz", 17), ("lorenz", 27), ("msd-1e-1", 3), ("msd-1e-1", 71)]
+)
 def test_default_fit_from_a_100x_tight_noise_guess_learns_the_noise(model, seed):
     # Two records of the default-fit bank (benchmarks/default_fit_bank.py), θ 30 % off and both
     # noise scales guessed 100× too tight. Lorenz seed 17: σ_v learned at 2e-9 (truth 0.01) on
     # an evidence flat up to 0.05, then a Laplace finish that "converged" at ρ = 1.1e4. Lorenz
     # seed 27: σ_v learned at 3.6e-9, the margin measured from a numerical spike of the evidence
     # there: the states interpolated the data, the covariance was NaN, the finish skipped.
+    # msd-1e-1 seed 71: the joint fit left c at 2.6e-10, the finish skipped, "converged".
     # msd-1e-1 seed 3: every estimate degenerate (process noise dominates), kept out, the guess
     # stayed: c = 0.079 ± 0.0009 (truth 0.5), "could not learn the noise".
     import sys

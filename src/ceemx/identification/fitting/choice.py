@@ -105,6 +105,8 @@ class Stage:
             round together; seconds of wall time).
         skipped: why the stage did not run (``None``: it ran, or has not yet).
         discarded: why the stage's result was set aside after it ran (``None``: it stands).
+        restarted: the parameters this stage started from their start values, not from the
+            previous stage's: it left them at their bound, where no step moves them.
     """
 
     solver: AbstractFitSolver
@@ -115,6 +117,7 @@ class Stage:
     seconds: float | None = None
     skipped: str | None = None
     discarded: str | None = None
+    restarted: tuple[str, ...] = ()
 
     def describe(self, first: bool = True) -> str:
         """E.g. ``"JointLM (noise learned on the first 2500 steps)"``."""
@@ -161,6 +164,12 @@ class Choice:
         return ", then ".join(
             s.describe(i == 0)
             + (f" — skipped: {s.skipped}" if s.skipped else "")
+            + (
+                f" (from the start's {', '.join(s.restarted)}: the previous stage left "
+                f"{'it' if len(s.restarted) == 1 else 'them'} at the bound)"
+                if s.restarted
+                else ""
+            )
             + (f" — discarded: {s.discarded}" if s.discarded else "")
             for i, s in enumerate(self.stages)
         )

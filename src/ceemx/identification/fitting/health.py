@@ -44,6 +44,7 @@ from ceemx.lib.typing import States, Theta
 
 __all__ = [
     "ABSURD_MEAN_SQUARE",
+    "NEAR_BOUND_SLOPE",
     "OUTLIER_OPTIONS",
     "Health",
     "check_scale",
@@ -64,7 +65,7 @@ fraction of their norm is refused at the start (:func:`check_scale`)."""
 
 #: |d natural / dθ| at or below which a constrained entry counts as near its bound (softplus'
 #: slope there is its distance to the bound) and is tested by :func:`check_scale`
-_NEAR_BOUND_SLOPE = 1e-6
+NEAR_BOUND_SLOPE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -201,7 +202,7 @@ def check_scale(problem: FitProblem, theta: Theta, states: States) -> None:
             epoch).
     """
     slope = np.abs(to_host(problem.natural_jacobian(theta)))
-    near = slope <= _NEAR_BOUND_SLOPE
+    near = slope <= NEAR_BOUND_SLOPE
     if not near.any():
         return
     system = problem.build(theta)
