@@ -20,6 +20,7 @@ __all__ = [
     "cast_checked",
     "first_bad",
     "host_index",
+    "indexed",
     "is_concrete",
     "on_host",
 ]
@@ -74,6 +75,25 @@ def back_like(out: np.ndarray, like) -> jax.Array | np.ndarray:
     if isinstance(like, jax.Array) and like.committed:
         return jax.device_put(out, like.sharding)
     return as_jax(out)
+
+
+def indexed(a, idx):
+    """``a[idx]``: NumPy's indexing and a transfer for a concrete CPU array (:func:`on_host`).
+
+    ``idx`` is what :func:`host_index` reads, or a tuple of such. Where NumPy refuses an index
+    that JAX clamps, or ``a`` is traced, sharded or weakly typed, JAX indexes.
+    """
+    if isinstance(idx, tuple):
+        parts = tuple(host_index(i) for i in idx)
+        host_idx = None if any(p is None for p in parts) else parts
+    else:
+        host_idx = host_index(idx)
+    if host_idx is not None and on_host(a):
+        try:
+            return back_like(np.asarray(a)[host_idx], a)
+        except (IndexError, TypeError):
+            pass
+    return a[idx]
 
 
 def first_bad(bad: np.ndarray) -> tuple[int, ...]:

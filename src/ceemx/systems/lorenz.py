@@ -8,6 +8,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real
 
 from ceemx.infra.policy import Runs, program
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import State
 from ceemx.models.noise import AbstractNoise, as_noise
 from ceemx.models.system import AbstractContinuousSystem, GaussianPrior
@@ -41,7 +42,10 @@ def _as_float(a, name: str, ndim: int = 1) -> Array:
         raise TypeError(f"`{name}` must be a real array; got dtype {a.dtype}.")
     if hasattr(a, "dtype") and np.issubdtype(a.dtype, np.complexfloating):
         raise TypeError(f"`{name}` must be real; got dtype {a.dtype}.")
-    out = jnp.asarray(a)
+    if isinstance(a, np.ndarray | np.generic):  # NumPy and one transfer: no program per shape
+        h = a if np.issubdtype(a.dtype, np.floating) else a.astype(float)
+        return as_jax(np.atleast_1d(h) if ndim == 1 else h)
+    out = jnp.asarray(a)  # JAX arrays, and Python numbers (kept weakly typed, as JAX makes them)
     if not jnp.issubdtype(out.dtype, jnp.floating):  # integers and booleans: the default float
         out = out.astype(float)
     return jnp.atleast_1d(out) if ndim == 1 else out
