@@ -110,9 +110,7 @@ class CoupledLorenz(AbstractContinuousSystem):
         self.C = _as_float(C, "C", ndim=2)
         if self.C.ndim != 2 or self.C.shape[1] != n:
             raise ValueError(f"`C` must have shape (m, {n}); got {self.C.shape}.")
-        self.H = (
-            jnp.asarray(np.zeros((n, n), self.sigma.dtype)) if H is None else _as_float(H, "H", 2)
-        )
+        self.H = as_jax(np.zeros((n, n), self.sigma.dtype)) if H is None else _as_float(H, "H", 2)
         if self.H.shape != (n, n):
             raise ValueError(f"`H` must have shape ({n}, {n}); got {self.H.shape}.")
         m = self.C.shape[0]
