@@ -7,11 +7,15 @@ concrete CPU arrays with NumPy instead of compiling a small JAX program per shap
 
 from __future__ import annotations
 
+from typing import Any, TypeVar, cast
+
 import jax
 import numpy as np
 from jax.core import Tracer
 
 from ceemx.lib.tree import as_jax
+
+_A = TypeVar("_A", jax.Array, np.ndarray)  # the kind of array given is the kind returned
 
 __all__ = [
     "as_array",
@@ -68,16 +72,16 @@ def host_index(idx):
     return None
 
 
-def back_like(out: np.ndarray, like) -> jax.Array | np.ndarray:
+def back_like(out: np.ndarray, like: _A) -> _A:
     """NumPy's result ``out`` as a JAX array placed as ``like`` is (a transfer, no program)."""
     if isinstance(like, np.ndarray):
-        return out
+        return cast(_A, out)
     if isinstance(like, jax.Array) and like.committed:
-        return jax.device_put(out, like.sharding)
-    return as_jax(out)
+        return cast(_A, jax.device_put(out, like.sharding))
+    return cast(_A, as_jax(out))
 
 
-def indexed(a, idx):
+def indexed(a: _A, idx: Any) -> _A:
     """``a[idx]``: NumPy's indexing and a transfer for a concrete CPU array (:func:`on_host`).
 
     ``idx`` is what :func:`host_index` reads, or a tuple of such. Where NumPy refuses an index
@@ -93,7 +97,7 @@ def indexed(a, idx):
             return back_like(np.asarray(a)[host_idx], a)
         except (IndexError, TypeError):
             pass
-    return a[idx]
+    return cast(_A, a[idx])
 
 
 def first_bad(bad: np.ndarray) -> tuple[int, ...]:

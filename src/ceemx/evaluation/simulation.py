@@ -204,7 +204,7 @@ def free_run(
     return (indexed(xs, 0), indexed(ys, 0)) if single else (xs, ys)
 
 
-def _batch_of_one(a):
+def _batch_of_one(a: jax.Array) -> jax.Array:
     """``a[None]``; in NumPy and a transfer for a concrete CPU array (no program per shape)."""
     return back_like(np.asarray(a)[None], a) if on_host(a) else a[None]
 
