@@ -31,6 +31,7 @@ from ceemx.lib import (  # noqa: E402
 )
 from ceemx.lib.arrowhead import factor, schur_terms  # noqa: E402
 from ceemx.lib.blocktri import backward_solve, forward_solve  # noqa: E402
+from ceemx.lib.tree import as_jax  # noqa: E402
 
 # (1, 1) is the edge of both n = 1 (1×1 blocks) and T = 1 (empty sub-diagonal, zero-length
 # scans), (3, 4) the general case of small blocks (elementwise kernels), (9, 3) that of large ones
@@ -57,7 +58,7 @@ def random_spd(rng, n, T, shift=1.0):
     diag = np.einsum("tji,tjk->tik", Jd, Jd) + shift * np.eye(n)
     diag[:-1] += np.einsum("tji,tjk->tik", Jl, Jl)
     lower = np.einsum("tji,tjk->tik", Jd[1:], Jl)
-    return BlockTridiagonal(diagonal=jnp.asarray(diag), lower=jnp.asarray(lower))
+    return BlockTridiagonal(diagonal=as_jax(diag), lower=as_jax(lower))
 
 
 def dense_np(A):

@@ -17,6 +17,7 @@ import ceemx
 from ceemx.inference.smoother import uses_parallel_solve
 from ceemx.lib import blocktri
 from ceemx.lib.parallel_blocktri import parallel_solve
+from ceemx.lib.tree import as_jax
 from ceemx.systems import CoupledLorenz, initial_states, random_observation_matrix
 
 
@@ -27,7 +28,7 @@ def random_spd(rng, n, T, shift=1.0):
     diag = np.einsum("tji,tjk->tik", Jd, Jd) + shift * np.eye(n)
     diag[:-1] += np.einsum("tji,tjk->tik", Jl, Jl)
     lower = np.einsum("tji,tjk->tik", Jd[1:], Jl)
-    return blocktri.BlockTridiagonal(jnp.asarray(diag), jnp.asarray(lower))
+    return blocktri.BlockTridiagonal(as_jax(diag), as_jax(lower))
 
 
 def rel_err(a, b):

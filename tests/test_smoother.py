@@ -19,6 +19,7 @@ import pytest
 import ceemx
 from ceemx.inference.objective import linearize
 from ceemx.lib.results import codes
+from ceemx.lib.tree import as_jax
 from ceemx.systems import (
     CoupledLorenz,
     LinearSystem,
@@ -146,19 +147,19 @@ def make_linear_problem(seed, full_cov, n=3, m=2, p=1, T=25, B=2, missing=False,
     m0 = rng.standard_normal(n)
     if full_cov:
         Q, R, P0 = random_spd(rng, n, 0.3), random_spd(rng, m, 0.2), random_spd(rng, n, 1.0)
-        pn = ceemx.CholeskyGaussian(cov=jnp.asarray(Q))
-        on = ceemx.CholeskyGaussian(cov=jnp.asarray(R))
-        prior_noise = ceemx.CholeskyGaussian(cov=jnp.asarray(P0))
+        pn = ceemx.CholeskyGaussian(cov=as_jax(Q))
+        on = ceemx.CholeskyGaussian(cov=as_jax(R))
+        prior_noise = ceemx.CholeskyGaussian(cov=as_jax(P0))
     else:
         q, r, p0 = (rng.uniform(0.1, 0.5, n), rng.uniform(0.1, 0.4, m), rng.uniform(0.5, 1.5, n))
         Q, R, P0 = np.diag(q**2), np.diag(r**2), np.diag(p0**2)
-        pn = ceemx.DiagonalGaussian(jnp.asarray(q), n)
-        on = ceemx.DiagonalGaussian(jnp.asarray(r), m)
-        prior_noise = ceemx.DiagonalGaussian(jnp.asarray(p0), n)
+        pn = ceemx.DiagonalGaussian(as_jax(q), n)
+        on = ceemx.DiagonalGaussian(as_jax(r), m)
+        prior_noise = ceemx.DiagonalGaussian(as_jax(p0), n)
     system = cls(
-        jnp.asarray(A), jnp.asarray(C), jnp.asarray(Bu), jnp.asarray(Du),
+        as_jax(A), as_jax(C), as_jax(Bu), as_jax(Du),
         process_noise=pn, obs_noise=on,
-        initial_prior=ceemx.GaussianPrior(jnp.asarray(m0), prior_noise),
+        initial_prior=ceemx.GaussianPrior(as_jax(m0), prior_noise),
     )  # fmt: skip
     u = rng.standard_normal((B, T, p))
     xs = np.zeros((B, T, n))
@@ -173,7 +174,7 @@ def make_linear_problem(seed, full_cov, n=3, m=2, p=1, T=25, B=2, missing=False,
         mask[:, 5:9] = False  # some whole steps
         mask[0, 15:17] = False
         y = np.where(mask, y, np.nan)
-    data = ceemx.Trajectories(jnp.asarray(y), jnp.asarray(u), jnp.asarray(mask))
+    data = ceemx.Trajectories(as_jax(y), as_jax(u), as_jax(mask))
     oracle = dict(A=A, Bu=Bu, C=C, Du=Du, Q=Q, R=R, m0=m0, P0=P0)
     return system, data, xs, mask, oracle
 

@@ -393,8 +393,7 @@ def test_output_spread_counts_observed_entries_per_output():
 
 
 def _masked_trajectories(y, mask):
-    import jax.numpy as jnp
-
     import ceemx
+    from ceemx.lib.tree import as_jax
 
-    return ceemx.Trajectories(jnp.asarray(y), jnp.ones(y.shape[:2] + (1,)), jnp.asarray(mask))
+    return ceemx.Trajectories(as_jax(y), as_jax(np.ones(y.shape[:2] + (1,))), as_jax(mask))

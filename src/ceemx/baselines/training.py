@@ -36,6 +36,7 @@ from jaxtyping import Array, ArrayLike, PRNGKeyArray
 
 from ceemx.baselines.lstm import LSTMRegressor
 from ceemx.baselines.regressors import LagRegressor
+from ceemx.data.arrays import back_like, on_host
 from ceemx.data.trajectories import Trajectories
 from ceemx.infra.compilation import jit
 from ceemx.infra.options import INT32_MAX
@@ -275,7 +276,10 @@ def _cast_data(train: Trajectories, valid: Trajectories, lags: int | None, dtype
     The padding is H − 1 leading copies of u₀, so that the window of step t is u[b, t:t+H].
     """
     u = train.u.astype(dtype)
-    if lags is not None:
+    if lags is not None and on_host(u):  # NumPy on the host: no program per shape
+        h = np.asarray(u)
+        u = back_like(np.concatenate([np.repeat(h[:, :1], lags - 1, axis=1), h], axis=1), u)
+    elif lags is not None:
         u = jnp.concatenate([jnp.repeat(u[:, :1], lags - 1, axis=1), u], axis=1)
     arrays = (u, train.y.astype(dtype), train.mask)
     return arrays, Trajectories(valid.y.astype(dtype), valid.u.astype(dtype), valid.mask)

@@ -7,11 +7,15 @@ concrete CPU arrays with NumPy instead of compiling a small JAX program per shap
 
 from __future__ import annotations
 
+from typing import Any, TypeVar, cast
+
 import jax
 import numpy as np
 from jax.core import Tracer
 
 from ceemx.lib.tree import as_jax
+
+_A = TypeVar("_A", jax.Array, np.ndarray)  # the kind of array given is the kind returned
 
 __all__ = [
     "as_array",
@@ -20,6 +24,7 @@ __all__ = [
     "cast_checked",
     "first_bad",
     "host_index",
+    "indexed",
     "is_concrete",
     "on_host",
 ]
@@ -67,13 +72,32 @@ def host_index(idx):
     return None
 
 
-def back_like(out: np.ndarray, like) -> jax.Array | np.ndarray:
+def back_like(out: np.ndarray, like: _A) -> _A:
     """NumPy's result ``out`` as a JAX array placed as ``like`` is (a transfer, no program)."""
     if isinstance(like, np.ndarray):
-        return out
+        return cast(_A, out)
     if isinstance(like, jax.Array) and like.committed:
-        return jax.device_put(out, like.sharding)
-    return as_jax(out)
+        return cast(_A, jax.device_put(out, like.sharding))
+    return cast(_A, as_jax(out))
+
+
+def indexed(a: _A, idx: Any) -> _A:
+    """``a[idx]``: NumPy's indexing and a transfer for a concrete CPU array (:func:`on_host`).
+
+    ``idx`` is what :func:`host_index` reads, or a tuple of such. Where NumPy refuses an index
+    that JAX clamps, or ``a`` is traced, sharded or weakly typed, JAX indexes.
+    """
+    if isinstance(idx, tuple):
+        parts = tuple(host_index(i) for i in idx)
+        host_idx = None if any(p is None for p in parts) else parts
+    else:
+        host_idx = host_index(idx)
+    if host_idx is not None and on_host(a):
+        try:
+            return back_like(np.asarray(a)[host_idx], a)
+        except (IndexError, TypeError):
+            pass
+    return cast(_A, a[idx])
 
 
 def first_bad(bad: np.ndarray) -> tuple[int, ...]:

@@ -20,14 +20,13 @@ from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
 from ceemx.data.arrays import cast_checked
 from ceemx.data.trajectories import Trajectories
 from ceemx.infra.warn import warn
-from ceemx.lib.tree import is_weak
+from ceemx.lib.tree import as_jax, is_weak
 from ceemx.lib.typing import no_type_check
 from ceemx.models.method_check import check_methods
 from ceemx.models.system import AbstractSystem, float_dtype
@@ -160,7 +159,7 @@ def _promote_array(name: str, x, dtype):
         raise TypeError(f"`{name}` must be real; got complex dtype {a.dtype}.")
     if not (np.issubdtype(a.dtype, np.number) or a.dtype == np.bool_):
         raise TypeError(f"`{name}` must be a numeric array; got dtype {a.dtype}.")
-    return jnp.asarray(cast_checked(name, a, dtype), dtype)
+    return as_jax(np.asarray(cast_checked(name, a, dtype), dtype))
 
 
 def _cast_floating(tree, dtype):
@@ -206,8 +205,10 @@ def promote_inputs(
     if data.y.dtype != dtype or data.u.dtype != dtype:
         y, u, mask = data.y, data.u, data.mask
         if all(not isinstance(a, Tracer) for a in (y, u, mask)):
-            y = jnp.asarray(cast_checked("data.y", np.asarray(y), dtype, np.asarray(mask)), dtype)
-            u = jnp.asarray(cast_checked("data.u", np.asarray(u), dtype), dtype)
+            y = as_jax(
+                np.asarray(cast_checked("data.y", np.asarray(y), dtype, np.asarray(mask)), dtype)
+            )
+            u = as_jax(np.asarray(cast_checked("data.u", np.asarray(u), dtype), dtype))
         data = eqx.tree_at(lambda d: (d.y, d.u), data, (y.astype(dtype), u.astype(dtype)))
     return system, data, _promote_array(name, x_init, dtype)
 
@@ -215,7 +216,7 @@ def promote_inputs(
 def _check_observation_matrix(system: AbstractSystem) -> None:
     """Warn when a linear observation map C is rank-deficient or ill-conditioned (cheap, host)."""
     try:
-        u = jnp.zeros((system.input_dim,), float_dtype(system))
+        u = as_jax(np.zeros((system.input_dim,), float_dtype(system)))
         lin = system.linear_observation(u, 0)
         if lin is None or isinstance(lin[0], Tracer):
             return

@@ -421,12 +421,12 @@ def simulate(
     B, _ = x0.shape
     T = _num_steps(num_steps, u)
     if u is None:
-        u = jnp.zeros((B, T, 0), dtype)
+        u = as_jax(np.zeros((B, T, 0), dtype))
     else:
         if isinstance(u, Tracer):
             u = u.astype(dtype)
         else:
-            u = jnp.asarray(cast_checked("u", as_numeric("u", u), dtype), dtype)
+            u = as_jax(np.asarray(cast_checked("u", as_numeric("u", u), dtype), dtype))
         if u.shape != (B, T, system.input_dim):
             raise ValueError(
                 f"`u` must have shape (B, T, p) = {(B, T, system.input_dim)}; got {u.shape}."
@@ -509,5 +509,9 @@ def foh_inputs(data: Trajectories | ArrayLike):
     u = as_jax(data)
     if u.ndim < 2:
         raise ValueError(f"inputs must have shape (..., T, p); got {u.shape}.")
+    if on_host(u):  # NumPy on the host: no program per shape
+        h = np.asarray(u)
+        following = np.concatenate([h[..., 1:, :], h[..., -1:, :]], axis=-2)
+        return back_like(np.concatenate([h, following], axis=-1), u)
     following = jnp.concatenate([u[..., 1:, :], u[..., -1:, :]], axis=-2)
     return jnp.concatenate([u, following], axis=-1)

@@ -346,9 +346,9 @@ def benchmark_score(
             )
         else:
             start, status = _given_start(x1, system, test, kwargs)
-        zero = jnp.zeros((), jnp.int32)
+        zero = as_jax(np.zeros((), np.int32))  # host values transferred: no program per shape
         x_sim, y_sim = free_run_batch(strongly_typed(system), start, test.u, zero)
-        scale_arr = jnp.asarray(np.broadcast_to(s, (system.obs_dim,)), test.y.dtype)
+        scale_arr = as_jax(np.asarray(np.broadcast_to(s, (system.obs_dim,)), test.y.dtype))
         metrics = score_batch(test.y, y_sim, test.mask, jnp.asarray(n_init), scale_arr)
         status = _flag_diverged(start, metrics[3], status)
         metrics, status = _flag_constant(test, n_init, metrics, status)

@@ -23,12 +23,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ceemx.data.arrays import back_like, indexed, on_host
 from ceemx.data.checks import prepare, promote_array, promote_tree
 from ceemx.data.trajectories import Trajectories
 from ceemx.inference.ekf import ekf_prepared
 from ceemx.infra.compilation import jit
 from ceemx.infra.options import INT32_MAX
 from ceemx.infra.warn import warn
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import Inputs, Observations, States, no_type_check
 from ceemx.models.method_check import check_methods, nonfinite_run
 from ceemx.models.system import AbstractSystem, GaussianPrior
@@ -174,7 +176,7 @@ def free_run(
     check_methods(system)  # the shapes and dtypes its methods return, as fit and smooth check
     x = promote_array("x1", x1, system)  # the system's dtype (x1's used to win)
     single = x.ndim == 1
-    xb = x[None] if single else x
+    xb = _batch_of_one(x) if single else x
     n, p = system.state_dim, system.input_dim
     if xb.ndim != 2 or xb.shape[1] != n:
         raise ValueError(f"`x1` must have shape (B, n) or (n,) with n = {n}; got {x.shape}.")
@@ -184,10 +186,10 @@ def free_run(
         if num_steps is None:
             raise ValueError("pass `u` or `num_steps` (T).")
         T = check_int("num_steps", num_steps, 1)
-        ub = jnp.zeros((xb.shape[0], T, 0), x.dtype)
+        ub = as_jax(np.zeros((xb.shape[0], T, 0), x.dtype))
     else:
         ub = promote_array("u", u, system)
-        ub = ub[None] if single else ub
+        ub = _batch_of_one(ub) if single else ub
         if ub.ndim != 3 or ub.shape[0] != xb.shape[0] or ub.shape[2] != p or ub.shape[1] < 1:
             want = f"(T, {p})" if single else f"(B, T, {p}) with B = {xb.shape[0]}"
             raise ValueError(f"`u` must have shape {want}; got {jnp.shape(u)}.")
@@ -195,11 +197,16 @@ def free_run(
             raise ValueError(f"`num_steps` = {num_steps} but `u` has T = {ub.shape[1]} steps.")
         _finite("u", np.asarray(ub))
     _finite("x1", np.asarray(xb))
-    xs, ys = free_run_batch(strongly_typed(system), xb, ub, jnp.zeros((), jnp.int32))
+    xs, ys = free_run_batch(strongly_typed(system), xb, ub, as_jax(np.zeros((), np.int32)))
     where = nonfinite_run(xs, ys)
     if where is not None:
         warn(f"free_run: the run is not finite: {where}")
-    return (xs[0], ys[0]) if single else (xs, ys)
+    return (indexed(xs, 0), indexed(ys, 0)) if single else (xs, ys)
+
+
+def _batch_of_one(a: jax.Array) -> jax.Array:
+    """``a[None]``; in NumPy and a transfer for a concrete CPU array (no program per shape)."""
+    return back_like(np.asarray(a)[None], a) if on_host(a) else a[None]
 
 
 # --------------------------------------------------------------------------------------------
@@ -279,5 +286,5 @@ def predict_k_step(
         initial = promote_tree(initial, system)
     sol = ekf_prepared(system, data, initial)
     k = min(k, data.num_steps)
-    means, prior_mean = sol.filtered_means, sol.predicted_means[:, 0]
+    means, prior_mean = sol.filtered_means, indexed(sol.predicted_means, (slice(None), 0))
     return k_step_batch(strongly_typed(system), means, prior_mean, data.u, k)

@@ -29,6 +29,7 @@ from ceemx.evaluation.prediction import (
     residual_data,
 )
 from ceemx.identification.problem import trainable_mask
+from ceemx.lib.tree import as_jax
 from ceemx.systems import NeuralObservationSystem
 
 __all__ = [
@@ -128,12 +129,11 @@ def group_learning_rates(system, lr_dynamics: float, lr_observation: float) -> j
     """The flat per-parameter learning rates: dynamics (A, B) and observation model (C, D, NN)."""
     params = _trainable_params(system)
     dyn = {id(system.A), id(system.B)}
-    rates = jax.tree_util.tree_map(
-        lambda leaf: jnp.full(leaf.shape, lr_dynamics if id(leaf) in dyn else lr_observation),
-        params,
-    )
-    flat, _ = ravel_pytree(rates)
-    return flat
+    rates = [  # in NumPy (op by op, JAX compiled a program per shape), in ravel_pytree's order
+        np.full(np.size(leaf), lr_dynamics if id(leaf) in dyn else lr_observation)
+        for leaf in jax.tree_util.tree_leaves(params)
+    ]
+    return as_jax(np.concatenate([*rates, np.zeros(0)]))
 
 
 def _nl_solver(system, *, method: str, settings: Settings, batch: int):

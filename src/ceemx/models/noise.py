@@ -327,7 +327,7 @@ class DiagonalGaussian(AbstractGaussianNoise):
     dim: int = eqx.field(static=True)
 
     def __init__(self, scale, dim: int):
-        self.scale = jnp.asarray(scale)
+        self.scale = as_jax(scale)  # a NumPy value transferred, not staged through a program
         self.dim = int(dim)
 
     def std(self) -> Float[Array, " d"]:

@@ -16,7 +16,7 @@ import numpy as np
 from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float, Real
 
-from ceemx.lib.tree import value_repr
+from ceemx.lib.tree import as_jax, value_repr
 from ceemx.lib.typing import Scalar, State
 from ceemx.models.constraint_checks import check_constraints
 from ceemx.models.noise import AbstractNoise, as_noise
@@ -44,7 +44,7 @@ class GaussianPrior(eqx.Module):
     noise: AbstractNoise
 
     def __init__(self, mean: ArrayLike, noise: AbstractNoise):
-        self.mean = jnp.asarray(mean)
+        self.mean = as_jax(mean)  # a NumPy value transferred, not staged through a program
         self.noise = noise
 
     def nll(self, x1: State) -> Scalar:

@@ -8,6 +8,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray, Real
 
 from ceemx.infra.policy import Runs, program
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import State
 from ceemx.models.noise import AbstractNoise, as_noise
 from ceemx.models.system import AbstractContinuousSystem, GaussianPrior
@@ -41,7 +42,10 @@ def _as_float(a, name: str, ndim: int = 1) -> Array:
         raise TypeError(f"`{name}` must be a real array; got dtype {a.dtype}.")
     if hasattr(a, "dtype") and np.issubdtype(a.dtype, np.complexfloating):
         raise TypeError(f"`{name}` must be real; got dtype {a.dtype}.")
-    out = jnp.asarray(a)
+    if isinstance(a, np.ndarray | np.generic):  # NumPy and one transfer: no program per shape
+        h = a if np.issubdtype(a.dtype, np.floating) else a.astype(float)
+        return as_jax(np.atleast_1d(h) if ndim == 1 else h)
+    out = jnp.asarray(a)  # JAX arrays, and Python numbers (kept weakly typed, as JAX makes them)
     if not jnp.issubdtype(out.dtype, jnp.floating):  # integers and booleans: the default float
         out = out.astype(float)
     return jnp.atleast_1d(out) if ndim == 1 else out
@@ -106,9 +110,7 @@ class CoupledLorenz(AbstractContinuousSystem):
         self.C = _as_float(C, "C", ndim=2)
         if self.C.ndim != 2 or self.C.shape[1] != n:
             raise ValueError(f"`C` must have shape (m, {n}); got {self.C.shape}.")
-        self.H = (
-            jnp.asarray(np.zeros((n, n), self.sigma.dtype)) if H is None else _as_float(H, "H", 2)
-        )
+        self.H = as_jax(np.zeros((n, n), self.sigma.dtype)) if H is None else _as_float(H, "H", 2)
         if self.H.shape != (n, n):
             raise ValueError(f"`H` must have shape ({n}, {n}); got {self.H.shape}.")
         m = self.C.shape[0]

@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
+from ceemx.data.arrays import indexed
 from ceemx.data.checks import Prepared, prepare, promote_tree
 from ceemx.data.trajectories import Trajectories
 from ceemx.identification.analysis.correlations import (
@@ -258,10 +259,10 @@ def _innovations(system, data, x1, initial):
     for b in range(B):
         prior = initial
         if prior is None:
-            prior = GaussianPrior(jnp.asarray(x1[b]), system.process_noise)
+            prior = GaussianPrior(indexed(as_jax(x1), b), system.process_noise)
         sol = ekf_prepared(system, data[b : b + 1], promote_tree(prior, system))
-        e.append(np.asarray(data.y[b]) - np.asarray(sol.predicted_obs[0]))
-        L = np.asarray(sol.innovation_chol[0])
+        e.append(np.asarray(data.y)[b] - np.asarray(sol.predicted_obs)[0])
+        L = np.asarray(sol.innovation_chol)[0]
         s.append(np.sqrt(np.sum(L**2, axis=-1)))
     z = np.stack(e) / np.stack(s)
     return np.where(np.asarray(data.mask, bool), z, np.nan)
@@ -425,8 +426,8 @@ def _length_reading(system: AbstractSystem, inputs, L: int, idx: np.ndarray, est
     """(moments, estimated system or None) of the records ``idx``, read up to step ``L``."""
     data, states = inputs.data, inputs.states
     if L < data.num_steps or idx.size < data.batch_size:
-        data = data[as_jax(idx)].head(L) if L < data.num_steps else data[as_jax(idx)]
-        states = None if states is None else jnp.asarray(states)[as_jax(idx), :L]
+        data = data[idx].head(L) if L < data.num_steps else data[idx]
+        states = None if states is None else indexed(as_jax(states), (idx, slice(None, L)))
     part = Prepared(inputs.system, data, states)
     nm = moments_prepared(part.system, part.data, start_states(part))
     fitted = None
@@ -620,7 +621,7 @@ def fit_diagnostics(result: Any, **options) -> ResidualDiagnostics:
             "without a fit."
         )
     data = problem.data[keep] if keep.size < states.shape[0] else problem.data
-    states = states[as_jax(keep)] if keep.size < states.shape[0] else states
+    states = indexed(states, keep) if keep.size < states.shape[0] else states
     return residual_diagnostics(
         result.system, data, states, noise_check=result.noise_check, **options
     )

@@ -46,12 +46,14 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 
+from ceemx.data.arrays import is_concrete
 from ceemx.identification.analysis.end_point import end_point
 from ceemx.identification.problem import FitProblem
 from ceemx.identification.schur import schur_complement, schur_complement_work
 from ceemx.infra.policy import Runs, program
 from ceemx.infra.warn import warn
 from ceemx.lib.dense import symmetrize
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import PerTrajectory, States, Theta
 
 __all__ = [
@@ -194,16 +196,19 @@ def parameter_covariance(
         See the module docstring for when it is valid. Not vmappable (the warning is host-side);
         the compiled core is :func:`schur_complement`.
     """
+    # the bookkeeping on the host in NumPy (op by op in JAX, each compiled a program per shape)
+    dtype = np.dtype(theta.dtype)
     if weights is None:
-        weights = jnp.ones(states.shape[0], states.dtype)
+        weights = as_jax(np.ones(states.shape[0], np.dtype(states.dtype)))
     noise, noise_var = _noise_variances(problem, theta, weights)
-    keep = jnp.where(noise, 0.0, 1.0).astype(theta.dtype)
-    cov, ok, weak = _laplace(problem, theta, states, weights, keep)
-    held = jnp.zeros_like(noise)
-    if not bool(ok) and hold_weak and bool(jnp.any(weak)) and not bool(jnp.all(weak | noise)):
+    keep = np.where(noise, 0.0, 1.0).astype(dtype)
+    cov, ok, weak = _laplace(problem, theta, states, weights, as_jax(keep))
+    held = np.zeros_like(noise)
+    weak = np.asarray(weak)
+    if not bool(ok) and hold_weak and weak.any() and not (weak | noise).all():
         held = weak & ~noise
-        keep = jnp.where(noise | held, 0.0, 1.0).astype(theta.dtype)
-        cov, ok, weak = _laplace(problem, theta, states, weights, keep)
+        keep = np.where(noise | held, 0.0, 1.0).astype(dtype)
+        cov, ok, weak = _laplace(problem, theta, states, weights, as_jax(keep))
         if bool(ok):
             flagged = [n for n, w in zip(_names(problem), np.asarray(held), strict=True) if w]
             warn(_HELD.format(which=", ".join(flagged)))
@@ -211,7 +216,7 @@ def parameter_covariance(
         flagged = [n for n, w in zip(_names(problem), np.asarray(weak), strict=True) if w]
         which = f" (weakly determined: {', '.join(flagged)})" if flagged else ""
         warn(_NOT_PD.format(which=which))
-    return _assemble(cov, noise, held, noise_var)
+    return _assemble(cov, as_jax(noise), as_jax(held), as_jax(noise_var))
 
 
 @program(runs=Runs.ONCE)  # on the host: one program, where op by op it compiled four small ones
@@ -224,7 +229,7 @@ def _assemble(cov, noise, held, noise_var):
 
 def _noise_variances(
     problem: FitProblem, theta: Theta, weights: PerTrajectory
-) -> tuple[Array, Array]:
+) -> tuple[np.ndarray, np.ndarray]:
     """``(is_noise, var)`` over θ: which entries are learned noise, and their variances.
 
     For Gaussian noise the Fisher information is block-diagonal between the mean parameters and
@@ -237,7 +242,8 @@ def _noise_variances(
     system = problem.build(theta)
     data = problem.data
     w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
-    flags = jtu.tree_map(lambda leaf: jnp.zeros(jnp.shape(leaf), theta.dtype), problem.template)
+    dtype = np.dtype(theta.dtype)
+    flags = jtu.tree_map(lambda leaf: np.zeros(np.shape(leaf), dtype), problem.template)
     var = flags
     counts = {
         "process_noise": np.full(system.state_dim, w.sum() * (data.num_steps - 1)),
@@ -249,17 +255,22 @@ def _noise_variances(
         noise = getattr(system, field)
         sub = getattr(flags, field)
         flags = eqx.tree_at(
-            lambda t, f=field: getattr(t, f), flags, jtu.tree_map(jnp.ones_like, sub)
+            lambda t, f=field: getattr(t, f), flags, jtu.tree_map(np.ones_like, sub)
         )
-        nan = jtu.tree_map(lambda a: jnp.full_like(a, jnp.nan), sub)
+        nan = jtu.tree_map(lambda a: np.full_like(a, np.nan), sub)
         var = eqx.tree_at(lambda t, f=field: getattr(t, f), var, nan)
         scale = noise.scale_parameters() if noise.is_gaussian else None
         if scale is not None:
-            scale = jnp.asarray(scale)
+            scale = np.asarray(scale, dtype)
             n_res = count.sum() if scale.ndim == 0 else count
-            v = scale**2 / (2.0 * jnp.asarray(np.maximum(n_res, 1.0), theta.dtype))
+            v = scale**2 / (2.0 * np.asarray(np.maximum(n_res, 1.0), dtype))
             var = eqx.tree_at(lambda t, f=field: getattr(t, f).scale_parameters(), var, v)
-    return ravel_pytree(flags)[0] > 0, ravel_pytree(var)[0]
+    return _ravel(flags, dtype) > 0, _ravel(var, dtype)
+
+
+def _ravel(tree, dtype) -> np.ndarray:
+    """``ravel_pytree(tree)[0]`` of a tree of NumPy leaves, in NumPy (the same order)."""
+    return np.concatenate([np.ravel(a) for a in jtu.tree_leaves(tree)] + [np.zeros(0, dtype)])
 
 
 def evidence_covariance(
@@ -341,6 +352,9 @@ def natural_covariance(
 ) -> Float[Array, "theta theta"]:
     """Delta method: ``J Cov Jᵀ`` with ``J = diag(`` :func:`natural_jacobian` ``)``."""
     j = natural_jacobian(problem, theta)
+    if is_concrete(j) and is_concrete(covariance):  # NumPy on the host: no program per shape
+        jh = np.asarray(j)
+        return as_jax(jh[:, None] * np.asarray(covariance) * jh[None, :])
     return j[:, None] * covariance * j[None, :]
 
 

@@ -16,6 +16,7 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 
+from ceemx.data.arrays import indexed
 from ceemx.data.checks import Prepared, promote_tree
 from ceemx.identification.analysis.noise_check import NoiseCheckWarning, noise_check
 from ceemx.identification.analysis.noise_estimate import start_states
@@ -267,7 +268,7 @@ def _with_noise_check(result: FitResult) -> FitResult:
     check = noise_check(
         problem.build(result.theta),
         problem.data,
-        result.states[keep],
+        indexed(result.states, keep),
         weights=result.weights,
         n_params=int(np.size(result.theta)),
         converged=bool(result.converged),

@@ -15,6 +15,7 @@ import dataclasses
 
 import numpy as np
 
+from ceemx.data.arrays import back_like, on_host
 from ceemx.identification.analysis.noise_check import NoiseCheckWarning, noise_check
 from ceemx.identification.fitting.fit_options import FitOptions
 from ceemx.identification.fitting.result import FitResult
@@ -134,8 +135,13 @@ def _with_excluded(state: FitState, all_states, excluded: np.ndarray):
     """States and statuses of every trajectory: the excluded ones as given, status ``outlier``."""
     if not excluded.any():
         return state.states, state.status
-    keep = as_jax(np.flatnonzero(~excluded))
-    out_states = all_states.at[keep].set(state.states)
+    keep = np.flatnonzero(~excluded)
+    if on_host((all_states, state.states)):  # NumPy on the host: no program per shape
+        out = np.array(all_states)
+        out[keep] = np.asarray(state.states)
+        out_states = back_like(out, all_states)
+    else:
+        out_states = all_states.at[as_jax(keep)].set(state.states)
     codes_all = np.full(excluded.shape, -1)
     codes_all[~excluded] = np.asarray(codes(state.status)).reshape(-1)
     status = select(as_jax(excluded), RESULTS.outlier, from_codes(np.maximum(codes_all, 0)))

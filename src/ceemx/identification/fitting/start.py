@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ceemx.data.arrays import indexed
 from ceemx.data.checks import Prepared, check_states, prepare
 from ceemx.data.sharding import shard_batch
 from ceemx.data.trajectories import Trajectories
@@ -121,7 +122,7 @@ def start_fit(
     all_states = states
     if excluded.any():
         keep = np.flatnonzero(~excluded)
-        states, problem = states[keep], problem.subset(keep)
+        states, problem = indexed(states, keep), problem.subset(keep)
     key = jax.random.PRNGKey(0) if options.key is None else options.key
     state = solver.init(problem, theta, states, key)
     if all_failed(state):

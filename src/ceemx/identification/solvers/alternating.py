@@ -137,7 +137,7 @@ class Alternating(AbstractFitSolver):
         record = {
             "smooth_time": t_smooth,
             "learn_time": t_learn,
-            "smoother_steps": int(jnp.max(sol.iterations)),
+            "smoother_steps": int(np.max(to_host(sol.iterations))),
             "learner_steps": int(info.steps),
             "learner_status": int(codes(info.status)),
         }

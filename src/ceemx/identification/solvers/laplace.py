@@ -69,9 +69,11 @@ from ceemx.identification.solvers.laplace_qn import (
 )
 from ceemx.inference import smoother as smoothing_solver
 from ceemx.inference.posterior import E_STEP_SMOOTHER, GaussianPosterior, gaussian_posterior
+from ceemx.infra.distributed import to_host
 from ceemx.infra.options import check_choice, check_int
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes
+from ceemx.lib.tree import as_jax
 from ceemx.lib.typing import PerTrajectory, States, Theta
 from ceemx.models.system import AbstractSystem
 
@@ -347,7 +349,7 @@ class LaplaceEM(AbstractFitSolver):
         t0 = time.perf_counter()
         e = self._posterior(problem, theta, x0, quiet=quiet)
         record["smooth_time"] += time.perf_counter() - t0
-        record["smoother_steps"] = max(record["smoother_steps"], int(jnp.max(e.iterations)))
+        record["smoother_steps"] = max(record["smoother_steps"], int(np.max(to_host(e.iterations))))
         return e
 
     def step(self, problem: FitProblem, state: FitState) -> tuple[FitState, dict]:
@@ -470,13 +472,15 @@ class LaplaceEM(AbstractFitSolver):
         finite) or its stabilised update has less evidence than θ₂ — then the two plain updates
         stand.
         """
-        r = th1 - th0
-        v = th2 - th1 - r
-        nv = float(jnp.linalg.norm(v))
+        # the step on the host in NumPy (op by op, JAX compiled a program per shape)
+        h0, h1, h2 = (np.asarray(t) for t in (th0, th1, th2))
+        r = h1 - h0
+        v = h2 - h1 - r
+        nv = float(np.linalg.norm(v))
         if not (nv > 0 and np.isfinite(nv)):
             return None
-        alpha = min(-float(jnp.linalg.norm(r)) / nv, -1.0)
-        th_x = th0 - 2.0 * alpha * r + alpha**2 * v
+        alpha = min(-float(np.linalg.norm(r)) / nv, -1.0)
+        th_x = as_jax(h0 - 2.0 * alpha * r + alpha**2 * v)
         if not _valid(problem, th_x):
             return None
         e_x = self._timed_posterior(problem, th_x, e2.states, record, quiet=True)
@@ -504,7 +508,7 @@ class LaplaceEM(AbstractFitSolver):
 
 def _valid(problem: FitProblem, theta: Theta) -> bool:
     """Whether θ builds a system with valid noise (an extrapolated scale may cross zero)."""
-    if not bool(jnp.all(jnp.isfinite(theta))):
+    if not np.all(np.isfinite(np.asarray(theta))):
         return False
     system = problem.build(theta)
     try:

@@ -54,6 +54,7 @@ from ceemx.inference.particle import (
     resolve_proposal,
 )
 from ceemx.infra.compilation import jit
+from ceemx.infra.distributed import to_host
 from ceemx.infra.options import check_nonnegative, check_real
 from ceemx.infra.warn import warn
 from ceemx.lib.results import RESULTS, codes, select
@@ -243,8 +244,8 @@ class ParticleEM(AbstractFitSolver):
             "saem_mass": float(mass),
             "e_step_time": t_e,
             "m_step_time": t_m,
-            "min_ess": float(jnp.min(pf.ess)),
-            "resampling_rate": float(jnp.mean(pf.resampled[:, 1:])),
+            "min_ess": float(np.min(to_host(pf.ess))),
+            "resampling_rate": float(np.mean(to_host(pf.resampled)[:, 1:])),
             "learner_steps": int(info.steps),
             "learner_status": int(codes(info.status)),
         }
