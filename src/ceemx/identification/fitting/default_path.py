@@ -125,13 +125,7 @@ def run_stages(
             callbacks=callbacks,
             progress_label=f"stage {k + 1}/{len(choice.stages)}" if len(choice.stages) > 1 else "",
         )
-        data, start = inputs.data, inputs.states
-        if stage.part is not None:
-            b, t = stage.part
-            data = data[:b].head(t)
-            start = None if start is None else start[:b, :t]
-        if k and stage.part == choice.stages[k - 1].part:  # the same data: its states
-            start = results[-1].states
+        data, start = _stage_data(inputs, stage, choice.stages[k - 1] if k else None, results)
         if k:
             current, restarted = off_the_bound(current, system, data, options)
             stage = dataclasses.replace(stage, restarted=restarted)
@@ -177,6 +171,21 @@ def run_stages(
             break
     ran = dataclasses.replace(choice, stages=tuple(done))
     return _merged(results, ran, t_start)
+
+
+def _stage_data(inputs: Prepared, stage: Stage, previous: Stage | None, results: list[FitResult]):
+    """``(data, start states)`` of a stage.
+
+    Its part of the data; on the previous stage's data, that stage's states.
+    """
+    data, start = inputs.data, inputs.states
+    if stage.part is not None:
+        b, t = stage.part
+        data = data[:b].head(t)
+        start = None if start is None else start[:b, :t]
+    if previous is not None and stage.part == previous.part:
+        start = results[-1].states
+    return data, start
 
 
 def off_the_bound(
