@@ -151,6 +151,7 @@ def test_agrees_with_nfoursid():
 
 
 # ------------------------------------------------------------------------------------ consistency
+@pytest.mark.slow  # a convergence run (5 seeds × 2 sizes); default: test_fit_sid_system, nfoursid agreement
 def test_error_falls_with_more_trajectories():
     """Process + measurement noise: 16× more trajectories ≈ 4× smaller eigenvalue error."""
     errors = {4: [], 64: []}
