@@ -139,6 +139,7 @@ def fitted(prob):
 # --------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # a convergence run; default: test_solver_table's Alternating optimum
 def test_fit_recovers_lorenz_parameters(fitted):
     assert fitted.converged, fitted.history[-1]
     assert isinstance(fitted.solver, ceemx.Alternating)
@@ -149,6 +150,7 @@ def test_fit_recovers_lorenz_parameters(fitted):
     print(f"fit: {fitted.epochs} epochs, θ = {theta_of(fitted.system)}")
 
 
+@pytest.mark.slow  # the convergence run's; default: test_max_epochs_bounds_the_fit
 def test_fit_history_is_monotone_and_complete(prob, fitted):
     keys = {"J", "dtheta_norm", "dx_norm", "smooth_time", "learn_time"}
     keys |= {"learner_steps", "smoother_steps"}
@@ -175,6 +177,7 @@ def test_fit_history_is_monotone_and_complete(prob, fitted):
     assert fitted.history[-1]["dtheta_norm"] < 1e-2 * fitted.history[0]["dtheta_norm"]
 
 
+@pytest.mark.slow  # a second convergence run
 def test_loose_tolerance_converges_early(prob, fitted):
     res = fit_a(prob, max_epochs=100, tol=1e-3)
     assert res.converged
@@ -187,6 +190,14 @@ def test_loose_tolerance_converges_early(prob, fitted):
 def test_max_epochs_bounds_the_fit(prob):
     res = fit_a(prob, max_epochs=2)
     assert res.epochs == 2 and not res.converged
+    # The history's bookkeeping (on the convergence run in the slow tier: monotone and complete).
+    for i, rec in enumerate(res.history, start=1):
+        assert rec["epoch"] == i and len(rec["J_per_trajectory"]) == B
+        np.testing.assert_allclose(sum(rec["J_per_trajectory"]), rec["J"], rtol=1e-12)
+    J0 = float(np.sum(log_joint(prob.start, prob.x_init, prob.data)))
+    np.testing.assert_allclose(res.initial_J, J0, rtol=1e-12)
+    J_end = float(np.sum(log_joint(res.system, res.states, prob.data)))
+    np.testing.assert_allclose(res.history_array("J")[-1], J_end, rtol=1e-12)
     res0 = fit_a(prob, max_epochs=0)
     assert res0.epochs == 0
     np.testing.assert_array_equal(theta_of(res0.system), START)

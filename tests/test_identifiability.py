@@ -126,6 +126,9 @@ def test_identifiable_model_has_no_message():
     assert not any("determine" in m for m in res.messages())
 
 
+# A 20-epoch fit; default: test_analysis_defects.py::test_identifiability_of_a_fit_with_a_negative_
+# parameter (a fit's own end-point naming) and the naming unit tests below.
+@pytest.mark.slow
 def test_alternating_end_point_names_the_products(records):
     """Algorithm 1 crawls here (EM with a hidden state): after 20 epochs it has not converged,
     and the end-point analysis names what the data determine."""

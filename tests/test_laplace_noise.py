@@ -154,6 +154,7 @@ def test_smoothing_reaches_the_l1_map():
     assert dx < 1e-4
 
 
+@pytest.mark.slow  # two end-to-end fits; the L1 MAP itself: test_smoothing_reaches_the_l1_map
 def test_robust_fit_beats_a_gaussian_fit_on_data_with_outliers():
     # x' = a x + b u + w, y = x + v, one in ten observations off by ±3 (30 σ_v)
     rng = np.random.default_rng(2)

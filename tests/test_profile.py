@@ -216,6 +216,8 @@ def _kalman_profile_interval(y, a_hat, c_hat):
     return lo, hi
 
 
+# A second profile oracle; default: test_quadratic_objective_profile_is_the_wald_interval.
+@pytest.mark.slow
 def test_laplace_em_profile_is_the_kalman_likelihood_profile():
     """Linear-Gaussian, A and C learned by Laplace EM (exact EM): the profile interval of A is
     the brute-force profile of the exact (Kalman) log-likelihood over C, to 0.1 % of its

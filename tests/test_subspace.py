@@ -111,6 +111,7 @@ def test_autonomous_multi_trajectory():
 
 
 # ------------------------------------------------------------------------- agreement with nfoursid
+@pytest.mark.slow  # a second N4SID oracle; default: test_noiseless_recovery, test_fit_sid_system
 def test_agrees_with_nfoursid():
     """Single noisy trajectory: our N4SID against the ``nfoursid`` package.
 
@@ -151,6 +152,7 @@ def test_agrees_with_nfoursid():
 
 
 # ------------------------------------------------------------------------------------ consistency
+@pytest.mark.slow  # a convergence run (5 seeds × 2 sizes); default: test_fit_sid_system
 def test_error_falls_with_more_trajectories():
     """Process + measurement noise: 16× more trajectories ≈ 4× smaller eigenvalue error."""
     errors = {4: [], 64: []}
