@@ -4,31 +4,42 @@
 that depends on the record, and it chooses the two that decide a hybrid's free-run score by that
 score, measured on the held-out tail of the *training* record (never a test record):
 
-1. **The noise weighting.** A CE fit maximises J (Eq. 9), where the process and observation
-   noise weigh the dynamics' residuals against the outputs'; only their ratio moves the point
-   estimate, so the observation noise is kept and the process noise is scaled. A loose weighting
-   lets the smoothed states absorb the model's errors (a good one-step fit that free-runs badly);
-   a tight one makes the fit an output-error (simulation) fit, whose landscape is rougher. The
-   physics is fitted on the fit part at ``noise_factors`` × its process noise, loose to tight,
-   each fit started from the previous one's parameters and states (a continuation), and each
-   scored by a free run over the validation tail; the continuation stops after
-   ``noise_patience`` factors without a better score. The noise the likelihood learns
-   (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space model,
-   not the free-run score, and on the real datasets it made that score worse.
-2. **The learned term's training length.** The hybrid (:func:`ceemx.hybrid`: the chosen physics
-   fit plus a zero-initialised network) is trained on the fit part by :class:`ceemx.JointLM`
-   with weight decay, every iteration scored on the validation tail
-   (:class:`ceemx.EarlyStopping`, the physics scored as iteration 0); the best iteration is the
-   training length. When no iteration beats the physics, the term is left out (length 0).
+1. **The noise weighting, judged by the hybrid.** A CE fit maximises J (Eq. 9), where the
+   process and observation noise weigh the dynamics' residuals against the outputs'; only their
+   ratio moves the point estimate, so the observation noise is kept and the process noise is
+   scaled. A loose weighting lets the smoothed states absorb the model's errors (a good one-step
+   fit that free-runs badly, and a term that has nothing to learn from: the states already carry
+   what the physics lacks); a tight one makes the fit an output-error (simulation) fit, whose
+   landscape is rougher. The physics is fitted on the fit part at every factor of
+   ``noise_factors`` × its process noise, loose to tight, each fit started from the previous
+   one's parameters and states (a continuation), and each scored by a free run over the
+   validation tail. The physics' own score does not decide: where the physics lacks a force, its
+   error is that force at every weighting, and the weighting where it scores best can be one
+   where the term cannot learn. So the term is trained (step 2) at the physics' best factor and
+   at every whole decade tighter, loose to tight, until ``noise_patience`` of them in a row did
+   not improve the best hybrid score; the weighting whose hybrid (or physics, iteration 0)
+   scores best is chosen. The noise the likelihood learns (``fit(noise="learn")``) is not used:
+   it maximises the evidence of the state-space model, not the free-run score, and on the real
+   datasets it made that score worse.
+2. **The learned term's training length.** At each candidate weighting the hybrid
+   (:func:`ceemx.hybrid`: that weighting's physics fit plus a zero-initialised network) is
+   trained on the fit part by :class:`ceemx.JointLM` with weight decay, every iteration scored
+   on the validation tail (:class:`ceemx.EarlyStopping`, the physics scored as iteration 0).
+   The term leaves its zero start slowly — its free run can sit at the physics' score for tens
+   of iterations while J climbs, then fall, and it does not fall monotonically — so the training
+   stops only after ``patience`` iterations without a better score (counted from the last
+   improvement of at least ``min_delta``, relative), or at ``term_epochs``. The best iteration
+   of the chosen weighting is the training length; when no iteration beats the physics, the
+   term is left out (length 0).
 3. **Every sample in the final model** (``refit=True``): the physics is refitted on the whole
    record at the chosen weighting (from the fit part's parameters), and the term trained on the
    whole record for the chosen number of iterations. The held-out model (the fit part's,
    early-stopped) is returned beside it, so the two can be compared on test data.
 
 The result (:class:`HybridFit`) holds the selected model, both physics fits and the selection's
-record: every candidate weighting with its validation score, the chosen one, the term's
-validation score per iteration and the chosen length (:meth:`HybridFit.record`, a JSON-able
-dict; :meth:`HybridFit.summary`, text).
+record: every candidate weighting with its validation score and its hybrid's, the chosen one,
+the chosen term's validation score per iteration and the chosen length
+(:meth:`HybridFit.record`, a JSON-able dict; :meth:`HybridFit.summary`, text).
 
 Width, depth and the weight-decay σ of the term are fixed options (16 units, one hidden layer,
 σ = 1): on the real datasets' validation tails no change of them helped by more than the
@@ -37,6 +48,7 @@ rounding-level spread of the early-stopped path (``docs/results.md``, "Hybrid va
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -72,6 +84,11 @@ class NoiseCandidate:
         epochs: iterations of its fit.
         converged: whether its fit converged.
         wall_s: its fit's and score's wall time [s].
+        hybrid_rmse: the best validation RMSE of the term trained at this weighting, the
+            physics' (iteration 0) included (``None``: no term trained here).
+        term_best_epoch: that best iteration (0: the physics).
+        term_epochs: iterations the term's training ran here.
+        term_wall_s: the term's training time here [s].
     """
 
     factor: float
@@ -80,6 +97,10 @@ class NoiseCandidate:
     epochs: int
     converged: bool
     wall_s: float
+    hybrid_rmse: float | None = None
+    term_best_epoch: int = 0
+    term_epochs: int = 0
+    term_wall_s: float = 0.0
 
 
 @dataclass
@@ -94,16 +115,19 @@ class HybridFit:
             the fit part).
         held_out: the hybrid trained on the fit part, stopped at its best validation iteration.
         held_out_physics: the physics fit at the chosen weighting on the fit part.
-        candidates: every weighting tried, loose to tight.
+        candidates: every weighting tried, loose to tight (with the term's score where it was
+            trained).
         factor: the chosen factor on the model's process noise.
         process_noise: the chosen process-noise scale (the largest component).
-        term_scores: (iteration, validation RMSE) of the term's training on the fit part
-            (iteration 0: the physics).
+        term_scores: (iteration, validation RMSE) of the term's training on the fit part at
+            the chosen weighting (iteration 0: the physics).
         best_epoch: the chosen training length (0: no term).
-        term_epochs: iterations the held-out training ran before it stopped.
+        term_epochs: iterations the held-out training at the chosen weighting ran.
         validation_rmse: the validation score of the held-out physics and hybrid.
         term_stop: why the held-out training ended (its last iteration's record: converged,
-            stop, accepted, the LM's status, whether the term settled, failed trajectories).
+            stop, accepted, the LM's status, whether the term settled, failed trajectories;
+            ``stopped_by``: ``"patience"`` (the validation stopped improving: converged in the
+            selection's sense), ``"term_epochs"`` (the budget ran out) or ``"fit"``).
         refit: whether the final model was refitted on every sample.
         samples: samples of the fit part, the validation tail and the whole record.
         wall_s: wall time per stage [s].
@@ -145,12 +169,21 @@ class HybridFit:
 
     def summary(self) -> str:
         """The selection in a few lines of text."""
-        lines = ["noise weighting (process noise × factor, free-run RMSE on the validation tail):"]
+        lines = [
+            "noise weighting (process noise × factor, free-run RMSE on the validation tail: "
+            "physics; hybrid at its best iteration where the term was trained):"
+        ]
         for c in self.candidates:
             mark = "  ← chosen" if c.factor == self.factor else ""
+            term = (
+                ""
+                if c.hybrid_rmse is None
+                else f"; hybrid {c.hybrid_rmse:.4g} (iteration {c.term_best_epoch} of "
+                f"{c.term_epochs}, {c.term_wall_s:.1f} s)"
+            )
             lines.append(
                 f"  × {c.factor:.3g} (σ_w {c.process_noise:.3g}): {c.validation_rmse:.4g}"
-                f" ({c.epochs} iterations, {c.wall_s:.1f} s){mark}"
+                f" ({c.epochs} iterations, {c.wall_s:.1f} s){term}{mark}"
             )
         v = self.validation_rmse
         lines.append(
@@ -254,26 +287,24 @@ def _check_options(  # fmt: skip
     return factors, options
 
 
-def _select_noise(
+def _physics_path(
     physics: AbstractSystem,
     fit_part: Trajectories,
     judge: EarlyStopping,
     factors: list[float],
     scale0: float,
     max_epochs: int,
-    noise_patience: int,
     say: Callable[[str], Any],
-) -> tuple[list[NoiseCandidate], tuple[float, float, FitResult]]:
-    """The loose-to-tight continuation: (every candidate, the best as (rmse, factor, fit))."""
+) -> tuple[list[NoiseCandidate], list[FitResult]]:
+    """The loose-to-tight continuation of physics fits: (every candidate, every fit)."""
     from ceemx.identification.fitting.driver import fit
     from ceemx.identification.solvers.joint import JointLM
 
     candidates: list[NoiseCandidate] = []
-    best: tuple[float, float, FitResult] | None = None  # (rmse, factor, fit)
-    last: FitResult | None = None
-    since_best = 0
+    fits: list[FitResult] = []
     for f in factors:
         t = time.perf_counter()
+        last = fits[-1] if fits else None
         start = physics if last is None else last.system
         model = with_noise(start, process_noise=physics.process_noise.scaled(f))
         x0 = None if last is None else last.states
@@ -284,24 +315,31 @@ def _select_noise(
                 f, f * scale0, rmse, len(res.history), bool(res.converged), time.perf_counter() - t
             )
         )
-        say(f"noise × {f:.3g}: validation {rmse:.4g} ({len(res.history)} iterations)")
-        last = res
-        if math.isfinite(rmse) and (best is None or rmse < best[0]):
-            best, since_best = (rmse, f, res), 0
-        else:
-            since_best += 1
-            if since_best >= noise_patience:
-                break
-    if best is None:
+        fits.append(res)
+        say(f"physics at noise × {f:.3g}: validation {rmse:.4g} ({len(res.history)} iterations)")
+    if not any(math.isfinite(c.validation_rmse) for c in candidates):
         raise RuntimeError(
             "every candidate noise weighting diverged on the validation tail (non-finite free "
             "run); check the physics model's guess and the data's units."
         )
-    return candidates, best
+    return candidates, fits
+
+
+def _term_candidates(candidates: list[NoiseCandidate]) -> list[int]:
+    """Where the term is trained: the physics' best factor and every whole decade tighter."""
+    finite = [i for i, c in enumerate(candidates) if math.isfinite(c.validation_rmse)]
+    best = min(finite, key=lambda i: candidates[i].validation_rmse)
+    f0 = candidates[best].factor
+    out = [best]
+    for i in finite:
+        decades = math.log10(f0 / candidates[i].factor)
+        if decades > 0.5 and abs(decades - round(decades)) < 1e-6:
+            out.append(i)
+    return out
 
 
 def _train_term(build, held_physics, fit_part, validation, n_init, patience, options, epochs):
-    """The term on the chosen physics, trained with every iteration scored on the tail.
+    """The term on a physics fit, trained with every iteration scored on the tail.
 
     Returns (the early stopping, the best model, iterations run, why training ended).
     """
@@ -314,6 +352,9 @@ def _train_term(build, held_physics, fit_part, validation, n_init, patience, opt
     res = _fit_term(model, fit_part, held_physics.states, epochs, callbacks=[stopper])
     end = res.history[-1] if res.history else {}
     why = {k: end[k] for k in _WHY if k in end}
+    why["stopped_by"] = (
+        "patience" if stopper.stopped else "term_epochs" if len(res.history) >= epochs else "fit"
+    )
     return stopper, stopper.restore(res).system, len(res.history), why
 
 
@@ -374,16 +415,17 @@ def fit_hybrid(
     window: int | None = None,
     max_epochs: int = 200,
     term_epochs: int = 200,
-    patience: int = 5,
+    patience: int = 30,
     refit: bool = True,
     score_options: Mapping[str, Any] | None = None,
     progress: Callable[[str], Any] | None = None,
 ) -> HybridFit:
     """The physics model and a learned term, every setting chosen on the training record.
 
-    The procedure (module notes): the noise weighting by a loose-to-tight continuation of
-    physics fits, the term's training length by early stopping, both judged by the free-run
-    RMSE on the held-out tail of ``data``; then, with ``refit``, both refitted on every sample.
+    The procedure (module notes): a loose-to-tight continuation of physics fits, the term
+    trained at the physics' best noise weighting and at every decade tighter, the weighting and
+    the term's training length chosen by the hybrid's free-run RMSE on the held-out tail of
+    ``data``; then, with ``refit``, both refitted on every sample.
 
     Args:
         physics: the physics at its guess, Gaussian noise (its process noise: the loosest).
@@ -397,12 +439,14 @@ def fit_hybrid(
         depth: the term's hidden layers.
         prior_std: the weight-decay prior's σ.
         noise_factors: candidate factors on the model's process noise, loose to tight.
-        noise_patience: candidates without a better score before the continuation stops.
+        noise_patience: weightings in a row whose hybrid did not beat the best before no
+            tighter one is tried.
         validation_fraction: the tail of every record held out for the selection.
         window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
         term_epochs: iterations of the term's training at most.
-        patience: iterations without a better score before the term's training stops.
+        patience: iterations without a better validation score before the term's training
+            stops (long: the term can sit at its zero start for tens of iterations).
         refit: refit the chosen settings on every sample (else return the held-out model).
         score_options: options of :func:`ceemx.benchmark_score` for the validation free runs
             (how the initial state is set; the same options should score the test records).
@@ -427,27 +471,47 @@ def fit_hybrid(
     bounds = lower is not None or upper is not None
     wall: dict[str, float] = {}
 
-    # 1. the noise weighting: loose-to-tight continuation of physics fits on the fit part
+    # 1. the physics on the fit part at every weighting, loose to tight (a continuation)
     t0 = time.perf_counter()
     judge = EarlyStopping(validation, n_init, score_options=options)
-    candidates, best = _select_noise(
-        physics, fit_part, judge, factors, scale0, max_epochs, noise_patience, say
-    )
-    physics_rmse, factor, held_physics = best
+    candidates, fits = _physics_path(physics, fit_part, judge, factors, scale0, max_epochs, say)
     wall["noise"] = time.perf_counter() - t0
 
-    # 2. the learned term's training length: early stopping on the validation tail
+    # 2. the term at the physics' best weighting and every decade tighter; the hybrid decides
     t0 = time.perf_counter()
     build = functools.partial(
         hybrid, dynamics=dynamics, observation=observation, width=width, depth=depth,
         prior_std=prior_std, lower=lower, upper=upper,
     )  # fmt: skip
-    stopper, held_out, epochs_run, why = _train_term(
-        build, held_physics, fit_part, validation, n_init, patience, options, term_epochs
-    )
+    best: tuple[float, int, Any] | None = None  # (validation, candidate, training)
+    since_best = 0
+    for i in _term_candidates(candidates):
+        t = time.perf_counter()
+        training = _train_term(
+            build, fits[i], fit_part, validation, n_init, patience, options, term_epochs
+        )
+        stopper, epochs_run = training[0], training[2]
+        rmse = min(stopper.best_rmse, candidates[i].validation_rmse)
+        candidates[i] = dataclasses.replace(
+            candidates[i], hybrid_rmse=rmse, term_best_epoch=stopper.best_epoch,
+            term_epochs=epochs_run, term_wall_s=time.perf_counter() - t,
+        )  # fmt: skip
+        say(
+            f"term at noise × {candidates[i].factor:.3g}: validation {rmse:.4g} (iteration "
+            f"{stopper.best_epoch} of {epochs_run})"
+        )
+        if best is None or rmse < best[0]:
+            best, since_best = (rmse, i, training), 0
+        else:
+            since_best += 1
+            if since_best >= noise_patience:
+                break
+    assert best is not None
+    hybrid_rmse, chosen, (stopper, held_out, epochs_run, why) = best
+    factor, held_physics = candidates[chosen].factor, fits[chosen]
+    physics_rmse = candidates[chosen].validation_rmse
     best_epoch = stopper.best_epoch if math.isfinite(stopper.best_rmse) else 0
-    hybrid_rmse = stopper.best_rmse if best_epoch else physics_rmse
-    say(f"learned term: best iteration {best_epoch} of {epochs_run}, validation {hybrid_rmse:.4g}")
+    say(f"chosen: noise × {factor:.3g}, term's best iteration {best_epoch} of {epochs_run}")
     wall["term"] = time.perf_counter() - t0
 
     # 3. every sample: the physics and the term refitted at the chosen settings
