@@ -16,11 +16,11 @@ score, measured on the held-out tail of the *training* record (never a test reco
    validation tail. The physics' own score does not decide: where the physics lacks a force, its
    error is that force at every weighting, and the weighting where it scores best can be one
    where the term cannot learn. So the term is trained (step 2) at the physics' best factor and
-   at every whole decade tighter, loose to tight, until ``noise_patience`` of them in a row did
-   not improve the best hybrid score; the weighting whose hybrid (or physics, iteration 0)
-   scores best is chosen. The noise the likelihood learns (``fit(noise="learn")``) is not used:
-   it maximises the evidence of the state-space model, not the free-run score, and on the real
-   datasets it made that score worse.
+   at every whole decade from it, nearest first (tighter before looser), until
+   ``noise_patience`` of them in a row did not improve the best hybrid score; the weighting
+   whose hybrid (or physics, iteration 0) scores best is chosen. The noise the likelihood
+   learns (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space
+   model, not the free-run score, and on the real datasets it made that score worse.
 2. **The learned term's training length.** At each candidate weighting the hybrid
    (:func:`ceemx.hybrid`: that weighting's physics fit plus a zero-initialised network) is
    trained on the fit part by :class:`ceemx.JointLM` with weight decay, every iteration scored
@@ -326,16 +326,16 @@ def _physics_path(
 
 
 def _term_candidates(candidates: list[NoiseCandidate]) -> list[int]:
-    """Where the term is trained: the physics' best factor and every whole decade tighter."""
+    """Where the term is trained: the physics' best factor and every whole decade from it.
+
+    Nearest first (at equal distance the tighter first): the order the patience reads.
+    """
     finite = [i for i, c in enumerate(candidates) if math.isfinite(c.validation_rmse)]
     best = min(finite, key=lambda i: candidates[i].validation_rmse)
     f0 = candidates[best].factor
-    out = [best]
-    for i in finite:
-        decades = math.log10(f0 / candidates[i].factor)
-        if decades > 0.5 and abs(decades - round(decades)) < 1e-6:
-            out.append(i)
-    return out
+    decades = {i: math.log10(f0 / candidates[i].factor) for i in finite}
+    whole = [i for i, d in decades.items() if abs(d - round(d)) < 1e-6]
+    return sorted(whole, key=lambda i: (abs(round(decades[i])), -decades[i]))
 
 
 def _train_term(build, held_physics, fit_part, validation, n_init, patience, options, epochs):
@@ -423,7 +423,7 @@ def fit_hybrid(
     """The physics model and a learned term, every setting chosen on the training record.
 
     The procedure (module notes): a loose-to-tight continuation of physics fits, the term
-    trained at the physics' best noise weighting and at every decade tighter, the weighting and
+    trained at the physics' best noise weighting and at every decade from it, the weighting and
     the term's training length chosen by the hybrid's free-run RMSE on the held-out tail of
     ``data``; then, with ``refit``, both refitted on every sample.
 
@@ -440,7 +440,7 @@ def fit_hybrid(
         prior_std: the weight-decay prior's σ.
         noise_factors: candidate factors on the model's process noise, loose to tight.
         noise_patience: weightings in a row whose hybrid did not beat the best before no
-            tighter one is tried.
+            further one is tried.
         validation_fraction: the tail of every record held out for the selection.
         window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
@@ -477,7 +477,7 @@ def fit_hybrid(
     candidates, fits = _physics_path(physics, fit_part, judge, factors, scale0, max_epochs, say)
     wall["noise"] = time.perf_counter() - t0
 
-    # 2. the term at the physics' best weighting and every decade tighter; the hybrid decides
+    # 2. the term at the physics' best weighting and every decade from it; the hybrid decides
     t0 = time.perf_counter()
     build = functools.partial(
         hybrid, dynamics=dynamics, observation=observation, width=width, depth=depth,
