@@ -111,19 +111,23 @@ class HybridFit:
         system: the selected model: the hybrid trained on every sample for the chosen length
             (``refit=True``), else the held-out one; the physics (a hybrid with a zero term when
             bounds were asked for) when the term did not beat it on the validation tail.
-        physics: the physics fit at the chosen weighting on every sample (``refit=False``: on
-            the fit part).
+        physics: the physics alone at its own best weighting (``physics_factor``), fitted on
+            every sample (``refit=False``: on the fit part): what the physics-only user gets.
         held_out: the hybrid trained on the fit part, stopped at its best validation iteration.
-        held_out_physics: the physics fit at the chosen weighting on the fit part.
+        held_out_physics: the physics fit at the chosen weighting on the fit part (the held-out
+            hybrid's start).
         candidates: every weighting tried, loose to tight (with the term's score where it was
             trained).
-        factor: the chosen factor on the model's process noise.
+        factor: the chosen factor on the model's process noise (the hybrid's weighting).
         process_noise: the chosen process-noise scale (the largest component).
+        physics_factor: the factor at which the physics alone scored best.
         term_scores: (iteration, validation RMSE) of the term's training on the fit part at
             the chosen weighting (iteration 0: the physics).
         best_epoch: the chosen training length (0: no term).
         term_epochs: iterations the held-out training at the chosen weighting ran.
-        validation_rmse: the validation score of the held-out physics and hybrid.
+        validation_rmse: the validation score of the physics alone at its best weighting
+            (``physics``), of the physics at the chosen weighting (``physics_at_factor``) and
+            of the held-out hybrid (``hybrid``).
         term_stop: why the held-out training ended (its last iteration's record: converged,
             stop, accepted, the LM's status, whether the term settled, failed trajectories;
             ``stopped_by``: ``"patience"`` (the validation stopped improving: converged in the
@@ -141,6 +145,7 @@ class HybridFit:
     candidates: list[NoiseCandidate]
     factor: float
     process_noise: float
+    physics_factor: float
     term_scores: list[tuple[int, float]]
     best_epoch: int
     term_epochs: int
@@ -157,6 +162,7 @@ class HybridFit:
             "candidates": [c.__dict__ for c in self.candidates],
             "factor": self.factor,
             "process_noise": self.process_noise,
+            "physics_factor": self.physics_factor,
             "term_scores": [[int(e), float(r)] for e, r in self.term_scores],
             "best_epoch": self.best_epoch,
             "term_epochs": self.term_epochs,
@@ -187,8 +193,9 @@ class HybridFit:
             )
         v = self.validation_rmse
         lines.append(
-            f"learned term: best iteration {self.best_epoch} of {self.term_epochs}, validation "
-            f"{v['hybrid']:.4g} (physics {v['physics']:.4g})"
+            f"learned term at × {self.factor:.3g}: best iteration {self.best_epoch} of "
+            f"{self.term_epochs}, validation {v['hybrid']:.4g} (physics alone {v['physics']:.4g}"
+            f" at × {self.physics_factor:.3g})"
             + ("" if self.best_epoch else ": no iteration beat the physics, term left out")
         )
         where = "every sample" if self.refit else "the fit part"
@@ -363,12 +370,7 @@ def _refit_all(build, held_physics, whole, max_epochs: int, best_epoch: int, bou
 
     Returns (the physics fit, the final model, the term's fit or ``None``).
     """
-    from ceemx.identification.fitting.driver import fit
-    from ceemx.identification.solvers.joint import JointLM
-
-    physics = fit(
-        held_physics.system, whole, solver=JointLM(), max_epochs=max_epochs, diagnose=False
-    )
+    physics = _refit_physics(held_physics.system, whole, max_epochs)
     final: Any = physics.system
     if best_epoch or bounds:
         final = build(physics.system, whole, states=physics.states)
@@ -376,6 +378,14 @@ def _refit_all(build, held_physics, whole, max_epochs: int, best_epoch: int, bou
         return physics, final, None
     term = _fit_term(final, whole, physics.states, best_epoch)
     return physics, term.system, term
+
+
+def _refit_physics(system: AbstractSystem, whole: Trajectories, max_epochs: int) -> FitResult:
+    """The physics refitted on every sample from ``system`` (the fit part's parameters)."""
+    from ceemx.identification.fitting.driver import fit
+    from ceemx.identification.solvers.joint import JointLM
+
+    return fit(system, whole, solver=JointLM(), max_epochs=max_epochs, diagnose=False)
 
 
 def _fit_term(model, data: Trajectories, states, epochs: int, callbacks=()) -> FitResult:
@@ -509,18 +519,29 @@ def fit_hybrid(
     assert best is not None
     hybrid_rmse, chosen, (stopper, held_out, epochs_run, why) = best
     factor, held_physics = candidates[chosen].factor, fits[chosen]
-    physics_rmse = candidates[chosen].validation_rmse
+    alone = min(
+        (i for i, c in enumerate(candidates) if math.isfinite(c.validation_rmse)),
+        key=lambda i: candidates[i].validation_rmse,
+    )
+    rmse_of = {"physics": candidates[alone].validation_rmse}
+    rmse_of["physics_at_factor"] = candidates[chosen].validation_rmse
+    rmse_of["hybrid"] = hybrid_rmse
     best_epoch = stopper.best_epoch if math.isfinite(stopper.best_rmse) else 0
     say(f"chosen: noise × {factor:.3g}, term's best iteration {best_epoch} of {epochs_run}")
     wall["term"] = time.perf_counter() - t0
 
     # 3. every sample: the physics and the term refitted at the chosen settings
-    final_physics, term_result = held_physics, None
+    final_physics, term_result = fits[alone], None
     final: Any = held_out
     if refit:
         t0 = time.perf_counter()
-        final_physics, final, term_result = _refit_all(
+        hybrid_physics, final, term_result = _refit_all(
             build, held_physics, whole, max_epochs, best_epoch, bounds
+        )
+        final_physics = (
+            hybrid_physics
+            if alone == chosen
+            else _refit_physics(fits[alone].system, whole, max_epochs)
         )
         wall["refit"] = time.perf_counter() - t0
         say(f"refit on every sample: {wall['refit']:.1f} s")
@@ -534,7 +555,8 @@ def fit_hybrid(
     return HybridFit(
         system=final, physics=final_physics, held_out=held_out,
         held_out_physics=held_physics.system, candidates=candidates, factor=factor,
-        process_noise=factor * scale0, term_scores=list(stopper.scores), best_epoch=best_epoch,
-        term_epochs=epochs_run, validation_rmse={"physics": physics_rmse, "hybrid": hybrid_rmse},
+        process_noise=factor * scale0, physics_factor=candidates[alone].factor,
+        term_scores=list(stopper.scores), best_epoch=best_epoch, term_epochs=epochs_run,
+        validation_rmse=rmse_of,
         term_stop=why, refit=refit, samples=samples, wall_s=wall, term_result=term_result,
     )  # fmt: skip
