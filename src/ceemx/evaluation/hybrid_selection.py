@@ -33,7 +33,10 @@ score, measured on the held-out tail of the *training* record (never a test reco
    term is left out (length 0).
 3. **Every sample in the final model** (``refit=True``): the physics is refitted on the whole
    record at the chosen weighting (from the fit part's parameters), and the term trained on the
-   whole record for the chosen number of iterations. The held-out model (the fit part's,
+   whole record from its zero start. Its free run passes through its best as on the fit part,
+   but not at the same iteration (the best is a transient a few iterations wide), so the refit
+   keeps the iteration whose free run over the whole record is best, within the chosen length
+   plus ``patience``. The held-out model (the fit part's,
    early-stopped) is returned beside it, so the two can be compared on test data.
 
 The result (:class:`HybridFit`) holds the selected model, both physics fits and the selection's
@@ -133,6 +136,9 @@ class HybridFit:
             ``stopped_by``: ``"patience"`` (the validation stopped improving: converged in the
             selection's sense), ``"term_epochs"`` (the budget ran out) or ``"fit"``).
         refit: whether the final model was refitted on every sample.
+        refit_epoch: the iteration of the term's training on every sample that was kept (its
+            best free run over the whole record; 0: no term).
+        refit_scores: (iteration, free-run RMSE over the whole record) of that training.
         samples: samples of the fit part, the validation tail and the whole record.
         wall_s: wall time per stage [s].
         term_result: the final term fit's :class:`ceemx.FitResult` (``None`` without a term).
@@ -153,6 +159,8 @@ class HybridFit:
     term_stop: dict[str, Any]
     refit: bool
     samples: dict[str, int]
+    refit_epoch: int = 0
+    refit_scores: list[tuple[int, float]] = field(default_factory=list)
     wall_s: dict[str, float] = field(default_factory=dict)
     term_result: FitResult | None = None
 
@@ -169,6 +177,8 @@ class HybridFit:
             "validation_rmse": dict(self.validation_rmse),
             "term_stop": dict(self.term_stop),
             "refit": self.refit,
+            "refit_epoch": self.refit_epoch,
+            "refit_scores": [[int(e), float(r)] for e, r in self.refit_scores],
             "samples": dict(self.samples),
             "wall_s": dict(self.wall_s),
         }
@@ -199,9 +209,10 @@ class HybridFit:
             + ("" if self.best_epoch else ": no iteration beat the physics, term left out")
         )
         where = "every sample" if self.refit else "the fit part"
+        kept = f", the term's iteration {self.refit_epoch} kept" if self.refit_scores else ""
         lines.append(
             f"final model: fitted on {where} ({self.samples['total' if self.refit else 'fit']}"
-            f" samples); {sum(self.wall_s.values()):.1f} s in all"
+            f" samples{kept}); {sum(self.wall_s.values()):.1f} s in all"
         )
         return "\n".join(lines)
 
@@ -365,19 +376,29 @@ def _train_term(build, held_physics, fit_part, validation, n_init, patience, opt
     return stopper, stopper.restore(res).system, len(res.history), why
 
 
-def _refit_all(build, held_physics, whole, max_epochs: int, best_epoch: int, bounds: bool):
-    """The physics, then the term for ``best_epoch`` iterations, on every sample.
+def _refit_all(build, held_physics, whole, record, n_init, options, max_epochs, best_epoch,
+               patience, bounds):  # fmt: skip
+    """The physics, then the term, on every sample.
 
-    Returns (the physics fit, the final model, the term's fit or ``None``).
+    The term's training on every sample passes through its best free run as on the fit part,
+    but not at the same iteration: the free run can sit at the physics' score for tens of
+    iterations and then pass through its best within a few (a transient, not the J optimum).
+    So the refit is watched by the free run over the whole ``record`` (every sample, the data it
+    is trained on: the score is the simulation error, which J does not optimise) and the best
+    iteration kept, within ``best_epoch + patience`` iterations.
+
+    Returns (the physics fit, the final model, the term's fit or ``None``, the watcher or
+    ``None``).
     """
     physics = _refit_physics(held_physics.system, whole, max_epochs)
     final: Any = physics.system
     if best_epoch or bounds:
         final = build(physics.system, whole, states=physics.states)
     if not best_epoch:
-        return physics, final, None
-    term = _fit_term(final, whole, physics.states, best_epoch)
-    return physics, term.system, term
+        return physics, final, None, None
+    watch = EarlyStopping(record, n_init, patience=patience, start=final, score_options=options)
+    term = _fit_term(final, whole, physics.states, best_epoch + patience, callbacks=[watch])
+    return physics, watch.restore(term).system, term, watch
 
 
 def _refit_physics(system: AbstractSystem, whole: Trajectories, max_epochs: int) -> FitResult:
@@ -533,11 +554,17 @@ def fit_hybrid(
     # 3. every sample: the physics and the term refitted at the chosen settings
     final_physics, term_result = fits[alone], None
     final: Any = held_out
+    refit_scores: list[tuple[int, float]] = []
+    refit_epoch = 0
     if refit:
         t0 = time.perf_counter()
-        hybrid_physics, final, term_result = _refit_all(
-            build, held_physics, whole, max_epochs, best_epoch, bounds
-        )
+        hybrid_physics, final, term_result, watch = _refit_all(
+            build, held_physics, whole, data, n_init, options, max_epochs, best_epoch,
+            patience, bounds,
+        )  # fmt: skip
+        if watch is not None:
+            refit_scores = list(watch.scores)
+            refit_epoch = watch.best_epoch
         final_physics = (
             hybrid_physics
             if alone == chosen
@@ -557,6 +584,6 @@ def fit_hybrid(
         held_out_physics=held_physics.system, candidates=candidates, factor=factor,
         process_noise=factor * scale0, physics_factor=candidates[alone].factor,
         term_scores=list(stopper.scores), best_epoch=best_epoch, term_epochs=epochs_run,
-        validation_rmse=rmse_of,
+        validation_rmse=rmse_of, refit_epoch=refit_epoch, refit_scores=refit_scores,
         term_stop=why, refit=refit, samples=samples, wall_s=wall, term_result=term_result,
     )  # fmt: skip
