@@ -17,8 +17,10 @@ score, measured on the held-out tail of the *training* record (never a test reco
    error is that force at every weighting, and the weighting where it scores best can be one
    where the term cannot learn. So the term is trained (step 2) at the physics' best factor and
    at every whole decade from it, nearest first (tighter before looser), until
-   ``noise_patience`` of them in a row did not improve the best hybrid score; the weighting
-   whose hybrid (or physics, iteration 0) scores best is chosen. The noise the likelihood
+   ``noise_patience`` of them in a row did not improve the best hybrid score. The physics' best
+   weighting is kept unless another's hybrid (or physics, iteration 0) scores better by more
+   than ``noise_margin`` (25 %): a few per cent on a short validation tail are no evidence
+   that a weighting carries over to new data. The noise the likelihood
    learns (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space
    model, not the free-run score, and on the real datasets it made that score worse.
 2. **The learned term's training length.** At each candidate weighting the hybrid
@@ -66,7 +68,7 @@ from jaxtyping import ArrayLike
 from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.early_stopping import SCORE_OPTIONS, EarlyStopping
 from ceemx.identification.fitting.result import FitResult
-from ceemx.infra.options import check_int, check_positive
+from ceemx.infra.options import check_int, check_nonnegative, check_positive
 from ceemx.models.system import AbstractSystem, with_noise
 
 __all__ = ["NOISE_FACTORS", "HybridFit", "NoiseCandidate", "fit_hybrid", "split_tail"]
@@ -270,6 +272,7 @@ def _check_options(  # fmt: skip
     data,
     n_init,
     noise_patience,
+    noise_margin,
     patience,
     max_epochs,
     term_epochs,
@@ -290,6 +293,9 @@ def _check_options(  # fmt: skip
     check_int("term_epochs", term_epochs, 0)
     if window is not None:
         check_int("window", window, 2 * n_init)
+    check_nonnegative("noise_margin", noise_margin)
+    if noise_margin >= 1:
+        raise ValueError(f"`noise_margin` must be in [0, 1); got {noise_margin!r}.")
     check_positive("validation_fraction", validation_fraction)
     if validation_fraction >= 1:
         raise ValueError(f"`validation_fraction` must be in (0, 1); got {validation_fraction!r}.")
@@ -354,6 +360,16 @@ def _term_candidates(candidates: list[NoiseCandidate]) -> list[int]:
     decades = {i: math.log10(f0 / candidates[i].factor) for i in finite}
     whole = [i for i, d in decades.items() if abs(d - round(d)) < 1e-6]
     return sorted(whole, key=lambda i: (abs(round(decades[i])), -decades[i]))
+
+
+def _choose(trained: dict[int, tuple[float, Any]], margin: float) -> int:
+    """The chosen candidate: the physics' best weighting (tried first) unless beaten clearly.
+
+    Another weighting is chosen when its hybrid scores better by more than ``margin``.
+    """
+    first = next(iter(trained))
+    other = min(trained, key=lambda i: trained[i][0])
+    return other if trained[other][0] < (1 - margin) * trained[first][0] else first
 
 
 def _train_term(build, held_physics, fit_part, validation, n_init, patience, options, epochs):
@@ -442,6 +458,7 @@ def fit_hybrid(
     prior_std: float = 1.0,
     noise_factors: Sequence[float] = NOISE_FACTORS,
     noise_patience: int = 2,
+    noise_margin: float = 0.25,
     validation_fraction: float = 0.2,
     window: int | None = None,
     max_epochs: int = 200,
@@ -472,6 +489,8 @@ def fit_hybrid(
         noise_factors: candidate factors on the model's process noise, loose to tight.
         noise_patience: weightings in a row whose hybrid did not beat the best before no
             further one is tried.
+        noise_margin: how much better (relative) another weighting's hybrid must score on the
+            validation tail than the hybrid at the physics' best weighting to be chosen.
         validation_fraction: the tail of every record held out for the selection.
         window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
@@ -492,8 +511,8 @@ def fit_hybrid(
     from ceemx.identification.hybrid_builder import hybrid
 
     factors, options = _check_options(
-        physics, data, n_init, noise_patience, patience, max_epochs, term_epochs, window,
-        validation_fraction, noise_factors, score_options,
+        physics, data, n_init, noise_patience, noise_margin, patience, max_epochs, term_epochs,
+        window, validation_fraction, noise_factors, score_options,
     )  # fmt: skip
     scale0 = _noise_scale(physics)
     say = progress or (lambda _line: None)
@@ -514,7 +533,8 @@ def fit_hybrid(
         hybrid, dynamics=dynamics, observation=observation, width=width, depth=depth,
         prior_std=prior_std, lower=lower, upper=upper,
     )  # fmt: skip
-    best: tuple[float, int, Any] | None = None  # (validation, candidate, training)
+    trained: dict[int, tuple[float, Any]] = {}  # candidate: (validation, training)
+    best = math.inf
     since_best = 0
     for i in _term_candidates(candidates):
         t = time.perf_counter()
@@ -531,14 +551,15 @@ def fit_hybrid(
             f"term at noise × {candidates[i].factor:.3g}: validation {rmse:.4g} (iteration "
             f"{stopper.best_epoch} of {epochs_run})"
         )
-        if best is None or rmse < best[0]:
-            best, since_best = (rmse, i, training), 0
+        trained[i] = (rmse, training)
+        if rmse < best:
+            best, since_best = rmse, 0
         else:
             since_best += 1
             if since_best >= noise_patience:
                 break
-    assert best is not None
-    hybrid_rmse, chosen, (stopper, held_out, epochs_run, why) = best
+    chosen = _choose(trained, noise_margin)
+    hybrid_rmse, (stopper, held_out, epochs_run, why) = trained[chosen]
     factor, held_physics = candidates[chosen].factor, fits[chosen]
     alone = min(
         (i for i, c in enumerate(candidates) if math.isfinite(c.validation_rmse)),
