@@ -19,7 +19,7 @@ score, measured on the held-out tail of the *training* record (never a test reco
    at every whole decade from it, nearest first (tighter before looser), until
    ``noise_patience`` of them in a row did not improve the best hybrid score. The physics' best
    weighting is kept unless another's hybrid (or physics, iteration 0) scores better by more
-   than ``noise_margin`` (25 %): a few per cent on a short validation tail are no evidence
+   than ``margin`` (25 %): a few per cent on a short validation tail are no evidence
    that a weighting carries over to new data. The noise the likelihood
    learns (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space
    model, not the free-run score, and on the real datasets it made that score worse.
@@ -35,11 +35,13 @@ score, measured on the held-out tail of the *training* record (never a test reco
    term is left out (length 0).
 3. **Every sample in the final model** (``refit=True``): the physics is refitted on the whole
    record at the chosen weighting (from the fit part's parameters), and the term trained on the
-   whole record from its zero start. Its free run passes through its best as on the fit part,
-   but not at the same iteration (the best is a transient a few iterations wide), so the refit
-   keeps the iteration whose free run over the whole record is best, within the chosen length
-   plus ``patience``. The held-out model (the fit part's,
-   early-stopped) is returned beside it, so the two can be compared on test data.
+   whole record from its zero start for the chosen length plus ``patience`` iterations, each
+   scored by its free run over the whole record. The chosen length is kept unless another
+   iteration scores better by more than ``margin``: the best can be a transient a few
+   iterations wide that the longer record reaches later (a dip the in-sample free run shows),
+   while a steady in-sample gain of longer training is no evidence that it carries over. The
+   held-out model (the fit part's, early-stopped) is returned beside it, so the two can be
+   compared on test data.
 
 The result (:class:`HybridFit`) holds the selected model, both physics fits and the selection's
 record: every candidate weighting with its validation score and its hybrid's, the chosen one,
@@ -138,8 +140,9 @@ class HybridFit:
             ``stopped_by``: ``"patience"`` (the validation stopped improving: converged in the
             selection's sense), ``"term_epochs"`` (the budget ran out) or ``"fit"``).
         refit: whether the final model was refitted on every sample.
-        refit_epoch: the iteration of the term's training on every sample that was kept (its
-            best free run over the whole record; 0: no term).
+        refit_epoch: the iteration of the term's training on every sample that was kept (the
+            chosen length unless another's free run over the whole record was better by more
+            than ``margin``; 0: no term).
         refit_scores: (iteration, free-run RMSE over the whole record) of that training.
         samples: samples of the fit part, the validation tail and the whole record.
         wall_s: wall time per stage [s].
@@ -272,7 +275,7 @@ def _check_options(  # fmt: skip
     data,
     n_init,
     noise_patience,
-    noise_margin,
+    margin,
     patience,
     max_epochs,
     term_epochs,
@@ -293,9 +296,9 @@ def _check_options(  # fmt: skip
     check_int("term_epochs", term_epochs, 0)
     if window is not None:
         check_int("window", window, 2 * n_init)
-    check_nonnegative("noise_margin", noise_margin)
-    if noise_margin >= 1:
-        raise ValueError(f"`noise_margin` must be in [0, 1); got {noise_margin!r}.")
+    check_nonnegative("margin", margin)
+    if margin >= 1:
+        raise ValueError(f"`margin` must be in [0, 1); got {margin!r}.")
     check_positive("validation_fraction", validation_fraction)
     if validation_fraction >= 1:
         raise ValueError(f"`validation_fraction` must be in (0, 1); got {validation_fraction!r}.")
@@ -393,28 +396,39 @@ def _train_term(build, held_physics, fit_part, validation, n_init, patience, opt
 
 
 def _refit_all(build, held_physics, whole, record, n_init, options, max_epochs, best_epoch,
-               patience, bounds):  # fmt: skip
+               patience, margin, bounds):  # fmt: skip
     """The physics, then the term, on every sample.
 
-    The term's training on every sample passes through its best free run as on the fit part,
-    but not at the same iteration: the free run can sit at the physics' score for tens of
-    iterations and then pass through its best within a few (a transient, not the J optimum).
-    So the refit is watched by the free run over the whole ``record`` (every sample, the data it
-    is trained on: the score is the simulation error, which J does not optimise) and the best
-    iteration kept, within ``best_epoch + patience`` iterations.
+    The term is trained on every sample for ``best_epoch + patience`` iterations, each scored
+    by its free run over the whole ``record`` (the data it is trained on: the simulation error,
+    which J does not optimise). The iteration ``best_epoch`` is kept unless another scores
+    better by more than ``margin`` (relative): the term's best free run is often a transient a
+    few iterations wide that the longer record reaches later, which such a dip shows, while a
+    steady in-sample gain of longer training is no evidence that it carries over.
 
     Returns (the physics fit, the final model, the term's fit or ``None``, the watcher or
-    ``None``).
+    ``None``, the iteration kept).
     """
     physics = _refit_physics(held_physics.system, whole, max_epochs)
     final: Any = physics.system
     if best_epoch or bounds:
         final = build(physics.system, whole, states=physics.states)
     if not best_epoch:
-        return physics, final, None, None
-    watch = EarlyStopping(record, n_init, patience=patience, start=final, score_options=options)
-    term = _fit_term(final, whole, physics.states, best_epoch + patience, callbacks=[watch])
-    return physics, watch.restore(term).system, term, watch
+        return physics, final, None, None, 0
+    epochs = best_epoch + patience
+    watch = EarlyStopping(record, n_init, patience=epochs, start=final, score_options=options)
+    at_length: dict[str, Any] = {}
+
+    def keep(info) -> dict:
+        if info.epoch == best_epoch:
+            at_length["system"] = info.system
+        return {}
+
+    term = _fit_term(final, whole, physics.states, epochs, callbacks=[watch, keep])
+    scores = dict(watch.scores)
+    if "system" in at_length and not watch.best_rmse < (1 - margin) * scores[best_epoch]:
+        return physics, at_length["system"], term, watch, best_epoch
+    return physics, watch.restore(term).system, term, watch, watch.best_epoch
 
 
 def _refit_physics(system: AbstractSystem, whole: Trajectories, max_epochs: int) -> FitResult:
@@ -458,7 +472,7 @@ def fit_hybrid(
     prior_std: float = 1.0,
     noise_factors: Sequence[float] = NOISE_FACTORS,
     noise_patience: int = 2,
-    noise_margin: float = 0.25,
+    margin: float = 0.25,
     validation_fraction: float = 0.2,
     window: int | None = None,
     max_epochs: int = 200,
@@ -489,8 +503,9 @@ def fit_hybrid(
         noise_factors: candidate factors on the model's process noise, loose to tight.
         noise_patience: weightings in a row whose hybrid did not beat the best before no
             further one is tried.
-        noise_margin: how much better (relative) another weighting's hybrid must score on the
-            validation tail than the hybrid at the physics' best weighting to be chosen.
+        margin: how much better (relative) a departure from the default must score to be
+            taken: another weighting's hybrid than the physics' best weighting's (on the
+            validation tail), another refit iteration than the chosen length (module notes).
         validation_fraction: the tail of every record held out for the selection.
         window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
@@ -511,7 +526,7 @@ def fit_hybrid(
     from ceemx.identification.hybrid_builder import hybrid
 
     factors, options = _check_options(
-        physics, data, n_init, noise_patience, noise_margin, patience, max_epochs, term_epochs,
+        physics, data, n_init, noise_patience, margin, patience, max_epochs, term_epochs,
         window, validation_fraction, noise_factors, score_options,
     )  # fmt: skip
     scale0 = _noise_scale(physics)
@@ -558,7 +573,7 @@ def fit_hybrid(
             since_best += 1
             if since_best >= noise_patience:
                 break
-    chosen = _choose(trained, noise_margin)
+    chosen = _choose(trained, margin)
     hybrid_rmse, (stopper, held_out, epochs_run, why) = trained[chosen]
     factor, held_physics = candidates[chosen].factor, fits[chosen]
     alone = min(
@@ -579,13 +594,12 @@ def fit_hybrid(
     refit_epoch = 0
     if refit:
         t0 = time.perf_counter()
-        hybrid_physics, final, term_result, watch = _refit_all(
+        hybrid_physics, final, term_result, watch, refit_epoch = _refit_all(
             build, held_physics, whole, data, n_init, options, max_epochs, best_epoch,
-            patience, bounds,
+            patience, margin, bounds,
         )  # fmt: skip
         if watch is not None:
             refit_scores = list(watch.scores)
-            refit_epoch = watch.best_epoch
         final_physics = (
             hybrid_physics
             if alone == chosen
