@@ -37,9 +37,10 @@ score, measured on the held-out tail of the *training* record (never a test reco
    record at the chosen weighting (from the fit part's parameters), and the term trained on the
    whole record from its zero start for the chosen length plus ``patience`` iterations, each
    scored by its free run over the whole record. The chosen length is kept unless another
-   iteration scores better by more than ``margin``: the best can be a transient a few
-   iterations wide that the longer record reaches later (a dip the in-sample free run shows),
-   while a steady in-sample gain of longer training is no evidence that it carries over. The
+   iteration is a dip, better by more than ``margin`` than both the chosen length and the last
+   iteration: the best can be a transient a few iterations wide that the longer record reaches
+   later, while a steady in-sample gain of training longer (the best at the end) is no evidence
+   that it carries over (on a short record it is overfitting). The
    held-out model (the fit part's, early-stopped) is returned beside it, so the two can be
    compared on test data.
 
@@ -141,8 +142,8 @@ class HybridFit:
             selection's sense), ``"term_epochs"`` (the budget ran out) or ``"fit"``).
         refit: whether the final model was refitted on every sample.
         refit_epoch: the iteration of the term's training on every sample that was kept (the
-            chosen length unless another's free run over the whole record was better by more
-            than ``margin``; 0: no term).
+            chosen length unless another's free run over the whole record was a dip, better by
+            more than ``margin`` than both it and the last iteration; 0: no term).
         refit_scores: (iteration, free-run RMSE over the whole record) of that training.
         samples: samples of the fit part, the validation tail and the whole record.
         wall_s: wall time per stage [s].
@@ -401,10 +402,11 @@ def _refit_all(build, held_physics, whole, record, n_init, options, max_epochs, 
 
     The term is trained on every sample for ``best_epoch + patience`` iterations, each scored
     by its free run over the whole ``record`` (the data it is trained on: the simulation error,
-    which J does not optimise). The iteration ``best_epoch`` is kept unless another scores
-    better by more than ``margin`` (relative): the term's best free run is often a transient a
-    few iterations wide that the longer record reaches later, which such a dip shows, while a
-    steady in-sample gain of longer training is no evidence that it carries over.
+    which J does not optimise). The iteration ``best_epoch`` is kept unless another is a dip:
+    better by more than ``margin`` (relative) than both ``best_epoch`` and the last iteration.
+    The term's best free run is often a transient a few iterations wide that the longer record
+    reaches later, which such a dip shows; a steady in-sample gain of longer training (the best
+    at the end) is no evidence that it carries over — on a short record it is overfitting.
 
     Returns (the physics fit, the final model, the term's fit or ``None``, the watcher or
     ``None``, the iteration kept).
@@ -426,7 +428,9 @@ def _refit_all(build, held_physics, whole, record, n_init, options, max_epochs, 
 
     term = _fit_term(final, whole, physics.states, epochs, callbacks=[watch, keep])
     scores = dict(watch.scores)
-    if "system" in at_length and not watch.best_rmse < (1 - margin) * scores[best_epoch]:
+    last = scores[max(scores)]
+    dip = watch.best_rmse < (1 - margin) * min(scores.get(best_epoch, math.inf), last)
+    if "system" in at_length and not dip:
         return physics, at_length["system"], term, watch, best_epoch
     return physics, watch.restore(term).system, term, watch, watch.best_epoch
 
@@ -505,7 +509,8 @@ def fit_hybrid(
             further one is tried.
         margin: how much better (relative) a departure from the default must score to be
             taken: another weighting's hybrid than the physics' best weighting's (on the
-            validation tail), another refit iteration than the chosen length (module notes).
+            validation tail), another refit iteration than the chosen length and the last one
+            (module notes).
         validation_fraction: the tail of every record held out for the selection.
         window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
