@@ -211,8 +211,9 @@ class HybridFit:
         lines.append(
             f"learned term at × {self.factor:.3g}: best iteration {self.best_epoch} of "
             f"{self.term_epochs}, validation {v['hybrid']:.4g} (physics alone {v['physics']:.4g}"
-            f" at × {self.physics_factor:.3g})"
-            + ("" if self.best_epoch else ": no iteration beat the physics, term left out")
+            f" at × {self.physics_factor:.3g}); "
+            + _STOPPED.get(self.term_stop.get("stopped_by", ""), "not trained")
+            + ("" if self.best_epoch else "; no iteration beat the physics, term left out")
         )
         where = "every sample" if self.refit else "the fit part"
         kept = f", the term's iteration {self.refit_epoch} kept" if self.refit_scores else ""
@@ -222,6 +223,13 @@ class HybridFit:
         )
         return "\n".join(lines)
 
+
+#: Why the chosen weighting's term training ended, in words (``term_stop["stopped_by"]``).
+_STOPPED = {
+    "patience": "converged: the validation stopped improving",
+    "term_epochs": "not converged: the iteration budget ran out",
+    "fit": "the fit stopped",
+}
 
 #: The history keys that say why the term's training ended.
 _WHY = (
