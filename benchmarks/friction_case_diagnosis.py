@@ -1,11 +1,12 @@
-"""Why ``fit_hybrid``'s defaults leave the term out on the friction case (``friction_case.py``).
+"""The friction case's stages one at a time (``friction_case.py``): what ``fit_hybrid`` weighs.
 
 Stage 1 in full: the physics continuation over every default noise factor (no patience), each
 fit's validation-tail and test free-run RMSE [mm] and parameters. Stage 2 at chosen factors:
 the learned term (``fit_hybrid``'s: width 16, weight decay, ``JointLM``) trained for a fixed
 number of iterations with no early stop, its validation RMSE every iteration, its test RMSE
-every 10 and J — how long the term takes to leave its zero start, and whether the validation
-tail follows the test record on the way.
+every 10 and J — how long the term takes to leave its zero start (why ``fit_hybrid``'s patience
+is long), how sharp its best is (why the refit watches its own free run), and whether the
+validation tail follows the test record on the way.
 
 Usage: ``python benchmarks/friction_case_diagnosis.py N_TRAIN PROCESS_NOISE TERM_AT ITERS``,
 e.g. ``python benchmarks/friction_case_diagnosis.py 20000 1e-5 4,6 200`` (PROCESS_NOISE: the

@@ -66,15 +66,7 @@ def test_friction_law_and_the_physics_that_lacks_it():
     assert not hasattr(guess, "coulomb") and float(guess.mass) != p["mass"]
 
 
-@pytest.mark.slow  # the procedure on 8,000 samples: ≈ 1–2 min on a loaded 2-core machine
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="fit_hybrid's defaults leave the term untrained here: the physics-only validation "
-    "picks the loosest weighting, whose states absorb the missing friction, and the term's "
-    "patience (5) ends its training before it leaves the zero start (docs/hybrid_models.md, "
-    "'A record nobody tuned for')",
-)
+@pytest.mark.slow  # the procedure on 8,000 samples: ≈ 5–16 min on a loaded 2-core machine
 def test_fit_hybrid_closes_most_of_the_friction_gap():
     """``fit_hybrid`` called as a user calls it (the physics at its guess, n_init, the term in
     the velocity equation; every option at its default) on a closed-loop record whose friction

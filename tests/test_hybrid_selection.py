@@ -134,6 +134,8 @@ def test_split_tail_holds_out_the_end_with_the_initial_window():
         ({"score_options": {"nope": 1}}, "score_options"),
         ({"n_init": 0}, "n_init"),
         ({"patience": 0}, "patience"),
+        ({"margin": 1.0}, "margin"),
+        ({"margin": -0.1}, "margin"),
     ],
 )
 def test_fit_hybrid_refuses_bad_options_before_any_fit(kwargs, match):
@@ -224,15 +226,17 @@ def test_fit_hybrid_selects_on_the_training_record_and_beats_the_physics():
         term_epochs=60, score_options={"warm_process_noise": (1.0, None)},
     )  # fmt: skip
     record = sel.record()
-    assert [c["factor"] for c in record["candidates"]][:2] == [1.0, 0.1]
-    assert sel.factor in [c["factor"] for c in record["candidates"]]
-    chosen = min(record["candidates"], key=lambda c: c["validation_rmse"])
-    assert sel.factor == chosen["factor"]
-    assert (
-        record["best_epoch"] > 0 and record["validation_rmse"]["hybrid"] < chosen["validation_rmse"]
-    )
+    assert [c["factor"] for c in record["candidates"]] == [1.0, 0.1, 0.01]
+    alone = min(record["candidates"], key=lambda c: c["validation_rmse"])
+    trained = [c for c in record["candidates"] if c["hybrid_rmse"] is not None]
+    assert alone in trained  # the term is trained at the physics' best weighting at least
+    chosen = min(trained, key=lambda c: c["hybrid_rmse"])
+    assert sel.factor == chosen["factor"] and sel.physics_factor == alone["factor"]
+    assert record["best_epoch"] > 0
+    assert record["validation_rmse"]["hybrid"] == chosen["hybrid_rmse"] < alone["validation_rmse"]
     assert record["samples"]["total"] == 600 and sel.refit and sel.term_result is not None
-    assert sel.term_result.history and len(sel.term_result.history) <= sel.best_epoch
+    assert sel.term_result.history and len(sel.term_result.history) <= sel.best_epoch + 30
+    assert 0 < sel.refit_epoch <= len(sel.term_result.history)
     t2 = jnp.arange(400, dtype=jnp.float64) * DT
     u2 = (1.8 * (jnp.sin(0.5 * t2) + 0.7 * jnp.sin(2.3 * t2 + 0.5)))[None, :, None]
     x2 = simulate(true, u2)
@@ -249,6 +253,27 @@ def test_fit_hybrid_selects_on_the_training_record_and_beats_the_physics():
     assert "noise weighting" in sel.summary()
 
 
+@pytest.mark.parametrize(
+    ("best", "expected"),
+    [
+        (0, [1.0, 0.1, 0.01, 0.001]),  # the loosest best: every decade tighter
+        (6, [0.001, 0.01, 0.1, 1.0]),  # the tightest best: every decade looser
+        (3, [10**-1.5, 10**-2.5, 10**-0.5]),  # nearest first, the tighter before the looser
+    ],
+)
+def test_the_term_is_tried_at_every_decade_from_the_physics_best(best, expected):
+    """The physics' score does not decide the weighting (it can be best where the term cannot
+    learn): the term is trained at its best factor and at every whole decade from it."""
+    cands = [
+        hybrid_selection.NoiseCandidate(f, f, 0.5 if k == best else 1.0, 1, True, 0.0)
+        for k, f in enumerate(hybrid_selection.NOISE_FACTORS)
+    ]
+    order = [cands[i].factor for i in hybrid_selection._term_candidates(cands)]
+    np.testing.assert_allclose(order, expected)
+    cands[2] = dataclasses.replace(cands[2], validation_rmse=math.nan)  # a diverged fit: skipped
+    assert 2 not in hybrid_selection._term_candidates(cands)
+
+
 def test_early_stopping_counts_a_slow_steady_improvement(monkeypatch):
     """Each epoch 0.05 % better (under min_delta = 0.1 %): the patience resets once the steps
     add up to min_delta, so the training goes on; a flat score still stops after `patience`."""
@@ -259,5 +284,7 @@ def test_early_stopping_counts_a_slow_steady_improvement(monkeypatch):
     out = [stop(ceemx.EpochInfo(k, None, None, {})) for k in range(1, 13)]
     assert False not in out  # twelve slowly improving epochs: never stopped
     assert stop.best_epoch == 12
+    assert not stop.stopped
     flat = [stop(ceemx.EpochInfo(k, None, None, {})) for k in range(13, 23)]
     assert flat.index(False) <= 3  # no real improvement since the last reset: stops
+    assert stop.stopped

@@ -69,8 +69,9 @@ class EarlyStopping:
             score (e.g. ``{"warm_process_noise": (1.0, None)}``: several initial-state starts).
 
     After the fit, :attr:`best_system`, :attr:`best_epoch` and :attr:`best_rmse` hold the best
-    model; :meth:`restore` returns the fit's result with it. A non-finite score (the model
-    diverges on the validation record) never counts as the best.
+    model, :attr:`stopped` whether the patience ran out; :meth:`restore` returns the fit's result
+    with it. A non-finite score (the model diverges on the validation record) never counts as
+    the best.
 
     One instance watches one fit: passed to a second fit (its epochs start again), it starts
     over — the best model, the scores and the patience of the first fit are dropped (the
@@ -136,6 +137,7 @@ class EarlyStopping:
         self.best_rmse = math.inf
         self.scores: list[tuple[int, float]] = []
         self._last_epoch = 0  # the last epoch of the fit being watched (0: none yet)
+        self.stopped = False  # whether the patience ran out (this instance stopped the fit)
         if self._start is not None:
             start, rmse = self._start
             self.scores.append((0, rmse))
@@ -165,6 +167,7 @@ class EarlyStopping:
             self.best_system, self.best_epoch, self.best_rmse = info.system, info.epoch, rmse
         info.record["val_rmse"] = rmse
         if info.epoch - self._progress_epoch >= self.patience * self.every:
+            self.stopped = True
             return False
         return {}
 

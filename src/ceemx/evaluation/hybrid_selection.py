@@ -4,31 +4,50 @@
 that depends on the record, and it chooses the two that decide a hybrid's free-run score by that
 score, measured on the held-out tail of the *training* record (never a test record):
 
-1. **The noise weighting.** A CE fit maximises J (Eq. 9), where the process and observation
-   noise weigh the dynamics' residuals against the outputs'; only their ratio moves the point
-   estimate, so the observation noise is kept and the process noise is scaled. A loose weighting
-   lets the smoothed states absorb the model's errors (a good one-step fit that free-runs badly);
-   a tight one makes the fit an output-error (simulation) fit, whose landscape is rougher. The
-   physics is fitted on the fit part at ``noise_factors`` × its process noise, loose to tight,
-   each fit started from the previous one's parameters and states (a continuation), and each
-   scored by a free run over the validation tail; the continuation stops after
-   ``noise_patience`` factors without a better score. The noise the likelihood learns
-   (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space model,
-   not the free-run score, and on the real datasets it made that score worse.
-2. **The learned term's training length.** The hybrid (:func:`ceemx.hybrid`: the chosen physics
-   fit plus a zero-initialised network) is trained on the fit part by :class:`ceemx.JointLM`
-   with weight decay, every iteration scored on the validation tail
-   (:class:`ceemx.EarlyStopping`, the physics scored as iteration 0); the best iteration is the
-   training length. When no iteration beats the physics, the term is left out (length 0).
+1. **The noise weighting, judged by the hybrid.** A CE fit maximises J (Eq. 9), where the
+   process and observation noise weigh the dynamics' residuals against the outputs'; only their
+   ratio moves the point estimate, so the observation noise is kept and the process noise is
+   scaled. A loose weighting lets the smoothed states absorb the model's errors (a good one-step
+   fit that free-runs badly, and a term that has nothing to learn from: the states already carry
+   what the physics lacks); a tight one makes the fit an output-error (simulation) fit, whose
+   landscape is rougher. The physics is fitted on the fit part at every factor of
+   ``noise_factors`` × its process noise, loose to tight, each fit started from the previous
+   one's parameters and states (a continuation), and each scored by a free run over the
+   validation tail. The physics' own score does not decide: where the physics lacks a force, its
+   error is that force at every weighting, and the weighting where it scores best can be one
+   where the term cannot learn. So the term is trained (step 2) at the physics' best factor and
+   at every whole decade from it, nearest first (tighter before looser), until
+   ``noise_patience`` of them in a row did not improve the best hybrid score. The physics' best
+   weighting is kept unless another's hybrid (or physics, iteration 0) scores better by more
+   than ``margin`` (25 %): a few per cent on a short validation tail are no evidence
+   that a weighting carries over to new data. The noise the likelihood
+   learns (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space
+   model, not the free-run score, and on the real datasets it made that score worse.
+2. **The learned term's training length.** At each candidate weighting the hybrid
+   (:func:`ceemx.hybrid`: that weighting's physics fit plus a zero-initialised network) is
+   trained on the fit part by :class:`ceemx.JointLM` with weight decay, every iteration scored
+   on the validation tail (:class:`ceemx.EarlyStopping`, the physics scored as iteration 0).
+   The term leaves its zero start slowly — its free run can sit at the physics' score for tens
+   of iterations while J climbs, then fall, and it does not fall monotonically — so the training
+   stops only after ``patience`` iterations without a better score (counted from the last
+   improvement of at least ``min_delta``, relative), or at ``term_epochs``. The best iteration
+   of the chosen weighting is the training length; when no iteration beats the physics, the
+   term is left out (length 0).
 3. **Every sample in the final model** (``refit=True``): the physics is refitted on the whole
    record at the chosen weighting (from the fit part's parameters), and the term trained on the
-   whole record for the chosen number of iterations. The held-out model (the fit part's,
-   early-stopped) is returned beside it, so the two can be compared on test data.
+   whole record from its zero start for the chosen length plus ``patience`` iterations, each
+   scored by its free run over the whole record. The chosen length is kept unless another
+   iteration is a dip, better by more than ``margin`` than both the chosen length and the last
+   iteration: the best can be a transient a few iterations wide that the longer record reaches
+   later, while a steady in-sample gain of training longer (the best at the end) is no evidence
+   that it carries over (on a short record it is overfitting). The
+   held-out model (the fit part's, early-stopped) is returned beside it, so the two can be
+   compared on test data.
 
 The result (:class:`HybridFit`) holds the selected model, both physics fits and the selection's
-record: every candidate weighting with its validation score, the chosen one, the term's
-validation score per iteration and the chosen length (:meth:`HybridFit.record`, a JSON-able
-dict; :meth:`HybridFit.summary`, text).
+record: every candidate weighting with its validation score and its hybrid's, the chosen one,
+the chosen term's validation score per iteration and the chosen length
+(:meth:`HybridFit.record`, a JSON-able dict; :meth:`HybridFit.summary`, text).
 
 Width, depth and the weight-decay σ of the term are fixed options (16 units, one hidden layer,
 σ = 1): on the real datasets' validation tails no change of them helped by more than the
@@ -37,6 +56,7 @@ rounding-level spread of the early-stopped path (``docs/results.md``, "Hybrid va
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -51,7 +71,7 @@ from jaxtyping import ArrayLike
 from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.early_stopping import SCORE_OPTIONS, EarlyStopping
 from ceemx.identification.fitting.result import FitResult
-from ceemx.infra.options import check_int, check_positive
+from ceemx.infra.options import check_int, check_nonnegative, check_positive
 from ceemx.models.system import AbstractSystem, with_noise
 
 __all__ = ["NOISE_FACTORS", "HybridFit", "NoiseCandidate", "fit_hybrid", "split_tail"]
@@ -72,6 +92,11 @@ class NoiseCandidate:
         epochs: iterations of its fit.
         converged: whether its fit converged.
         wall_s: its fit's and score's wall time [s].
+        hybrid_rmse: the best validation RMSE of the term trained at this weighting, the
+            physics' (iteration 0) included (``None``: no term trained here).
+        term_best_epoch: that best iteration (0: the physics).
+        term_epochs: iterations the term's training ran here.
+        term_wall_s: the term's training time here [s].
     """
 
     factor: float
@@ -80,6 +105,10 @@ class NoiseCandidate:
     epochs: int
     converged: bool
     wall_s: float
+    hybrid_rmse: float | None = None
+    term_best_epoch: int = 0
+    term_epochs: int = 0
+    term_wall_s: float = 0.0
 
 
 @dataclass
@@ -90,21 +119,32 @@ class HybridFit:
         system: the selected model: the hybrid trained on every sample for the chosen length
             (``refit=True``), else the held-out one; the physics (a hybrid with a zero term when
             bounds were asked for) when the term did not beat it on the validation tail.
-        physics: the physics fit at the chosen weighting on every sample (``refit=False``: on
-            the fit part).
+        physics: the physics alone at its own best weighting (``physics_factor``), fitted on
+            every sample (``refit=False``: on the fit part): what the physics-only user gets.
         held_out: the hybrid trained on the fit part, stopped at its best validation iteration.
-        held_out_physics: the physics fit at the chosen weighting on the fit part.
-        candidates: every weighting tried, loose to tight.
-        factor: the chosen factor on the model's process noise.
+        held_out_physics: the physics fit at the chosen weighting on the fit part (the held-out
+            hybrid's start).
+        candidates: every weighting tried, loose to tight (with the term's score where it was
+            trained).
+        factor: the chosen factor on the model's process noise (the hybrid's weighting).
         process_noise: the chosen process-noise scale (the largest component).
-        term_scores: (iteration, validation RMSE) of the term's training on the fit part
-            (iteration 0: the physics).
+        physics_factor: the factor at which the physics alone scored best.
+        term_scores: (iteration, validation RMSE) of the term's training on the fit part at
+            the chosen weighting (iteration 0: the physics).
         best_epoch: the chosen training length (0: no term).
-        term_epochs: iterations the held-out training ran before it stopped.
-        validation_rmse: the validation score of the held-out physics and hybrid.
+        term_epochs: iterations the held-out training at the chosen weighting ran.
+        validation_rmse: the validation score of the physics alone at its best weighting
+            (``physics``), of the physics at the chosen weighting (``physics_at_factor``) and
+            of the held-out hybrid (``hybrid``).
         term_stop: why the held-out training ended (its last iteration's record: converged,
-            stop, accepted, the LM's status, whether the term settled, failed trajectories).
+            stop, accepted, the LM's status, whether the term settled, failed trajectories;
+            ``stopped_by``: ``"patience"`` (the validation stopped improving: converged in the
+            selection's sense), ``"term_epochs"`` (the budget ran out) or ``"fit"``).
         refit: whether the final model was refitted on every sample.
+        refit_epoch: the iteration of the term's training on every sample that was kept (the
+            chosen length unless another's free run over the whole record was a dip, better by
+            more than ``margin`` than both it and the last iteration; 0: no term).
+        refit_scores: (iteration, free-run RMSE over the whole record) of that training.
         samples: samples of the fit part, the validation tail and the whole record.
         wall_s: wall time per stage [s].
         term_result: the final term fit's :class:`ceemx.FitResult` (``None`` without a term).
@@ -117,6 +157,7 @@ class HybridFit:
     candidates: list[NoiseCandidate]
     factor: float
     process_noise: float
+    physics_factor: float
     term_scores: list[tuple[int, float]]
     best_epoch: int
     term_epochs: int
@@ -124,6 +165,8 @@ class HybridFit:
     term_stop: dict[str, Any]
     refit: bool
     samples: dict[str, int]
+    refit_epoch: int = 0
+    refit_scores: list[tuple[int, float]] = field(default_factory=list)
     wall_s: dict[str, float] = field(default_factory=dict)
     term_result: FitResult | None = None
 
@@ -133,38 +176,60 @@ class HybridFit:
             "candidates": [c.__dict__ for c in self.candidates],
             "factor": self.factor,
             "process_noise": self.process_noise,
+            "physics_factor": self.physics_factor,
             "term_scores": [[int(e), float(r)] for e, r in self.term_scores],
             "best_epoch": self.best_epoch,
             "term_epochs": self.term_epochs,
             "validation_rmse": dict(self.validation_rmse),
             "term_stop": dict(self.term_stop),
             "refit": self.refit,
+            "refit_epoch": self.refit_epoch,
+            "refit_scores": [[int(e), float(r)] for e, r in self.refit_scores],
             "samples": dict(self.samples),
             "wall_s": dict(self.wall_s),
         }
 
     def summary(self) -> str:
         """The selection in a few lines of text."""
-        lines = ["noise weighting (process noise × factor, free-run RMSE on the validation tail):"]
+        lines = [
+            "noise weighting (process noise × factor, free-run RMSE on the validation tail: "
+            "physics; hybrid at its best iteration where the term was trained):"
+        ]
         for c in self.candidates:
             mark = "  ← chosen" if c.factor == self.factor else ""
+            term = (
+                ""
+                if c.hybrid_rmse is None
+                else f"; hybrid {c.hybrid_rmse:.4g} (iteration {c.term_best_epoch} of "
+                f"{c.term_epochs}, {c.term_wall_s:.1f} s)"
+            )
             lines.append(
                 f"  × {c.factor:.3g} (σ_w {c.process_noise:.3g}): {c.validation_rmse:.4g}"
-                f" ({c.epochs} iterations, {c.wall_s:.1f} s){mark}"
+                f" ({c.epochs} iterations, {c.wall_s:.1f} s){term}{mark}"
             )
         v = self.validation_rmse
         lines.append(
-            f"learned term: best iteration {self.best_epoch} of {self.term_epochs}, validation "
-            f"{v['hybrid']:.4g} (physics {v['physics']:.4g})"
-            + ("" if self.best_epoch else ": no iteration beat the physics, term left out")
+            f"learned term at × {self.factor:.3g}: best iteration {self.best_epoch} of "
+            f"{self.term_epochs}, validation {v['hybrid']:.4g} (physics alone {v['physics']:.4g}"
+            f" at × {self.physics_factor:.3g}); "
+            + _STOPPED.get(self.term_stop.get("stopped_by", ""), "not trained")
+            + ("" if self.best_epoch else "; no iteration beat the physics, term left out")
         )
         where = "every sample" if self.refit else "the fit part"
+        kept = f", the term's iteration {self.refit_epoch} kept" if self.refit_scores else ""
         lines.append(
             f"final model: fitted on {where} ({self.samples['total' if self.refit else 'fit']}"
-            f" samples); {sum(self.wall_s.values()):.1f} s in all"
+            f" samples{kept}); {sum(self.wall_s.values()):.1f} s in all"
         )
         return "\n".join(lines)
 
+
+#: Why the chosen weighting's term training ended, in words (``term_stop["stopped_by"]``).
+_STOPPED = {
+    "patience": "converged: the validation stopped improving",
+    "term_epochs": "not converged: the iteration budget ran out",
+    "fit": "the fit stopped",
+}
 
 #: The history keys that say why the term's training ended.
 _WHY = (
@@ -219,6 +284,7 @@ def _check_options(  # fmt: skip
     data,
     n_init,
     noise_patience,
+    margin,
     patience,
     max_epochs,
     term_epochs,
@@ -239,6 +305,9 @@ def _check_options(  # fmt: skip
     check_int("term_epochs", term_epochs, 0)
     if window is not None:
         check_int("window", window, 2 * n_init)
+    check_nonnegative("margin", margin)
+    if margin >= 1:
+        raise ValueError(f"`margin` must be in [0, 1); got {margin!r}.")
     check_positive("validation_fraction", validation_fraction)
     if validation_fraction >= 1:
         raise ValueError(f"`validation_fraction` must be in (0, 1); got {validation_fraction!r}.")
@@ -254,26 +323,24 @@ def _check_options(  # fmt: skip
     return factors, options
 
 
-def _select_noise(
+def _physics_path(
     physics: AbstractSystem,
     fit_part: Trajectories,
     judge: EarlyStopping,
     factors: list[float],
     scale0: float,
     max_epochs: int,
-    noise_patience: int,
     say: Callable[[str], Any],
-) -> tuple[list[NoiseCandidate], tuple[float, float, FitResult]]:
-    """The loose-to-tight continuation: (every candidate, the best as (rmse, factor, fit))."""
+) -> tuple[list[NoiseCandidate], list[FitResult]]:
+    """The loose-to-tight continuation of physics fits: (every candidate, every fit)."""
     from ceemx.identification.fitting.driver import fit
     from ceemx.identification.solvers.joint import JointLM
 
     candidates: list[NoiseCandidate] = []
-    best: tuple[float, float, FitResult] | None = None  # (rmse, factor, fit)
-    last: FitResult | None = None
-    since_best = 0
+    fits: list[FitResult] = []
     for f in factors:
         t = time.perf_counter()
+        last = fits[-1] if fits else None
         start = physics if last is None else last.system
         model = with_noise(start, process_noise=physics.process_noise.scaled(f))
         x0 = None if last is None else last.states
@@ -284,24 +351,41 @@ def _select_noise(
                 f, f * scale0, rmse, len(res.history), bool(res.converged), time.perf_counter() - t
             )
         )
-        say(f"noise × {f:.3g}: validation {rmse:.4g} ({len(res.history)} iterations)")
-        last = res
-        if math.isfinite(rmse) and (best is None or rmse < best[0]):
-            best, since_best = (rmse, f, res), 0
-        else:
-            since_best += 1
-            if since_best >= noise_patience:
-                break
-    if best is None:
+        fits.append(res)
+        say(f"physics at noise × {f:.3g}: validation {rmse:.4g} ({len(res.history)} iterations)")
+    if not any(math.isfinite(c.validation_rmse) for c in candidates):
         raise RuntimeError(
             "every candidate noise weighting diverged on the validation tail (non-finite free "
             "run); check the physics model's guess and the data's units."
         )
-    return candidates, best
+    return candidates, fits
+
+
+def _term_candidates(candidates: list[NoiseCandidate]) -> list[int]:
+    """Where the term is trained: the physics' best factor and every whole decade from it.
+
+    Nearest first (at equal distance the tighter first): the order the patience reads.
+    """
+    finite = [i for i, c in enumerate(candidates) if math.isfinite(c.validation_rmse)]
+    best = min(finite, key=lambda i: candidates[i].validation_rmse)
+    f0 = candidates[best].factor
+    decades = {i: math.log10(f0 / candidates[i].factor) for i in finite}
+    whole = [i for i, d in decades.items() if abs(d - round(d)) < 1e-6]
+    return sorted(whole, key=lambda i: (abs(round(decades[i])), -decades[i]))
+
+
+def _choose(trained: dict[int, tuple[float, Any]], margin: float) -> int:
+    """The chosen candidate: the physics' best weighting (tried first) unless beaten clearly.
+
+    Another weighting is chosen when its hybrid scores better by more than ``margin``.
+    """
+    first = next(iter(trained))
+    other = min(trained, key=lambda i: trained[i][0])
+    return other if trained[other][0] < (1 - margin) * trained[first][0] else first
 
 
 def _train_term(build, held_physics, fit_part, validation, n_init, patience, options, epochs):
-    """The term on the chosen physics, trained with every iteration scored on the tail.
+    """The term on a physics fit, trained with every iteration scored on the tail.
 
     Returns (the early stopping, the best model, iterations run, why training ended).
     """
@@ -314,27 +398,57 @@ def _train_term(build, held_physics, fit_part, validation, n_init, patience, opt
     res = _fit_term(model, fit_part, held_physics.states, epochs, callbacks=[stopper])
     end = res.history[-1] if res.history else {}
     why = {k: end[k] for k in _WHY if k in end}
+    why["stopped_by"] = (
+        "patience" if stopper.stopped else "term_epochs" if len(res.history) >= epochs else "fit"
+    )
     return stopper, stopper.restore(res).system, len(res.history), why
 
 
-def _refit_all(build, held_physics, whole, max_epochs: int, best_epoch: int, bounds: bool):
-    """The physics, then the term for ``best_epoch`` iterations, on every sample.
+def _refit_all(build, held_physics, whole, record, n_init, options, max_epochs, best_epoch,
+               patience, margin, bounds):  # fmt: skip
+    """The physics, then the term, on every sample.
 
-    Returns (the physics fit, the final model, the term's fit or ``None``).
+    The term is trained on every sample for ``best_epoch + patience`` iterations, each scored
+    by its free run over the whole ``record`` (the data it is trained on: the simulation error,
+    which J does not optimise). The iteration ``best_epoch`` is kept unless another is a dip:
+    better by more than ``margin`` (relative) than both ``best_epoch`` and the last iteration.
+    The term's best free run is often a transient a few iterations wide that the longer record
+    reaches later, which such a dip shows; a steady in-sample gain of longer training (the best
+    at the end) is no evidence that it carries over — on a short record it is overfitting.
+
+    Returns (the physics fit, the final model, the term's fit or ``None``, the watcher or
+    ``None``, the iteration kept).
     """
-    from ceemx.identification.fitting.driver import fit
-    from ceemx.identification.solvers.joint import JointLM
-
-    physics = fit(
-        held_physics.system, whole, solver=JointLM(), max_epochs=max_epochs, diagnose=False
-    )
+    physics = _refit_physics(held_physics.system, whole, max_epochs)
     final: Any = physics.system
     if best_epoch or bounds:
         final = build(physics.system, whole, states=physics.states)
     if not best_epoch:
-        return physics, final, None
-    term = _fit_term(final, whole, physics.states, best_epoch)
-    return physics, term.system, term
+        return physics, final, None, None, 0
+    epochs = best_epoch + patience
+    watch = EarlyStopping(record, n_init, patience=epochs, start=final, score_options=options)
+    at_length: dict[str, Any] = {}
+
+    def keep(info) -> dict:
+        if info.epoch == best_epoch:
+            at_length["system"] = info.system
+        return {}
+
+    term = _fit_term(final, whole, physics.states, epochs, callbacks=[watch, keep])
+    scores = dict(watch.scores)
+    last = scores[max(scores)]
+    dip = watch.best_rmse < (1 - margin) * min(scores.get(best_epoch, math.inf), last)
+    if "system" in at_length and not dip:
+        return physics, at_length["system"], term, watch, best_epoch
+    return physics, watch.restore(term).system, term, watch, watch.best_epoch
+
+
+def _refit_physics(system: AbstractSystem, whole: Trajectories, max_epochs: int) -> FitResult:
+    """The physics refitted on every sample from ``system`` (the fit part's parameters)."""
+    from ceemx.identification.fitting.driver import fit
+    from ceemx.identification.solvers.joint import JointLM
+
+    return fit(system, whole, solver=JointLM(), max_epochs=max_epochs, diagnose=False)
 
 
 def _fit_term(model, data: Trajectories, states, epochs: int, callbacks=()) -> FitResult:
@@ -370,20 +484,22 @@ def fit_hybrid(
     prior_std: float = 1.0,
     noise_factors: Sequence[float] = NOISE_FACTORS,
     noise_patience: int = 2,
+    margin: float = 0.25,
     validation_fraction: float = 0.2,
     window: int | None = None,
     max_epochs: int = 200,
     term_epochs: int = 200,
-    patience: int = 5,
+    patience: int = 30,
     refit: bool = True,
     score_options: Mapping[str, Any] | None = None,
     progress: Callable[[str], Any] | None = None,
 ) -> HybridFit:
     """The physics model and a learned term, every setting chosen on the training record.
 
-    The procedure (module notes): the noise weighting by a loose-to-tight continuation of
-    physics fits, the term's training length by early stopping, both judged by the free-run
-    RMSE on the held-out tail of ``data``; then, with ``refit``, both refitted on every sample.
+    The procedure (module notes): a loose-to-tight continuation of physics fits, the term
+    trained at the physics' best noise weighting and at every decade from it, the weighting and
+    the term's training length chosen by the hybrid's free-run RMSE on the held-out tail of
+    ``data``; then, with ``refit``, both refitted on every sample.
 
     Args:
         physics: the physics at its guess, Gaussian noise (its process noise: the loosest).
@@ -397,12 +513,18 @@ def fit_hybrid(
         depth: the term's hidden layers.
         prior_std: the weight-decay prior's σ.
         noise_factors: candidate factors on the model's process noise, loose to tight.
-        noise_patience: candidates without a better score before the continuation stops.
+        noise_patience: weightings in a row whose hybrid did not beat the best before no
+            further one is tried.
+        margin: how much better (relative) a departure from the default must score to be
+            taken: another weighting's hybrid than the physics' best weighting's (on the
+            validation tail), another refit iteration than the chosen length and the last one
+            (module notes).
         validation_fraction: the tail of every record held out for the selection.
         window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
         term_epochs: iterations of the term's training at most.
-        patience: iterations without a better score before the term's training stops.
+        patience: iterations without a better validation score before the term's training
+            stops (long: the term can sit at its zero start for tens of iterations).
         refit: refit the chosen settings on every sample (else return the held-out model).
         score_options: options of :func:`ceemx.benchmark_score` for the validation free runs
             (how the initial state is set; the same options should score the test records).
@@ -417,8 +539,8 @@ def fit_hybrid(
     from ceemx.identification.hybrid_builder import hybrid
 
     factors, options = _check_options(
-        physics, data, n_init, noise_patience, patience, max_epochs, term_epochs, window,
-        validation_fraction, noise_factors, score_options,
+        physics, data, n_init, noise_patience, margin, patience, max_epochs, term_epochs,
+        window, validation_fraction, noise_factors, score_options,
     )  # fmt: skip
     scale0 = _noise_scale(physics)
     say = progress or (lambda _line: None)
@@ -427,36 +549,74 @@ def fit_hybrid(
     bounds = lower is not None or upper is not None
     wall: dict[str, float] = {}
 
-    # 1. the noise weighting: loose-to-tight continuation of physics fits on the fit part
+    # 1. the physics on the fit part at every weighting, loose to tight (a continuation)
     t0 = time.perf_counter()
     judge = EarlyStopping(validation, n_init, score_options=options)
-    candidates, best = _select_noise(
-        physics, fit_part, judge, factors, scale0, max_epochs, noise_patience, say
-    )
-    physics_rmse, factor, held_physics = best
+    candidates, fits = _physics_path(physics, fit_part, judge, factors, scale0, max_epochs, say)
     wall["noise"] = time.perf_counter() - t0
 
-    # 2. the learned term's training length: early stopping on the validation tail
+    # 2. the term at the physics' best weighting and every decade from it; the hybrid decides
     t0 = time.perf_counter()
     build = functools.partial(
         hybrid, dynamics=dynamics, observation=observation, width=width, depth=depth,
         prior_std=prior_std, lower=lower, upper=upper,
     )  # fmt: skip
-    stopper, held_out, epochs_run, why = _train_term(
-        build, held_physics, fit_part, validation, n_init, patience, options, term_epochs
+    trained: dict[int, tuple[float, Any]] = {}  # candidate: (validation, training)
+    best = math.inf
+    since_best = 0
+    for i in _term_candidates(candidates):
+        t = time.perf_counter()
+        training = _train_term(
+            build, fits[i], fit_part, validation, n_init, patience, options, term_epochs
+        )
+        stopper, epochs_run = training[0], training[2]
+        rmse = min(stopper.best_rmse, candidates[i].validation_rmse)
+        candidates[i] = dataclasses.replace(
+            candidates[i], hybrid_rmse=rmse, term_best_epoch=stopper.best_epoch,
+            term_epochs=epochs_run, term_wall_s=time.perf_counter() - t,
+        )  # fmt: skip
+        say(
+            f"term at noise × {candidates[i].factor:.3g}: validation {rmse:.4g} (iteration "
+            f"{stopper.best_epoch} of {epochs_run})"
+        )
+        trained[i] = (rmse, training)
+        if rmse < best:
+            best, since_best = rmse, 0
+        else:
+            since_best += 1
+            if since_best >= noise_patience:
+                break
+    chosen = _choose(trained, margin)
+    hybrid_rmse, (stopper, held_out, epochs_run, why) = trained[chosen]
+    factor, held_physics = candidates[chosen].factor, fits[chosen]
+    alone = min(
+        (i for i, c in enumerate(candidates) if math.isfinite(c.validation_rmse)),
+        key=lambda i: candidates[i].validation_rmse,
     )
+    rmse_of = {"physics": candidates[alone].validation_rmse}
+    rmse_of["physics_at_factor"] = candidates[chosen].validation_rmse
+    rmse_of["hybrid"] = hybrid_rmse
     best_epoch = stopper.best_epoch if math.isfinite(stopper.best_rmse) else 0
-    hybrid_rmse = stopper.best_rmse if best_epoch else physics_rmse
-    say(f"learned term: best iteration {best_epoch} of {epochs_run}, validation {hybrid_rmse:.4g}")
+    say(f"chosen: noise × {factor:.3g}, term's best iteration {best_epoch} of {epochs_run}")
     wall["term"] = time.perf_counter() - t0
 
     # 3. every sample: the physics and the term refitted at the chosen settings
-    final_physics, term_result = held_physics, None
+    final_physics, term_result = fits[alone], None
     final: Any = held_out
+    refit_scores: list[tuple[int, float]] = []
+    refit_epoch = 0
     if refit:
         t0 = time.perf_counter()
-        final_physics, final, term_result = _refit_all(
-            build, held_physics, whole, max_epochs, best_epoch, bounds
+        hybrid_physics, final, term_result, watch, refit_epoch = _refit_all(
+            build, held_physics, whole, data, n_init, options, max_epochs, best_epoch,
+            patience, margin, bounds,
+        )  # fmt: skip
+        if watch is not None:
+            refit_scores = list(watch.scores)
+        final_physics = (
+            hybrid_physics
+            if alone == chosen
+            else _refit_physics(fits[alone].system, whole, max_epochs)
         )
         wall["refit"] = time.perf_counter() - t0
         say(f"refit on every sample: {wall['refit']:.1f} s")
@@ -470,7 +630,8 @@ def fit_hybrid(
     return HybridFit(
         system=final, physics=final_physics, held_out=held_out,
         held_out_physics=held_physics.system, candidates=candidates, factor=factor,
-        process_noise=factor * scale0, term_scores=list(stopper.scores), best_epoch=best_epoch,
-        term_epochs=epochs_run, validation_rmse={"physics": physics_rmse, "hybrid": hybrid_rmse},
+        process_noise=factor * scale0, physics_factor=candidates[alone].factor,
+        term_scores=list(stopper.scores), best_epoch=best_epoch, term_epochs=epochs_run,
+        validation_rmse=rmse_of, refit_epoch=refit_epoch, refit_scores=refit_scores,
         term_stop=why, refit=refit, samples=samples, wall_s=wall, term_result=term_result,
     )  # fmt: skip

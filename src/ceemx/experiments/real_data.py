@@ -176,8 +176,9 @@ def _print_dataset(name: str, plan: Plan, fitted: Fitted, per_test: dict[str, di
     state = "converged" if fit_info["converged"] else "not converged"
     chosen = fit_info["selection"]
     print(
-        f"[{name}] physics: process noise × {chosen['factor']:.3g} ({chosen['process_noise']:.3g})"
-        f" chosen of {len(chosen['candidates'])} candidates",
+        f"[{name}] process noise: physics × {chosen['physics_factor']:.3g}, hybrid × "
+        f"{chosen['factor']:.3g} ({chosen['process_noise']:.3g}) chosen of "
+        f"{len(chosen['candidates'])} candidates",
         flush=True,
     )
     print(

@@ -79,7 +79,7 @@ class Settings:
     window: int = 512
     test_samples: int | None = None
     hybrid: bool = True
-    patience: int = 5
+    patience: int = 30
     validation_fraction: float = 0.2
     noise_factors: tuple[float, ...] = NOISE_FACTORS
     linear_noise: tuple[float, float] = (1e-3, 0.05)
