@@ -470,6 +470,78 @@ def _fit_term(model, data: Trajectories, states, epochs: int, callbacks=()) -> F
     )
 
 
+def _train_candidates(train, candidates: list, fits: list, noise_patience: int, say) -> dict:
+    """``{candidate: (validation RMSE, training)}``: the term trained at each weighting.
+
+    In the order of :func:`_term_candidates`, until ``noise_patience`` in a row did not beat
+    the best hybrid. ``candidates`` is updated in place with each trained candidate's hybrid
+    score, best iteration, iterations run and time.
+    """
+    trained: dict[int, tuple[float, Any]] = {}
+    best, since_best = math.inf, 0
+    for i in _term_candidates(candidates):
+        t = time.perf_counter()
+        training = train(fits[i])
+        stopper, epochs_run = training[0], training[2]
+        rmse = min(stopper.best_rmse, candidates[i].validation_rmse)
+        candidates[i] = dataclasses.replace(
+            candidates[i], hybrid_rmse=rmse, term_best_epoch=stopper.best_epoch,
+            term_epochs=epochs_run, term_wall_s=time.perf_counter() - t,
+        )  # fmt: skip
+        say(
+            f"term at noise × {candidates[i].factor:.3g}: validation {rmse:.4g} (iteration "
+            f"{stopper.best_epoch} of {epochs_run})"
+        )
+        trained[i] = (rmse, training)
+        if rmse < best:
+            best, since_best = rmse, 0
+        else:
+            since_best += 1
+            if since_best >= noise_patience:
+                break
+    return trained
+
+
+def _every_sample(build, fits, chosen, alone, whole, data, n_init, options, max_epochs,
+                  best_epoch, patience, margin, bounds):  # fmt: skip
+    """``(hybrid, physics, term result, refit scores, refit iteration)`` on every sample.
+
+    The hybrid refitted at the chosen weighting (:func:`_refit_all`); the physics alone at its
+    own best weighting, that refit where the two weightings are the same.
+    """
+    hybrid_physics, final, term_result, watch, refit_epoch = _refit_all(
+        build, fits[chosen], whole, data, n_init, options, max_epochs, best_epoch, patience,
+        margin, bounds,
+    )  # fmt: skip
+    refit_scores = [] if watch is None else list(watch.scores)
+    final_physics = (
+        hybrid_physics if alone == chosen else _refit_physics(fits[alone].system, whole, max_epochs)
+    )
+    return final, final_physics, term_result, refit_scores, refit_epoch
+
+
+def _validation_scores(candidates: list, chosen: int, hybrid_rmse: float):
+    """``(the physics' best weighting, the validation RMSE of each model that was judged)``."""
+    alone = min(
+        (i for i, c in enumerate(candidates) if math.isfinite(c.validation_rmse)),
+        key=lambda i: candidates[i].validation_rmse,
+    )
+    return alone, {
+        "physics": candidates[alone].validation_rmse,
+        "physics_at_factor": candidates[chosen].validation_rmse,
+        "hybrid": hybrid_rmse,
+    }
+
+
+def _sample_counts(fit_raw: Trajectories, validation: Trajectories, data: Trajectories, n_init):
+    """Samples of the fit part, of the validation tail (scored) and of the whole record."""
+    return {
+        "fit": int(fit_raw.num_steps * fit_raw.batch_size),
+        "validation": int((validation.num_steps - n_init) * validation.batch_size),
+        "total": int(data.num_steps * data.batch_size),
+    }
+
+
 def fit_hybrid(
     physics: AbstractSystem,
     data: Trajectories,
@@ -513,21 +585,16 @@ def fit_hybrid(
         depth: the term's hidden layers.
         prior_std: the weight-decay prior's σ.
         noise_factors: candidate factors on the model's process noise, loose to tight.
-        noise_patience: weightings in a row whose hybrid did not beat the best before no
-            further one is tried.
-        margin: how much better (relative) a departure from the default must score to be
-            taken: another weighting's hybrid than the physics' best weighting's (on the
-            validation tail), another refit iteration than the chosen length and the last one
-            (module notes).
+        noise_patience: weightings in a row not beating the best hybrid before the last.
+        margin: how much better (relative) another weighting's hybrid, or another refit
+            iteration, must score to replace the default one (module notes).
         validation_fraction: the tail of every record held out for the selection.
         window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
         term_epochs: iterations of the term's training at most.
-        patience: iterations without a better validation score before the term's training
-            stops (long: the term can sit at its zero start for tens of iterations).
+        patience: iterations without a better validation score that stop the term's training.
         refit: refit the chosen settings on every sample (else return the held-out model).
-        score_options: options of :func:`ceemx.benchmark_score` for the validation free runs
-            (how the initial state is set; the same options should score the test records).
+        score_options: :func:`ceemx.benchmark_score`'s options for the validation free runs.
         progress: called with a line of text after each stage (e.g. ``print``).
 
     Returns:
@@ -561,77 +628,36 @@ def fit_hybrid(
         hybrid, dynamics=dynamics, observation=observation, width=width, depth=depth,
         prior_std=prior_std, lower=lower, upper=upper,
     )  # fmt: skip
-    trained: dict[int, tuple[float, Any]] = {}  # candidate: (validation, training)
-    best = math.inf
-    since_best = 0
-    for i in _term_candidates(candidates):
-        t = time.perf_counter()
-        training = _train_term(
-            build, fits[i], fit_part, validation, n_init, patience, options, term_epochs
-        )
-        stopper, epochs_run = training[0], training[2]
-        rmse = min(stopper.best_rmse, candidates[i].validation_rmse)
-        candidates[i] = dataclasses.replace(
-            candidates[i], hybrid_rmse=rmse, term_best_epoch=stopper.best_epoch,
-            term_epochs=epochs_run, term_wall_s=time.perf_counter() - t,
-        )  # fmt: skip
-        say(
-            f"term at noise × {candidates[i].factor:.3g}: validation {rmse:.4g} (iteration "
-            f"{stopper.best_epoch} of {epochs_run})"
-        )
-        trained[i] = (rmse, training)
-        if rmse < best:
-            best, since_best = rmse, 0
-        else:
-            since_best += 1
-            if since_best >= noise_patience:
-                break
+    train = functools.partial(
+        _train_term, build, fit_part=fit_part, validation=validation, n_init=n_init,
+        patience=patience, options=options, epochs=term_epochs,
+    )  # fmt: skip
+    trained = _train_candidates(train, candidates, fits, noise_patience, say)
     chosen = _choose(trained, margin)
     hybrid_rmse, (stopper, held_out, epochs_run, why) = trained[chosen]
     factor, held_physics = candidates[chosen].factor, fits[chosen]
-    alone = min(
-        (i for i, c in enumerate(candidates) if math.isfinite(c.validation_rmse)),
-        key=lambda i: candidates[i].validation_rmse,
-    )
-    rmse_of = {"physics": candidates[alone].validation_rmse}
-    rmse_of["physics_at_factor"] = candidates[chosen].validation_rmse
-    rmse_of["hybrid"] = hybrid_rmse
+    alone, rmse_of = _validation_scores(candidates, chosen, hybrid_rmse)
     best_epoch = stopper.best_epoch if math.isfinite(stopper.best_rmse) else 0
     say(f"chosen: noise × {factor:.3g}, term's best iteration {best_epoch} of {epochs_run}")
     wall["term"] = time.perf_counter() - t0
 
     # 3. every sample: the physics and the term refitted at the chosen settings
-    final_physics, term_result = fits[alone], None
-    final: Any = held_out
-    refit_scores: list[tuple[int, float]] = []
-    refit_epoch = 0
+    final: Any = held_out if best_epoch or bounds else held_physics.system  # (no term: physics)
+    final_physics, term_result, refit_scores, refit_epoch = fits[alone], None, [], 0
     if refit:
         t0 = time.perf_counter()
-        hybrid_physics, final, term_result, watch, refit_epoch = _refit_all(
-            build, held_physics, whole, data, n_init, options, max_epochs, best_epoch,
+        final, final_physics, term_result, refit_scores, refit_epoch = _every_sample(
+            build, fits, chosen, alone, whole, data, n_init, options, max_epochs, best_epoch,
             patience, margin, bounds,
         )  # fmt: skip
-        if watch is not None:
-            refit_scores = list(watch.scores)
-        final_physics = (
-            hybrid_physics
-            if alone == chosen
-            else _refit_physics(fits[alone].system, whole, max_epochs)
-        )
         wall["refit"] = time.perf_counter() - t0
         say(f"refit on every sample: {wall['refit']:.1f} s")
-    elif not best_epoch and not bounds:
-        final = held_physics.system  # the term's start: equal to the physics
-    samples = {
-        "fit": int(fit_raw.num_steps * fit_raw.batch_size),
-        "validation": int((validation.num_steps - n_init) * validation.batch_size),
-        "total": int(data.num_steps * data.batch_size),
-    }
     return HybridFit(
         system=final, physics=final_physics, held_out=held_out,
         held_out_physics=held_physics.system, candidates=candidates, factor=factor,
         process_noise=factor * scale0, physics_factor=candidates[alone].factor,
         term_scores=list(stopper.scores), best_epoch=best_epoch, term_epochs=epochs_run,
         validation_rmse=rmse_of, refit_epoch=refit_epoch, refit_scores=refit_scores,
-        term_stop=why, refit=refit, samples=samples, wall_s=wall, term_result=term_result,
+        term_stop=why, refit=refit, wall_s=wall, term_result=term_result,
+        samples=_sample_counts(fit_raw, validation, data, n_init),
     )  # fmt: skip
