@@ -42,8 +42,8 @@ def test_a_margin_from_an_interpolating_spike_is_measured_from_the_plateau_above
     z, determined = top_margin(objective, z_star, reference, top, step)
     end = -5.6 + np.sqrt(EVIDENCE_MARGIN)
     assert determined and z <= end < z + step / 64
-    # no decade above the maximum: its own value
-    assert plateau(objective, 6.0, -1.0, top, step) == -1.0
+    # no point above the maximum: its own value
+    assert plateau(objective, top, -1.0, top, step) == -1.0
 
 
 def test_output_resolution_is_the_quantum_of_quantised_outputs():

@@ -276,11 +276,11 @@ def _cast_data(train: Trajectories, valid: Trajectories, lags: int | None, dtype
     The padding is H − 1 leading copies of u₀, so that the window of step t is u[b, t:t+H].
     """
     u = train.u.astype(dtype)
-    if lags is not None and on_host(u):  # NumPy on the host: no program per shape
-        h = np.asarray(u)
-        u = back_like(np.concatenate([np.repeat(h[:, :1], lags - 1, axis=1), h], axis=1), u)
-    elif lags is not None:
-        u = jnp.concatenate([jnp.repeat(u[:, :1], lags - 1, axis=1), u], axis=1)
+    if lags is not None:
+        host = on_host(u)  # NumPy on the host: no program per shape
+        xp, a = (np, np.asarray(u)) if host else (jnp, u)
+        padded = xp.concatenate([xp.repeat(a[:, :1], lags - 1, axis=1), a], axis=1)
+        u = back_like(padded, u) if host else padded
     arrays = (u, train.y.astype(dtype), train.mask)
     return arrays, Trajectories(valid.y.astype(dtype), valid.u.astype(dtype), valid.mask)
 

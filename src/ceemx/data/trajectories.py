@@ -509,9 +509,8 @@ def foh_inputs(data: Trajectories | ArrayLike):
     u = as_jax(data)
     if u.ndim < 2:
         raise ValueError(f"inputs must have shape (..., T, p); got {u.shape}.")
-    if on_host(u):  # NumPy on the host: no program per shape
-        h = np.asarray(u)
-        following = np.concatenate([h[..., 1:, :], h[..., -1:, :]], axis=-2)
-        return back_like(np.concatenate([h, following], axis=-1), u)
-    following = jnp.concatenate([u[..., 1:, :], u[..., -1:, :]], axis=-2)
-    return jnp.concatenate([u, following], axis=-1)
+    host = on_host(u)  # NumPy on the host: no program per shape
+    xp, a = (np, np.asarray(u)) if host else (jnp, u)
+    following = xp.concatenate([a[..., 1:, :], a[..., -1:, :]], axis=-2)
+    out = xp.concatenate([a, following], axis=-1)
+    return back_like(out, u) if host else out

@@ -92,6 +92,7 @@ __all__ = [
     "NoiseCheck",
     "NoiseCheckWarning",
     "chi2_band",
+    "interpolates",
     "noise_check",
     "square_sums",
 ]
@@ -324,8 +325,16 @@ def _interpolating(groups: dict, ratio: float, lower: float) -> bool:
 
     With ρ below the band every residual is small: the noise is too loose, a case of its own.
     """
-    total, count = groups["observation"]
-    return bool(count > 0 and total < INTERPOLATION * count and ratio >= lower)
+    return interpolates(*groups["observation"]) and ratio >= lower
+
+
+def interpolates(total: float, count: float) -> bool:
+    """Whether the states interpolate the data (module notes).
+
+    ``total``: the observation residuals' squared whitened values summed over ``count`` of them;
+    their mean below :data:`INTERPOLATION`.
+    """
+    return bool(count > 0 and total < INTERPOLATION * count)
 
 
 def _interpolation_message(check: NoiseCheck) -> str:

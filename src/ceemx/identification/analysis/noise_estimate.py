@@ -39,7 +39,7 @@ from ceemx.identification.analysis.evidence_search import (
     EvidenceSearch,
     decade_grid,
 )
-from ceemx.identification.analysis.noise_check import INTERPOLATION, square_sums
+from ceemx.identification.analysis.noise_check import interpolates, square_sums
 from ceemx.identification.analysis.noise_floor import check_informative, flagged, with_floors
 from ceemx.identification.initialize import warm_start_states
 from ceemx.identification.learning.expected import cubature_points
@@ -386,13 +386,11 @@ def estimate_noise_prepared(
 def _interpolates(system, layout, data: Trajectories, z: np.ndarray, states) -> bool:
     """Whether the MAP states at log-scales ``z`` interpolate the data.
 
-    The noise check's criterion (``noise_check.INTERPOLATION``): the observation residuals'
-    mean squared whitened value below 1e-4, residuals 100× below the observation noise.
+    The noise check's criterion (:func:`~ceemx.identification.analysis.noise_check.interpolates`):
+    the observation residuals' mean squared whitened value below 1e-4.
     """
-    trial = _promoted(layout.system(system, z))
-    obs, _, _ = square_sums(trial, states, data)
-    count = float(np.sum(np.asarray(data.mask)))
-    return bool(count > 0 and float(np.sum(np.asarray(obs))) < INTERPOLATION * count)
+    obs, _, _ = square_sums(_promoted(layout.system(system, z)), states, data)
+    return interpolates(float(np.sum(np.asarray(obs))), float(np.sum(np.asarray(data.mask))))
 
 
 def _decade_lines(z: np.ndarray, z0: np.ndarray) -> list[np.ndarray]:

@@ -200,14 +200,18 @@ def plateau(
 ) -> float:
     """The reference value of a margin from a maximum where the states interpolate the data.
 
-    The best ``objective`` (−evidence) on the decades above ``z_best`` up to ``upper``, not at
-    ``z_best`` itself: there the states' Hessian has lost most of its digits and the evidence
-    can spike above its limit as σ_v → 0 (a Lorenz record: 93.7 nats at σ_v = 3.6e-9 between
-    90.9 one decade above and −28 one below, over a plateau at 90.96 up to 3.6e-3) — a margin
-    measured from the spike holds σ_v at the spike. ``f_best`` when no decade lies above it.
+    The best ``objective`` (−evidence) above ``z_best`` on :func:`top_margin`'s points
+    (``upper``, ``upper − step``, ...; the search then finds them evaluated), not at ``z_best``
+    itself: there the states' Hessian has lost most of its digits and the evidence can spike
+    above its limit as σ_v → 0 (a Lorenz record: 93.7 nats at σ_v = 3.6e-9 between 90.9 one
+    decade above and −28 one below, over a plateau at 90.96 up to 3.6e-3) — a margin measured
+    from the spike holds σ_v at the spike. ``f_best`` when no point lies above it.
     """
-    zs = np.arange(z_best + step, upper + 0.5 * step, step)
-    return min((objective(min(z, upper)) for z in zs), default=f_best)
+    values, z = [], upper
+    while z > z_best:
+        values.append(objective(z))
+        z -= step
+    return min(values, default=f_best)
 
 
 def _bisect(objective: Callable[[float], float], level: float, below: float, above: float) -> float:

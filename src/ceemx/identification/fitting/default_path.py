@@ -30,7 +30,7 @@ from ceemx.identification.fitting.choice import (
     problem_facts,
 )
 from ceemx.identification.fitting.fit_options import FitOptions
-from ceemx.identification.fitting.health import NEAR_BOUND_SLOPE, check_start
+from ceemx.identification.fitting.health import check_start, near_bound
 from ceemx.identification.fitting.noise_rounds import learn_noise
 from ceemx.identification.fitting.result import FitResult
 from ceemx.identification.fitting.run import run_fit
@@ -204,8 +204,7 @@ def off_the_bound(
     problem, theta = FitProblem.create(
         current, data, trainable=options.trainable, overrides=options.overrides
     )
-    slope = np.abs(np.asarray(problem.natural_jacobian(theta), np.float64))
-    stuck = slope <= NEAR_BOUND_SLOPE
+    stuck = near_bound(problem, theta)
     if not stuck.any():
         return current, ()
     _, theta0 = FitProblem.create(
@@ -228,8 +227,7 @@ def _finish_pointless(result: FitResult) -> str | None:
     """
     if result.problem is None or result.theta is None or not result.history:
         return None
-    slope = np.abs(np.asarray(result.problem.natural_jacobian(result.theta), np.float64))
-    if np.any(slope <= NEAR_BOUND_SLOPE):  # S is singular along it; the finish restarts it
+    if near_bound(result.problem, result.theta).any():  # S singular there; the finish restarts
         return None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # its own warning names the directions; the summary too

@@ -44,12 +44,12 @@ from ceemx.lib.typing import States, Theta
 
 __all__ = [
     "ABSURD_MEAN_SQUARE",
-    "NEAR_BOUND_SLOPE",
     "OUTLIER_OPTIONS",
     "Health",
     "check_scale",
     "check_start",
     "failed_start",
+    "near_bound",
     "no_finite_start",
     "trajectory_health",
 ]
@@ -65,7 +65,7 @@ fraction of their norm is refused at the start (:func:`check_scale`)."""
 
 #: |d natural / dθ| at or below which a constrained entry counts as near its bound (softplus'
 #: slope there is its distance to the bound) and is tested by :func:`check_scale`
-NEAR_BOUND_SLOPE = 1e-6
+_NEAR_BOUND_SLOPE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -201,8 +201,7 @@ def check_scale(problem: FitProblem, theta: Theta, states: States) -> None:
         ValueError: naming the parameter, its value, its effect and what to do (before any
             epoch).
     """
-    slope = np.abs(to_host(problem.natural_jacobian(theta)))
-    near = slope <= NEAR_BOUND_SLOPE
+    near = near_bound(problem, theta)
     if not near.any():
         return
     system = problem.build(theta)
@@ -226,6 +225,15 @@ def check_scale(problem: FitProblem, theta: Theta, states: States) -> None:
         "unit error, or a placeholder value): start it at a value of the size the data "
         "suggest, or fix it (`ceemx.param(fixed=True)` or leave it out of `trainable`)."
     )
+
+
+def near_bound(problem: FitProblem, theta: Theta) -> np.ndarray:
+    """(P,) the entries of θ whose transform has saturated: |d natural / dθ| ≤ 1e-6.
+
+    A positive parameter below 1e-6 (softplus' slope is its distance to the bound): its
+    gradient in θ carries that slope, so no step of a solver moves it.
+    """
+    return np.abs(to_host(problem.natural_jacobian(theta))) <= _NEAR_BOUND_SLOPE
 
 
 @program(runs=Runs.ONCE)  # only at a start with a parameter near its bound
