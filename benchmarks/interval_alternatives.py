@@ -7,6 +7,9 @@ configurations (``benchmarks/default_fit_bank.py``: the same data, starts and no
 - ``noise-cov``: the default fit, then the θ block of the inverse Hessian of the Laplace
   log-evidence over θ *and* the noise log-scales (process, then process and observation),
   beside the θ-only one the summary prints — do the intervals carry the noise's uncertainty?
+- ``sigma-w``: the default fit, then the process noise the evidence learns at its θ with the
+  observation noise at the value the fit held and at values on its plateau — how far holding
+  σ_v at its margin's loose end lowers σ_w.
 - ``bootstrap``: Laplace EM at the true noise, then ``--boot`` refits of records simulated from
   the estimate (x₁ at its smoothed value) from the estimate; the refits' SD as the standard
   error, beside the Wald one — is a parametric bootstrap better calibrated?
@@ -19,6 +22,7 @@ Usage::
 
     python benchmarks/interval_alternatives.py noise-cov --model lorenz --seeds 0-20
     python benchmarks/interval_alternatives.py bootstrap --model lorenz --seeds 0-20 --boot 40
+    python benchmarks/interval_alternatives.py sigma-w --model lorenz --seeds 10-16
 
 Backs: ``docs/decisions.md`` ("After LaplaceEM the covariance is the evidence's observed
 information").
@@ -70,6 +74,20 @@ def _noise_cov(cfg, data, system) -> dict[str, list[float]]:
     return {"est": [est[p][0] for p in cfg.params], **ses}
 
 
+def _sigma_w(cfg, data, system) -> None:
+    """Print the process noise the evidence learns at the default fit's θ for given σ_v."""
+    from ceemx.models.system import with_noise
+
+    r = ceemx.fit(system, data, progress=False)
+    held = float(np.sqrt(np.asarray(r.system.obs_noise.covariance())[0, 0]))
+    row = []
+    for sv in (held, 0.02, 0.01, 0.005, 0.001):
+        trial = with_noise(r.system, obs_noise=sv)
+        est, _, _ = ceemx.estimate_noise(trial, data, r.states, fields=("process_noise",))
+        row.append((round(sv, 4), round(float(np.sqrt(est.process_noise.covariance()[0, 0])), 4)))
+    print(f"  σ_v held at {held:.4g}; (σ_v, σ_w learned at it): {row}", flush=True)
+
+
 def _bootstrap(cfg, data, start, boot: int) -> dict[str, list[float]]:
     """Wald SE of Laplace EM at the true noise against the SD of ``boot`` parametric refits."""
     r = ceemx.fit(cfg.system(start), data, solver=ceemx.LaplaceEM(), progress=False)
@@ -89,7 +107,7 @@ def _bootstrap(cfg, data, start, boot: int) -> dict[str, list[float]]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("check", choices=("noise-cov", "bootstrap"))
+    ap.add_argument("check", choices=("noise-cov", "bootstrap", "sigma-w"))
     ap.add_argument("--model", default="lorenz", choices=list(bank.CONFIGS))
     ap.add_argument("--seeds", default="0-20", help="a-b, inclusive")
     ap.add_argument("--boot", type=int, default=40)
@@ -102,6 +120,10 @@ def main() -> None:
         data, system, start, _ = bank.problem(cfg, seed, "alternate")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
+            if args.check == "sigma-w":
+                print(f"seed {seed}:")
+                _sigma_w(cfg, data, system)
+                continue
             row = (
                 _noise_cov(cfg, data, system)
                 if args.check == "noise-cov"
@@ -113,6 +135,8 @@ def main() -> None:
             zs = (est - truth) / np.asarray(se)
             z.setdefault(label, []).append(zs)
             print(f"  SE {label}: {np.round(se, 6).tolist()}  z {np.round(zs, 2).tolist()}")
+    if not z:
+        return
     print(f"\n{args.check}, {args.model}, seeds {args.seeds}: per parameter {list(cfg.params)}")
     for label, rows in z.items():
         zs = np.asarray(rows)
