@@ -328,7 +328,7 @@ def _interpolating(groups: dict, ratio: float, lower: float) -> bool:
     return interpolates(*groups["observation"]) and ratio >= lower
 
 
-def interpolates(total: float, count: float) -> bool:
+def interpolates(total: float, count: float | int) -> bool:
     """Whether the states interpolate the data (module notes).
 
     ``total``: the observation residuals' squared whitened values summed over ``count`` of them;
