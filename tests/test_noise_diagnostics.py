@@ -18,7 +18,7 @@ import pytest
 
 import ceemx
 from ceemx.evaluation import plots
-from ceemx.identification.analysis.diagnostics import residual_diagnostics
+from ceemx.identification.analysis.diagnostics import prediction_error_check, residual_diagnostics
 from ceemx.identification.analysis.noise_check import LOWER, chi2_band, noise_check
 from ceemx.identification.analysis.summary import _facts as summary_facts
 
@@ -45,8 +45,9 @@ def record(seed):
     return data, x
 
 
-def fit(data, x, q_std=Q_STD, **kw):
-    guess = eqx.tree_at(lambda s: s.B, model(q_std), jnp.asarray(1.3 * B_IN))
+def fit(data, x, q_std=Q_STD, a_wrong=None, **kw):
+    base = model(q_std) if a_wrong is None else a_wrong
+    guess = eqx.tree_at(lambda s: s.B, base, jnp.asarray(1.3 * B_IN))
     return ceemx.fit(
         guess, data, x, solver=ceemx.JointLM(), trainable=lambda s: s.B, max_epochs=30, **kw
     )
@@ -143,6 +144,24 @@ def test_whiteness_flags_missing_dynamics(problem):
     diag = residual_diagnostics(model(a=0.5 * A), data, x, estimate=False)
     assert not diag.white[0] and diag.box_pierce_p[0] < 1e-6
     assert any("correlated at lags 1" in p and "misses dynamics" in p for p in diag.problems)
+
+
+def test_the_summary_says_whether_the_one_step_errors_are_white(problem):
+    """Its row is the diagnostics' Box–Pierce test: white at the truth, not with A wrong."""
+    data, x, res = problem
+    check = prediction_error_check(res)
+    assert check is not None and check.white and check.lags == 25
+    assert dict(summary_facts(res))["one-step errors"].startswith("white (Box–Pierce")
+    wrong = eqx.tree_at(lambda s: s.A, res.system, jnp.asarray(0.5 * A))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the noise check: residuals above the assumed noise
+        misfit = fit(data, x, a_wrong=wrong)
+    bad = prediction_error_check(misfit)
+    assert bad is not None and not bad.white and bad.p_values[0] < 1e-6
+    row = dict(summary_facts(misfit))["one-step errors"]
+    assert row.startswith("NOT white at output 1") and "local optimum" in row
+    no_check = dataclasses.replace(misfit, noise_check=None)  # a fit(diagnose=False): no row
+    assert "one-step errors" not in dict(summary_facts(no_check))
 
 
 def test_diagnostics_name_the_wrong_scale(problem):

@@ -14,9 +14,12 @@
    evidence), the noise models, J at the start and the end, the data, epochs and time, the
    trajectories' status;
 4. the end-of-fit noise check (:attr:`FitResult.noise_check`) and the identifiability analysis
-   (:attr:`FitResult.identifiability`) when the fit recorded them, and, on request
-   (``diagnostics=True``), the residual diagnostics of :meth:`FitResult.diagnostics` (an EKF pass
-   and a Laplace E-step: not run by default);
+   (:attr:`FitResult.identifiability`) when the fit recorded them; with the noise check, the
+   whiteness of the one-step prediction errors (an EKF pass,
+   :func:`~ceemx.identification.analysis.diagnostics.prediction_error_check`: the intervals
+   assume white errors, and errors that are not white flag a model that misses dynamics or a
+   local optimum); on request (``diagnostics=True``), the residual diagnostics of
+   :meth:`FitResult.diagnostics` instead (an EKF pass and a Laplace E-step);
 5. the messages (per-trajectory statuses grouped, then the fit's own).
 
 **The interval.** The Laplace covariance lives in the unconstrained coordinates z of θ
@@ -31,8 +34,10 @@ interval replaces the Wald one (``intervals="auto"``, the rule of
 :mod:`ceemx.identification.analysis.profile_rule`); each interval says its kind.
 
 Nothing here computes on the device except the covariance (one compiled Schur complement per
-problem shape, as :meth:`FitResult.covariance`) and, for the few parameters the rule picks, the
-profiles' refits; ``uncertainty=False`` skips both, ``intervals="wald"`` the refits.
+problem shape, as :meth:`FitResult.covariance`), the EKF pass of the one-step errors (one compiled
+filter per system and record length) and, for the few parameters the rule picks, the profiles'
+refits; ``uncertainty=False`` skips the covariance and the refits, ``intervals="wald"`` the
+refits.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from ceemx.identification.analysis.diagnostics import prediction_error_check
 from ceemx.identification.analysis.profile_rule import summary_intervals
 from ceemx.lib.results import RESULTS, codes
 from ceemx.models.constraints import Unconstrained
@@ -386,6 +392,10 @@ def _facts(result, report=None) -> list[tuple[str, str]]:
                 f"[{check.band[0]:.3g}, {check.band[1]:.3g}]): {verdict}",
             )
         )
+    if report is None and check is not None:  # with the diagnostics, their report says it
+        errors = prediction_error_check(result)
+        if errors is not None:
+            facts.append(("one-step errors", str(errors)))
     ident = result.identifiability
     if ident is not None:
         text = (
