@@ -228,13 +228,13 @@ def clearly_better(
     if not (fa and fb):
         delta = 1.0 if fb else -math.inf
         return PairedComparison(fb, delta, delta, level, 1, n)
-    total = sum(p.sum(axis=0) for p in pairs)
+    total = np.concatenate(pairs).sum(axis=0)
     delta = float(_improvement(total[0], total[1]))
     if block_length is None:
         length = politis_block_length([p[:, 0] - p[:, 1] for p in pairs])
     else:
         length = int(block_length)
     rng = np.random.default_rng(seed)
-    sums = sum(_replicate_sums(p, length, rng, replicates) for p in pairs)
+    sums = np.sum([_replicate_sums(p, length, rng, replicates) for p in pairs], axis=0)
     bound = float(np.quantile(_improvement(sums[:, 0], sums[:, 1]), 1.0 - level))
     return PairedComparison(bound > 0, delta, bound, level, length, n)
