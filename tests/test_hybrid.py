@@ -295,6 +295,12 @@ def test_early_stopping_keeps_the_best_and_stops_after_patience(duffing):
     assert epoch(2, true) == {}  # better: the new best
     assert stop.best_epoch == 2 and stop.best_system is true
     assert stop.best_rmse < 0.02 < stop.scores[0][1]
+    errors, observed = stop.errors(true)  # the series the score is the RMSE of
+    assert errors.shape == observed.shape == (data.batch_size, data.num_steps - 20, data.obs_dim)
+    s = ceemx.benchmark_score(true, data, 20, x1=x[:, 0])
+    want = float(np.sqrt(np.mean(np.square(np.asarray(s.rmse)))))
+    assert stop.score(true) == pytest.approx(want, rel=1e-12)
+    assert stop.best_rmse == pytest.approx(float(np.sqrt(np.mean(errors**2))), rel=1e-12)
     with pytest.warns(UserWarning, match="free-run simulation of trajectory 0 is not finite"):
         assert epoch(3, nan_model) == {}
     assert epoch(4, worse) is False  # two epochs without improvement

@@ -134,8 +134,8 @@ def test_split_tail_holds_out_the_end_with_the_initial_window():
         ({"score_options": {"nope": 1}}, "score_options"),
         ({"n_init": 0}, "n_init"),
         ({"patience": 0}, "patience"),
-        ({"margin": 1.0}, "margin"),
-        ({"margin": -0.1}, "margin"),
+        ({"level": 1.0}, "level"),
+        ({"level": 0.0}, "level"),
     ],
 )
 def test_fit_hybrid_refuses_bad_options_before_any_fit(kwargs, match):

@@ -145,10 +145,33 @@ class EarlyStopping:
                 self.best_system, self.best_rmse = start, rmse
                 self._progress_rmse = rmse
 
-    def score(self, system: AbstractSystem) -> float:
-        """The validation free-run RMSE of ``system`` (over all outputs)."""
+    def errors(self, system: AbstractSystem) -> tuple[np.ndarray, np.ndarray]:
+        """``system``'s validation free-run errors, ``(errors, observed)``, each (B, T − n_init, m).
+
+        The free run of :func:`ceemx.benchmark_score` (its ``scale`` applied: the errors are
+        in the score's units); ``observed`` is the mask of the scored entries (an unobserved
+        entry's error is 0). :meth:`score` is their RMSE; :func:`ceemx.evaluation.
+        paired_bootstrap.clearly_better` compares two models' errors sample by sample.
+        """
         s = benchmark_score(system, self.validation, self.n_init, **self.score_options)
-        return float(np.sqrt(np.mean(np.square(np.asarray(s.rmse)))))
+        scale = self.score_options.get("scale")
+        scale = 1.0 if scale is None else np.asarray(scale, np.float64)
+        y = np.asarray(self.validation.y, np.float64)[:, self.n_init :]
+        observed = np.asarray(self.validation.mask, bool)[:, self.n_init :]
+        y_sim = np.asarray(s.y_sim, np.float64)[:, self.n_init :]
+        with np.errstate(invalid="ignore", over="ignore"):  # a diverged run: its errors inf/NaN
+            return np.where(observed, scale * (y_sim - y), 0.0), observed
+
+    def score(self, system: AbstractSystem) -> float:
+        """The validation free-run RMSE of ``system``: over every output, each weighted alike.
+
+        The root of the mean over trajectories and outputs of each one's mean squared
+        :meth:`errors` over its observed entries.
+        """
+        errors, observed = self.errors(system)
+        count = np.maximum(observed.sum(axis=1), 1)
+        with np.errstate(invalid="ignore", over="ignore"):
+            return float(np.sqrt(np.mean(np.sum(np.square(errors), axis=1) / count)))
 
     def __call__(self, info) -> dict | bool:
         """Score the epoch's model; ``False`` stops the fit."""

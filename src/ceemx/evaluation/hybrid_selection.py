@@ -18,9 +18,14 @@ score, measured on the held-out tail of the *training* record (never a test reco
    where the term cannot learn. So the term is trained (step 2) at the physics' best factor and
    at every whole decade from it, nearest first (tighter before looser), until
    ``noise_patience`` of them in a row did not improve the best hybrid score. The physics' best
-   weighting is kept unless another's hybrid (or physics, iteration 0) scores better by more
-   than ``margin`` (25 %): a few per cent on a short validation tail are no evidence
-   that a weighting carries over to new data. The noise the likelihood
+   weighting is kept unless the best other weighting's hybrid (or physics, iteration 0) is
+   *clearly better* on the validation tail: the lower bound at ``level`` (95 %) of its
+   relative RMSE improvement is above zero, by a paired moving-block bootstrap of the two
+   models' free-run errors there (:func:`ceemx.evaluation.paired_bootstrap.clearly_better`;
+   the block length from the errors' own autocorrelation). A few per cent on a short
+   validation tail whose errors drift together for hundreds of samples are no evidence that a
+   weighting carries over to new data; the test says how many per cent are, on this tail,
+   with no constant to choose. The noise the likelihood
    learns (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space
    model, not the free-run score, and on the real datasets it made that score worse.
 2. **The learned term's training length.** At each candidate weighting the hybrid
@@ -36,17 +41,18 @@ score, measured on the held-out tail of the *training* record (never a test reco
 3. **Every sample in the final model** (``refit=True``): the physics is refitted on the whole
    record at the chosen weighting (from the fit part's parameters), and the term trained on the
    whole record from its zero start for the chosen length plus ``patience`` iterations, each
-   scored by its free run over the whole record. The chosen length is kept unless another
-   iteration is a dip, better by more than ``margin`` than both the chosen length and the last
-   iteration: the best can be a transient a few iterations wide that the longer record reaches
-   later, while a steady in-sample gain of training longer (the best at the end) is no evidence
-   that it carries over (on a short record it is overfitting). The
+   scored by its free run over the whole record. The chosen length is kept unless the best
+   iteration is a dip, clearly better (the same test, over the whole record) than both the
+   chosen length and the last iteration: the best can be a transient a few iterations wide that
+   the longer record reaches later, while a steady in-sample gain of training longer (the best
+   at the end) is no evidence that it carries over (on a short record it is overfitting). The
    held-out model (the fit part's, early-stopped) is returned beside it, so the two can be
    compared on test data.
 
 The result (:class:`HybridFit`) holds the selected model, both physics fits and the selection's
 record: every candidate weighting with its validation score and its hybrid's, the chosen one,
-the chosen term's validation score per iteration and the chosen length
+the chosen term's validation score per iteration and the chosen length, and both tests
+(improvement, lower bound, block length, samples) behind the two choices
 (:meth:`HybridFit.record`, a JSON-able dict; :meth:`HybridFit.summary`, text).
 
 Width, depth and the weight-decay σ of the term are fixed options (16 units, one hidden layer,
@@ -70,8 +76,9 @@ from jaxtyping import ArrayLike
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.early_stopping import SCORE_OPTIONS, EarlyStopping
+from ceemx.evaluation.paired_bootstrap import clearly_better
 from ceemx.identification.fitting.result import FitResult
-from ceemx.infra.options import check_int, check_nonnegative, check_positive
+from ceemx.infra.options import check_int, check_positive
 from ceemx.models.system import AbstractSystem, with_noise
 
 __all__ = ["NOISE_FACTORS", "HybridFit", "NoiseCandidate", "fit_hybrid", "split_tail"]
@@ -142,12 +149,20 @@ class HybridFit:
             selection's sense), ``"term_epochs"`` (the budget ran out) or ``"fit"``).
         refit: whether the final model was refitted on every sample.
         refit_epoch: the iteration of the term's training on every sample that was kept (the
-            chosen length unless another's free run over the whole record was a dip, better by
-            more than ``margin`` than both it and the last iteration; 0: no term).
+            chosen length unless the best iteration's free run over the whole record was a dip,
+            clearly better than both it and the last iteration's; 0: no term).
         refit_scores: (iteration, free-run RMSE over the whole record) of that training.
         samples: samples of the fit part, the validation tail and the whole record.
         wall_s: wall time per stage [s].
         term_result: the final term fit's :class:`ceemx.FitResult` (``None`` without a term).
+        tests: the significance tests behind the two choices (module notes), each the
+            :class:`~ceemx.evaluation.paired_bootstrap.PairedComparison` record (``better``,
+            the relative RMSE ``improvement``, its ``lower_bound``, ``level``,
+            ``block_length``, samples ``n``) or ``None`` where none was run: ``"weighting"``
+            (the best other weighting's hybrid, ``other_factor``, against the first's,
+            ``factor``, on the validation tail) and ``"refit"`` (the best refit iteration,
+            ``best``, ``against_length`` — the chosen length — and ``against_last``, on the
+            whole record).
     """
 
     system: AbstractSystem
@@ -169,6 +184,7 @@ class HybridFit:
     refit_scores: list[tuple[int, float]] = field(default_factory=list)
     wall_s: dict[str, float] = field(default_factory=dict)
     term_result: FitResult | None = None
+    tests: dict[str, dict[str, Any] | None] = field(default_factory=dict)
 
     def record(self) -> dict[str, Any]:
         """The selection's record as plain Python values (for JSON)."""
@@ -187,6 +203,7 @@ class HybridFit:
             "refit_scores": [[int(e), float(r)] for e, r in self.refit_scores],
             "samples": dict(self.samples),
             "wall_s": dict(self.wall_s),
+            "tests": dict(self.tests),
         }
 
     def summary(self) -> str:
@@ -215,6 +232,7 @@ class HybridFit:
             + _STOPPED.get(self.term_stop.get("stopped_by", ""), "not trained")
             + ("" if self.best_epoch else "; no iteration beat the physics, term left out")
         )
+        lines.extend(_test_lines(self.tests))
         where = "every sample" if self.refit else "the fit part"
         kept = f", the term's iteration {self.refit_epoch} kept" if self.refit_scores else ""
         lines.append(
@@ -222,6 +240,34 @@ class HybridFit:
             f" samples{kept}); {sum(self.wall_s.values()):.1f} s in all"
         )
         return "\n".join(lines)
+
+
+def _verdict(test: Mapping[str, Any]) -> str:
+    """One paired comparison in words: the improvement, its bound, the blocks."""
+    return (
+        f"{100 * test['improvement']:.3g} % better, lower bound {100 * test['lower_bound']:.3g} %"
+        f" at {100 * test['level']:.3g} % (blocks of {test['block_length']}, "
+        f"{test['n']} samples): {'clearly better' if test['better'] else 'not clearly better'}"
+    )
+
+
+def _test_lines(tests: Mapping[str, Any]) -> list[str]:
+    """The summary's lines on the two significance tests (:attr:`HybridFit.tests`)."""
+    lines = []
+    w = tests.get("weighting")
+    if w:
+        lines.append(
+            f"weighting: the hybrid at × {w['other_factor']:.3g} against × {w['factor']:.3g} "
+            f"on the validation tail: {_verdict(w)}"
+        )
+    r = tests.get("refit")
+    if r:
+        lines.append(
+            f"refit: iteration {r['best']} against the chosen length {r['length']}: "
+            f"{_verdict(r['against_length'])}; against the last, {r['last']}: "
+            f"{_verdict(r['against_last'])}"
+        )
+    return lines
 
 
 #: Why the chosen weighting's term training ended, in words (``term_stop["stopped_by"]``).
@@ -284,7 +330,7 @@ def _check_options(  # fmt: skip
     data,
     n_init,
     noise_patience,
-    margin,
+    level,
     patience,
     max_epochs,
     term_epochs,
@@ -305,9 +351,9 @@ def _check_options(  # fmt: skip
     check_int("term_epochs", term_epochs, 0)
     if window is not None:
         check_int("window", window, 2 * n_init)
-    check_nonnegative("margin", margin)
-    if margin >= 1:
-        raise ValueError(f"`margin` must be in [0, 1); got {margin!r}.")
+    ok = isinstance(level, (int, float)) and not isinstance(level, bool)
+    if not ok or not 0 < level < 1:
+        raise ValueError(f"`level` must be a number in (0, 1); got {level!r}.")
     check_positive("validation_fraction", validation_fraction)
     if validation_fraction >= 1:
         raise ValueError(f"`validation_fraction` must be in (0, 1); got {validation_fraction!r}.")
@@ -374,14 +420,37 @@ def _term_candidates(candidates: list[NoiseCandidate]) -> list[int]:
     return sorted(whole, key=lambda i: (abs(round(decades[i])), -decades[i]))
 
 
-def _choose(trained: dict[int, tuple[float, Any]], margin: float) -> int:
-    """The chosen candidate: the physics' best weighting (tried first) unless beaten clearly.
+def _hybrid_model(training, candidate: NoiseCandidate, physics_fit: FitResult) -> AbstractSystem:
+    """The model a candidate's hybrid score belongs to (:func:`_train_candidates`).
 
-    Another weighting is chosen when its hybrid scores better by more than ``margin``.
+    The early-stopped term model, or the physics at that weighting where no term iteration
+    beat it.
+    """
+    stopper, model = training[0], training[1]
+    return model if stopper.best_rmse <= candidate.validation_rmse else physics_fit.system
+
+
+def _choose(trained: dict, candidates: list, fits: list, judge: EarlyStopping, level: float):
+    """The chosen candidate: the physics' best weighting (tried first) unless clearly beaten.
+
+    The best-scoring other weighting is chosen when its hybrid's validation free run is
+    clearly better than the first's (:func:`~ceemx.evaluation.paired_bootstrap.clearly_better`
+    at ``level`` on the two models' errors over the validation tail).
+
+    Returns:
+        (the chosen candidate, the test's record or ``None`` where no other weighting scored).
     """
     first = next(iter(trained))
-    other = min(trained, key=lambda i: trained[i][0])
-    return other if trained[other][0] < (1 - margin) * trained[first][0] else first
+    others = [i for i in trained if i != first and math.isfinite(trained[i][0])]
+    if not others:
+        return first, None
+    other = min(others, key=lambda i: trained[i][0])
+    model = {i: _hybrid_model(trained[i][1], candidates[i], fits[i]) for i in (first, other)}
+    errors_a, observed = judge.errors(model[first])
+    errors_b, _ = judge.errors(model[other])
+    test = clearly_better(errors_a, errors_b, mask=observed, level=level)
+    record = {"factor": candidates[first].factor, "other_factor": candidates[other].factor}
+    return (other if test.better else first), record | test.record()
 
 
 def _train_term(build, held_physics, fit_part, validation, n_init, patience, options, epochs):
@@ -405,42 +474,63 @@ def _train_term(build, held_physics, fit_part, validation, n_init, patience, opt
 
 
 def _refit_all(build, held_physics, whole, record, n_init, options, max_epochs, best_epoch,
-               patience, margin, bounds):  # fmt: skip
+               patience, level, bounds):  # fmt: skip
     """The physics, then the term, on every sample.
 
     The term is trained on every sample for ``best_epoch + patience`` iterations, each scored
     by its free run over the whole ``record`` (the data it is trained on: the simulation error,
-    which J does not optimise). The iteration ``best_epoch`` is kept unless another is a dip:
-    better by more than ``margin`` (relative) than both ``best_epoch`` and the last iteration.
+    which J does not optimise). The iteration ``best_epoch`` is kept unless the best iteration
+    is a dip: clearly better (:func:`_dip`) than both ``best_epoch`` and the last iteration.
     The term's best free run is often a transient a few iterations wide that the longer record
     reaches later, which such a dip shows; a steady in-sample gain of longer training (the best
     at the end) is no evidence that it carries over — on a short record it is overfitting.
 
     Returns (the physics fit, the final model, the term's fit or ``None``, the watcher or
-    ``None``, the iteration kept).
+    ``None``, the iteration kept, the dip tests' record or ``None``).
     """
     physics = _refit_physics(held_physics.system, whole, max_epochs)
     final: Any = physics.system
     if best_epoch or bounds:
         final = build(physics.system, whole, states=physics.states)
     if not best_epoch:
-        return physics, final, None, None, 0
+        return physics, final, None, None, 0, None
     epochs = best_epoch + patience
     watch = EarlyStopping(record, n_init, patience=epochs, start=final, score_options=options)
-    at_length: dict[str, Any] = {}
+    kept: dict[str, Any] = {}
 
     def keep(info) -> dict:
+        kept["last"] = info.epoch, info.system
         if info.epoch == best_epoch:
-            at_length["system"] = info.system
+            kept["system"] = info.system
         return {}
 
     term = _fit_term(final, whole, physics.states, epochs, callbacks=[watch, keep])
-    scores = dict(watch.scores)
-    last = scores[max(scores)]
-    dip = watch.best_rmse < (1 - margin) * min(scores.get(best_epoch, math.inf), last)
-    if "system" in at_length and not dip:
-        return physics, at_length["system"], term, watch, best_epoch
-    return physics, watch.restore(term).system, term, watch, watch.best_epoch
+    if "system" not in kept:  # the fit ended before the chosen length: its best
+        return physics, watch.restore(term).system, term, watch, watch.best_epoch, None
+    dip, tests = _dip(watch, best_epoch, kept["system"], kept["last"], level)
+    if not dip:
+        return physics, kept["system"], term, watch, best_epoch, tests
+    return physics, watch.restore(term).system, term, watch, watch.best_epoch, tests
+
+
+def _dip(watch: EarlyStopping, best_epoch: int, at_length, last, level: float):
+    """Whether the watch's best iteration is clearly better than two others on its record.
+
+    The two: ``best_epoch``'s model (``at_length``) and the last iteration's (``last``:
+    (iteration, model)).
+
+    Returns (dip, the two tests' record or ``None`` where the best is one of the two).
+    """
+    last_epoch, last_system = last
+    best = watch.best_epoch
+    if watch.best_system is None or best in (best_epoch, last_epoch):
+        return False, None
+    errors_best, observed = watch.errors(watch.best_system)
+    tests: dict[str, Any] = {"best": best, "length": best_epoch, "last": last_epoch}
+    for name, system in (("against_length", at_length), ("against_last", last_system)):
+        errors, _ = watch.errors(system)
+        tests[name] = clearly_better(errors, errors_best, mask=observed, level=level).record()
+    return tests["against_length"]["better"] and tests["against_last"]["better"], tests
 
 
 def _refit_physics(system: AbstractSystem, whole: Trajectories, max_epochs: int) -> FitResult:
@@ -503,21 +593,21 @@ def _train_candidates(train, candidates: list, fits: list, noise_patience: int, 
 
 
 def _every_sample(build, fits, chosen, alone, whole, data, n_init, options, max_epochs,
-                  best_epoch, patience, margin, bounds):  # fmt: skip
-    """``(hybrid, physics, term result, refit scores, refit iteration)`` on every sample.
+                  best_epoch, patience, level, bounds):  # fmt: skip
+    """``(hybrid, physics, term result, refit scores, refit iteration, dip tests)``, every sample.
 
     The hybrid refitted at the chosen weighting (:func:`_refit_all`); the physics alone at its
     own best weighting, that refit where the two weightings are the same.
     """
-    hybrid_physics, final, term_result, watch, refit_epoch = _refit_all(
+    hybrid_physics, final, term_result, watch, refit_epoch, dip = _refit_all(
         build, fits[chosen], whole, data, n_init, options, max_epochs, best_epoch, patience,
-        margin, bounds,
+        level, bounds,
     )  # fmt: skip
     refit_scores = [] if watch is None else list(watch.scores)
     final_physics = (
         hybrid_physics if alone == chosen else _refit_physics(fits[alone].system, whole, max_epochs)
     )
-    return final, final_physics, term_result, refit_scores, refit_epoch
+    return final, final_physics, term_result, refit_scores, refit_epoch, dip
 
 
 def _validation_scores(candidates: list, chosen: int, hybrid_rmse: float):
@@ -556,7 +646,7 @@ def fit_hybrid(
     prior_std: float = 1.0,
     noise_factors: Sequence[float] = NOISE_FACTORS,
     noise_patience: int = 2,
-    margin: float = 0.25,
+    level: float = 0.95,
     validation_fraction: float = 0.2,
     window: int | None = None,
     max_epochs: int = 200,
@@ -586,8 +676,8 @@ def fit_hybrid(
         prior_std: the weight-decay prior's σ.
         noise_factors: candidate factors on the model's process noise, loose to tight.
         noise_patience: weightings in a row not beating the best hybrid before the last.
-        margin: how much better (relative) another weighting's hybrid, or another refit
-            iteration, must score to replace the default one (module notes).
+        level: the confidence at which another weighting or refit iteration must beat the
+            default one to replace it (a paired block bootstrap, module notes), in (0, 1).
         validation_fraction: the tail of every record held out for the selection.
         window: fit longer records in windows of this many samples, half overlap (``None``).
         max_epochs: iterations of each physics fit.
@@ -606,7 +696,7 @@ def fit_hybrid(
     from ceemx.identification.hybrid_builder import hybrid
 
     factors, options = _check_options(
-        physics, data, n_init, noise_patience, margin, patience, max_epochs, term_epochs,
+        physics, data, n_init, noise_patience, level, patience, max_epochs, term_epochs,
         window, validation_fraction, noise_factors, score_options,
     )  # fmt: skip
     scale0 = _noise_scale(physics)
@@ -633,7 +723,7 @@ def fit_hybrid(
         patience=patience, options=options, epochs=term_epochs,
     )  # fmt: skip
     trained = _train_candidates(train, candidates, fits, noise_patience, say)
-    chosen = _choose(trained, margin)
+    chosen, weighting_test = _choose(trained, candidates, fits, judge, level)
     hybrid_rmse, (stopper, held_out, epochs_run, why) = trained[chosen]
     factor, held_physics = candidates[chosen].factor, fits[chosen]
     alone, rmse_of = _validation_scores(candidates, chosen, hybrid_rmse)
@@ -643,12 +733,12 @@ def fit_hybrid(
 
     # 3. every sample: the physics and the term refitted at the chosen settings
     final: Any = held_out if best_epoch or bounds else held_physics.system  # (no term: physics)
-    final_physics, term_result, refit_scores, refit_epoch = fits[alone], None, [], 0
+    final_physics, term_result, refit_scores, refit_epoch, dip = fits[alone], None, [], 0, None
     if refit:
         t0 = time.perf_counter()
-        final, final_physics, term_result, refit_scores, refit_epoch = _every_sample(
+        final, final_physics, term_result, refit_scores, refit_epoch, dip = _every_sample(
             build, fits, chosen, alone, whole, data, n_init, options, max_epochs, best_epoch,
-            patience, margin, bounds,
+            patience, level, bounds,
         )  # fmt: skip
         wall["refit"] = time.perf_counter() - t0
         say(f"refit on every sample: {wall['refit']:.1f} s")
@@ -659,5 +749,6 @@ def fit_hybrid(
         term_scores=list(stopper.scores), best_epoch=best_epoch, term_epochs=epochs_run,
         validation_rmse=rmse_of, refit_epoch=refit_epoch, refit_scores=refit_scores,
         term_stop=why, refit=refit, wall_s=wall, term_result=term_result,
+        tests={"weighting": weighting_test, "refit": dip},
         samples=_sample_counts(fit_raw, validation, data, n_init),
     )  # fmt: skip
