@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ceemx.evaluation.paired_bootstrap import clearly_better, politis_block_length
+from ceemx.evaluation.paired_bootstrap import adjusted_level, clearly_better, politis_block_length
 
 
 def _ar1(phi: float, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -104,3 +104,20 @@ def test_shapes_must_match():
         clearly_better(np.ones(10), np.ones(11))
     with pytest.raises(ValueError, match="mask"):
         clearly_better(np.ones(10), np.ones(10), mask=np.ones(9, bool))
+
+
+def test_the_best_of_many_equal_models_is_better_only_by_luck():
+    """80 models as good as A: the best scores better by chance; its adjusted test says no.
+
+    The winner's curse: the unadjusted 95 % test calls the best of 80 exchangeable candidates
+    clearly better than the reference; at the Bonferroni level over the 80 it is not.
+    """
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=500)
+    candidates = [0.9 * a + np.sqrt(1 - 0.81) * rng.normal(size=500) for _ in range(80)]
+    best = min(candidates, key=lambda c: float(np.mean(c**2)))
+    assert clearly_better(a, best).better
+    assert adjusted_level(0.95, 80) == pytest.approx(1 - 0.05 / 80)
+    assert adjusted_level(0.95, 1) == 0.95 and adjusted_level(0.95, 0) == 0.95
+    strict = clearly_better(a, best, level=adjusted_level(0.95, 80))
+    assert not strict.better and strict.lower_bound < 0

@@ -25,7 +25,10 @@ score, measured on the held-out tail of the *training* record (never a test reco
    the block length from the errors' own autocorrelation). A few per cent on a short
    validation tail whose errors drift together for hundreds of samples are no evidence that a
    weighting carries over to new data; the test says how many per cent are, on this tail,
-   with no constant to choose. The noise the likelihood
+   with no constant to choose. The best of several weightings scores well partly by luck (the
+   winner's curse), so its test is held to the Bonferroni level over the weightings it was
+   picked from (:func:`~ceemx.evaluation.paired_bootstrap.adjusted_level`). The noise the
+   likelihood
    learns (``fit(noise="learn")``) is not used: it maximises the evidence of the state-space
    model, not the free-run score, and on the real datasets it made that score worse.
 2. **The learned term's training length.** At each candidate weighting the hybrid
@@ -42,8 +45,9 @@ score, measured on the held-out tail of the *training* record (never a test reco
    record at the chosen weighting (from the fit part's parameters), and the term trained on the
    whole record from its zero start for the chosen length plus ``patience`` iterations, each
    scored by its free run over the whole record. The chosen length is kept unless the best
-   iteration is a dip, clearly better (the same test, over the whole record) than both the
-   chosen length and the last iteration: the best can be a transient a few iterations wide that
+   iteration is a dip, clearly better (the same test, over the whole record, at the Bonferroni
+   level over the iterations it is the best of) than both the chosen length and the last
+   iteration: the best can be a transient a few iterations wide that
    the longer record reaches later, while a steady in-sample gain of training longer (the best
    at the end) is no evidence that it carries over (on a short record it is overfitting). The
    held-out model (the fit part's, early-stopped) is returned beside it, so the two can be
@@ -76,7 +80,7 @@ from jaxtyping import ArrayLike
 
 from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.early_stopping import SCORE_OPTIONS, EarlyStopping
-from ceemx.evaluation.paired_bootstrap import clearly_better
+from ceemx.evaluation.paired_bootstrap import adjusted_level, clearly_better
 from ceemx.identification.fitting.result import FitResult
 from ceemx.infra.options import check_int, check_positive
 from ceemx.models.system import AbstractSystem, with_noise
@@ -448,6 +452,7 @@ def _choose(trained: dict, candidates: list, fits: list, judge: EarlyStopping, l
     model = {i: _hybrid_model(trained[i][1], candidates[i], fits[i]) for i in (first, other)}
     errors_a, observed = judge.errors(model[first])
     errors_b, _ = judge.errors(model[other])
+    level = adjusted_level(level, len(others))  # the best of the others: the winner's curse
     test = clearly_better(errors_a, errors_b, mask=observed, level=level)
     record = {"factor": candidates[first].factor, "other_factor": candidates[other].factor}
     return (other if test.better else first), record | test.record()
@@ -527,6 +532,7 @@ def _dip(watch: EarlyStopping, best_epoch: int, at_length, last, level: float):
         return False, None
     errors_best, observed = watch.errors(watch.best_system)
     tests: dict[str, Any] = {"best": best, "length": best_epoch, "last": last_epoch}
+    level = adjusted_level(level, len(watch.scores) - 1)  # the best of every other iteration
     for name, system in (("against_length", at_length), ("against_last", last_system)):
         errors, _ = watch.errors(system)
         tests[name] = clearly_better(errors, errors_best, mask=observed, level=level).record()

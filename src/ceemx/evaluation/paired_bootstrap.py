@@ -48,7 +48,21 @@ from jaxtyping import ArrayLike
 
 from ceemx.infra.options import check_int
 
-__all__ = ["PairedComparison", "clearly_better", "politis_block_length"]
+__all__ = ["REPLICATES", "PairedComparison", "adjusted_level", "clearly_better",
+           "politis_block_length"]  # fmt: skip
+
+#: the bootstrap replicates at the usual levels (more where the level asks for a far quantile)
+REPLICATES = 2000
+
+
+def adjusted_level(level: float, compared: int) -> float:
+    """The level of one test where the better model was picked from ``compared`` candidates.
+
+    The winner's curse: the best of several models scores well partly by chance, so its test
+    against a reference is held to the Bonferroni level 1 − (1 − ``level``)/``compared`` — the
+    chance that any of the candidates beats the reference by luck alone stays below 1 − level.
+    """
+    return 1.0 - (1.0 - level) / max(1, int(compared))
 
 
 @dataclass(frozen=True)
@@ -176,7 +190,8 @@ def _check(level, replicates, block) -> float:
     ok = isinstance(level, (int, float, np.floating)) and not isinstance(level, bool)
     if not ok or not 0.0 < float(level) < 1.0:
         raise ValueError(f"`level` must be a number in (0, 1); got {level!r}.")
-    check_int("replicates", replicates, 1)
+    if replicates is not None:
+        check_int("replicates", replicates, 1)
     if block is not None:
         check_int("block_length", block, 1)
     return float(level)
@@ -188,7 +203,7 @@ def clearly_better(
     *,
     mask: ArrayLike | None = None,
     level: float = 0.95,
-    replicates: int = 2000,
+    replicates: int | None = None,
     seed: int = 0,
     block_length: int | None = None,
 ) -> PairedComparison:
@@ -200,7 +215,8 @@ def clearly_better(
         errors_b: B's errors on the same samples, the same shape.
         mask: which entries are observed (``True``), the errors' shape; ``None``: all.
         level: the one-sided confidence level of the lower bound, in (0, 1).
-        replicates: bootstrap replicates.
+        replicates: bootstrap replicates (``None``: 2,000, or 20 / (1 − ``level``) where that
+            is more, so that the bound's quantile has 20 replicates below it).
         seed: the resampling's seed (the result is a function of the data and the seed).
         block_length: blocks of this many samples instead of the rule's (1: the iid bootstrap).
 
@@ -234,6 +250,8 @@ def clearly_better(
         length = politis_block_length([p[:, 0] - p[:, 1] for p in pairs])
     else:
         length = int(block_length)
+    if replicates is None:
+        replicates = max(REPLICATES, math.ceil(20.0 / (1.0 - level)))
     rng = np.random.default_rng(seed)
     sums = np.sum([_replicate_sums(p, length, rng, replicates) for p in pairs], axis=0)
     bound = float(np.quantile(_improvement(sums[:, 0], sums[:, 1]), 1.0 - level))
