@@ -18,7 +18,11 @@ import pytest
 
 import ceemx
 from ceemx.evaluation import plots
-from ceemx.identification.analysis.diagnostics import prediction_error_check, residual_diagnostics
+from ceemx.identification.analysis.diagnostics import (
+    PredictionErrorCheck,
+    prediction_error_check,
+    residual_diagnostics,
+)
 from ceemx.identification.analysis.noise_check import LOWER, chi2_band, noise_check
 from ceemx.identification.analysis.summary import _facts as summary_facts
 
@@ -162,6 +166,8 @@ def test_the_summary_says_whether_the_one_step_errors_are_white(problem):
     assert row.startswith("NOT white at output 1") and "local optimum" in row
     no_check = dataclasses.replace(misfit, noise_check=None)  # a fit(diagnose=False): no row
     assert "one-step errors" not in dict(summary_facts(no_check))
+    untested = PredictionErrorCheck((float("nan"),), 25)  # a filter that diverged
+    assert untested.white and str(untested).startswith("not tested")
 
 
 def test_diagnostics_name_the_wrong_scale(problem):

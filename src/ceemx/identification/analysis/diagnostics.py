@@ -644,6 +644,11 @@ class PredictionErrorCheck:
     def __str__(self) -> str:
         ps = ", ".join(f"{p:.2g}" for p in self.p_values)
         head = f"Box–Pierce over lags 1–{self.lags} of the EKF's errors, p = {ps}"
+        if not any(np.isfinite(self.p_values)):
+            return (
+                "not tested: under two finite prediction errors per output (the filter "
+                "diverged or nothing is observed; FitResult.diagnostics())"
+            )
         if self.white:
             return f"white ({head})"
         bad = [str(i + 1) for i, p in enumerate(self.p_values) if p < WHITE_LEVEL]
