@@ -235,11 +235,8 @@ def test_a_callback_that_stops_ends_the_whole_path(records):
     assert _names(res.choice) == [("JointLM", "fixed")]  # the finish never ran
 
 
-class _Unused(ceemx.AbstractSystem):
-    """x⁺ = a·x, y = x, and a parameter b the model never reads: no data determine it."""
-
-    a: jax.Array = ceemx.param()
-    b: jax.Array = ceemx.param()
+class _Scalar(ceemx.AbstractSystem):
+    """A scalar state, observed directly (y = x); the dynamics are the subclass's."""
 
     @property
     def state_dim(self) -> int:
@@ -249,11 +246,18 @@ class _Unused(ceemx.AbstractSystem):
     def obs_dim(self) -> int:
         return 1
 
-    def dynamics(self, x, u, t):
-        return self.a * x + 0.0 * self.b
-
     def observe(self, x, u, t):
         return x
+
+
+class _Unused(_Scalar):
+    """x⁺ = a·x, y = x, and a parameter b the model never reads: no data determine it."""
+
+    a: jax.Array = ceemx.param()
+    b: jax.Array = ceemx.param()
+
+    def dynamics(self, x, u, t):
+        return self.a * x + 0.0 * self.b
 
 
 def test_finish_skipped_where_the_joint_covariance_is_not_positive_definite(records):
@@ -274,25 +278,14 @@ def test_finish_skipped_where_the_joint_covariance_is_not_positive_definite(reco
     )
 
 
-class _Damped(ceemx.AbstractSystem):
+class _Damped(_Scalar):
     """x⁺ = a·x − c·x, y = x, with c positive (its transform saturates near 0)."""
 
     a: jax.Array = ceemx.param()
     c: jax.Array = ceemx.param(positive=True)
 
-    @property
-    def state_dim(self) -> int:
-        return 1
-
-    @property
-    def obs_dim(self) -> int:
-        return 1
-
     def dynamics(self, x, u, t):
         return (self.a - self.c) * x
-
-    def observe(self, x, u, t):
-        return x
 
 
 def test_a_parameter_left_at_its_bound_starts_the_finish_from_its_start_value(records):

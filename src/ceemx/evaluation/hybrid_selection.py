@@ -81,7 +81,7 @@ from ceemx.data.trajectories import Trajectories
 from ceemx.evaluation.early_stopping import SCORE_OPTIONS, EarlyStopping
 from ceemx.evaluation.paired_bootstrap import adjusted_level, clearly_better
 from ceemx.identification.fitting.result import FitResult
-from ceemx.infra.options import check_int, check_positive
+from ceemx.infra.options import check_int, check_level, check_positive
 from ceemx.models.system import AbstractSystem, with_noise
 
 __all__ = ["NOISE_FACTORS", "HybridFit", "NoiseCandidate", "fit_hybrid", "split_tail"]
@@ -354,9 +354,7 @@ def _check_options(  # fmt: skip
     check_int("term_epochs", term_epochs, 0)
     if window is not None:
         check_int("window", window, 2 * n_init)
-    ok = isinstance(level, (int, float)) and not isinstance(level, bool)
-    if not ok or not 0 < level < 1:
-        raise ValueError(f"`level` must be a number in (0, 1); got {level!r}.")
+    check_level("level", level)
     check_positive("validation_fraction", validation_fraction)
     if validation_fraction >= 1:
         raise ValueError(f"`validation_fraction` must be in (0, 1); got {validation_fraction!r}.")

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from jaxtyping import ArrayLike
 
-from ceemx.infra.options import check_int
+from ceemx.infra.options import check_int, check_level
 
 __all__ = ["REPLICATES", "PairedComparison", "adjusted_level", "clearly_better",
            "politis_block_length"]  # fmt: skip
@@ -187,14 +187,12 @@ def _improvement(sum_a, sum_b):
 
 def _check(level, replicates, block) -> float:
     """``level`` as a float, the counts checked; or raise naming the argument."""
-    ok = isinstance(level, (int, float, np.floating)) and not isinstance(level, bool)
-    if not ok or not 0.0 < float(level) < 1.0:
-        raise ValueError(f"`level` must be a number in (0, 1); got {level!r}.")
+    level = check_level("level", level)
     if replicates is not None:
         check_int("replicates", replicates, 1)
     if block is not None:
         check_int("block_length", block, 1)
-    return float(level)
+    return level
 
 
 def clearly_better(

@@ -101,6 +101,14 @@ def check_positive(name: str, value: Any, *, allow_inf: bool = False) -> None:
         raise ValueError(f"`{name}` must be {what}; got {value!r}.")
 
 
+def check_level(name: str, value: Any) -> float:
+    """``value`` as a float, or raise unless it is a real number in (0, 1) (a confidence level)."""
+    ok = isinstance(value, (int, float, np.floating)) and not isinstance(value, bool)
+    if not ok or not 0.0 < float(value) < 1.0:
+        raise ValueError(f"`{name}` must be a number in (0, 1); got {value!r}.")
+    return float(value)
+
+
 def check_int(
     name: str, value: Any, minimum: int, *, none: bool = False, maximum: int = INT32_MAX
 ) -> int | None:

@@ -275,6 +275,14 @@ def _innovations(system, data, x1, initial):
     return np.where(np.asarray(data.mask, bool), z, np.nan)
 
 
+def _error_statistics(inputs: Prepared, x1: np.ndarray, prior, M: int):
+    """``(Correlations, NIS)`` of the EKF's standardised one-step errors over lags 1…M."""
+    data = inputs.data
+    z = _innovations(inputs.system, data, x1, prior)
+    inside = np.arange(data.num_steps)[None, :] < _record_lengths(data)[:, None]
+    return correlation_statistics(z, np.asarray(data.u), M, inside)
+
+
 def residual_diagnostics(
     system: AbstractSystem,
     data: Trajectories,
@@ -323,9 +331,7 @@ def residual_diagnostics(
         if states is not None:  # where the MAP failed, the given start
             x1 = np.where(np.isfinite(x1), x1, np.asarray(states)[:, 0])
         prior = system.initial_prior if initial is None else initial
-        z = _innovations(inputs.system, inputs.data, x1, prior)
-        inside = np.arange(data.num_steps)[None, :] < _record_lengths(inputs.data)[:, None]
-        c, nis = correlation_statistics(z, np.asarray(inputs.data.u), M, inside)
+        c, nis = _error_statistics(inputs, x1, prior, M)
         tests = _prediction_error_tests(c, nis)
     return ResidualDiagnostics(
         noise_ratios=noise.ratios,
@@ -615,6 +621,10 @@ def _std(noise) -> np.ndarray:
     return np.sqrt(np.diagonal(np.asarray(noise.covariance(), np.float64)))
 
 
+#: the level of the whiteness test (Box–Pierce), in the diagnostics and the summary alike
+WHITE_LEVEL = 0.01
+
+
 @dataclass(frozen=True)
 class PredictionErrorCheck:
     """The whiteness test of the one-step prediction errors alone (module notes, item 2).
@@ -659,10 +669,6 @@ class PredictionErrorCheck:
         )
 
 
-#: the level of the whiteness test (Box–Pierce), in the diagnostics and the summary alike
-WHITE_LEVEL = 0.01
-
-
 def prediction_error_check(result: Any, lags: int = 25) -> PredictionErrorCheck | None:
     """:class:`PredictionErrorCheck` at a fit's end point; ``None`` where it cannot run.
 
@@ -673,19 +679,26 @@ def prediction_error_check(result: Any, lags: int = 25) -> PredictionErrorCheck 
     system = result.system
     if result.problem is None or not all(getattr(system, f).is_gaussian for f in _COMPONENT):
         return None
+    data, states = _fitted(result)
+    x1 = None if data is None else np.asarray(states)[:, 0]
+    if x1 is None or not np.all(np.isfinite(x1)):
+        return None
+    M = int(min(lags, data.num_steps - 1))
+    c, _ = _error_statistics(prepare(_strong(system), data, None, identify=True), x1,
+                             system.initial_prior, M)  # fmt: skip
+    ps = tuple(_box_pierce(c, i)[1] if n >= 2 else np.nan for i, n in enumerate(c.counts))
+    return PredictionErrorCheck(ps, M)
+
+
+def _fitted(result: Any):
+    """``(data, states)`` of the trajectories a fit kept to its end; ``(None, None)``: none."""
     problem, _, states, weights = end_point(result)
     keep = np.flatnonzero(np.asarray(weights) > 0)
-    x1 = np.asarray(states)[keep, 0]
-    if keep.size == 0 or not np.all(np.isfinite(x1)):
-        return None
-    data = problem.data[keep] if keep.size < states.shape[0] else problem.data
-    inputs = prepare(_strong(system), data, None, identify=True)
-    M = int(min(lags, data.num_steps - 1))
-    z = _innovations(inputs.system, inputs.data, x1, system.initial_prior)
-    inside = np.arange(data.num_steps)[None, :] < _record_lengths(inputs.data)[:, None]
-    c, _ = correlation_statistics(z, np.asarray(inputs.data.u), M, inside)
-    ps = tuple(_box_pierce(c, i)[1] if c.counts[i] >= 2 else np.nan for i in range(z.shape[-1]))
-    return PredictionErrorCheck(ps, M)
+    if keep.size == 0:
+        return None, None
+    if keep.size == states.shape[0]:
+        return problem.data, states
+    return problem.data[keep], indexed(states, keep)
 
 
 def fit_diagnostics(result: Any, **options) -> ResidualDiagnostics:
@@ -696,17 +709,14 @@ def fit_diagnostics(result: Any, **options) -> ResidualDiagnostics:
     Raises:
         ValueError: no trajectory took part in the fit to its end (every one failed).
     """
-    problem, _, states, weights = end_point(result)
-    keep = np.flatnonzero(np.asarray(weights) > 0)
-    if keep.size == 0:
+    data, states = _fitted(result)
+    if data is None:
         raise ValueError(
             "no trajectory of this fit has a usable end point (every one failed or was "
             f"excluded; status: {'; '.join(sorted(set(messages(result.status))))}): there are no "
             "residuals to diagnose. residual_diagnostics(system, data) reads a model on data "
             "without a fit."
         )
-    data = problem.data[keep] if keep.size < states.shape[0] else problem.data
-    states = indexed(states, keep) if keep.size < states.shape[0] else states
     return residual_diagnostics(
         result.system, data, states, noise_check=result.noise_check, **options
     )
