@@ -680,8 +680,10 @@ def prediction_error_check(result: Any, lags: int = 25) -> PredictionErrorCheck 
     if result.problem is None or not all(getattr(system, f).is_gaussian for f in _COMPONENT):
         return None
     data, states = _fitted(result)
-    x1 = None if data is None else np.asarray(states)[:, 0]
-    if x1 is None or not np.all(np.isfinite(x1)):
+    if data is None:
+        return None
+    x1 = np.asarray(states)[:, 0]
+    if not np.all(np.isfinite(x1)):
         return None
     M = int(min(lags, data.num_steps - 1))
     c, _ = _error_statistics(prepare(_strong(system), data, None, identify=True), x1,
