@@ -8,6 +8,7 @@ below differs only in array values (strongly typed, so none retraces).
 """
 
 import dataclasses
+import math
 import warnings
 
 import equinox as eqx
@@ -20,6 +21,7 @@ import ceemx
 from ceemx.evaluation import plots
 from ceemx.identification.analysis.diagnostics import (
     PredictionErrorCheck,
+    _extremes,
     prediction_error_check,
     residual_diagnostics,
 )
@@ -168,6 +170,48 @@ def test_the_summary_says_whether_the_one_step_errors_are_white(problem):
     assert "one-step errors" not in dict(summary_facts(no_check))
     untested = PredictionErrorCheck((float("nan"),), 25)  # a filter that diverged
     assert untested.white and str(untested).startswith("not tested")
+
+
+def test_the_outlier_test_finds_the_largest_error_and_its_bonferroni_p():
+    """Largest |ẽ| per output, where, and min(1, N·P(|Z| ≥ it)); missing samples left out."""
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal((2, 300, 2))
+    z[1, 57, 0] = 30.0  # a glitch on output 1
+    z[0, 3, 1] = np.nan  # a missing sample on output 2
+    ext = _extremes(z)
+    assert ext.at[0] == (1, 57) and ext.size[0] == 30.0
+    assert ext.p[0] == 600 * math.erfc(30.0 / math.sqrt(2.0)) and ext.p[0] < 1e-190
+    n2 = 599  # output 2: the present samples only
+    assert ext.size[1] == np.nanmax(np.abs(z[..., 1]))
+    np.testing.assert_allclose(ext.p[1], min(1.0, n2 * math.erfc(ext.size[1] / math.sqrt(2))))
+    assert ext.p[1] > 0.01  # Gaussian errors: no outlier
+    assert _extremes(np.full((1, 5, 1), np.nan)).at == (None,)
+    check = PredictionErrorCheck((0.5, 0.5), 25, ext)
+    assert check.outliers == (0,) and check.white
+    assert "OUTLIER at output 1: record 2, step 58, 30 predicted SDs (p = " in str(check)
+    assert str(check).startswith(str(PredictionErrorCheck((0.5, 0.5), 25)))
+
+
+@pytest.mark.slow
+def test_an_outlier_the_learned_noise_absorbed_is_named_where_it_is(problem):
+    """One glitch of 10⁴ noise SDs: with σ_v inflated to absorb it (σ_v² = glitch² / N, what a
+    learned noise does) the NIS and whiteness pass, the outlier test names its record and step."""
+    data, x, res = problem
+    glitch = 1e4 * R_STD
+    y = np.asarray(data.y).copy()
+    y[1, 57, 0] += glitch
+    glitched = ceemx.Trajectories(y, data.u)
+    f64 = jnp.float64
+    absorbing = ceemx.systems.LinearSystem(*(f64(a) for a in (A, C, B_IN)),
+        process_noise=f64(Q_STD), obs_noise=f64(glitch / np.sqrt(B * T)))  # fmt: skip
+    diag = residual_diagnostics(absorbing, glitched, x, estimate=False)
+    assert diag.largest_at[0] == (1, 57) and diag.largest[0] > 0.9 * np.sqrt(B * T)
+    assert diag.largest_p[0] < 1e-50 and diag.white[0]
+    assert any("an outlier" in p and "record 2, step 58" in p for p in diag.problems)
+    clean = residual_diagnostics(model(), data, x, estimate=False)  # the truth: none
+    assert clean.largest_p[0] > 0.01 and not any("outlier" in p for p in clean.problems)
+    check = prediction_error_check(res)
+    assert check is not None and check.outliers == ()
 
 
 def test_diagnostics_name_the_wrong_scale(problem):

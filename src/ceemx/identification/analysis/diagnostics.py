@@ -35,7 +35,13 @@ data three ways and flags what fails, each flag with a message that says what it
      the error before the input — feedback in the data), with the same 99 % band (valid whatever
      the input's own correlation, when ẽ is white); flagged when a lag exceeds the Bonferroni
      bound z_{1−0.005/(2M+1)}/√N_k (1 % for all lags together);
-   - bias: the mean of ẽ, flagged beyond 3.29/√N (0.1 %).
+   - bias: the mean of ẽ, flagged beyond 3.29/√N (0.1 %);
+   - outliers: the largest |ẽ| of each output, flagged when a Gaussian error that large among N
+     is improbable: its Bonferroni p-value N·P(|Z| ≥ max|ẽ|) below 1 % (≈ 4.3 predicted standard
+     deviations at N = 500). One glitch in a record (a sensor spike) passes the variance and
+     whiteness tests once a learned noise has absorbed it — σ_v learned 400× the true value
+     from one sample 10⁴ noise standard deviations off — but stands out here: its error is still
+     ≈ √N of the inflated noise's.
 
    Correlated prediction errors mean the model misses dynamics — or the noise ratio is off: a too
    tight process noise makes the filter sluggish, and its errors correlated at short lags.
@@ -48,6 +54,7 @@ identification; never the other way round).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from statistics import NormalDist
 from typing import Any, NamedTuple
@@ -121,6 +128,8 @@ class ResidualDiagnostics:
             ``white`` is ``False``; every test needs two present samples; the input test a
             varying input). ``ratio_ok`` per field: the noise is consistent — (estimated /
             assumed std)² inside [1/F, F] when estimated, else the E-step ratio.
+        largest: (m,) the largest |ẽ| per output (NaN where none is present); ``largest_at``
+            its (record, step), 0-based; ``largest_p`` its Bonferroni p-value (the outlier test).
         lags: M.
         factor: F of the per-component noise-ratio bands [1/F, F].
         noise_check: the end-of-fit check (``None`` when there was none).
@@ -143,6 +152,9 @@ class ResidualDiagnostics:
     unbiased: np.ndarray
     nis_ok: np.ndarray
     ratio_ok: dict
+    largest: np.ndarray
+    largest_at: tuple
+    largest_p: np.ndarray
     lags: int
     factor: float = FACTOR
     noise_check: NoiseCheck | None = None
@@ -209,6 +221,7 @@ class ResidualDiagnostics:
             tests = self._verdicts(i)
             lines.append(
                 f"  output {i + 1}: NIS {self.nis[i]:.3g}, mean {self.bias[i]:+.3g}, "
+                f"largest {self.largest[i]:.3g} ({_p_text(self.largest_p[i])}), "
                 f"Box-Pierce {self.box_pierce[i]:.3g} (p = {self.box_pierce_p[i]:.2g}); "
                 + ", ".join(tests)
             )
@@ -275,12 +288,37 @@ def _innovations(system, data, x1, initial):
     return np.where(np.asarray(data.mask, bool), z, np.nan)
 
 
+class Extremes(NamedTuple):
+    """Per output, the largest standardised one-step error and the outlier test's p-value."""
+
+    size: np.ndarray  # (m,) max |ẽ| over the present samples (NaN: none present)
+    at: tuple  # per output, (record, step) of that error, 0-based (None: none present)
+    p: np.ndarray  # (m,) min(1, N·P(|Z| ≥ size)): the chance of one that large among N
+
+
+def _extremes(z: np.ndarray) -> Extremes:
+    """:class:`Extremes` of (B, T, m) standardised errors, NaN where missing."""
+    m = z.shape[-1]
+    size, p, at = np.full(m, np.nan), np.full(m, np.nan), []
+    for i in range(m):
+        a = np.abs(z[..., i])
+        n = int(np.isfinite(a).sum())
+        if n == 0:
+            at.append(None)
+            continue
+        b, t = np.unravel_index(int(np.nanargmax(a)), a.shape)
+        size[i] = a[b, t]
+        p[i] = min(1.0, n * math.erfc(size[i] / math.sqrt(2.0)))
+        at.append((int(b), int(t)))
+    return Extremes(size, tuple(at), p)
+
+
 def _error_statistics(inputs: Prepared, x1: np.ndarray, prior, M: int):
-    """``(Correlations, NIS)`` of the EKF's standardised one-step errors over lags 1…M."""
+    """``(Correlations, NIS, Extremes)`` of the EKF's standardised one-step errors (lags 1…M)."""
     data = inputs.data
     z = _innovations(inputs.system, data, x1, prior)
     inside = np.arange(data.num_steps)[None, :] < _record_lengths(data)[:, None]
-    return correlation_statistics(z, np.asarray(data.u), M, inside)
+    return (*correlation_statistics(z, np.asarray(data.u), M, inside), _extremes(z))
 
 
 def residual_diagnostics(
@@ -331,8 +369,8 @@ def residual_diagnostics(
         if states is not None:  # where the MAP failed, the given start
             x1 = np.where(np.isfinite(x1), x1, np.asarray(states)[:, 0])
         prior = system.initial_prior if initial is None else initial
-        c, nis = _error_statistics(inputs, x1, prior, M)
-        tests = _prediction_error_tests(c, nis)
+        c, nis, extremes = _error_statistics(inputs, x1, prior, M)
+        tests = _prediction_error_tests(c, nis, extremes)
     return ResidualDiagnostics(
         noise_ratios=noise.ratios,
         assumed_std=noise.assumed,
@@ -350,6 +388,9 @@ def residual_diagnostics(
         unbiased=tests.unbiased,
         nis_ok=tests.nis_ok,
         ratio_ok=ratio_ok,
+        largest=extremes.size,
+        largest_at=extremes.at,
+        largest_p=extremes.p,
         lags=M,
         factor=factor,
         noise_check=noise_check,
@@ -519,8 +560,8 @@ class _ErrorTests:
         return cls(none(m), none(m), none(m), none(m, p), nan, nan.copy(), [])
 
 
-def _prediction_error_tests(c: Correlations, nis: np.ndarray) -> _ErrorTests:
-    """NIS, whiteness, then (for white errors only: their bands assume it) bias and inputs."""
+def _prediction_error_tests(c: Correlations, nis: np.ndarray, extremes: Extremes) -> _ErrorTests:
+    """NIS, outliers, whiteness, then bias and inputs (white errors only)."""
     M = c.lags
     tests = _ErrorTests.untested(len(nis), c.cross_correlation.shape[1])
     z_bonf = NormalDist().inv_cdf(1.0 - 0.005 / (2 * M + 1))
@@ -536,6 +577,8 @@ def _prediction_error_tests(c: Correlations, nis: np.ndarray) -> _ErrorTests:
         tests.nis_ok[i] = message is None
         if message:
             tests.problems.append(message)
+        if extremes.p[i] < WHITE_LEVEL:
+            tests.problems.append(_outlier_message(i, extremes))
         tests.box_pierce[i], tests.box_pierce_p[i] = _box_pierce(c, i)
         tests.white[i] = not tests.box_pierce_p[i] < WHITE_LEVEL
         if not tests.white[i]:
@@ -553,6 +596,23 @@ def _prediction_error_tests(c: Correlations, nis: np.ndarray) -> _ErrorTests:
             if message:
                 tests.problems.append(message)
     return tests
+
+
+def _outlier_message(i: int, extremes: Extremes) -> str:
+    """Output i's largest error is an outlier: where, how large, what to do."""
+    b, t = extremes.at[i]
+    return (
+        f"output {i + 1}: an outlier — the one-step prediction error at record {b + 1}, step "
+        f"{t + 1} is {extremes.size[i]:.3g} predicted standard deviations "
+        f"({_p_text(extremes.p[i])} for the largest of this many Gaussian errors): a glitch in "
+        "the data, or noise with heavier tails than the model's. A learned noise absorbs such a "
+        "sample and the estimate follows it; mask it (Trajectories(mask=...)) and fit again."
+    )
+
+
+def _p_text(p: float) -> str:
+    """``p = 0.0031``; ``p < 1e-300`` where it underflows to 0."""
+    return "p < 1e-300" if p == 0 else f"p = {p:.2g}"
 
 
 def _box_pierce(c: Correlations, i: int) -> tuple[float, float]:
@@ -638,20 +698,45 @@ class PredictionErrorCheck:
     30 % off: σ = 1.98 against 10, Box–Pierce p = 1e-70, every interval excluding the truth), the
     noise ratio is off, or the EKF's linearisation is poor along this record.
 
+    The row also names an outlier: an output whose largest error is improbable for Gaussian
+    errors (:func:`residual_diagnostics`' outlier test) — one glitch that a learned noise absorbed.
+
     Attributes:
         p_values: (m,) each output's Box–Pierce p-value (NaN where under two errors are present).
         lags: M, the largest lag tested.
+        extremes: the largest error per output, where, and the outlier test's p-value.
     """
 
     p_values: tuple[float, ...]
     lags: int
+    extremes: Extremes | None = None
 
     @property
     def white(self) -> bool:
         """Whether no output's test rejects whiteness at 1 %."""
         return not any(p < WHITE_LEVEL for p in self.p_values)
 
+    @property
+    def outliers(self) -> tuple[int, ...]:
+        """The outputs (0-based) whose largest error fails the outlier test at 1 %."""
+        if self.extremes is None:
+            return ()
+        return tuple(i for i, p in enumerate(self.extremes.p) if p < WHITE_LEVEL)
+
     def __str__(self) -> str:
+        text = self._whiteness()
+        for i in self.outliers:
+            assert self.extremes is not None
+            b, t = self.extremes.at[i]
+            text += (
+                f"; an OUTLIER at output {i + 1}: record {b + 1}, step {t + 1}, "
+                f"{self.extremes.size[i]:.3g} predicted SDs ({_p_text(self.extremes.p[i])}): a "
+                "glitch in the data or heavier-tailed noise than the model's (a learned noise "
+                "absorbs a glitch); mask it and fit again"
+            )
+        return text
+
+    def _whiteness(self) -> str:
         ps = ", ".join(f"{p:.2g}" for p in self.p_values)
         head = f"Box–Pierce over lags 1–{self.lags} of the EKF's errors, p = {ps}"
         if not any(np.isfinite(self.p_values)):
@@ -686,10 +771,10 @@ def prediction_error_check(result: Any, lags: int = 25) -> PredictionErrorCheck 
     if not np.all(np.isfinite(x1)):
         return None
     M = int(min(lags, data.num_steps - 1))
-    c, _ = _error_statistics(prepare(_strong(system), data, None, identify=True), x1,
-                             system.initial_prior, M)  # fmt: skip
+    c, _, extremes = _error_statistics(prepare(_strong(system), data, None, identify=True), x1,
+                                       system.initial_prior, M)  # fmt: skip
     ps = tuple(_box_pierce(c, i)[1] if n >= 2 else np.nan for i, n in enumerate(c.counts))
-    return PredictionErrorCheck(ps, M)
+    return PredictionErrorCheck(ps, M, extremes)
 
 
 def _fitted(result: Any):
