@@ -161,6 +161,14 @@ class ParticleEM(AbstractFitSolver):
         for name in ("rho_theta", "rtol", "atol"):
             check_nonnegative(name, getattr(self, name))
 
+    def check_problem(self, problem: FitProblem, theta: Theta) -> None:
+        """The base class's refusals, and a proposal or x₁ prior it cannot use, before any compute.
+
+        (The start's health test would otherwise compile its programs for a fit refused after it.)
+        """
+        super().check_problem(problem, theta)
+        resolve_proposal(problem.build(theta), self.proposal, self._prior(problem, theta))
+
     def _prior(self, problem: FitProblem, theta: Theta) -> GaussianPrior:
         """``initial``, else the system's ``initial_prior`` (validated; raises if neither)."""
         return initial_prior(problem.build(theta), self.initial)
