@@ -271,8 +271,20 @@ def smooth_batch(
     # traced numbers do not meet (and ``eqx.tree_at`` cannot reach a static field).
     canonical = copy.copy(solver)
     object.__setattr__(canonical, "max_steps", 0)
+    # The chunk as it acts at these shapes: "auto" and None (or a chunk ≥ B) that smooth every
+    # trajectory at once are one program, not two compiled alike.
+    object.__setattr__(canonical, "batch_chunk", _effective_chunk(solver, x_init))
     program = _smooth_batch_once if runs is Runs.ONCE else _smooth_batch
     return program(canonical, steps, system, x_init, data, covariance)
+
+
+def _effective_chunk(solver: LMSmoother, x_init: States) -> int | None:
+    """The trajectories smoothed at once at ``x_init``'s shape (``None``: all of them)."""
+    chunk = getattr(solver, "batch_chunk", None)
+    B, T, n = x_init.shape
+    if chunk == "auto":
+        chunk = auto_batch_chunk(B, T, n, x_init.dtype.itemsize)
+    return None if chunk is None or chunk >= B else int(chunk)
 
 
 def _smooth_batch_impl(
@@ -283,10 +295,7 @@ def _smooth_batch_impl(
     data: Trajectories,
     covariance: bool,
 ) -> SmootherSolution:
-    chunk = getattr(solver, "batch_chunk", None)
-    if chunk == "auto":
-        B, T, n = x_init.shape
-        chunk = auto_batch_chunk(B, T, n, x_init.dtype.itemsize)
+    chunk = _effective_chunk(solver, x_init)
 
     def batched(f, *args):
         """``vmap`` over the trajectories, in chunks of ``solver.batch_chunk`` when set."""
