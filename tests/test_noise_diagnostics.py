@@ -186,6 +186,8 @@ def test_the_outlier_test_finds_the_largest_error_and_its_bonferroni_p():
     np.testing.assert_allclose(ext.p[1], min(1.0, n2 * math.erfc(ext.size[1] / math.sqrt(2))))
     assert ext.p[1] > 0.01  # Gaussian errors: no outlier
     assert _extremes(np.full((1, 5, 1), np.nan)).at == (None,)
+    diverged = np.full((1, 5, 1), np.inf)  # a filter that diverged: no outlier claimed
+    assert _extremes(diverged).at == (None,) and not _extremes(diverged).p[0] < 0.01
     check = PredictionErrorCheck((0.5, 0.5), 25, ext)
     assert check.outliers == (0,) and check.white
     assert "OUTLIER at output 1: record 2, step 58, 30 predicted SDs (p = " in str(check)

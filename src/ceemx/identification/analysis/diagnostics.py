@@ -297,11 +297,15 @@ class Extremes(NamedTuple):
 
 
 def _extremes(z: np.ndarray) -> Extremes:
-    """:class:`Extremes` of (B, T, m) standardised errors, NaN where missing."""
+    """:class:`Extremes` of (B, T, m) standardised errors, NaN where missing.
+
+    Infinite errors (a filter that diverged) are left out: they are no sample of the noise.
+    """
     m = z.shape[-1]
     size, p, at = np.full(m, np.nan), np.full(m, np.nan), []
     for i in range(m):
         a = np.abs(z[..., i])
+        a = np.where(np.isfinite(a), a, np.nan)
         n = int(np.isfinite(a).sum())
         if n == 0:
             at.append(None)
