@@ -203,6 +203,39 @@ def test_term_rule_keeps_a_converged_solver_going_until_the_term_settled(monkeyp
     assert epochs._term_rule(term, _Solver(), _Problem(), None, info, True, False) == (True, False)
 
 
+def test_a_refused_continuation_start_restarts_that_weighting_from_the_guess(monkeypatch):
+    """The second weighting's fit refuses the first's end (e.g. a parameter pinned at its
+    bound): that weighting is fitted from the guess, the selection goes on; a refused guess
+    still raises."""
+    from ceemx.identification.fitting import driver
+
+    physics = LinearSystem(np.eye(1) * 0.5, np.eye(1), process_noise=0.1, obs_noise=0.1)
+    calls = []
+
+    def fake_fit(model, data, x0=None, **options):
+        calls.append((float(model.A[0, 0]), x0 is not None))
+        if x0 is not None:
+            raise ValueError("`A` lies at its bound")
+        return type("R", (), {"system": model, "states": "x", "history": [0, 1], "converged": True})
+
+    monkeypatch.setattr(driver, "fit", fake_fit)
+    judge = type("J", (), {"score": staticmethod(lambda system: 1.0)})
+    said = []
+    candidates, fits = hybrid_selection._physics_path(
+        physics, None, judge, [1.0, 0.1], 1.0, 5, said.append
+    )
+    assert [c.factor for c in candidates] == [1.0, 0.1] and len(fits) == 2
+    assert calls == [(0.5, False), (0.5, True), (0.5, False)]
+    assert any("refused as a start" in line and "from the guess" in line for line in said)
+
+    def refuse(model, data, x0=None, **options):
+        raise ValueError("the guess refused")
+
+    monkeypatch.setattr(driver, "fit", refuse)
+    with pytest.raises(ValueError, match="the guess refused"):
+        hybrid_selection._physics_path(physics, None, judge, [1.0], 1.0, 5, said.append)
+
+
 # ---------------------------------------------------------------- the procedure on a simulated case
 
 

@@ -379,7 +379,12 @@ def _physics_path(
     max_epochs: int,
     say: Callable[[str], Any],
 ) -> tuple[list[NoiseCandidate], list[FitResult]]:
-    """The loose-to-tight continuation of physics fits: (every candidate, every fit)."""
+    """The loose-to-tight continuation of physics fits: (every candidate, every fit).
+
+    Each fit starts from the last one's parameters and states; where the fit refuses that start
+    (a parameter the last fit pinned at its bound, a J not finite there), from the guess — a
+    refused start is a fact about the last fit, not a reason to lose the selection.
+    """
     from ceemx.identification.fitting.driver import fit
     from ceemx.identification.solvers.joint import JointLM
 
@@ -391,7 +396,15 @@ def _physics_path(
         start = physics if last is None else last.system
         model = with_noise(start, process_noise=physics.process_noise.scaled(f))
         x0 = None if last is None else last.states
-        res = fit(model, fit_part, x0, solver=JointLM(), max_epochs=max_epochs, diagnose=False)
+        try:
+            res = fit(model, fit_part, x0, solver=JointLM(), max_epochs=max_epochs, diagnose=False)
+        except ValueError as err:
+            if last is None:
+                raise
+            say(f"physics at noise × {f:.3g}: the last fit's end refused as a start ({err}); "
+                "from the guess")  # fmt: skip
+            model = with_noise(physics, process_noise=physics.process_noise.scaled(f))
+            res = fit(model, fit_part, solver=JointLM(), max_epochs=max_epochs, diagnose=False)
         rmse = judge.score(res.system)
         candidates.append(
             NoiseCandidate(
