@@ -281,6 +281,24 @@ def test_noise_rounds_that_do_not_settle_say_so(monkeypatch, lin_data):
     assert any("did not settle" in m for m in r.messages())
 
 
+def test_rounds_whose_noise_held_but_whose_fit_never_converged_say_which(monkeypatch, lin_data):
+    # the estimate never moves (change 0) but no round's fit converges: not "0 %, not settled",
+    # which reads as a contradiction, but what held and what did not
+    n = noise_rounds.MAX_NOISE_ROUNDS
+    fake = _Rounds([1.0] * (n + 1), converged=False)
+    monkeypatch.setattr(noise_rounds, "estimate_noise_prepared", fake.estimate)
+    monkeypatch.setattr(noise_rounds, "run_fit", fake.run_fit)
+    with pytest.warns(NoiseEstimateWarning, match="unsettled: the noise held, but the last "
+                      "round's fit did not converge. The result") as caught:  # fmt: skip
+        r = ceemx.fit(linear(), lin_data, jnp.zeros((2, 200, 2)), solver=ceemx.JointLM(),
+                      noise="learn")  # fmt: skip
+    assert not any("before the noise settled" in str(w.message) for w in caught)
+    assert not r.converged
+    text = " ".join(r.summary().split())
+    assert "(last change 0 %; the noise held, its fit did not converge)" in text
+    assert "not settled" not in text
+
+
 def test_noise_the_data_do_not_determine_is_not_fitted_at(monkeypatch, lin_data):
     # every estimate's evidence is flat over the whole box (σ_v held at its upper edge): no fit
     # runs at one; the fit runs at the noise given, converges, and the result says the noise
@@ -327,5 +345,5 @@ def test_degenerate_estimate_after_a_fit_that_did_not_converge_is_not_fitted_at(
         r = ceemx.fit(linear(), lin_data, x0, solver=ceemx.JointLM(), noise="learn")
     said = [str(w.message) for w in caught if w.category is NoiseEstimateWarning]
     assert any("could not learn the noise" in m for m in said)
-    assert any(f"stopped after {n} rounds before the noise settled" in m for m in said)
+    assert any(f"stopped after {n} rounds unsettled: the noise held" in m for m in said)
     assert fake.fitted_at == [pytest.approx(Q)] * n and not r.converged

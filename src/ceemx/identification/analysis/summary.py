@@ -415,9 +415,13 @@ def _rounds_line(rounds) -> str:
     change = last.get("change")
     text = f"noise learned in {_count(n, 'round')}"
     if change is not None:
-        text += f" (last change {100 * float(change):.3g} %" + (
-            ")" if last.get("settled") else ", not settled)"
-        )
+        if last.get("settled"):
+            verdict = ")"
+        elif last.get("noise_settled"):  # the noise held, the round's own fit did not converge
+            verdict = "; the noise held, its fit did not converge)"
+        else:
+            verdict = ", not settled)"
+        text += f" (last change {100 * float(change):.3g} %" + verdict
     if last.get("floored"):
         text += f"; held at a floor from the data: {', '.join(last['floored'])} (messages)"
     return text

@@ -120,7 +120,9 @@ def learn_noise(
         around = None if new_nm.degenerate else new
         settled = bool(change <= NOISE_ROUND_RTOL)
         rounds.append(_round_record(k, system, new_nm, result, time.perf_counter() - clock))
-        rounds[-1].update(change=change, settled=settled and bool(result.converged))
+        rounds[-1].update(
+            change=change, settled=settled and bool(result.converged), noise_settled=settled
+        )
         if (settled and result.converged) or not np.isfinite(change):
             break
         if not settled:  # the next round fits at the new estimate, from its MAP states
@@ -187,16 +189,19 @@ def _not_learned(rounds: list[dict]) -> str:
 
 
 def _unsettled(rounds: list[dict], converged: bool) -> str:
-    last = rounds[-1]
-    why = (
-        f"the last estimate moved a noise factor by {100 * last['change']:.3g} % (more than "
-        f"{100 * NOISE_ROUND_RTOL:.3g} %)"
-        if not last["change"] <= NOISE_ROUND_RTOL
-        else "the last round's fit did not converge"
-    )
+    last, n = rounds[-1], len(rounds) - 1
+    if last["change"] <= NOISE_ROUND_RTOL:
+        head = f"stopped after {n} rounds unsettled: the noise held, but the last round's fit"
+        why = " did not converge"
+    else:
+        head = f"stopped after {n} rounds before the noise settled"
+        why = (
+            f": the last estimate moved a noise factor by {100 * last['change']:.3g} % (more "
+            f"than {100 * NOISE_ROUND_RTOL:.3g} %)"
+            + ("" if converged else ", and its fit did not converge")
+        )
     return (
-        f"fit(..., noise='learn') stopped after {len(rounds) - 1} rounds before the noise "
-        f"settled: {why}{'' if converged else ', and its fit did not converge'}. The result is "
+        f"fit(..., noise='learn') {head}{why}. The result is "
         "the last round's fit at the noise it used, reported not converged "
         "(FitResult.noise_rounds holds every round). Fit again from it (more max_epochs), or "
         "at a fixed noise."
