@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import ceemx
+from ceemx.identification.analysis import noise_estimate
 from ceemx.identification.analysis.noise_check import noise_check
 from ceemx.identification.analysis.noise_estimate import (
     NoiseEstimateWarning,
@@ -193,14 +194,26 @@ def test_degenerate_observation_noise_is_held_at_the_evidence_margin(clean_data)
     assert above < edge - EVIDENCE_MARGIN
 
 
-def test_estimate_noise_flags_the_edge_of_its_search_box(lin_data):
-    # data 1e150× the guess's scale: the evidence rises to the box's upper edge (guess·e¹²),
-    # which the estimate returned without a word
+def test_estimate_noise_raises_its_box_above_the_guess_and_flags_its_last_edge(
+    lin_data, estimate_from_truth
+):
+    # data 1e7× the guess's scale (data in μm, noise guessed in m), beyond the box (guess·e¹²
+    # ≈ 1.6e5): the box is raised and the estimate is the truth's, 1e7× — it stopped at the
+    # edge, 61× too small, "converged", before; data 1e150× lie beyond every raise (e^48):
+    # flagged at the last edge
+    for factor in (1e7, 1e-7):  # and 1e-7× (data in m, noise guessed in μm): lowered
+        scaled = ceemx.Trajectories(lin_data.y * factor, lin_data.u)
+        est, nm, _ = estimate_noise(linear(), scaled)
+        assert nm.at_edge == ()
+        for field in ("process_noise", "obs_noise"):
+            want = factor * _std(getattr(estimate_from_truth, field))
+            assert _std(getattr(est, field)) == pytest.approx(want, rel=1e-3)
     big = ceemx.Trajectories(lin_data.y * 1e150, lin_data.u)
     with pytest.warns(NoiseEstimateWarning, match="upper edge of its search box"):
         est, nm, _ = estimate_noise(linear(), big)
     assert set(nm.at_edge) == {"process_noise", "obs_noise"}
-    assert _std(est.obs_noise) == pytest.approx(R * np.exp(12.0), rel=1e-9)
+    top = 12.0 * (1 + noise_estimate.RAISES)
+    assert _std(est.obs_noise) == pytest.approx(R * np.exp(top), rel=1e-9)
 
 
 def test_noise_is_not_learned_from_data_without_observation_or_variation(lin_data):

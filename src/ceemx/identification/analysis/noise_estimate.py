@@ -38,6 +38,8 @@ from ceemx.identification.analysis.evidence_search import (
     LOG_RANGE,
     EvidenceSearch,
     decade_grid,
+    lowered,
+    raised,
 )
 from ceemx.identification.analysis.noise_check import interpolates, square_sums
 from ceemx.identification.analysis.noise_floor import check_informative, flagged, with_floors
@@ -70,6 +72,11 @@ __all__ = [
 ]
 
 
+#: how many times the search box may move by LOG_RANGE beyond the guess's (a factor e^48 ≈ 7e20
+#: in all): raised above a scale at its upper edge, lowered when every scale is at its lower one
+RAISES = 3
+
+
 class NoiseMoments(eqx.Module):
     """Expected residual second moments under the Laplace posterior (module docs).
 
@@ -84,7 +91,8 @@ class NoiseMoments(eqx.Module):
         degenerate: the noise fields whose evidence maximum lies at the degenerate boundary
             σ_v → 0, the states interpolating the data (held at the evidence's margin).
         at_edge: the noise fields whose estimate sits at an edge of the search box
-            (guess·e^±12): the evidence kept rising beyond it.
+            (guess·e^±12, moved up to :data:`RAISES` times where the data's scale lay beyond
+            it): the evidence kept rising beyond it.
         notes: one sentence per floor or edge, with the numbers.
     """
 
@@ -232,7 +240,8 @@ def estimate_noise(
 
     σ_v is held at or above floors from the data (:mod:`~.noise_floor`: a quantised y's
     quantum/√12; where the evidence does not fall as σ_v → 0, the largest σ_v within 1.92 nats of
-    its maximum); a floor or an edge of the box (start·e^±12) is named in a warning.
+    its maximum); a floor or an edge of the box (start·e^±12, moved by e¹² up to three times
+    where the best sits at its upper edge or every scale at its lower one) is named in a warning.
 
     By default each noise model keeps its shape and learns one factor (its covariance times c²):
     the two factors of process and observation noise are what a guess gets wrong by orders of
@@ -372,6 +381,11 @@ def estimate_noise_prepared(
             part_evaluations = len(searched.cache)
         start = searched.best_z
     full.climb(start)
+    for _ in range(RAISES):  # a best at the box's upper edge, or every scale at its lower edge:
+        moved = raised(full) or lowered(full)  # the data's scale lies beyond the guess's box
+        if moved is None:
+            break
+        full = moved
     if "obs_noise" in fields:  # the degenerate boundary σ_v → 0 (analysis.noise_floor)
         best = full.best_z
         states = full.best["nm"].states

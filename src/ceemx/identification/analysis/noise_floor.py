@@ -319,6 +319,7 @@ _FLOOR_NOTES = {
 }
 _EDGE_NOTE = (
     "{field}: the estimate (std {std}) sits at the {way} edge of its search box (the start's "
-    "scale times e^±12): the evidence keeps rising beyond it — the data's scale far from the "
-    "guess, or a scale the data do not determine"
+    "scale times e^±12, moved beyond it where the data's scale lay there): the evidence keeps "
+    "rising beyond it — the data's scale far from the guess, or a scale the data do not "
+    "determine"
 )
