@@ -212,7 +212,7 @@ def test_estimate_noise_raises_its_box_above_the_guess_and_flags_its_last_edge(
     with pytest.warns(NoiseEstimateWarning, match="upper edge of its search box"):
         est, nm, _ = estimate_noise(linear(), big)
     assert set(nm.at_edge) == {"process_noise", "obs_noise"}
-    top = 12.0 * (1 + noise_estimate.RAISES)
+    top = 12.0 * (1 + noise_estimate.BOX_MOVES)
     assert _std(est.obs_noise) == pytest.approx(R * np.exp(top), rel=1e-9)
 
 

@@ -602,15 +602,22 @@ def _prediction_error_tests(c: Correlations, nis: np.ndarray, extremes: Extremes
     return tests
 
 
-def _outlier_message(i: int, extremes: Extremes) -> str:
-    """Output i's largest error is an outlier: where, how large, what to do."""
+def _outlier_where(i: int, extremes: Extremes) -> str:
+    """Output i's largest error in words: ``record 2, step 58, 30 predicted SDs (p = …)``."""
     b, t = extremes.at[i]
     return (
-        f"output {i + 1}: an outlier — the one-step prediction error at record {b + 1}, step "
-        f"{t + 1} is {extremes.size[i]:.3g} predicted standard deviations "
-        f"({_p_text(extremes.p[i])} for the largest of this many Gaussian errors): a glitch in "
-        "the data, or noise with heavier tails than the model's. A learned noise absorbs such a "
-        "sample and the estimate follows it; mask it (Trajectories(mask=...)) and fit again."
+        f"record {b + 1}, step {t + 1}, {extremes.size[i]:.3g} predicted SDs "
+        f"({_p_text(extremes.p[i])} for the largest of this many Gaussian errors)"
+    )
+
+
+def _outlier_message(i: int, extremes: Extremes) -> str:
+    """Output i's largest error is an outlier: where, how large, what to do."""
+    return (
+        f"output {i + 1}: an outlier among the one-step prediction errors at "
+        f"{_outlier_where(i, extremes)}: a glitch in the data, or noise with heavier tails than "
+        "the model's. A learned noise absorbs such a sample and the estimate follows it; mask it "
+        "(Trajectories(mask=...)) and fit again."
     )
 
 
@@ -731,12 +738,10 @@ class PredictionErrorCheck:
         text = self._whiteness()
         for i in self.outliers:
             assert self.extremes is not None
-            b, t = self.extremes.at[i]
             text += (
-                f"; an OUTLIER at output {i + 1}: record {b + 1}, step {t + 1}, "
-                f"{self.extremes.size[i]:.3g} predicted SDs ({_p_text(self.extremes.p[i])}): a "
-                "glitch in the data or heavier-tailed noise than the model's (a learned noise "
-                "absorbs a glitch); mask it and fit again"
+                f"; an OUTLIER at output {i + 1}: {_outlier_where(i, self.extremes)}: a glitch "
+                "in the data or heavier-tailed noise than the model's (a learned noise absorbs a "
+                "glitch); mask it and fit again"
             )
         return text
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DECADE", "EDGE", "LOG_RANGE", "EvidenceSearch", "decade_grid", "lowered", "raised"]
+__all__ = ["DECADE", "EDGE", "LOG_RANGE", "EvidenceSearch", "decade_grid", "moved"]
 
 #: how far (in log-scale) from its start a scale may move in one estimate: a factor e^12 ≈ 1.6e5
 LOG_RANGE = 12.0
@@ -156,42 +156,25 @@ class EvidenceSearch:
         return out
 
 
-def raised(search: EvidenceSearch) -> EvidenceSearch | None:
-    """The search with its box raised above every scale whose best sits at its upper edge.
+def moved(search: EvidenceSearch) -> EvidenceSearch | None:
+    """The search with its box moved by :data:`LOG_RANGE` where the data's scale lies beyond it.
 
-    Raised by :data:`LOG_RANGE`, and climbed from there; ``None`` where no scale is there. The
-    evidence falls as a scale → ∞ (the posterior's volume is paid for in the log-determinant
-    and the fit's misfit is spread thinner), so a best point at the upper edge is never its
-    maximum: the data's scale lies above the guess's box (data in μm, noise guessed in m). The
-    lower edge is another matter — a scale → 0 can be a real, flat limit (analysis.noise_floor).
+    Raised above every scale whose best sits at its upper edge: the evidence falls as a scale →
+    ∞ (the posterior's volume is paid for in the log-determinant and the misfit is spread
+    thinner), so a best there is never its maximum — the data's scale lies above the guess's box
+    (data in μm, noise guessed in m). Lowered only where every scale sits at its lower edge: one
+    scale there can be a real, flat limit (σ_v → 0 with the process noise carrying the
+    residuals, analysis.noise_floor; σ_w → 0 on a deterministic record), every scale at once is
+    the data's scale below the box. Climbed from the best so far; ``None`` where neither holds.
     """
     z = search.best_z
-    high = [i for i, (_, hi) in enumerate(search.box) if z[i] >= hi - EDGE]
-    if not high:
+    up = [LOG_RANGE if z[i] >= hi - EDGE else 0.0 for i, (_, hi) in enumerate(search.box)]
+    down = LOG_RANGE if all(z[i] <= lo + EDGE for i, (lo, _) in enumerate(search.box)) else 0.0
+    if not any(up) and not down:
         return None
     out = copy.copy(search)
-    up = [LOG_RANGE if i in high else 0.0 for i in range(z.size)]
-    out.box = [(lo, hi + d) for (lo, hi), d in zip(out.box, up, strict=True)]
-    out.bounds = [(lo, hi + d) for (lo, hi), d in zip(out.bounds, up, strict=True)]
-    out.best = dict(search.best)
-    out.climb(out.best_z)
-    return out
-
-
-def lowered(search: EvidenceSearch) -> EvidenceSearch | None:
-    """The search with its box lowered where every scale's best sits at its lower edge.
-
-    Lowered by :data:`LOG_RANGE`, and climbed from there; ``None`` where some scale is inside.
-    One scale at the lower edge can be a real limit (σ_v → 0 with the process noise carrying
-    the residuals; σ_w → 0 on a deterministic record); every scale there at once is the data's
-    scale lying below the guess's box (data in m, noise guessed in μm).
-    """
-    z = search.best_z
-    if not all(z[i] <= lo + EDGE for i, (lo, _) in enumerate(search.box)):
-        return None
-    out = copy.copy(search)
-    out.box = [(lo - LOG_RANGE, hi) for lo, hi in out.box]
-    out.bounds = [(lo - LOG_RANGE, hi) for lo, hi in out.bounds]
+    out.box = [(lo - down, hi + d) for (lo, hi), d in zip(out.box, up, strict=True)]
+    out.bounds = [(lo - down, hi + d) for (lo, hi), d in zip(out.bounds, up, strict=True)]
     out.best = dict(search.best)
     out.climb(out.best_z)
     return out

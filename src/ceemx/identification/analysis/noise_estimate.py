@@ -38,8 +38,7 @@ from ceemx.identification.analysis.evidence_search import (
     LOG_RANGE,
     EvidenceSearch,
     decade_grid,
-    lowered,
-    raised,
+    moved,
 )
 from ceemx.identification.analysis.noise_check import interpolates, square_sums
 from ceemx.identification.analysis.noise_floor import check_informative, flagged, with_floors
@@ -74,7 +73,7 @@ __all__ = [
 
 #: how many times the search box may move by LOG_RANGE beyond the guess's (a factor e^48 ≈ 7e20
 #: in all): raised above a scale at its upper edge, lowered when every scale is at its lower one
-RAISES = 3
+BOX_MOVES = 3
 
 
 class NoiseMoments(eqx.Module):
@@ -91,7 +90,7 @@ class NoiseMoments(eqx.Module):
         degenerate: the noise fields whose evidence maximum lies at the degenerate boundary
             σ_v → 0, the states interpolating the data (held at the evidence's margin).
         at_edge: the noise fields whose estimate sits at an edge of the search box
-            (guess·e^±12, moved up to :data:`RAISES` times where the data's scale lay beyond
+            (guess·e^±12, moved up to :data:`BOX_MOVES` times where the data's scale lay beyond
             it): the evidence kept rising beyond it.
         notes: one sentence per floor or edge, with the numbers.
     """
@@ -381,11 +380,11 @@ def estimate_noise_prepared(
             part_evaluations = len(searched.cache)
         start = searched.best_z
     full.climb(start)
-    for _ in range(RAISES):  # a best at the box's upper edge, or every scale at its lower edge:
-        moved = raised(full) or lowered(full)  # the data's scale lies beyond the guess's box
-        if moved is None:
+    for _ in range(BOX_MOVES):  # the data's scale beyond the guess's box (evidence_search.moved)
+        beyond = moved(full)
+        if beyond is None:
             break
-        full = moved
+        full = beyond
     if "obs_noise" in fields:  # the degenerate boundary σ_v → 0 (analysis.noise_floor)
         best = full.best_z
         states = full.best["nm"].states
