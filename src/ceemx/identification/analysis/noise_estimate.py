@@ -52,12 +52,11 @@ from ceemx.identification.noise_moments import (
 )
 from ceemx.inference.posterior import E_STEP_SMOOTHER, gaussian_posterior
 from ceemx.inference.smoother import LMSmoother
-from ceemx.infra.compilation import jit
 from ceemx.infra.options import check_bool, check_int
 from ceemx.infra.policy import entry_point
 from ceemx.infra.warn import warn
-from ceemx.lib.results import RESULTS
-from ceemx.lib.tree import trace_numbers
+from ceemx.lib.results import RESULTS, codes
+from ceemx.lib.tree import as_jax, trace_numbers
 from ceemx.models.system import AbstractSystem
 
 __all__ = [
@@ -125,11 +124,13 @@ class NoiseMoments(eqx.Module):
         return np.asarray(self.moments["obs_diag"]) / np.where(count > 0, count, 1.0)
 
 
-@jit
 def _moments(smoother: LMSmoother, system: AbstractSystem, x0, data: Trajectories):
+    # The posterior, its cubature points and the moments as three programs, not one: the first
+    # two are the programs Laplace EM, the covariance and the profiles compile for the same
+    # system, and the posterior's compilation is the largest of a fit's.
     post = gaussian_posterior(smoother, system, x0, data)
-    ok = post.status != RESULTS.nonfinite
-    weights = jnp.where(ok, 1.0, 0.0).astype(x0.dtype)
+    ok = codes(post.status) != codes(RESULTS.nonfinite)
+    weights = as_jax(ok.astype(np.dtype(x0.dtype)))
     points, pairs = cubature_points(post.states, post.covariances, post.cross)
     moments = noise_second_moments(system, points, pairs, data, weights)
     return moments, post.states, post.log_evidence, ok
