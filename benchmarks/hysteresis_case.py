@@ -35,7 +35,7 @@ static function of them; the hysteresis' memory is out of its reach and the floo
 target.
 
 Usage: ``python benchmarks/hysteresis_case.py [--n-train 8192] [--n-test 8192] [--seed 0]
-[--out benchmarks/results/hysteresis_case.json]``.
+[--term-epochs N] [--out benchmarks/results/hysteresis_case.json]``.
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -137,7 +138,9 @@ class BoucWenOscillator(ceemx.AbstractContinuousSystem):
     def vector_field(self, x, u, t):
         y, v, z = x[0], x[1], x[2]
         a = (u[0] - self.damping * v - self.stiffness * y - z) / self.mass
-        dz = self.alpha * v - self.beta * (self.gamma * jnp.abs(v) * z + self.delta * v * jnp.abs(z))
+        dz = self.alpha * v - self.beta * (
+            self.gamma * jnp.abs(v) * z + self.delta * v * jnp.abs(z)
+        )
         return jnp.stack([v, a, dz])
 
     def observe(self, x, u, t):
@@ -146,8 +149,15 @@ class BoucWenOscillator(ceemx.AbstractContinuousSystem):
 
 def truth() -> BoucWenOscillator:
     """The plant as a ceemx model (a small process noise for its initial-state estimate)."""
+    p = {k: jnp.asarray(v) for k, v in TRUE_PARAMETERS.items()}
     return BoucWenOscillator(
-        **{k: jnp.asarray(v) for k, v in TRUE_PARAMETERS.items()},
+        p["mass"],
+        p["damping"],
+        p["stiffness"],
+        p["alpha"],
+        p["beta"],
+        p["gamma"],
+        p["delta"],
         dt=DT,
         substeps=TRUE_SUBSTEPS,
         process_noise=jnp.asarray([1e-9, 1e-6, 1e-3]),
@@ -158,7 +168,9 @@ def truth() -> BoucWenOscillator:
 def guess() -> MassSpringDamper:
     """The user's physics at its guess; observation noise the sensor's, process noise alike."""
     return MassSpringDamper(
-        **{k: jnp.asarray(v) for k, v in GUESS.items()},
+        jnp.asarray(GUESS["mass"]),
+        jnp.asarray(GUESS["damping"]),
+        jnp.asarray(GUESS["stiffness"]),
         dt=DT,
         substeps=USER_SUBSTEPS,
         process_noise=OBS_NOISE,
@@ -225,8 +237,8 @@ def _params(system) -> dict[str, float]:
     return {k: float(getattr(system, k)) for k in GUESS}
 
 
-def run(n_train: int, n_test: int, seed: int) -> dict:
-    """Every stage of the case, its scores and times."""
+def run(n_train: int, n_test: int, seed: int, term_epochs: int | None = None) -> dict:
+    """Every stage of the case, its scores and times (``term_epochs``: else the default)."""
     out: dict = {"n_train": n_train, "n_test": n_test, "seed": seed, "uptime_start": _uptime()}
     load0 = os.getloadavg()[0]
     wall: dict[str, float] = {}
@@ -244,7 +256,10 @@ def run(n_train: int, n_test: int, seed: int) -> dict:
     print(f"physics fit: {wall['physics']:.1f} s, {len(physics.history)} iterations", flush=True)
 
     t0 = time.perf_counter()
-    sel = ceemx.fit_hybrid(guess(), rec.train, n_init=N_INIT, dynamics=(1,), progress=print)
+    budget: dict[str, Any] = {} if term_epochs is None else {"term_epochs": term_epochs}
+    sel = ceemx.fit_hybrid(
+        guess(), rec.train, n_init=N_INIT, dynamics=(1,), progress=print, **budget
+    )
     wall["fit_hybrid"] = time.perf_counter() - t0
     print(sel.summary(), flush=True)
 
@@ -275,13 +290,14 @@ def run(n_train: int, n_test: int, seed: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument("--n-train", type=int, default=PERIOD)
     parser.add_argument("--n-test", type=int, default=PERIOD)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--term-epochs", type=int, help="fit_hybrid's budget (else its default)")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "hysteresis_case.json")
     args = parser.parse_args(argv)
-    out = run(args.n_train, args.n_test, args.seed)
+    out = run(args.n_train, args.n_test, args.seed, args.term_epochs)
     s = out["scores_um"]
     print(
         "test free-run RMSE [µm]: "
