@@ -25,7 +25,7 @@ def short():
     return case.records(seed=1, n_train=300, n_test=200)
 
 
-@pytest.mark.slow  # two periods of 8,192 samples at 20 RK4 substeps, twice: ≈ 7 s
+@pytest.mark.slow  # two periods of 8,192 samples at 20 RK4 substeps, twice: 3–7 s
 def test_records_follow_the_plant_and_the_sensor(short):
     """The kept states follow the truth model's transition to rounding (no process noise), the
     outputs are the displacement plus the sensor noise, the input is the multisine of RMS 50 N,
@@ -58,7 +58,7 @@ def test_hysteretic_force_follows_the_benchmark_law():
     assert case.guess().state_dim == 2
 
 
-@pytest.mark.slow  # the procedure on 4,096 samples: ≈ 3–8 min on a loaded 2-core machine
+@pytest.mark.slow  # the procedure on 4,096 samples: ≈ 2–4 min on a loaded 2-core machine
 def test_fit_hybrid_beats_the_linear_physics_on_the_hysteretic_plant():
     """``fit_hybrid`` called as a user calls it on a plant whose hysteretic force (a hidden
     state) the linear physics lacks: on a test record of another multisine the hybrid
