@@ -236,6 +236,66 @@ def test_a_refused_continuation_start_restarts_that_weighting_from_the_guess(mon
         hybrid_selection._physics_path(physics, None, judge, [1.0], 1.0, 5, said.append)
 
 
+def test_patience_from_improvement_waits_for_the_first_real_improvement(monkeypatch):
+    """``patience_from="improvement"``: a score that sits within min_delta of the start does
+    not run the patience down (the default does: it stops after ``patience`` epochs); once
+    the score has improved by min_delta, the patience runs as usual."""
+    system, data = _tiny()
+    sitting = [1.0 - 1e-5 * k for k in range(1, 11)]  # under min_delta in all
+    falling = [0.99, 0.98] + [0.98] * 6
+    for mode, expected_stop in (("start", 3), ("improvement", 15)):
+        scores = iter([1.0, *sitting, *falling])  # the start's, then epochs 1, 2, …
+        monkeypatch.setattr(ceemx.EarlyStopping, "score", lambda self, system, s=scores: next(s))
+        stop = ceemx.EarlyStopping(data, n_init=5, patience=3, start=system, patience_from=mode)
+        out = [stop(ceemx.EpochInfo(k, k, None, {})) for k in range(1, 19)]
+        assert out.index(False) + 1 == expected_stop, mode
+        assert stop.stopped
+    assert stop.best_epoch == 12  # the last real improvement (0.98); the patience ran from it
+    with pytest.raises(ValueError, match="patience_from"):
+        ceemx.EarlyStopping(data, n_init=5, patience_from="never")
+
+
+def test_a_term_that_sits_at_its_start_is_not_stopped_there(monkeypatch):
+    """The selection's term training on a validation path that sits within 0.1 % of the
+    physics' score for 150 iterations, then falls 0.5 % an iteration for 60, then rises (the
+    Bouc–Wen case's term at a tight weighting): the training ends by the patience after the
+    best (iteration 210), not 30 iterations into the plateau (the regression: "iteration 30 of
+    30", the term never left its start)."""
+    from dataclasses import dataclass, field
+
+    start, data = _tiny()
+
+    def path(model) -> float:  # the model of an iteration is its number; the start's 0
+        epoch = 0 if model is start else model
+        sit = 1.0 - 5e-6 * min(epoch, 150)
+        return sit * 0.995 ** min(max(epoch - 150, 0), 60) * (1 + 1e-3 * max(epoch - 210, 0))
+
+    @dataclass
+    class Result:
+        history: list = field(default_factory=list)
+        system: object = None
+        theta: object = None
+        problem: object = None
+
+    def fake_fit(model, data, states, epochs, callbacks=()):
+        res = Result()
+        for e in range(1, epochs + 1):
+            info = ceemx.EpochInfo(e, e, None, {"epoch": e})
+            res.history.append(info.record)
+            if any(cb(info) is False for cb in callbacks):
+                break
+        return res
+
+    monkeypatch.setattr(hybrid_selection, "_fit_term", fake_fit)
+    monkeypatch.setattr(ceemx.EarlyStopping, "score", lambda self, system: path(system))
+    held = type("Physics", (), {"system": start, "states": None})
+    stopper, best, run, why = hybrid_selection._train_term(
+        lambda system, data, states: system, held, data, data, 5, 30, {}, 400
+    )
+    assert why["stopped_by"] == "patience"
+    assert stopper.best_epoch == best == 210 and run == 240
+
+
 # ---------------------------------------------------------------- the procedure on a simulated case
 
 

@@ -67,6 +67,12 @@ class EarlyStopping:
             physics model a hybrid starts from).
         score_options: keyword options of :func:`ceemx.benchmark_score` for the validation
             score (e.g. ``{"warm_process_noise": (1.0, None)}``: several initial-state starts).
+        patience_from: ``"start"`` (default): the patience runs from the fit's first epoch;
+            ``"improvement"``: from the first improvement of ``min_delta`` over the start (or,
+            without ``start``, from the first finite score) — a term started at zero can sit at
+            its start's score for many epochs while J climbs, then fall, and a fit that has
+            not yet left its start has not stopped improving (the fit's ``max_epochs`` bounds
+            the wait).
 
     After the fit, :attr:`best_system`, :attr:`best_epoch` and :attr:`best_rmse` hold the best
     model, :attr:`stopped` whether the patience ran out; :meth:`restore` returns the fit's result
@@ -90,6 +96,7 @@ class EarlyStopping:
         every: int = 1,
         start: AbstractSystem | None = None,
         score_options: dict[str, Any] | None = None,
+        patience_from: str = "start",
     ):
         """See the class docstring."""
         if not isinstance(validation, Trajectories):
@@ -115,6 +122,10 @@ class EarlyStopping:
                 f"`score_options` has unknown keys {unknown}; allowed: {sorted(SCORE_OPTIONS)} "
                 "(options of ceemx.benchmark_score)."
             )
+        if patience_from not in ("start", "improvement"):
+            raise ValueError(
+                f"`patience_from` must be 'start' or 'improvement'; got {patience_from!r}."
+            )
         if start is not None and not isinstance(start, AbstractSystem):
             raise TypeError(f"`start` must be a ceemx.AbstractSystem; got {type(start).__name__}.")
         self.validation = validation
@@ -123,6 +134,7 @@ class EarlyStopping:
         self.patience = patience
         self.min_delta = float(min_delta)
         self.every = every
+        self.patience_from = patience_from
         self._start: tuple[AbstractSystem, float] | None = None
         if start is not None:
             self._start = (start, self.score(start))
@@ -134,6 +146,7 @@ class EarlyStopping:
         self.best_epoch = 0
         self._progress_epoch = 0
         self._progress_rmse = math.inf  # the score at the last patience reset
+        self._improved_at: int | None = None  # the first reset's epoch (None: none yet)
         self.best_rmse = math.inf
         self.scores: list[tuple[int, float]] = []
         self._last_epoch = 0  # the last epoch of the fit being watched (0: none yet)
@@ -187,9 +200,12 @@ class EarlyStopping:
                 # patience counts from a real improvement: min_delta below the score at the last
                 # reset, so many small steps count once they add up
                 self._progress_epoch, self._progress_rmse = info.epoch, rmse
+                if self._improved_at is None:
+                    self._improved_at = info.epoch
             self.best_system, self.best_epoch, self.best_rmse = info.system, info.epoch, rmse
         info.record["val_rmse"] = rmse
-        if info.epoch - self._progress_epoch >= self.patience * self.every:
+        waiting = self.patience_from == "improvement" and self._improved_at is None
+        if not waiting and info.epoch - self._progress_epoch >= self.patience * self.every:
             self.stopped = True
             return False
         return {}

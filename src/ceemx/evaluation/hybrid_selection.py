@@ -36,9 +36,11 @@ score, measured on the held-out tail of the *training* record (never a test reco
    trained on the fit part by :class:`ceemx.JointLM` with weight decay, every iteration scored
    on the validation tail (:class:`ceemx.EarlyStopping`, the physics scored as iteration 0).
    The term leaves its zero start slowly — its free run can sit at the physics' score for tens
-   of iterations while J climbs, then fall, and it does not fall monotonically — so the training
-   stops only after ``patience`` iterations without a better score (counted from the last
-   improvement of at least ``min_delta``, relative), or at ``term_epochs``. The best iteration
+   to hundreds of iterations while J climbs, then fall, and it does not fall monotonically — so
+   the training stops only after ``patience`` iterations without a better score, counted from
+   the last improvement of at least ``min_delta`` (relative) and only once the term has made
+   one (``EarlyStopping(patience_from="improvement")``: a term still at its start has not
+   stopped improving), or at ``term_epochs``. The best iteration
    of the chosen weighting is the training length; when no iteration beats the physics, the
    term is left out (length 0).
 3. **Every sample in the final model** (``refit=True``): the physics is refitted on the whole
@@ -475,8 +477,9 @@ def _train_term(build, held_physics, fit_part, validation, n_init, patience, opt
     """
     model = build(held_physics.system, fit_part, states=held_physics.states)
     stopper = EarlyStopping(
-        validation, n_init, patience=patience, start=model, score_options=options
-    )
+        validation, n_init, patience=patience, start=model, score_options=options,
+        patience_from="improvement",
+    )  # fmt: skip
     if not epochs:
         return stopper, model, 0, {}
     res = _fit_term(model, fit_part, held_physics.states, epochs, callbacks=[stopper])
