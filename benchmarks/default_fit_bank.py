@@ -32,10 +32,9 @@ Configurations (``--models``; the five of ``DEFAULT_MODELS`` by default):
   steps uniform in ±2.5 N·m held 1 s and smoothed by a 0.2-s moving average — the amplitude
   chosen on the true system's simulations alone so that the swings reach the nonlinear range
   (largest |θ| per seed 1.3–2 rad, median 1.56, over seeds 0–19; never over the top); process
-  noise (1e-4, 1e-2)
-  (a rate disturbance of 1e-2 rad/s per step, the angle's only from integration), observation
-  noise 1e-3 rad (an encoder of ≈ 2,000 counts per turn, quantisation not modelled). Learned:
-  g/L, c, b (all positive).
+  noise (1e-4, 1e-2) (a rate disturbance of 1e-2 rad/s per step, the angle's 1e-4 rad
+  standing in for its integration), observation noise 1e-3 rad (an angle sensor's, 0.06°;
+  quantisation not modelled). Learned: g/L, c, b (all positive).
 - ``tanks`` (only by name): two cascaded tanks with Torricelli outflows, written as a process
   engineer would (not tuned either): ḣ1 = −a1 √h1 + k u, ḣ2 = a1 √h1 − a2 √h2, y = h2, levels in
   m, the roots of levels clipped at 1e-6 as in ``docs/real_data.md``; a1 = 0.02, a2 = 0.015
