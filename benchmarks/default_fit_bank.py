@@ -385,12 +385,11 @@ def _stiff_data(key, true):
     return ceemx.simulate(true, ks, jnp.zeros((2, 3)), 1000, u)[1]
 
 
-PENDULUM_OPTIONS = dict(dt=0.02, hold="foh", substeps=2)
 PENDULUM_TORQUE = 2.5  # the random steps lie in ±2.5 N·m: swings of |θ| up to ~1.5–2 rad
 
 
 def _pendulum(theta, pn, on):
-    return DrivenPendulum(**theta, process_noise=pn, obs_noise=on, **PENDULUM_OPTIONS)
+    return DrivenPendulum(**theta, dt=0.02, hold="foh", substeps=2, process_noise=pn, obs_noise=on)
 
 
 def _pendulum_data(key, true, steps=1500, hold=50, amplitude=PENDULUM_TORQUE):
