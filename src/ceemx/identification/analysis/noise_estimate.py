@@ -174,7 +174,7 @@ def moments_prepared(
     x0 = jnp.asarray(states)
     smoother = trace_numbers(E_STEP_SMOOTHER if smoother is None else smoother, x0.dtype)
     moments, x_hat, log_ev, ok = _moments(smoother, system, x0, data)
-    return NoiseMoments(moments, x_hat, log_ev, ok)
+    return NoiseMoments(moments, x_hat, log_ev, as_jax(ok))
 
 
 def noise_ratios(system: AbstractSystem, nm: NoiseMoments) -> dict[str, np.ndarray]:
