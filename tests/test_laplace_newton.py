@@ -35,13 +35,17 @@ def _problem(T=40):
     return system, ceemx.Trajectories(jnp.asarray(y))
 
 
+def _a(s):
+    return s.A
+
+
 def _fit(system, data, solver, epochs, states=None):
     return ceemx.fit(
         system,
         data,
         states,
         solver=solver,
-        trainable=lambda s: s.A,
+        trainable=_a,
         max_epochs=epochs,
         outliers="keep",
         diagnose=False,
@@ -79,7 +83,7 @@ def test_polish_returns_to_the_evidence_maximum():
     solver = LaplaceEM(rtol=1e-13)
     best = _fit(system, data, solver, 500)
     assert best.converged
-    problem, theta = FitProblem.create(best.system, data, trainable=lambda s: s.A)
+    problem, theta = FitProblem.create(best.system, data, trainable=_a)
     cov = np.asarray(evidence_covariance(problem, theta, best.states, smoother=solver.smoother))
     se = np.sqrt(np.diag(cov))
     off = 0.5 * se
