@@ -12,8 +12,6 @@ from ceemx.identification.fitting.fit_options import FitOptions
 from ceemx.identification.fitting.result import FitResult
 from ceemx.identification.fitting.start import FitStart, start_fit
 from ceemx.identification.solvers.base import FitState
-from ceemx.identification.solvers.laplace import LaplaceEM
-from ceemx.identification.solvers.laplace_newton import newton_polish
 from ceemx.models.system import AbstractSystem
 
 __all__ = ["run_fit"]
@@ -34,29 +32,25 @@ def run_fit(system: AbstractSystem, inputs: Prepared, options: FitOptions) -> Fi
         if start.compiling is not None:  # the epoch programs compiled beside the start states
             start.compiling.join()
         state, converged = run_epochs(start, options, bar)
-        solver = start.solver  # the epochs' own (its numbers as they ran)
-        if isinstance(solver, LaplaceEM) and solver.polish and start.history and not options.spread:
-            bar.status("Newton check of the end point")
-            state, converged = polish(start, solver, state, converged)
+        if start.history and not options.spread:  # the arrays of one host
+            state, converged = end_check(start, state, converged)
         bar.status("uncertainty and checks")
         result = finish_fit(start, state, converged, options)
         bar.close(outcome(start.history, options.max_epochs))
         return result
 
 
-def polish(
-    start: FitStart, solver: LaplaceEM, state: FitState, converged: bool
-) -> tuple[FitState, bool]:
-    """(state, converged) after ``LaplaceEM(polish=True)``'s Newton check of the end point.
+def end_check(start: FitStart, state: FitState, converged: bool) -> tuple[FitState, bool]:
+    """(state, converged) after the solver's check of the end point (``end_check``).
 
-    Its record joins the history as one more epoch (``newton_*`` keys); ``converged`` is the
-    check's verdict where it could make one, the epochs' otherwise.
+    Its record joins the history as one more epoch; ``converged`` is the check's verdict where
+    it made one, the epochs' otherwise.
     """
     t0 = time.perf_counter()
-    new, certified, own = newton_polish(solver, start.problem, state)
+    new, verdict, own = start.solver.end_check(start.problem, state)
     if not own:
         return state, converged
-    converged = converged if certified is None else certified
+    converged = converged if verdict is None else verdict
     record = epoch_record(len(start.history) + 1, state, new, time.perf_counter() - t0, own)
     record["converged"] = converged
     record["stop"] = True

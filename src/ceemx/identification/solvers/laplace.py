@@ -21,7 +21,10 @@ On a linear-Gaussian model q is the exact posterior and the rule integrates the 
 exactly, so the method is exact EM (tested against a Kalman/RTS EM to 1e-8 per iteration). The
 objective tracked is the Laplace approximation of the marginal log-likelihood
 log p(y | θ) ≈ J(x̂, θ) + (Tn/2) log 2π − ½ log det H (exact for linear-Gaussian models), in the
-history as ``log_evidence``; the fit stops when it changes by at most ``rtol·|J + c| + atol``.
+history as ``log_evidence``; the fit stops when it changes by at most ``rtol·|J + c| + atol``,
+and, not converged, at the first epoch that lowers it by more: EM climbs the evidence where its
+E-step is exact, and a fall means its fixed point lies past the evidence's maximum (a model
+curved in the state), so that epoch is discarded and the better point kept.
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ from ceemx.identification.solvers.base import (
     objective_scale,
     trajectory_log_likelihood,
 )
+from ceemx.identification.solvers.laplace_newton import newton_polish
 from ceemx.identification.solvers.laplace_qn import (
     QN_BACKTRACKS,
     QN_EXPAND,
@@ -135,7 +139,8 @@ class LaplaceEM(AbstractFitSolver):
             models it can take many more epochs than SQUAREM and stop below its evidence).
             ``None``: one plain EM update per epoch (exact EM).
         rtol, atol: stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``
-            in an epoch.
+            in an epoch; an epoch that lowers it by more is discarded and the fit stops there,
+            not converged.
         polish: after the epochs, test the end point on the Laplace evidence itself — its
             gradient and Hessian by finite differences — and take up to three Newton steps to
             its maximum (:mod:`~ceemx.identification.solvers.laplace_newton`); ``converged`` is
@@ -520,10 +525,21 @@ class LaplaceEM(AbstractFitSolver):
             return None
         return alpha, th3, e3, ls3, e_x.states
 
+    def end_check(
+        self, problem: FitProblem, state: FitState
+    ) -> tuple[FitState, bool | None, dict[str, Any]]:
+        """With ``polish``: Newton's check and polish on the evidence (:func:`newton_polish`)."""
+        if not self.polish:
+            return state, None, {}
+        return newton_polish(self, problem, state)
+
     def terminate(
         self, problem: FitProblem, before: FitState, after: FitState, record: dict[str, Any]
     ) -> tuple[bool, bool]:
-        """Stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``."""
+        """Stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``.
+
+        Stop, not converged, after an epoch ``step`` discarded for lowering it by more.
+        """
         if not np.any(np.asarray(after.weights) > 0):
             return True, False
         ev_before = _total(before.solver_state[1], after.weights)
