@@ -36,6 +36,7 @@ entry is NaN and a warning says so.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -60,6 +61,7 @@ __all__ = [
     "Estimate",
     "NamedEstimates",
     "evidence_covariance",
+    "evidence_function",
     "fit_covariance",
     "fit_parameter_estimates",
     "fit_standard_errors",
@@ -69,6 +71,7 @@ __all__ = [
     "schur_complement",
     "standard_errors",
     "standard_errors_by_name",
+    "stencil_hessian",
 ]
 
 _NOT_PD = (
@@ -273,6 +276,58 @@ def _ravel(tree, dtype) -> np.ndarray:
     return np.concatenate([np.ravel(a) for a in jtu.tree_leaves(tree)] + [np.zeros(0, dtype)])
 
 
+def evidence_function(
+    problem: FitProblem,
+    theta: Theta,
+    states: States,
+    weights: PerTrajectory | None = None,
+    smoother=None,
+) -> Callable[[np.ndarray], float]:
+    """``offset ↦ ℓ(θ + offset)``, the Laplace log-evidence Σ_b w_b log p(y_b | θ + offset).
+
+    Each value is a MAP smoothing from ``states`` and the log-determinant of its Gauss–Newton
+    matrix (:func:`ceemx.inference.posterior.gaussian_posterior`); ``smoother`` (``None``: an
+    LM smoother at ``rtol=1e-14``) with its numbers traced, so that every θ runs one program.
+    """
+    from ceemx.inference.posterior import gaussian_posterior
+    from ceemx.inference.smoother import LMSmoother
+    from ceemx.lib.tree import trace_numbers
+
+    if weights is None:
+        weights = jnp.ones(states.shape[0], states.dtype)
+    smoother = trace_numbers(LMSmoother(rtol=1e-14) if smoother is None else smoother, states.dtype)
+    w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
+    th0 = np.asarray(theta, dtype=np.float64)
+
+    def ell(offset: np.ndarray) -> float:
+        th = jnp.asarray(th0 + offset, theta.dtype)
+        post = gaussian_posterior(smoother, problem.build(th), states, problem.data)
+        return float(np.sum(w * np.asarray(post.log_evidence)))
+
+    return ell
+
+
+def stencil_hessian(f: Callable[[np.ndarray], float], h: np.ndarray) -> np.ndarray:
+    """The (P, P) Hessian of ``f`` at offset 0 by central differences with steps ``h``.
+
+    ``f`` takes an offset from the point; 2P² + 1 evaluations (the diagonal from three points,
+    each off-diagonal entry from four).
+    """
+    P = h.size
+    f0 = f(np.zeros(P))
+    eye = np.eye(P)
+    H = np.zeros((P, P))
+    for i in range(P):
+        ei = h[i] * eye[i]
+        H[i, i] = (f(ei) - 2.0 * f0 + f(-ei)) / h[i] ** 2
+        for j in range(i):
+            ej = h[j] * eye[j]
+            H[i, j] = H[j, i] = (f(ei + ej) - f(ei - ej) - f(-ei + ej) + f(-ei - ej)) / (
+                4.0 * h[i] * h[j]
+            )
+    return H
+
+
 def evidence_covariance(
     problem: FitProblem,
     theta: Theta,
@@ -297,34 +352,10 @@ def evidence_covariance(
         The (P, P) covariance; all NaN, with a warning, when −∇²ℓ is not positive definite
         (not at a maximum, or a parameter is not identifiable).
     """
-    from ceemx.inference.posterior import gaussian_posterior
-    from ceemx.inference.smoother import LMSmoother
-    from ceemx.lib.tree import trace_numbers
-
-    if weights is None:
-        weights = jnp.ones(states.shape[0], states.dtype)
-    smoother = trace_numbers(LMSmoother(rtol=1e-14) if smoother is None else smoother, states.dtype)
-    w = np.where(np.asarray(weights) > 0, np.asarray(weights), 0.0)
     th0 = np.asarray(theta, dtype=np.float64)
     P = th0.size
     h = rel_step * np.maximum(np.abs(th0), 0.01)
-
-    def ell(offset: np.ndarray) -> float:
-        th = jnp.asarray(th0 + offset, theta.dtype)
-        post = gaussian_posterior(smoother, problem.build(th), states, problem.data)
-        return float(np.sum(w * np.asarray(post.log_evidence)))
-
-    f0 = ell(np.zeros(P))
-    eye = np.eye(P)
-    H = np.zeros((P, P))
-    for i in range(P):
-        ei = h[i] * eye[i]
-        H[i, i] = (ell(ei) - 2.0 * f0 + ell(-ei)) / h[i] ** 2
-        for j in range(i):
-            ej = h[j] * eye[j]
-            H[i, j] = H[j, i] = (ell(ei + ej) - ell(ei - ej) - ell(-ei + ej) + ell(-ei - ej)) / (
-                4.0 * h[i] * h[j]
-            )
+    H = stencil_hessian(evidence_function(problem, theta, states, weights, smoother), h)
     info = -0.5 * (H + H.T)
     try:
         chol = np.linalg.cholesky(info)

@@ -24,7 +24,13 @@ path"; the measurements behind it in ``docs/decisions.md``):
    noise scales are two numbers, which a part determines to a percent or so; learning them on
    every step costs ten joint fits), and the finish takes quasi-Newton steps
    (``acceleration="quasi_newton"``, after its own coarse start on the first 10 000 steps).
-   The finish stops when an epoch changes the log-evidence by less than :data:`FINISH_ATOL`.
+   The finish stops when an epoch changes the log-evidence by less than :data:`FINISH_ATOL`,
+   or at the first epoch that lowers it by more (where the model is curved in the state, EM's
+   fixed point lies past the evidence's maximum); on short data and θ of at most
+   :data:`~ceemx.identification.solvers.laplace_newton.POLISH_MAX_PARAMETERS` entries it then
+   tests the end point on the evidence itself and takes Newton steps to its maximum
+   (``LaplaceEM(polish=True)``: the evidence's gradient and Hessian by finite differences, a
+   few hundred smoothings at most; on long data each smoothing is of all of them).
    The finish is skipped, and says why, when the joint fit's covariance is not positive definite
    (:func:`~ceemx.identification.fitting.default_path.fit_default`): a noise learned degenerate —
    a process noise → 0 on data without any — where Laplace EM creeps for its whole epoch budget
@@ -54,6 +60,7 @@ from ceemx.identification.solvers.alternating import Alternating
 from ceemx.identification.solvers.base import AbstractFitSolver
 from ceemx.identification.solvers.joint import JointLM
 from ceemx.identification.solvers.laplace import LaplaceEM
+from ceemx.identification.solvers.laplace_newton import POLISH_MAX_PARAMETERS
 from ceemx.identification.solvers.laplace_qn import QN_MAX_PARAMETERS
 from ceemx.lib.typing import Theta
 from ceemx.models.system import AbstractSystem
@@ -243,7 +250,11 @@ def choose(
     learn = noise != "fixed"
     long = B * T >= LONG_STEPS
     part = coarse_shape(B, T, NOISE_PART_STEPS) if (learn and long and not placed) else None
-    finish = LaplaceEM(acceleration="quasi_newton" if long else "squarem", atol=FINISH_ATOL)
+    finish = LaplaceEM(
+        acceleration="quasi_newton" if long else "squarem",
+        atol=FINISH_ATOL,
+        polish=not long and parameters <= POLISH_MAX_PARAMETERS,
+    )
     noise_words = "the noise learned from the data" if learn else "the noise as given"
     reason = (
         f"{size}: the joint method (fast where parameters are few) with {noise_words}, then a "

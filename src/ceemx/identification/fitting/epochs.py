@@ -23,7 +23,7 @@ from ceemx.infra import checkpoint as ckpt
 from ceemx.infra.distributed import is_main_process, to_host
 from ceemx.infra.progress import Progress
 
-__all__ = ["fit_progress", "outcome", "run_epochs"]
+__all__ = ["epoch_record", "fit_progress", "outcome", "run_epochs"]
 
 
 def fit_progress(options: FitOptions, name: str) -> Progress:
@@ -70,7 +70,7 @@ def run_epochs(
         if epoch == 1 and all_failed(state) and not all_failed(before):
             # why every trajectory failed at once, when the start says (else the status does)
             refuse_failed_start(problem, before.theta, before.states, solver, at_init=False)
-        record = _record(epoch, before, state, time.perf_counter() - t0, own)
+        record = epoch_record(epoch, before, state, time.perf_counter() - t0, own)
         stop, converged = solver.terminate(problem, before, state, record)
         info = EpochInfo(epoch, problem.build(state.theta), state.states, record)
         if term is not None:
@@ -107,7 +107,7 @@ def _save(options: FitOptions, state: FitState, history: list, fingerprint) -> N
         ckpt.save(options.checkpoint, saved, history, fingerprint)
 
 
-def _record(epoch: int, before: FitState, after: FitState, elapsed: float, own: dict) -> dict:
+def epoch_record(epoch: int, before: FitState, after: FitState, elapsed: float, own: dict) -> dict:
     """The driver's history keys (see :class:`ceemx.FitResult`) and the solver's own."""
     ok = to_host(after.weights) > 0
     dx = np.where(ok[:, None, None], to_host(after.states) - to_host(before.states), 0.0)

@@ -121,7 +121,10 @@ def _never_moved(state: FitState, history: list) -> bool:
     """
     steps = np.asarray([h["dtheta_norm"] for h in history], np.float64)
     theta_size = np.size(state.theta)
-    if theta_size > 0 and np.all(steps == 0.0):
+    # an epoch whose move was discarded for lowering the evidence (Laplace EM's
+    # ``evidence_fell``) moved: its θ stays because the start was the better point
+    moved = any(h.get("evidence_fell") for h in history)
+    if theta_size > 0 and np.all(steps == 0.0) and not moved:
         return True
     if not all(h["dx_norm"] == 0.0 for h in history):
         return False

@@ -265,6 +265,18 @@ class AbstractFitSolver(eqx.Module):
         converged = improvement_converged(problem, before, after, self.rtol, self.atol)
         return converged, converged
 
+    def end_check(
+        self, problem: FitProblem, state: FitState
+    ) -> tuple[FitState, bool | None, dict[str, Any]]:
+        """A check of the epochs' end point, after them: (state, verdict, record).
+
+        ``verdict``: whether the end point is an optimum (``None``: no verdict — the epochs'
+        stands); a non-empty ``record`` joins the history as one more record. Default: none
+        (``state``, ``None``, ``{}``); :class:`ceemx.LaplaceEM` with ``polish``: Newton on the
+        Laplace evidence.
+        """
+        return state, None, {}
+
     def postprocess(self, problem: FitProblem, state: FitState) -> FitState:
         """The final state (default: unchanged)."""
         return state

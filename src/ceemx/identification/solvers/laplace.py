@@ -21,7 +21,10 @@ On a linear-Gaussian model q is the exact posterior and the rule integrates the 
 exactly, so the method is exact EM (tested against a Kalman/RTS EM to 1e-8 per iteration). The
 objective tracked is the Laplace approximation of the marginal log-likelihood
 log p(y | θ) ≈ J(x̂, θ) + (Tn/2) log 2π − ½ log det H (exact for linear-Gaussian models), in the
-history as ``log_evidence``; the fit stops when it changes by at most ``rtol·|J + c| + atol``.
+history as ``log_evidence``; the fit stops when it changes by at most ``rtol·|J + c| + atol``,
+and, not converged, at the first epoch that lowers it by more: EM climbs the evidence where its
+E-step is exact, and a fall means its fixed point lies past the evidence's maximum (a model
+curved in the state), so that epoch is discarded and the better point kept.
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ from ceemx.identification.solvers.base import (
     objective_scale,
     trajectory_log_likelihood,
 )
+from ceemx.identification.solvers.laplace_newton import newton_polish
 from ceemx.identification.solvers.laplace_qn import (
     QN_BACKTRACKS,
     QN_EXPAND,
@@ -135,7 +139,15 @@ class LaplaceEM(AbstractFitSolver):
             models it can take many more epochs than SQUAREM and stop below its evidence).
             ``None``: one plain EM update per epoch (exact EM).
         rtol, atol: stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``
-            in an epoch.
+            in an epoch; an epoch that lowers it by more is discarded and the fit stops there,
+            not converged.
+        polish: after the epochs, test the end point on the Laplace evidence itself — its
+            gradient and Hessian by finite differences — and take up to three Newton steps to
+            its maximum (:mod:`~ceemx.identification.solvers.laplace_newton`); ``converged`` is
+            then the test's verdict where the evidence's Hessian is negative definite. For θ of
+            at most ``POLISH_MAX_PARAMETERS`` entries (each test costs 2P² + 2P + 1
+            smoothings). Where the model is curved in the state, EM's fixed point is not the
+            evidence's maximum, and no change-per-epoch rule tells the two apart.
         coarse_start: long data start from a fit on part of them. When the data hold at least
             ``COARSE_FACTOR`` (4) × ``coarse_start`` time steps (B·T), this solver first fits
             about ``coarse_start`` of them — the first b = ⌈coarse_start / T⌉ trajectories, each
@@ -157,6 +169,7 @@ class LaplaceEM(AbstractFitSolver):
     rtol: float = 1e-10
     atol: float = 0.0
     coarse_start: int | None = eqx.field(default=COARSE_STEPS, static=True)
+    polish: bool = eqx.field(default=False, static=True)
 
     learns_noise: ClassVar[bool] = True
     uncertainty = "evidence"
@@ -178,6 +191,12 @@ class LaplaceEM(AbstractFitSolver):
         "coarse_converged": "epoch 1 only: whether the coarse start's fit converged",
         "coarse_time": "epoch 1 only: seconds in the coarse start (its fit and the check)",
         "coarse_used": "epoch 1 only: whether the coarse fit's θ started the fit",
+        "evidence_fell": "nats the epoch's updates lowered the log-evidence by, beyond the "
+        "tolerance: they were discarded (the epoch's θ is the previous one) and the fit stopped",
+        "newton_steps": "the polish's record only (``polish``): Newton steps kept",
+        "newton_decrements": "the polish's Newton decrements ½ gᵀ(−H)⁻¹g, one per test (nats)",
+        "newton_gain": "the polish's rise of the log-evidence (+ log-prior), nats",
+        "newton_result": "the polish's verdict in words",
     }
 
     def __check_init__(self):
@@ -370,6 +389,21 @@ class LaplaceEM(AbstractFitSolver):
         if e0 is None:  # resumed from a checkpoint: the posteriors at θ, from the saved start
             # (as computed before the checkpoint; not counted in this epoch's record)
             e0 = self._posterior(problem, state.theta, start, quiet=True)
+        new, record = self._advance(problem, state, e0, learner_state, start, record)
+        # EM climbs the evidence; an epoch that lowers it beyond the tolerance has passed EM's
+        # fixed point beyond the evidence's maximum (the E-step inexact: a model curved in the
+        # state): the previous point is the better one, and the fit stops there
+        before = _total(state.solver_state[1], new.weights)
+        after = record["log_evidence"]
+        tol = float(self.rtol) * objective_scale(problem, state) + float(self.atol)
+        if np.isfinite(before) and np.isfinite(after) and after < before - tol:
+            record["evidence_fell"] = before - after
+            record["log_evidence"] = before
+            return dataclasses.replace(state, cache=e0), record
+        return new, record
+
+    def _advance(self, problem, state, e0, learner_state, start, record):
+        """The epoch's updates from the posteriors ``e0`` at ``state.theta``."""
         if self.acceleration == "quasi_newton":
             return self._qn_step(problem, state, e0, learner_state, record)
         th0 = state.theta
@@ -491,16 +525,29 @@ class LaplaceEM(AbstractFitSolver):
             return None
         return alpha, th3, e3, ls3, e_x.states
 
+    def end_check(
+        self, problem: FitProblem, state: FitState
+    ) -> tuple[FitState, bool | None, dict[str, Any]]:
+        """With ``polish``: Newton's check and polish on the evidence (:func:`newton_polish`)."""
+        if not self.polish:
+            return state, None, {}
+        return newton_polish(self, problem, state)
+
     def terminate(
         self, problem: FitProblem, before: FitState, after: FitState, record: dict[str, Any]
     ) -> tuple[bool, bool]:
-        """Stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``."""
+        """Stop when the Laplace log-evidence changes by at most ``rtol·|J + c| + atol``.
+
+        Stop, not converged, after an epoch ``step`` discarded for lowering it by more.
+        """
         if not np.any(np.asarray(after.weights) > 0):
             return True, False
         ev_before = _total(before.solver_state[1], after.weights)
         ev_after = _total(after.solver_state[1], after.weights)
         if not np.isfinite(ev_after):
             return False, False
+        if "evidence_fell" in record:  # the epoch was discarded (``step``): stop, unproven
+            return True, False
         tol = float(self.rtol) * objective_scale(problem, after) + float(self.atol)
         converged = bool(abs(ev_after - ev_before) <= tol)
         return converged, converged
