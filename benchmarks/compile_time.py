@@ -19,8 +19,9 @@ this fresh process, then ``NSTEADY`` (default 5) more, timed (median). ``jax.mon
 per compiled program, the seconds of tracing, lowering and XLA compilation (with a warm
 persistent cache the retrieval); ``VERBOSE=1`` prints them per program, ``PROF=FILE`` writes a
 cProfile of the first fit; with ``CACHE_DIR`` the persistent cache is on. ``SOLVER=alternating``
-fits with ``ceemx.Alternating()`` instead; ``BACKGROUND=1`` / ``0`` forces the background
-compilation of the epoch programs on / off (``fit`` decides by ``compiles_ahead()`` otherwise).
+fits with ``ceemx.Alternating()`` instead, ``SOLVER=auto`` by the default path (no solver
+named); ``BACKGROUND=1`` / ``0`` forces the background compilation of the epoch programs on /
+off (``fit`` decides by ``compiles_ahead()`` otherwise).
 
 ``one-shot``: each case compiled twice in one process — optimised (``jit``) and one-shot
 (``one_shot_jit``: LLVM -O0, one code-generation module) — then called alternately
@@ -198,15 +199,19 @@ def phases(argv: list[str]) -> None:
     )
     y = jnp.asarray(p.data.y).block_until_ready()
 
+    named = os.environ.get("SOLVER")
+    # SOLVER=auto: no solver named, the default path (its noise stage and Laplace finish)
+    solver = {"auto": {}, "alternating": {"solver": ceemx.Alternating()}}.get(
+        named, {"solver": ceemx.JointLM()}
+    )
+
     def one():
         r = ceemx.fit(
             guess,
             ceemx.Trajectories(y),
-            solver=ceemx.Alternating()
-            if os.environ.get("SOLVER") == "alternating"
-            else ceemx.JointLM(),
             trainable=common.LORENZ_PARAMS,
             progress=False,
+            **solver,
         )
         r.states.block_until_ready()
         return r

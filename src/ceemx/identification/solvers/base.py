@@ -49,6 +49,7 @@ __all__ = [
     "FitState",
     "improvement_converged",
     "objective_scale",
+    "participating_sum",
     "starting_state",
     "total_J",
     "trajectory_log_likelihood",
@@ -103,16 +104,21 @@ def starting_state(
     )
 
 
-def total_J(state: FitState) -> float:
-    """Σ_b J_b over the trajectories taking part (host-side); NaN when none takes part.
+def participating_sum(values, weights) -> float:
+    """Σ_b of per-trajectory ``values`` over the trajectories with weight > 0 (host-side).
 
-    (An empty sum of 0.0 would read as a finite, even a good, objective in the history of an
-    epoch whose every trajectory failed.)
+    NaN when none takes part: an empty sum of 0.0 would read as a finite, even a good, objective
+    in the history of an epoch whose every trajectory failed.
     """
-    w = to_host(state.weights)
+    w = to_host(weights)
     if not np.any(w > 0):
         return float("nan")
-    return float(np.sum(np.where(w > 0, to_host(state.J), 0.0)))
+    return float(np.sum(np.where(w > 0, to_host(values), 0.0)))
+
+
+def total_J(state: FitState) -> float:
+    """Σ_b J_b over the trajectories taking part (:func:`participating_sum`)."""
+    return participating_sum(state.J, state.weights)
 
 
 def improvement_converged(

@@ -57,6 +57,7 @@ from ceemx.identification.solvers.base import (
     FitState,
     check_alternation,
     objective_scale,
+    participating_sum,
     trajectory_log_likelihood,
 )
 from ceemx.identification.solvers.laplace_newton import newton_polish
@@ -313,9 +314,9 @@ class LaplaceEM(AbstractFitSolver):
             "coarse_used": False,
         }
         if e_c is not None and bool(jnp.all(e_c.status != RESULTS.nonfinite)):
-            f0 = _total(e.log_evidence, 1.0) + log_prior_value(problem, theta)
+            f0 = participating_sum(e.log_evidence, 1.0) + log_prior_value(problem, theta)
             f0 = f0 if np.isfinite(f0) else -np.inf  # a failed start: any finite fit is better
-            f_c = _total(e_c.log_evidence, 1.0) + log_prior_value(problem, theta_c)
+            f_c = participating_sum(e_c.log_evidence, 1.0) + log_prior_value(problem, theta_c)
             if np.isfinite(f_c) and f_c >= f0:
                 record["coarse_used"] = True
                 theta, e = theta_c, e_c
@@ -393,7 +394,7 @@ class LaplaceEM(AbstractFitSolver):
         # EM climbs the evidence; an epoch that lowers it beyond the tolerance has passed EM's
         # fixed point beyond the evidence's maximum (the E-step inexact: a model curved in the
         # state): the previous point is the better one, and the fit stops there
-        before = _total(state.solver_state[1], new.weights)
+        before = participating_sum(state.solver_state[1], new.weights)
         after = record["log_evidence"]
         tol = float(self.rtol) * objective_scale(problem, state) + float(self.atol)
         if np.isfinite(before) and np.isfinite(after) and after < before - tol:
@@ -425,7 +426,7 @@ class LaplaceEM(AbstractFitSolver):
             if problem.trains(field):
                 cov = np.asarray(getattr(system, field).covariance())
                 record[f"{field}_std"] = np.sqrt(np.diagonal(cov)).tolist()
-        record["log_evidence"] = _total(e.log_evidence, new.weights)
+        record["log_evidence"] = participating_sum(e.log_evidence, new.weights)
         return new, record
 
     def _qn_step(self, problem, state, e0, memory, record):
@@ -441,7 +442,9 @@ class LaplaceEM(AbstractFitSolver):
         t0 = time.perf_counter()
         coords = Coordinates(problem, state.theta)
         z = coords.z(state.theta)
-        f0 = _total(e0.log_evidence, _weights(e0)) + log_prior_value(problem, state.theta)
+        f0 = participating_sum(e0.log_evidence, _weights(e0)) + log_prior_value(
+            problem, state.theta
+        )
         d = Hinv @ g
         big = float(np.max(np.abs(d))) if d.size else 0.0
         if big > QN_MAX_STEP:
@@ -456,7 +459,11 @@ class LaplaceEM(AbstractFitSolver):
             e_t = self._timed_posterior(problem, theta_t, e0.states, record, quiet=True)
             if not bool(jnp.all(e_t.status != RESULTS.nonfinite)):
                 return None
-            return _total(e_t.log_evidence, 1.0) + log_prior_value(problem, theta_t), theta_t, e_t
+            return (
+                participating_sum(e_t.log_evidence, 1.0) + log_prior_value(problem, theta_t),
+                theta_t,
+                e_t,
+            )
 
         step, accepted = 1.0, None
         if slope > 0 and np.all(np.isfinite(d)):
@@ -521,7 +528,7 @@ class LaplaceEM(AbstractFitSolver):
         if not bool(jnp.all(e_x.status != RESULTS.nonfinite)):
             return None
         th3, ls3, e3 = self._em_update(problem, th_x, e_x, learner_state, record)
-        if _total(e3.log_evidence, 1.0) < _total(e2.log_evidence, 1.0):
+        if participating_sum(e3.log_evidence, 1.0) < participating_sum(e2.log_evidence, 1.0):
             return None
         return alpha, th3, e3, ls3, e_x.states
 
@@ -542,8 +549,8 @@ class LaplaceEM(AbstractFitSolver):
         """
         if not np.any(np.asarray(after.weights) > 0):
             return True, False
-        ev_before = _total(before.solver_state[1], after.weights)
-        ev_after = _total(after.solver_state[1], after.weights)
+        ev_before = participating_sum(before.solver_state[1], after.weights)
+        ev_after = participating_sum(after.solver_state[1], after.weights)
         if not np.isfinite(ev_after):
             return False, False
         if "evidence_fell" in record:  # the epoch was discarded (``step``): stop, unproven
@@ -568,14 +575,6 @@ def _valid(problem: FitProblem, theta: Theta) -> bool:
 def _weights(e: GaussianPosterior) -> PerTrajectory:
     """(B,) 1 where the E-step succeeded, 0 where it failed (excluded from the M-step)."""
     return jnp.where(e.status == RESULTS.nonfinite, 0.0, 1.0).astype(e.states.dtype)
-
-
-def _total(values, weights) -> float:
-    """Σ over the trajectories with weight > 0; NaN when none has (not an empty sum of 0)."""
-    w = np.asarray(weights)
-    if not np.any(w > 0):
-        return float("nan")
-    return float(np.sum(np.where(w > 0, np.asarray(values), 0.0)))
 
 
 class _NoiseSplit:

@@ -28,7 +28,7 @@ import numpy as np
 
 from ceemx.identification.analysis.uncertainty import evidence_function, stencil_hessian
 from ceemx.identification.problem import FitProblem
-from ceemx.identification.solvers.base import FitState
+from ceemx.identification.solvers.base import FitState, participating_sum
 from ceemx.identification.solvers.laplace_qn import log_prior_value
 
 if TYPE_CHECKING:
@@ -74,10 +74,10 @@ def newton_polish(
         return state, None, {}
     dtype = state.theta.dtype
     theta = np.asarray(state.theta, np.float64)
+    start, e = state.states, None  # the last kept step's smoother start and posterior
     states = state.states
     decrements: list[float] = []
     steps, gain, certified, why = 0, 0.0, None, ""
-    f0 = float("nan")
     while True:
         ell = evidence_function(
             problem, jnp.asarray(theta, dtype), states, state.weights, solver.smoother
@@ -117,28 +117,20 @@ def newton_polish(
         theta = theta + kept[0] * d
         gain += kept[1] - f0
         steps += 1
-        states = solver._posterior(problem, jnp.asarray(theta, dtype), states, quiet=True).states
+        start = states
+        e = solver._posterior(problem, jnp.asarray(theta, dtype), start, quiet=True)
+        states = e.states
     record = {
         "newton_steps": steps,
         "newton_decrements": decrements,
         "newton_gain": gain,
         "newton_result": why,
     }
-    if steps == 0:
-        record["log_evidence"] = _evidence(state)
-        return state, certified, record
-    th = jnp.asarray(theta, dtype)
-    e = solver._posterior(problem, th, state.states, quiet=True)
-    learner_state, _, _ = state.solver_state
-    new = solver._state(problem, th, e, state.states, learner_state)
-    record["log_evidence"] = _evidence(new)
-    return new, certified, record
-
-
-def _evidence(state: FitState) -> float:
-    """Σ over the trajectories taking part of the state's log-evidence."""
-    w = np.asarray(state.weights)
-    return float(np.sum(np.where(w > 0, np.asarray(state.solver_state[1]), 0.0)))
+    if e is not None:  # a step was kept: the fit state of its posterior
+        learner_state, _, _ = state.solver_state
+        state = solver._state(problem, jnp.asarray(theta, dtype), e, start, learner_state)
+    record["log_evidence"] = participating_sum(state.solver_state[1], state.weights)
+    return state, certified, record
 
 
 def _solve_pd(info: np.ndarray, g: np.ndarray) -> np.ndarray | None:
